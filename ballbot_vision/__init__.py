@@ -1,0 +1,1 @@
+"""ballbot-vision: stereo obstacle detection as Zenoh microservices."""

@@ -1,0 +1,21 @@
+"""Error types that name what was wrong and where; the CLI prints them without a traceback."""
+
+
+class BallbotError(Exception):
+    """Base of every error a user can cause (bad file, bad setting, bad message)."""
+
+
+class CalibrationError(BallbotError):
+    """A calibration file or profile that must not be used."""
+
+
+class ConfigError(BallbotError):
+    """A setting out of range or of the wrong type."""
+
+
+class DecodeError(BallbotError):
+    """A message that cannot be decoded into its model (garbage, wrong schema version, bad image)."""
+
+
+class SourceError(BallbotError):
+    """A capture source that cannot be opened or read."""
