@@ -1,0 +1,211 @@
+"""`ballbot-vision`: the one entry point (see README for every command)."""
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import logging
+import os
+import sys
+import time
+
+from .common.errors import BallbotError
+from .common.settings import add_settings_arguments, load_settings
+from .common.zenoh_session import DEFAULT_ROUTER, ZenohOptions, add_zenoh_arguments, options_from_args
+
+log = logging.getLogger("ballbot")
+
+# A service folder's name is its process name, its compose service name and its `producer` entry.
+SERVICES = {
+    "capture": ("ballbot_vision.services.capture.main", "CaptureSettings"),
+    "rectify": ("ballbot_vision.services.rectify.main", "RectifySettings"),
+    "disparity": ("ballbot_vision.services.disparity.main", "DisparitySettings"),
+    "segmenter": ("ballbot_vision.services.segmenter.main", "SegmenterSettings"),
+}
+PIPELINE = ["capture", "rectify", "disparity", "segmenter"]
+
+
+def service_module(name: str):
+    module, settings = SERVICES[name]
+    m = importlib.import_module(module)
+    return m, getattr(m, settings)
+
+
+def robot_id(args: argparse.Namespace) -> str:
+    return args.robot_id or os.environ.get("BALLBOT_ROBOT_ID") or "ballbot"
+
+
+def config_file(args: argparse.Namespace) -> str | None:
+    return getattr(args, "config", None) or os.environ.get("BALLBOT_CONFIG")
+
+
+def zenoh_options(args: argparse.Namespace, service: str | None = None) -> ZenohOptions:
+    o = options_from_args(args)
+    if service == "router":
+        # A router listens where the others connect; it connects out only when told to.
+        explicit_listen = getattr(args, "listen", None) or os.environ.get("BALLBOT_LISTEN")
+        o.mode = "router"
+        o.listen = o.listen if explicit_listen else [DEFAULT_ROUTER]
+        o.connect = getattr(args, "connect", None) or [e for e in os.environ.get("BALLBOT_CONNECT", "").split(",") if e]
+    return o
+
+
+# --- run / up ----------------------------------------------------------------------------------
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from .common.node import Node
+
+    if args.service == "router":
+        return run_router(zenoh_options(args, "router"), robot_id(args))
+    m, settings_cls = service_module(args.service)
+    settings = load_settings(settings_cls, config_file(args), args)
+    with Node(args.service, zenoh_options(args), robot_id(args), instance=args.instance) as node:
+        m.run(node, settings)
+    return 0
+
+
+def run_router(o: ZenohOptions, rid: str) -> int:
+    from .common.node import Node
+
+    with Node("router", o, rid) as node:
+        log.info("zenoh router listening on %s", ", ".join(o.listen))
+        node.stop_event.wait()
+    return 0
+
+
+def cmd_up(args: argparse.Namespace) -> int:
+    from .supervisor import Supervisor
+
+    o = zenoh_options(args)
+    endpoint = o.connect[0] if o.connect else DEFAULT_ROUTER
+    common = ["--robot-id", robot_id(args)]
+    if config_file(args):
+        common += ["--config", config_file(args)]
+    sup = Supervisor()
+    sup.add("router", ["run", "router", "--listen", endpoint] + common)
+    for name in PIPELINE:
+        sup.add(name, ["run", name, "--connect", endpoint] + common)
+    print(f"ballbot-vision: starting {', '.join(['router'] + PIPELINE)}; router on {endpoint}", flush=True)
+    print(f"ballbot-vision: obstacles are published on ballbot/obstacles/{robot_id(args)} "
+          f"(watch them with: ballbot-vision watch --connect {endpoint})", flush=True)
+    return sup.run(wait_for_endpoint=endpoint)
+
+
+# --- watch / status / schema -------------------------------------------------------------------
+
+def cmd_watch(args: argparse.Namespace) -> int:
+    from .watch import watch
+
+    return watch(zenoh_options(args), args.robot, args.json, args.count, args.timeout)
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    from .status import status
+
+    return status(zenoh_options(args), args.robot or "*", args.wait, args.json)
+
+
+def cmd_schema(args: argparse.Namespace) -> int:
+    from .common.messages import PUBLIC_MODELS
+
+    if args.model:
+        if args.model not in PUBLIC_MODELS:
+            raise BallbotError(f"unknown message {args.model!r}; known: {', '.join(PUBLIC_MODELS)}")
+        doc = PUBLIC_MODELS[args.model].model_json_schema()
+    else:
+        doc = {name: m.model_json_schema() for name, m in PUBLIC_MODELS.items()}
+    print(json.dumps(doc, indent=2))
+    return 0
+
+
+def cmd_keys(args: argparse.Namespace) -> int:
+    from .common.keys import TOPICS
+
+    rid = robot_id(args)
+    print(f"{'key':52} {'message':14} {'producer':14} {'rate':>6}  description")
+    for t in TOPICS.values():
+        print(f"{t.pattern(rid):52} {(t.model.__name__ if t.model else 'liveliness'):14} {t.producer:14} "
+              f"{(str(t.rate_hz) + ' Hz') if t.rate_hz else 'event':>6}  {t.description}")
+    return 0
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from .bench.pipeline import bench_main
+
+    return bench_main(args)
+
+
+# --- parser ------------------------------------------------------------------------------------
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="ballbot-vision", description=__doc__)
+    p.add_argument("--log-level", default=os.environ.get("BALLBOT_LOG", "INFO"), help="[BALLBOT_LOG]")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    def common(sp: argparse.ArgumentParser) -> argparse.ArgumentParser:
+        sp.add_argument("--robot-id", default=None, help="robot id in every key [BALLBOT_ROBOT_ID] (default: ballbot)")
+        sp.add_argument("--config", default=None, metavar="FILE",
+                        help="YAML file with one section per service [BALLBOT_CONFIG]")
+        add_zenoh_arguments(sp)
+        return sp
+
+    up = common(sub.add_parser("up", help="start every service as a separate process; Ctrl-C stops all"))
+    up.set_defaults(func=cmd_up)
+
+    run = sub.add_parser("run", help="start one service (what a container runs)")
+    run_sub = run.add_subparsers(dest="service", required=True, metavar="SERVICE")
+    r = common(run_sub.add_parser("router", help="a Zenoh router (a Python session in router mode)"))
+    r.add_argument("--instance", default=None)
+    r.set_defaults(func=cmd_run)
+    for name in SERVICES:
+        _, settings_cls = service_module(name)
+        sp = common(run_sub.add_parser(name, help=(service_module(name)[0].__doc__ or "").strip().splitlines()[0]))
+        sp.add_argument("--instance", default=None, help="instance name in stats and liveliness (default: host-pid)")
+        add_settings_arguments(sp, settings_cls)
+        sp.set_defaults(func=cmd_run)
+
+    w = common(sub.add_parser("watch", help="print obstacle lists from ballbot/obstacles/**"))
+    w.add_argument("--robot", default=None, help="only this robot (default: every robot)")
+    w.add_argument("--json", action="store_true", help="one JSON object per obstacle list")
+    w.add_argument("--count", type=int, default=0, help="exit after N lists (0: run until Ctrl-C)")
+    w.add_argument("--timeout", type=float, default=0, help="exit with status 1 if nothing arrives in this many s")
+    w.set_defaults(func=cmd_watch)
+
+    s = common(sub.add_parser("status", help="every live service instance: rate, latency, drops, errors"))
+    s.add_argument("--robot", default=None, help="only this robot")
+    s.add_argument("--wait", type=float, default=2.5, help="seconds to listen for stats")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_status)
+
+    sc = sub.add_parser("schema", help="JSON Schema of the public messages")
+    sc.add_argument("model", nargs="?", default=None, help="one message (default: all)")
+    sc.set_defaults(func=cmd_schema)
+
+    k = sub.add_parser("keys", help="the Zenoh key table")
+    k.add_argument("--robot-id", default=None)
+    k.set_defaults(func=cmd_keys)
+
+    b = common(sub.add_parser("bench", help="throughput and latency, per stage and end to end"))
+    from .bench.pipeline import add_bench_arguments
+
+    add_bench_arguments(b)
+    b.set_defaults(func=cmd_bench)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    from .common.node import setup_logging
+
+    args = build_parser().parse_args(argv)
+    setup_logging(args.log_level.upper())
+    try:
+        return args.func(args) or 0
+    except BallbotError as e:
+        print(f"ballbot-vision: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,117 @@
+"""`ballbot-vision up`: every service as its own OS process, restarted if it dies, all stopped
+within 2 s on Ctrl-C or SIGTERM, and none left behind if the supervisor itself is killed."""
+from __future__ import annotations
+
+import ctypes
+import logging
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+
+log = logging.getLogger("ballbot.up")
+
+PR_SET_PDEATHSIG = 1
+
+
+def _die_with_parent() -> None:
+    # Runs in the child before exec: the kernel sends SIGTERM to it when the supervisor dies.
+    try:
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+    except OSError:
+        pass
+
+
+def wait_for_tcp(endpoint: str, timeout_s: float, stop: threading.Event) -> bool:
+    """True once something accepts TCP connections at a tcp/HOST:PORT endpoint."""
+    if not endpoint.startswith("tcp/"):
+        return True
+    host, _, port = endpoint[4:].rpartition(":")
+    host = host.strip("[]")
+    if host in ("0.0.0.0", "::"):
+        host = "127.0.0.1"
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline and not stop.is_set():
+        try:
+            socket.create_connection((host, int(port)), timeout=0.5).close()
+            return True
+        except OSError:
+            stop.wait(0.05)
+    return False
+
+
+@dataclass
+class Child:
+    name: str
+    argv: list[str]
+    proc: subprocess.Popen | None = None
+    restarts: int = 0
+    next_start: float = 0.0
+    backoff_s: float = field(default=0.5)
+
+
+class Supervisor:
+    def __init__(self, stop_timeout_s: float = 1.5):
+        self.children: list[Child] = []
+        self.stop = threading.Event()
+        self.stop_timeout_s = stop_timeout_s
+
+    def add(self, name: str, argv: list[str]) -> None:
+        self.children.append(Child(name, argv))
+
+    def _start(self, c: Child) -> None:
+        c.proc = subprocess.Popen([sys.executable, "-m", "ballbot_vision.cli", *c.argv], preexec_fn=_die_with_parent)
+        log.info("started %s (pid %d)", c.name, c.proc.pid)
+
+    def start_all(self, wait_for_endpoint: str | None = None) -> None:
+        """Start the first child (the router), wait until it accepts connections, then the rest."""
+        first, rest = self.children[0], self.children[1:]
+        self._start(first)
+        if wait_for_endpoint and not wait_for_tcp(wait_for_endpoint, 15.0, self.stop):
+            if not self.stop.is_set():
+                log.error("%s is not accepting connections on %s after 15 s", first.name, wait_for_endpoint)
+        for c in rest:
+            if not self.stop.is_set():
+                self._start(c)
+
+    def run(self, wait_for_endpoint: str | None = None) -> int:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: self.stop.set())
+        try:
+            self.start_all(wait_for_endpoint)
+            while not self.stop.wait(0.1):
+                self._restart_dead()
+        finally:
+            self.stop_all()
+        return 0
+
+    def _restart_dead(self) -> None:
+        now = time.monotonic()
+        for c in self.children:
+            if c.proc is not None and c.proc.poll() is not None:
+                log.warning("%s exited with status %s; restarting in %.1f s", c.name, c.proc.returncode, c.backoff_s)
+                c.proc = None
+                c.next_start = now + c.backoff_s
+                c.backoff_s = min(c.backoff_s * 2, 10.0)
+                c.restarts += 1
+            elif c.proc is None and now >= c.next_start:
+                self._start(c)
+
+    def stop_all(self) -> None:
+        live = [c.proc for c in self.children if c.proc is not None and c.proc.poll() is None]
+        for p in live:
+            try:
+                p.send_signal(signal.SIGTERM)
+            except ProcessLookupError:
+                pass
+        deadline = time.monotonic() + self.stop_timeout_s
+        for p in live:
+            try:
+                p.wait(max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                log.warning("pid %d did not stop in time; killing it", p.pid)
+                p.kill()
+                p.wait()

@@ -1,0 +1,71 @@
+"""`ballbot-vision watch`: what a planner would see on ballbot/obstacles/**."""
+from __future__ import annotations
+
+import json
+import queue
+import sys
+import time
+
+from .common import codec
+from .common.errors import DecodeError
+from .common.keys import OBSTACLES_ALL, topic
+from .common.messages import ObstacleList
+from .common.zenoh_session import ZenohOptions, open_session
+
+
+def format_table(msg: ObstacleList) -> str:
+    age_ms = (time.time_ns() - msg.stamp_ns) / 1e6
+    head = (f"robot {msg.robot_id}  seq {msg.seq}  age {age_ms:6.1f} ms  {len(msg.obstacles)} obstacle(s)"
+            f"{'  STALE' if msg.stale else ''}")
+    lines = [head, f"{'id':>4} {'x m':>7} {'y m':>7} {'z m':>7} {'dist m':>7} {'w x h x d m':>17} "
+                   f"{'vx,vz m/s':>11} {'disp px':>8} {'conf':>5}"]
+    for o in msg.obstacles:
+        x, y, z = o.position_m
+        w, h, d = o.size_m
+        lines.append(f"{o.id:>4} {x:7.2f} {y:7.2f} {z:7.2f} {o.distance_m:7.2f} {w:5.2f}x{h:5.2f}x{d:5.2f} "
+                     f"{o.velocity_mps[0]:5.2f},{o.velocity_mps[2]:5.2f} {o.disparity_px:8.2f} {o.confidence:5.2f}")
+    return "\n".join(lines)
+
+
+def watch(opts: ZenohOptions, robot: str | None, as_json: bool, count: int, timeout_s: float) -> int:
+    inbox: queue.Queue[bytes] = queue.Queue(maxsize=256)
+
+    def on_sample(sample) -> None:
+        payload = sample.payload.to_bytes()
+        try:
+            inbox.put_nowait(payload)
+        except queue.Full:  # a stalled terminal must not grow memory: drop the oldest
+            try:
+                inbox.get_nowait()
+            except queue.Empty:
+                pass
+            inbox.put_nowait(payload)
+
+    key = topic("obstacles").key(robot) if robot else OBSTACLES_ALL
+    seen = 0
+    tty = sys.stdout.isatty() and not as_json
+    with open_session(opts) as session:
+        session.declare_subscriber(key, on_sample)
+        if not as_json:
+            print(f"watching {key} (Ctrl-C to stop)", file=sys.stderr, flush=True)
+        last = time.monotonic()
+        while count <= 0 or seen < count:
+            try:
+                payload = inbox.get(timeout=0.2)
+            except queue.Empty:
+                if timeout_s and time.monotonic() - last > timeout_s:
+                    print(f"no obstacle list on {key} within {timeout_s:g} s", file=sys.stderr)
+                    return 1
+                continue
+            try:
+                msg = codec.decode(payload, ObstacleList)
+            except DecodeError as e:
+                print(f"skipped a bad message: {e}", file=sys.stderr)
+                continue
+            last = time.monotonic()
+            seen += 1
+            if as_json:
+                print(msg.model_dump_json(), flush=True)
+            else:
+                print(("\x1b[H\x1b[2J" if tty else "") + format_table(msg), flush=True)
+    return 0

@@ -1,0 +1,83 @@
+"""msgpack on the wire, and numpy <-> Image payloads (raw, png, jpeg)."""
+from __future__ import annotations
+
+from typing import TypeVar
+
+import msgpack
+import numpy as np
+from pydantic import BaseModel, ValidationError
+
+from .errors import DecodeError
+from .messages import SCHEMA_VERSION, Image
+
+M = TypeVar("M", bound=BaseModel)
+
+
+def encode(msg: BaseModel) -> bytes:
+    return msgpack.packb(msg.model_dump(mode="python"), use_bin_type=True)
+
+
+def decode(payload: bytes, model: type[M]) -> M:
+    """Decode and validate; any problem becomes a DecodeError that says what was wrong."""
+    try:
+        doc = msgpack.unpackb(payload, raw=False, strict_map_key=False)
+    except Exception as e:  # msgpack raises several unrelated types for garbage
+        raise DecodeError(f"{model.__name__}: not msgpack ({type(e).__name__}: {e})") from None
+    if not isinstance(doc, dict):
+        raise DecodeError(f"{model.__name__}: expected a map, got {type(doc).__name__}")
+    version = doc.get("schema_version")
+    if version != SCHEMA_VERSION:
+        raise DecodeError(f"{model.__name__}: schema_version {version!r}, this build reads {SCHEMA_VERSION}")
+    try:
+        return model.model_validate(doc)
+    except ValidationError as e:
+        first = e.errors()[0]
+        where = ".".join(str(p) for p in first["loc"])
+        raise DecodeError(f"{model.__name__}.{where}: {first['msg']} ({e.error_count()} error(s))") from None
+
+
+def image_from_array(a: np.ndarray, encoding: str = "raw", jpeg_quality: int = 90) -> Image:
+    """a: (H, W) or (H, W, 3) array of uint8/uint16/int16/float32. png keeps uint8/uint16 lossless;
+    jpeg is uint8 only."""
+    import cv2
+
+    if a.ndim not in (2, 3) or (a.ndim == 3 and a.shape[2] != 3):
+        raise ValueError(f"image must be HxW or HxWx3, got shape {a.shape}")
+    channels = 1 if a.ndim == 2 else 3
+    dtype = str(a.dtype)
+    if encoding == "raw":
+        data = np.ascontiguousarray(a).tobytes()
+    elif encoding == "png":
+        if dtype not in ("uint8", "uint16"):
+            raise ValueError(f"png carries uint8 or uint16, not {dtype}")
+        ok, buf = cv2.imencode(".png", a, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+        data = buf.tobytes()
+    elif encoding == "jpeg":
+        if dtype != "uint8":
+            raise ValueError(f"jpeg carries uint8, not {dtype}")
+        ok, buf = cv2.imencode(".jpg", a, [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)])
+        data = buf.tobytes()
+    else:
+        raise ValueError(f"unknown image encoding {encoding!r} (raw, png, jpeg)")
+    return Image(width=a.shape[1], height=a.shape[0], channels=channels, dtype=dtype, encoding=encoding, data=data)
+
+
+def array_from_image(img: Image, name: str = "image") -> np.ndarray:
+    """Inverse of image_from_array; checks the payload against the stated size and dtype.
+    The returned array may be read-only (it can share the message's buffer)."""
+    import cv2
+
+    shape = (img.height, img.width) if img.channels == 1 else (img.height, img.width, img.channels)
+    dtype = np.dtype(img.dtype)
+    if img.encoding == "raw":
+        expected = int(np.prod(shape)) * dtype.itemsize
+        if len(img.data) != expected:
+            raise DecodeError(f"{name}: {len(img.data)} bytes for a {img.width}x{img.height}x{img.channels} "
+                              f"{img.dtype} image, expected {expected}")
+        return np.frombuffer(img.data, dtype=dtype).reshape(shape)
+    a = cv2.imdecode(np.frombuffer(img.data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if a is None:
+        raise DecodeError(f"{name}: {img.encoding} payload of {len(img.data)} bytes does not decode")
+    if a.shape != shape or a.dtype != dtype:
+        raise DecodeError(f"{name}: decoded {a.shape} {a.dtype}, message states {shape} {img.dtype}")
+    return a

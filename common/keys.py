@@ -1,0 +1,58 @@
+"""The one table of Zenoh keys. No service spells a key string itself: it asks this table.
+
+Public: `ballbot/obstacles/<robot_id>`. Everything else lives under `ballbot/<robot_id>/`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from pydantic import BaseModel
+
+from .messages import DisparityMap, GroundTruth, ObstacleList, ServiceStats, StereoFrame
+
+
+@dataclass(frozen=True)
+class Topic:
+    name: str
+    template: str
+    model: type[BaseModel] | None  # None: a liveliness token, no payload
+    producer: str
+    rate_hz: float  # expected rate; 0 = event-driven
+    consumers: tuple[str, ...]
+    description: str
+    image_stream: bool = False  # large payloads: newest wins, DROP under congestion
+
+    def key(self, robot_id: str, **fields: str) -> str:
+        return self.template.format(robot_id=robot_id, **fields)
+
+    def pattern(self, robot_id: str = "*") -> str:
+        """Key expression matching every instance of this topic (wildcards for unknown fields)."""
+        out = self.template.replace("{robot_id}", robot_id)
+        while "{" in out:
+            i, j = out.index("{"), out.index("}")
+            out = out[:i] + "*" + out[j + 1:]
+        return out
+
+
+TOPICS: dict[str, Topic] = {t.name: t for t in [
+    Topic("frames_raw", "ballbot/{robot_id}/frames/raw", StereoFrame, "capture", 30.0, ("rectify",),
+          "raw stereo pair, left and right share seq and stamp", image_stream=True),
+    Topic("truth", "ballbot/{robot_id}/truth", GroundTruth, "capture", 30.0, ("eval", "tests"),
+          "ground truth of the synthetic scene for the pair with the same seq"),
+    Topic("frames_rect", "ballbot/{robot_id}/frames/rectified", StereoFrame, "rectify", 30.0, ("disparity",),
+          "rectified pair with its camera model", image_stream=True),
+    Topic("disparity", "ballbot/{robot_id}/disparity", DisparityMap, "disparity", 30.0, ("segmenter",),
+          "disparity map of the rectified left image, fixed point", image_stream=True),
+    Topic("obstacles", "ballbot/obstacles/{robot_id}", ObstacleList, "segmenter", 30.0, ("anyone",),
+          "PUBLIC: obstacle list with 3D positions in metres"),
+    Topic("stats", "ballbot/{robot_id}/stats/{service}/{instance}", ServiceStats, "every service", 1.0,
+          ("status",), "per-instance rate, latency, drops and errors, once a second"),
+    Topic("alive", "ballbot/{robot_id}/alive/{service}/{instance}", None, "every service", 0.0,
+          ("status",), "liveliness token of a running instance"),
+]}
+
+OBSTACLES_ALL = "ballbot/obstacles/**"
+
+
+def topic(name: str) -> Topic:
+    return TOPICS[name]

@@ -1,0 +1,154 @@
+"""The messages that travel over Zenoh. Pydantic models, msgpack on the wire (see codec.py).
+
+Every message carries `schema_version`, `robot_id`, `seq` (the capture sequence number) and
+`stamp_ns` (capture time, ns since the Unix epoch). `stages` maps a service name to the time (ns)
+that service published its output for this `seq`, so latency can be split per stage.
+
+Frame convention: "camera" is the rectified left camera, OpenCV optical axes (x right, y down,
+z forward), metres. "base" is the robot base frame of ROS REP 103 (x forward, y left, z up).
+"""
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+SCHEMA_VERSION = 1
+
+Vec3 = tuple[float, float, float]
+
+
+class Message(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    schema_version: int = SCHEMA_VERSION
+    robot_id: str = Field(min_length=1, max_length=64)
+    seq: int = Field(ge=0, description="capture sequence number, shared by everything derived from one pair")
+    stamp_ns: int = Field(ge=0, description="capture time of the pair, ns since the Unix epoch")
+    stages: dict[str, int] = Field(default_factory=dict, description="service -> publish time (ns) for this seq")
+
+
+class Image(BaseModel):
+    """One image. For encoding 'raw', `data` is the row-major pixel buffer (height, width[, channels])."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    width: int = Field(gt=0, le=16384)
+    height: int = Field(gt=0, le=16384)
+    channels: Literal[1, 3] = 1
+    dtype: Literal["uint8", "uint16", "int16", "float32"] = "uint8"
+    encoding: Literal["raw", "png", "jpeg"] = "raw"
+    data: bytes
+
+
+class CameraModel(BaseModel):
+    """The rectified camera: Z = focal_px * baseline_m / d; X = (u - cx) Z / f; Y = (v - cy) Z / f."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    width: int = Field(gt=0)
+    height: int = Field(gt=0)
+    focal_px: float = Field(gt=0)
+    cx: float
+    cy: float
+    baseline_m: float = Field(gt=0)
+    Q: list[float] = Field(min_length=16, max_length=16, description="4x4 disparity-to-depth matrix, row-major")
+
+
+class StereoFrame(Message):
+    """One stereo pair. Raw from capture (camera=None) or rectified by rectify (camera set)."""
+
+    left: Image
+    right: Image
+    camera: CameraModel | None = None
+    source: str = ""
+
+
+class DisparityMap(Message):
+    """Disparity of the rectified left image. pixel value / scale = disparity in px;
+    pixels equal to invalid_value carry no measurement. depth_m = focal_px * baseline_m / disparity."""
+
+    image: Image
+    scale: float = Field(gt=0, description="fixed-point scale: disparity_px = value / scale")
+    invalid_value: float = Field(description="raw pixel value marking 'no disparity'")
+    min_disparity: int
+    num_disparities: int = Field(gt=0)
+    camera: CameraModel
+    method: str
+    worker: str = ""
+
+
+class Obstacle(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    id: int = Field(ge=0, description="track id, stable across frames")
+    position_m: Vec3 = Field(description="3D centroid, camera frame")
+    size_m: Vec3 = Field(description="extent along x, y, z, camera frame")
+    distance_m: float = Field(ge=0, description="distance to the nearest point of the obstacle")
+    velocity_mps: Vec3 = (0.0, 0.0, 0.0)
+    bbox_px: tuple[int, int, int, int] = Field(description="x0, y0, x1, y1 in the rectified left image")
+    area_px: int = Field(ge=0)
+    disparity_px: float = Field(description="robust (mode) disparity of the region")
+    confidence: float = Field(ge=0, le=1, description="fraction of the region with valid disparity")
+    position_base_m: Vec3 | None = Field(default=None, description="3D centroid in the robot base frame, if mounted")
+
+
+class ObstacleList(Message):
+    publish_ns: int = Field(ge=0)
+    stale: bool = Field(description="true when the input stream stopped or fell behind")
+    frame_id: Literal["camera"] = "camera"
+    method: str = ""
+    obstacles: list[Obstacle] = Field(default_factory=list)
+
+
+class TruthObstacle(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    name: str
+    kind: str
+    center_m: Vec3
+    size_m: Vec3
+    visible_centroid_m: Vec3
+    nearest_m: float
+    visible_px: int
+    bbox_px: tuple[int, int, int, int]
+    velocity_mps: Vec3 = (0.0, 0.0, 0.0)
+
+
+class GroundTruth(Message):
+    """What the synthetic scene knows about the pair with the same seq, in the camera frame."""
+
+    scenario: str
+    obstacles: list[TruthObstacle]
+
+
+class ServiceStats(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    schema_version: int = SCHEMA_VERSION
+    robot_id: str
+    service: str
+    instance: str
+    host: str
+    pid: int
+    stamp_ns: int
+    uptime_s: float
+    rate_hz: float = Field(description="outputs published per second, last window")
+    proc_ms_p50: float = Field(description="processing time per input, median of last window")
+    age_ms_p50: float = Field(description="capture-to-publish age of outputs, median of last window")
+    processed: int
+    published: int
+    drops: int = Field(description="inputs overwritten by a newer one before they were processed")
+    decode_errors: int
+    errors: int
+    status: str = "ok"
+    extra: dict[str, float] = Field(default_factory=dict)
+
+
+PUBLIC_MODELS: dict[str, type[BaseModel]] = {
+    "ObstacleList": ObstacleList,
+    "StereoFrame": StereoFrame,
+    "DisparityMap": DisparityMap,
+    "GroundTruth": GroundTruth,
+    "ServiceStats": ServiceStats,
+}
