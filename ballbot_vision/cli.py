@@ -24,6 +24,11 @@ SERVICES = {
 }
 PIPELINE = ["capture", "rectify", "disparity", "segmenter"]
 
+# Modules that add their own subcommands: each has register(sub, common), where `common(parser)`
+# adds --robot-id, --config and the Zenoh options to a parser and returns it.
+COMMAND_MODULES: list[str] = [
+]
+
 
 def service_module(name: str):
     module, settings = SERVICES[name]
@@ -190,6 +195,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_bench_arguments(b)
     b.set_defaults(func=cmd_bench)
+
+    for module in COMMAND_MODULES:
+        importlib.import_module(module).register(sub, common)
     return p
 
 
