@@ -1,0 +1,236 @@
+"""The synthetic stereo world: images, determinism, and agreement between renderer, rig and truth."""
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from ballbot_vision.common import camera
+from ballbot_vision.services.capture import synthetic as S
+
+
+@pytest.fixture(scope="module")
+def rig() -> camera.RawRig:
+    return camera.load_calibration("lifecam-studio")
+
+
+@pytest.fixture(scope="module")
+def rect(rig) -> camera.Rectification:
+    return camera.rectify_rig(rig, 0.0)
+
+
+@pytest.fixture(scope="module")
+def world(rig, rect) -> S.SyntheticWorld:
+    return S.SyntheticWorld(S.Scene.default(), rig, rect, seed=0)
+
+
+@pytest.fixture(scope="module")
+def clean_world(rig, rect) -> S.SyntheticWorld:
+    return S.SyntheticWorld(S.Scene.default(), rig, rect, seed=0, noise_sigma=0.0)
+
+
+def _local_std(img: np.ndarray, k: int = 7) -> np.ndarray:
+    f = img.astype(np.float32)
+    m = cv2.blur(f, (k, k))
+    return np.sqrt(np.maximum(cv2.blur(f * f, (k, k)) - m * m, 0.0))
+
+
+def _rectified(world: S.SyntheticWorld, rig, rect, left, right):
+    size = rig.image_size
+    out = []
+    for cam, R, P, img in ((rig.left, rect.R1, rect.P1, left), (rig.right, rect.R2, rect.P2, right)):
+        mx, my = cv2.initUndistortRectifyMap(cam.K, cam.D, R, P, size, cv2.CV_32FC1)
+        out.append(cv2.remap(img.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                             borderValue=np.nan))
+    return out
+
+
+def _world_to_rect(scene: S.Scene, rect) -> tuple[np.ndarray, np.ndarray]:
+    """Independent derivation of the world -> rectified transform from height and pitch."""
+    p = math.radians(scene.camera_pitch_deg)
+    # a world point's left-camera coordinates: x = -y_w, then pitch the (forward, down) pair
+    def to_left(Xw):
+        d = np.asarray(Xw, float) - [0.0, 0.0, scene.camera_height_m]
+        fwd, down = d[..., 0], -d[..., 2]
+        return np.stack([-d[..., 1], math.cos(p) * down - math.sin(p) * fwd,
+                         math.cos(p) * fwd + math.sin(p) * down], -1)
+    R = np.stack([to_left(e + np.array([0, 0, scene.camera_height_m])) for e in np.eye(3)], 1)
+    t = to_left(np.zeros(3))
+    return rect.R1 @ R, rect.R1 @ t
+
+
+# --- images ------------------------------------------------------------------------------------------
+
+def test_images_shape_dtype_and_texture(world, rig):
+    left, right = world.render()
+    w, h = rig.image_size
+    for img in (left, right):
+        assert img.shape == (h, w) and img.dtype == np.uint8
+        s = _local_std(img)[4:-4, 4:-4]
+        # floor, wall and boxes fill the view; every 7x7 window must be textured enough to match
+        assert np.percentile(s, 0.5) > 6.0, np.percentile(s, [0.1, 0.5, 1])
+        assert 60 < img.mean() < 170
+
+
+def test_deterministic_for_a_seed(world, rig, rect):
+    again = S.SyntheticWorld(S.Scene.default(), rig, rect, seed=0)
+    other = S.SyntheticWorld(S.Scene.default(), rig, rect, seed=1)
+    a, b, c = world.render(0.0), again.render(0.0), other.render(0.0)
+    assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+    assert not np.array_equal(a[0], c[0])
+
+
+def test_noise_is_per_frame_and_small(world, clean_world):
+    l0, _ = world.render(0.0)
+    l1, _ = world.render(1 / 30)
+    clean, _ = clean_world.render(0.0)
+    assert not np.array_equal(l0, l1)
+    diff = l0.astype(float) - clean
+    assert 0.8 < diff.std() < 2.5 and abs(diff.mean()) < 0.2
+    assert np.array_equal(world.render(1 / 30)[0], l1)  # same t, same noise
+
+
+def test_static_scene_is_cached(world):
+    assert world.is_static()
+    world.render(0.0)
+    import time
+    t0 = time.perf_counter()
+    for k in range(5):
+        world.render(k / 30)
+    assert (time.perf_counter() - t0) / 5 < 0.05
+
+
+def test_default_scene_layout(world, rect):
+    """Both boxes entirely inside the rectified left image with margin, not overlapping."""
+    tr = {o.name: o for o in world.truth()}
+    assert set(tr) == {"box-a", "box-b"}
+    w, h = rect.model.width, rect.model.height
+    boxes = []
+    for o in tr.values():
+        x0, y0, x1, y1 = o.bbox_px
+        assert x0 >= 20 and y0 >= 20 and x1 <= w - 21 and y1 <= h - 21, (o.name, o.bbox_px)
+        boxes.append(o.bbox_px)
+    (a0, _, a1, _), (b0, _, b1, _) = sorted(boxes)
+    assert a1 < b0
+    ids = world.obstacle_ids()
+    assert ids.dtype == np.int16 and set(np.unique(ids)) == {-1, 0, 1}
+
+
+# --- truth vs geometry -----------------------------------------------------------------------------
+
+def test_truth_matches_independent_geometry(world, rect):
+    scene = world.scene
+    R, t = _world_to_rect(scene, rect)
+    P1 = rect.P1
+    for box, o in zip(scene.boxes, world.truth()):
+        assert np.allclose(o.center_m, R @ np.asarray(box.center) + t, atol=1e-9)
+        assert o.size_m == tuple(box.size)
+        assert np.array_equal(o.velocity_mps, np.zeros(3))
+        u, v, s = P1[:, :3] @ o.center_m
+        x0, y0, x1, y1 = o.bbox_px
+        assert x0 <= u / s <= x1 and y0 <= v / s <= y1
+        # the visible surface faces the camera: nearer than the centre, within the box's reach
+        half_diag = 0.5 * np.linalg.norm(box.size)
+        assert o.visible_centroid_m[2] < o.center_m[2]
+        assert np.linalg.norm(o.visible_centroid_m - o.center_m) < half_diag
+        assert np.linalg.norm(o.center_m) - half_diag <= o.nearest_m <= np.linalg.norm(o.visible_centroid_m)
+        assert o.visible_px == int((world.obstacle_ids() == scene.boxes.index(box)).sum())
+    # box A's nearest visible point: its front face x = 1.65 m; its nearest point to the camera
+    # lies on that plane, so its distance is at least the plane's distance from the camera
+    a = world.truth()[0]
+    assert a.nearest_m >= 1.65 - 1e-6
+
+
+def test_true_disparity_matches_front_face_plane(world, rect):
+    """At pixels of each box's front face, d = f*B/Z with Z from an analytic ray/plane hit."""
+    m = rect.model
+    R, t = _world_to_rect(world.scene, rect)
+    disp = world.true_disparity()
+    ids = world.obstacle_ids()
+    assert disp.dtype == np.float32 and disp.shape == (m.height, m.width)
+    assert np.isfinite(disp).all()  # floor and wall fill the view
+    for i, box in enumerate(world.scene.boxes):
+        c = np.asarray(box.center)
+        w, h, d = box.size
+        n_rect = R @ np.array([-1.0, 0, 0])  # front face normal
+        p0 = R @ (c - [d / 2, 0, 0]) + t
+        ys, xs = np.nonzero(ids == i)
+        rays = np.stack([(xs - m.cx) / m.focal_px, (ys - m.cy) / m.focal_px, np.ones(xs.size)], 1)
+        z = (n_rect @ p0) / (rays @ n_rect)  # ray (x, y, 1) * z lies on the plane
+        hit_w = (rays * z[:, None] - t) @ R  # back to world
+        on_face = (np.abs(hit_w[:, 1] - c[1]) < w / 2 - 0.01) & (np.abs(hit_w[:, 2] - c[2]) < h / 2 - 0.01)
+        assert on_face.sum() > 1000
+        expect = m.focal_px * m.baseline_m / z[on_face]
+        assert np.abs(disp[ys[on_face], xs[on_face]] - expect).max() < 0.05
+
+
+def _matchable(disp: np.ndarray) -> np.ndarray:
+    """Pixels of the rectified left image seen by the right camera too, away from depth edges."""
+    h, w = disp.shape
+    xr = np.arange(w, dtype=np.float32)[None, :] - disp  # where each pixel lands in the right image
+    # occluded: a pixel further right lands at or left of it (a nearer surface covers it)
+    right_min = np.minimum.accumulate(xr[:, ::-1], axis=1)[:, ::-1]
+    right_min = np.concatenate([right_min[:, 1:], np.full((h, 1), np.inf, np.float32)], 1)
+    k3 = np.ones((3, 3), np.uint8)
+    jump = cv2.dilate(disp, k3) - cv2.erode(disp, k3)  # the floor's slope is ~0.1 px/row; edges jump
+    smooth = cv2.erode((jump < 1.0).astype(np.uint8), np.ones((9, 9), np.uint8)).astype(bool)
+    return smooth & (right_min > xr - 0.5)
+
+
+def test_rectified_pair_agrees_with_true_disparity(clean_world, rig, rect):
+    """Rectify the rendered raw pair with OpenCV: the right image sampled at x - true disparity
+    must reproduce the left one, and visibly less so 0.25 px off. This proves renderer, lens
+    distortion, rig and ground truth agree."""
+    left, right = clean_world.render()
+    rl, rr = _rectified(clean_world, rig, rect, left, right)
+    disp = clean_world.true_disparity()
+    ids = clean_world.obstacle_ids()
+    h, w = disp.shape
+    xs, ys = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    mask = _matchable(disp)
+    errs = {}
+    for shift in (0.0, 0.25, 1.0):
+        warped = cv2.remap(rr, xs - disp - shift, ys, cv2.INTER_LINEAR, borderValue=np.nan)
+        ok = mask & np.isfinite(warped) & np.isfinite(rl)
+        e = np.abs(warped - rl)
+        errs[shift] = {k: float(e[ok & sel].mean()) for k, sel in
+                       (("all", True), ("floor", (ids == -1) & (ys > 250)), ("wall", (ids == -1) & (ys < 150)),
+                        ("box-a", ids == 0), ("box-b", ids == 1))}
+    assert ok.sum() > 0.7 * h * w
+    for region, e0 in errs[0.0].items():
+        # the floor is slanted and finely textured, so resampling costs it most
+        assert e0 < (3.0 if region == "floor" else 2.0), errs
+        assert errs[0.25][region] > 1.4 * e0 and errs[1.0][region] > 3.0 * e0, errs
+
+
+def test_subpixel_matches_agree_with_true_disparity(clean_world, rig, rect):
+    """Patches on the boxes, floor and wall, matched along the rectified row to subpixel precision,
+    land at the true disparity."""
+    left, right = clean_world.render()
+    rl, rr = (np.nan_to_num(x) for x in _rectified(clean_world, rig, rect, left, right))
+    disp = clean_world.true_disparity()
+    ids = clean_world.obstacle_ids()
+    tr = clean_world.truth()
+    pts = []
+    for o in tr:
+        x0, y0, x1, y1 = o.bbox_px
+        pts += [((x0 + x1) // 2 + dx, (y0 + y1) // 2 + dy) for dx in (-20, 0, 20) for dy in (-20, 0, 20)]
+    pts += [(300, 60), (500, 100), (150, 150), (320, 400), (560, 440)]  # wall and floor
+    r = 7
+    errors = []
+    for x, y in pts:
+        patch_ids = ids[y - r:y + r + 1, x - r:x + r + 1]
+        assert (patch_ids == patch_ids[0, 0]).all()
+        d = float(disp[y, x])
+        lo = int(x - d) - 6
+        strip = rr[y - r:y + r + 1, lo - r:lo + 13 + r]
+        score = cv2.matchTemplate(strip, rl[y - r:y + r + 1, x - r:x + r + 1], cv2.TM_CCOEFF_NORMED)[0]
+        k = int(np.argmax(score))
+        assert 0 < k < score.size - 1 and score[k] > 0.8, (x, y, score.max())
+        a, b, c = score[k - 1], score[k], score[k + 1]
+        sub = k + 0.5 * (a - c) / (a - 2 * b + c)
+        errors.append(x - (lo + sub) - d)
+    errors = np.abs(np.array(errors))
+    assert np.median(errors) < 0.1 and errors.max() < 0.2, errors.round(3)
