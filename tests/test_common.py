@@ -1,0 +1,116 @@
+"""Unit tests of common/: codec, key table, settings. No network."""
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import msgpack
+import numpy as np
+import pytest
+
+from ballbot_vision.common import codec, keys
+from ballbot_vision.common.errors import ConfigError, DecodeError
+from ballbot_vision.common.messages import Image, ObstacleList, StereoFrame
+from ballbot_vision.common.settings import load_settings
+from ballbot_vision.services.segmenter.main import SegmenterSettings
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def frame(**kw) -> StereoFrame:
+    img = codec.image_from_array(np.arange(12, dtype=np.uint8).reshape(3, 4))
+    return StereoFrame(robot_id="r1", seq=7, stamp_ns=123, left=img, right=img, **kw)
+
+
+def test_roundtrip_keeps_every_field():
+    f = frame(source="synthetic")
+    back = codec.decode(codec.encode(f), StereoFrame)
+    assert back == f
+    assert np.array_equal(codec.array_from_image(back.left), np.arange(12, dtype=np.uint8).reshape(3, 4))
+
+
+@pytest.mark.parametrize("encoding", ["png", "jpeg"])
+def test_compressed_images_roundtrip(encoding):
+    rng = np.random.default_rng(0)
+    a = cv2_blur(rng.integers(0, 255, (48, 64), dtype=np.uint8))
+    img = codec.image_from_array(a, encoding, jpeg_quality=95)
+    back = codec.array_from_image(img)
+    assert back.shape == a.shape and back.dtype == a.dtype
+    if encoding == "png":
+        assert np.array_equal(back, a)
+    else:
+        assert np.abs(back.astype(int) - a).mean() < 3
+
+
+def cv2_blur(a):
+    import cv2
+    return cv2.GaussianBlur(a, (5, 5), 1.0)
+
+
+def test_garbage_wrong_version_and_missing_fields_are_decode_errors():
+    with pytest.raises(DecodeError, match="not msgpack|expected a map"):
+        codec.decode(b"\xc1\xc1garbage", StereoFrame)
+    doc = frame().model_dump()
+    doc["schema_version"] = 2
+    with pytest.raises(DecodeError, match="schema_version 2"):
+        codec.decode(msgpack.packb(doc), StereoFrame)
+    doc["schema_version"] = 1
+    del doc["left"]
+    with pytest.raises(DecodeError, match="StereoFrame.left"):
+        codec.decode(msgpack.packb(doc), StereoFrame)
+
+
+def test_image_payload_that_does_not_match_its_size_is_named():
+    img = Image(width=640, height=480, data=b"\x00" * 100)
+    with pytest.raises(DecodeError, match="left: 100 bytes for a 640x480x1 uint8 image, expected 307200"):
+        codec.array_from_image(img, "left")
+    bad_png = Image(width=4, height=3, encoding="png", data=b"not a png")
+    with pytest.raises(DecodeError, match="does not decode"):
+        codec.array_from_image(bad_png)
+
+
+def test_key_table_is_the_only_place_keys_are_spelled():
+    assert keys.topic("obstacles").key("robo") == "ballbot/obstacles/robo"
+    assert keys.topic("stats").pattern("r") == "ballbot/r/stats/*/*"
+    for t in keys.TOPICS.values():
+        assert t.template.startswith("ballbot/")
+        if t.name != "obstacles":
+            assert t.template.startswith("ballbot/{robot_id}/")
+    offenders = []
+    for p in list((REPO / "services").rglob("*.py")) + list((REPO / "ballbot_vision").rglob("*.py")):
+        for n, line in enumerate(p.read_text().splitlines(), 1):
+            if re.search(r"[\"']ballbot/", line):
+                offenders.append(f"{p.relative_to(REPO)}:{n}")
+    assert not offenders, f"key strings spelled outside common/keys.py: {offenders}"
+
+
+def test_public_obstacle_schema_has_the_contract_fields():
+    props = ObstacleList.model_json_schema()["$defs"]["Obstacle"]["properties"]
+    for f in ("id", "position_m", "size_m", "distance_m", "velocity_mps", "bbox_px", "area_px",
+              "disparity_px", "confidence"):
+        assert f in props
+    top = ObstacleList.model_json_schema()["properties"]
+    for f in ("schema_version", "robot_id", "seq", "stamp_ns", "publish_ns", "stale"):
+        assert f in top
+
+
+def test_settings_priority_default_file_env_flag(tmp_path, monkeypatch):
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("segmenter:\n  max_range_m: 4.0\n  median_ksize: 3\n")
+    monkeypatch.setenv("BALLBOT_SEGMENTER_MAX_RANGE_M", "2.5")
+    s = load_settings(SegmenterSettings, str(cfg))
+    assert s.max_range_m == 2.5 and s.median_ksize == 3 and s.min_area_fraction == 0.03
+    import argparse
+    s = load_settings(SegmenterSettings, str(cfg), argparse.Namespace(set_max_range_m="1.5"))
+    assert s.max_range_m == 1.5
+
+
+def test_bad_settings_name_where_the_value_came_from(tmp_path, monkeypatch):
+    monkeypatch.setenv("BALLBOT_SEGMENTER_MAX_RANGE_M", "-1")
+    with pytest.raises(ConfigError, match="BALLBOT_SEGMENTER_MAX_RANGE_M"):
+        load_settings(SegmenterSettings)
+    monkeypatch.delenv("BALLBOT_SEGMENTER_MAX_RANGE_M")
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("segmenter:\n  no_such_setting: 1\n")
+    with pytest.raises(ConfigError, match="segmenter.no_such_setting"):
+        load_settings(SegmenterSettings, str(cfg))

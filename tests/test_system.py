@@ -1,0 +1,114 @@
+"""The four services as separate OS processes talking Zenoh over loopback, started the way a user
+starts them (`ballbot-vision up`), checked against the synthetic scene's ground truth."""
+from __future__ import annotations
+
+import json
+import subprocess
+import time
+
+import numpy as np
+import pytest
+
+from ballbot_vision.common import codec
+from ballbot_vision.common.keys import topic
+from ballbot_vision.common.messages import (GroundTruth, Image, ObstacleList, ServiceStats, StereoFrame)
+
+from helpers import Collector, cli, pid_alive
+
+pytestmark = pytest.mark.system
+
+
+def match_truth(obstacles, truth: GroundTruth):
+    """Pair every true obstacle with the nearest detection (3D); returns (truth, detection|None)."""
+    out = []
+    for t in truth.obstacles:
+        c = np.array(t.visible_centroid_m)
+        best = min(obstacles, key=lambda o: np.linalg.norm(np.array(o.position_m) - c), default=None)
+        out.append((t, best))
+    return out
+
+
+def test_up_publishes_obstacles_matching_ground_truth_and_stops_cleanly(up):
+    truths = Collector(GroundTruth)
+    with up.session() as s:
+        s.declare_subscriber(topic("truth").key(up.robot_id), truths)
+        # what a user types in a second shell
+        watch = subprocess.run(cli("watch", "--connect", up.endpoint, "--count", "3", "--json", "--timeout", "60"),
+                               capture_output=True, text=True, timeout=120)
+        assert watch.returncode == 0, watch.stderr
+        lists = [ObstacleList.model_validate(json.loads(line)) for line in watch.stdout.splitlines()]
+        assert len(lists) == 3
+        assert truths.wait_for(lambda items: {t.seq for t in items} >= {m.seq for m in lists}, 30)
+        by_seq = {t.seq: t for t in truths.items}
+        for msg in lists:
+            truth = by_seq[msg.seq]
+            assert len(msg.obstacles) == len(truth.obstacles), msg.model_dump_json()
+            for t, o in match_truth(msg.obstacles, truth):
+                err = np.linalg.norm(np.array(o.position_m) - np.array(t.visible_centroid_m))
+                dist = np.linalg.norm(t.visible_centroid_m)
+                assert err <= 0.05 * dist, f"{t.name}: {o.position_m} vs {t.visible_centroid_m} ({err:.3f} m)"
+                assert not msg.stale
+        ids = [sorted(o.id for o in m.obstacles) for m in lists]
+        assert ids[0] == ids[-1], "track ids must be stable on a static scene"
+
+        status = subprocess.run(cli("status", "--connect", up.endpoint, "--json", "--wait", "2.5"),
+                                capture_output=True, text=True, timeout=60)
+        assert status.returncode == 0, status.stderr
+        doc = json.loads(status.stdout)
+        services = {i["service"] for i in doc["instances"]}
+        assert {"capture", "rectify", "disparity", "segmenter"} <= services
+        assert all(i["rate_hz"] > 0 for i in doc["instances"] if i["service"] != "router")
+
+    pids = up.child_pids()
+    assert set(pids) == {"router", "capture", "rectify", "disparity", "segmenter"}
+    took = up.stop()
+    assert up.proc.returncode == 0
+    assert took < 2.5, f"up took {took:.2f} s to stop"
+    deadline = time.monotonic() + 5
+    while any(pid_alive(p) for p in pids.values()) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not [n for n, p in pids.items() if pid_alive(p)], "orphan service processes"
+
+
+def _put_bad_inputs(session, robot_id: str, key: str) -> None:
+    pub = session.declare_publisher(key)
+    pub.put(b"\x00garbage\xff" * 10)
+    good = StereoFrame(robot_id=robot_id, seq=10**9, stamp_ns=time.time_ns(),
+                       left=Image(width=640, height=480, data=b"\x00" * 640 * 480),
+                       right=Image(width=640, height=480, data=b"\x00" * 640 * 480))
+    doc = good.model_dump()
+    doc["schema_version"] = 99
+    import msgpack
+    pub.put(msgpack.packb(doc, use_bin_type=True))
+    wrong_size = good.model_copy(update={"left": Image(width=320, height=240, data=b"\x00" * 100)})
+    pub.put(codec.encode(wrong_size))
+    small = good.model_copy(update={"left": Image(width=320, height=240, data=b"\x00" * 320 * 240),
+                                    "right": Image(width=320, height=240, data=b"\x00" * 320 * 240)})
+    pub.put(codec.encode(small))
+    pub.undeclare()
+
+
+def test_bad_messages_are_logged_counted_and_dropped(up):
+    stats = Collector(ServiceStats)
+    obstacles = Collector(ObstacleList)
+    with up.session() as s:
+        s.declare_subscriber(topic("stats").pattern(up.robot_id), stats)
+        s.declare_subscriber(topic("obstacles").key(up.robot_id), obstacles)
+        assert obstacles.wait_for(lambda items: len(items) >= 2, 60), "pipeline did not start"
+        for name in ("frames_raw", "frames_rect", "disparity"):
+            for _ in range(3):  # newest-wins inputs may overwrite one bad payload with the next
+                _put_bad_inputs(s, up.robot_id, topic(name).key(up.robot_id))
+                time.sleep(0.05)
+
+        def counted(items):
+            latest = {}
+            for st in items:
+                latest[st.service] = st
+            return all(svc in latest and latest[svc].decode_errors + latest[svc].errors > 0
+                       for svc in ("rectify", "disparity", "segmenter"))
+
+        assert stats.wait_for(counted, 30), [(st.service, st.decode_errors, st.errors) for st in stats.items[-8:]]
+        n = len(obstacles.items)
+        assert obstacles.wait_for(lambda items: len(items) >= n + 5, 30), "pipeline stopped after bad input"
+    assert up.proc.poll() is None
+    assert "dropped" in up.log_path.read_text()
