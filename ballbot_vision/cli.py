@@ -110,6 +110,40 @@ def cmd_status(args: argparse.Namespace) -> int:
     return status(zenoh_options(args), args.robot or "*", args.wait, args.json)
 
 
+def cmd_healthcheck(args: argparse.Namespace) -> int:
+    """Exit 0 once a service on this host (a container's own) publishes its stats."""
+    import socket
+    import threading
+
+    from .common import codec
+    from .common.errors import DecodeError
+    from .common.keys import topic
+    from .common.messages import ServiceStats
+    from .common.zenoh_session import open_session
+
+    healthy = threading.Event()
+    host = socket.gethostname()
+
+    def on_stats(sample) -> None:
+        try:
+            st = codec.decode(sample.payload.to_bytes(), ServiceStats)
+        except DecodeError:
+            return
+        if st.host == host and (args.service is None or st.service == args.service):
+            healthy.set()
+
+    o = zenoh_options(args)
+    if args.mode is None and not os.environ.get("BALLBOT_MODE"):
+        o.mode = "client"
+        o.listen = []
+    with open_session(o) as session:
+        session.declare_subscriber(topic("stats").pattern(robot_id(args)), on_stats)
+        ok = healthy.wait(args.timeout)
+    if not ok:
+        print(f"no stats from {args.service or 'any service'} on host {host} within {args.timeout:g} s", file=sys.stderr)
+    return 0 if ok else 1
+
+
 def cmd_schema(args: argparse.Namespace) -> int:
     from .common.messages import PUBLIC_MODELS
 
@@ -185,6 +219,11 @@ def build_parser() -> argparse.ArgumentParser:
     sc = sub.add_parser("schema", help="JSON Schema of the public messages")
     sc.add_argument("model", nargs="?", default=None, help="one message (default: all)")
     sc.set_defaults(func=cmd_schema)
+
+    hc = common(sub.add_parser("healthcheck", help="exit 0 if a service on this host publishes stats (containers)"))
+    hc.add_argument("--service", default=None, help="only this service")
+    hc.add_argument("--timeout", type=float, default=3.0)
+    hc.set_defaults(func=cmd_healthcheck)
 
     k = sub.add_parser("keys", help="the Zenoh key table")
     k.add_argument("--robot-id", default=None)
