@@ -54,7 +54,8 @@ class Child:
 
 
 class Supervisor:
-    def __init__(self, stop_timeout_s: float = 1.5):
+    def __init__(self, stop_timeout_s: float = 1.5, env: dict[str, str] | None = None):
+        self.env = env
         self.children: list[Child] = []
         self.stop = threading.Event()
         self.stop_timeout_s = stop_timeout_s
@@ -63,7 +64,8 @@ class Supervisor:
         self.children.append(Child(name, argv))
 
     def _start(self, c: Child) -> None:
-        c.proc = subprocess.Popen([sys.executable, "-m", "ballbot_vision.cli", *c.argv], preexec_fn=_die_with_parent)
+        c.proc = subprocess.Popen([sys.executable, "-m", "ballbot_vision.cli", *c.argv], preexec_fn=_die_with_parent,
+                                  env=self.env)
         log.info("started %s (pid %d)", c.name, c.proc.pid)
 
     def start_all(self, wait_for_endpoint: str | None = None) -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import socket
 import sys
 import threading
@@ -84,7 +85,7 @@ def pipeline_run(rate: float, method: str, preload: int, warmup_s: float, second
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     rid = "bench"
     common = ["--robot-id", rid]
-    sup = Supervisor()
+    sup = Supervisor(env=dict(os.environ, BALLBOT_LOG="WARNING"))
     sup.add("router", ["run", "router", "--listen", endpoint] + common)
     per_service = {
         "capture": ["--preload", str(preload), "--rate-hz", str(rate)],
