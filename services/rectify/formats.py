@@ -1,0 +1,294 @@
+"""Other tools' calibration files, in and out, and a human-readable summary of any calibration.
+
+* OpenCV's ``stereo_calib`` sample: ``intrinsics.yml`` (M1 D1 M2 D2) and ``extrinsics.yml``
+  (R T, plus R1 R2 P1 P2 Q that we ignore and re-derive), cv::FileStorage YAML. T is in the unit
+  the sample was given for the square size; ``units_m`` scales it to metres. The sample writes no
+  image size, so one must be given unless the file has one (image_width/image_height,
+  imageSize or image_size).
+* ROS ``camera_info`` YAML pairs (camera_calibration_parsers): camera_matrix,
+  distortion_coefficients, rectification_matrix, projection_matrix. The stereo pose follows from
+  the rectification: R_i rotates camera i into the common rectified frame and P_i = K'[I | t_i]
+  with t_i = K'^-1 P_i[:, 3] (for the right camera t = (-B, 0, 0), i.e. P2[0,3] = -fx' B): a point
+  X in the rectified reference frame is R_i X_i = X + t_i in camera i. So R2 X_right - t2 =
+  R1 X_left - t1, hence R = R2^T R1 and T = R2^T (t2 - t1).
+
+No CLI and no Zenoh here.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import yaml
+
+from ...common import camera
+from ...common.errors import CalibrationError
+
+# --- OpenCV stereo_calib ------------------------------------------------------------------------
+
+
+def _fs_open(path: Path) -> Any:
+    try:
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    except cv2.error as e:
+        raise CalibrationError(f"{path}: not an OpenCV FileStorage file ({str(e).strip().splitlines()[-1]})") from None
+    if not fs.isOpened():
+        raise CalibrationError(f"{path}: cannot open as an OpenCV FileStorage file")
+    return fs
+
+
+def _fs_mat(fs: Any, key: str, path: Path, shape: tuple[int, ...] | None = None) -> np.ndarray | None:
+    node = fs.getNode(key)
+    if node.empty():
+        return None
+    m = node.mat()
+    if m is None:
+        raise CalibrationError(f"{path}: field '{key}' is not a matrix")
+    m = np.asarray(m, dtype=np.float64)
+    if shape is not None and m.size != int(np.prod(shape)):
+        raise CalibrationError(f"{path}: field '{key}' has {m.size} numbers, expected {int(np.prod(shape))}")
+    return m.reshape(shape) if shape is not None else m
+
+
+def _fs_size(fs: Any) -> tuple[int, int] | None:
+    w, h = fs.getNode("image_width"), fs.getNode("image_height")
+    if not w.empty() and not h.empty():
+        return int(w.real()), int(h.real())
+    for key in ("imageSize", "image_size"):
+        n = fs.getNode(key)
+        if not n.empty():
+            if n.isSeq() and n.size() == 2:
+                return int(n.at(0).real()), int(n.at(1).real())
+            m = n.mat()
+            if m is not None and m.size == 2:
+                return int(m.ravel()[0]), int(m.ravel()[1])
+    return None
+
+
+def _dist5(D: np.ndarray, where: str) -> np.ndarray:
+    D = np.asarray(D, dtype=np.float64).ravel()
+    if D.size < 4:
+        raise CalibrationError(f"{where}: expected at least 4 distortion coefficients (k1 k2 p1 p2), got {D.size}")
+    if D.size > 5 and np.any(np.abs(D[5:]) > 1e-12):
+        raise CalibrationError(f"{where}: {D.size} distortion coefficients with non-zero terms beyond k3 "
+                               "(rational/thin-prism models are not supported; recalibrate with the 5-term model)")
+    out = np.zeros(5)
+    out[:min(5, D.size)] = D[:5]
+    return out
+
+
+def read_stereo_calib(paths: list[str | Path], units_m: float = 1.0, image_size: tuple[int, int] | None = None,
+                      name: str = "") -> camera.RawRig:
+    """The intrinsics.yml + extrinsics.yml pair of OpenCV's stereo_calib sample (either order, or
+    one file holding all of M1 D1 M2 D2 R T)."""
+    found: dict[str, tuple[np.ndarray, Path]] = {}
+    size = image_size
+    for p in map(Path, paths):
+        if not p.exists():
+            raise CalibrationError(f"{p}: no such file")
+        fs = _fs_open(p)
+        try:
+            for key, shape in (("M1", (3, 3)), ("D1", None), ("M2", (3, 3)), ("D2", None), ("R", (3, 3)), ("T", (3,))):
+                m = _fs_mat(fs, key, p, shape)
+                if m is not None:
+                    found[key] = (m, p)
+            if size is None:
+                size = _fs_size(fs)
+        finally:
+            fs.release()
+    missing = [k for k in ("M1", "D1", "M2", "D2", "R", "T") if k not in found]
+    if missing:
+        raise CalibrationError(f"{', '.join(map(str, paths))}: missing field(s) {', '.join(missing)} "
+                               "(expected the intrinsics.yml and extrinsics.yml of OpenCV's stereo_calib)")
+    if size is None:
+        raise CalibrationError(f"{', '.join(map(str, paths))}: no image size in the files (the stereo_calib "
+                               "sample writes none); give it with --image-size WIDTHxHEIGHT")
+    if not (units_m > 0):
+        raise CalibrationError(f"--units-m {units_m}: must be positive")
+    left = camera.Intrinsics.from_matrix(found["M1"][0], _dist5(found["D1"][0], f"{found['D1'][1]}: D1"))
+    right = camera.Intrinsics.from_matrix(found["M2"][0], _dist5(found["D2"][0], f"{found['D2'][1]}: D2"))
+    try:
+        return camera.RawRig(tuple(size), left, right, found["R"][0], found["T"][0] * units_m,  # type: ignore[arg-type]
+                             name or Path(str(paths[0])).stem)
+    except CalibrationError as e:
+        raise CalibrationError(f"{found['R'][1]}: {e}") from None
+
+
+def write_stereo_calib(rig: camera.RawRig, intrinsics: str | Path, extrinsics: str | Path, units_m: float = 1.0,
+                       alpha: float = 0.0) -> None:
+    """The stereo_calib sample's pair (T divided by units_m; R1 R2 P1 P2 Q as stereoRectify gives
+    them; the image size is added as image_width / image_height, which the sample ignores)."""
+    r = camera.rectify_rig(rig, alpha)
+    fs = cv2.FileStorage(str(intrinsics), cv2.FILE_STORAGE_WRITE)
+    fs.write("image_width", int(rig.image_size[0]))
+    fs.write("image_height", int(rig.image_size[1]))
+    fs.write("M1", rig.left.K)
+    fs.write("D1", rig.left.D.reshape(1, 5))
+    fs.write("M2", rig.right.K)
+    fs.write("D2", rig.right.D.reshape(1, 5))
+    fs.release()
+    fs = cv2.FileStorage(str(extrinsics), cv2.FILE_STORAGE_WRITE)
+    fs.write("R", rig.R)
+    fs.write("T", (rig.T / units_m).reshape(3, 1))
+    for k in ("R1", "R2", "P1", "P2", "Q"):
+        fs.write(k, getattr(r, k))
+    fs.release()
+
+
+# --- ROS camera_info ----------------------------------------------------------------------------
+
+def _ros_mat(doc: dict, key: str, rows: int, cols: int | None, where: str) -> np.ndarray:
+    if key not in doc:
+        raise CalibrationError(f"{where}: missing field '{key}'")
+    v = doc[key]
+    data = v.get("data") if isinstance(v, dict) else v
+    try:
+        a = np.asarray(data, dtype=np.float64).ravel()
+    except (TypeError, ValueError):
+        raise CalibrationError(f"{where}: field '{key}' must hold numbers") from None
+    if cols is None:
+        return a
+    if a.size != rows * cols or not np.all(np.isfinite(a)):
+        raise CalibrationError(f"{where}: field '{key}' must hold {rows}x{cols} finite numbers, got {a.size}")
+    return a.reshape(rows, cols)
+
+
+def _read_ros_one(path: Path) -> dict:
+    if not path.exists():
+        raise CalibrationError(f"{path}: no such file")
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as e:
+        raise CalibrationError(f"{path}: not valid YAML: {e}") from None
+    if not isinstance(doc, dict):
+        raise CalibrationError(f"{path}: expected a ROS camera_info mapping")
+    where = str(path)
+    model = str(doc.get("distortion_model", "plumb_bob"))
+    if model not in ("plumb_bob", "rational_polynomial"):
+        raise CalibrationError(f"{where}: distortion_model '{model}' is not supported (plumb_bob)")
+    for k in ("image_width", "image_height"):
+        if k not in doc:
+            raise CalibrationError(f"{where}: missing field '{k}'")
+    return {
+        "size": (int(doc["image_width"]), int(doc["image_height"])),
+        "K": _ros_mat(doc, "camera_matrix", 3, 3, where),
+        "D": _dist5(_ros_mat(doc, "distortion_coefficients", 1, None, where), f"{where}: distortion_coefficients"),
+        "R": _ros_mat(doc, "rectification_matrix", 3, 3, where),
+        "P": _ros_mat(doc, "projection_matrix", 3, 4, where),
+        "name": str(doc.get("camera_name", path.stem)),
+        "path": where,
+    }
+
+
+def is_ros_camera_info(path: str | Path) -> bool:
+    try:
+        doc = yaml.safe_load(Path(path).read_text())
+    except Exception:
+        return False
+    return isinstance(doc, dict) and "camera_matrix" in doc and "projection_matrix" in doc
+
+
+def read_ros_pair(left: str | Path, right: str | Path, name: str = "") -> camera.RawRig:
+    a, b = _read_ros_one(Path(left)), _read_ros_one(Path(right))
+    if a["size"] != b["size"]:
+        raise CalibrationError(f"{b['path']}: field 'image_width'/'image_height' {b['size']} differs from "
+                               f"{a['path']}'s {a['size']}")
+    t = []
+    for c in (a, b):
+        camera._check_rotation(c["R"], f"{c['path']}: rectification_matrix")
+        KP = c["P"][:, :3]
+        if abs(np.linalg.det(KP)) < 1e-9:
+            raise CalibrationError(f"{c['path']}: field 'projection_matrix' has a singular left 3x3 block")
+        t.append(np.linalg.solve(KP, c["P"][:, 3]))
+    R = b["R"].T @ a["R"]
+    T = b["R"].T @ (t[1] - t[0])
+    if np.linalg.norm(T) < 1e-9:
+        raise CalibrationError(f"{b['path']}: field 'projection_matrix' has no baseline (P[0,3] = -fx*B is 0); "
+                               "is this the right camera of a stereo pair?")
+    try:
+        return camera.RawRig(a["size"], camera.Intrinsics.from_matrix(a["K"], a["D"]),
+                             camera.Intrinsics.from_matrix(b["K"], b["D"]), R, T, name or a["name"])
+    except CalibrationError as e:
+        raise CalibrationError(f"{left}, {right}: {e}") from None
+
+
+def write_ros_pair(rig: camera.RawRig, left: str | Path, right: str | Path, alpha: float = 0.0) -> None:
+    r = camera.rectify_rig(rig, alpha)
+    for path, cam, R, P, side in ((left, rig.left, r.R1, r.P1, "left"), (right, rig.right, r.R2, r.P2, "right")):
+        doc = {
+            "image_width": int(rig.image_size[0]), "image_height": int(rig.image_size[1]),
+            "camera_name": f"{rig.name or 'stereo'}/{side}",
+            "camera_matrix": {"rows": 3, "cols": 3, "data": [float(x) for x in cam.K.ravel()]},
+            "distortion_model": "plumb_bob",
+            "distortion_coefficients": {"rows": 1, "cols": 5, "data": [float(x) for x in cam.D]},
+            "rectification_matrix": {"rows": 3, "cols": 3, "data": [float(x) for x in R.ravel()]},
+            "projection_matrix": {"rows": 3, "cols": 4, "data": [float(x) for x in P.ravel()]},
+        }
+        Path(path).write_text(yaml.safe_dump(doc, sort_keys=False))
+
+
+# --- any of them --------------------------------------------------------------------------------
+
+def import_files(files: list[str], units_m: float = 1.0, image_size: tuple[int, int] | None = None,
+                 name: str = "") -> camera.RawRig:
+    """Two ROS camera_info files (left first, or named *left* / *right*), or the stereo_calib pair."""
+    if not files:
+        raise CalibrationError("calibration import: give the files to import")
+    for f in files:
+        if not Path(f).exists():
+            raise CalibrationError(f"{f}: no such file")
+    ros = [f for f in files if is_ros_camera_info(f)]
+    if ros:
+        if len(ros) != 2 or len(files) != 2:
+            raise CalibrationError(f"ROS camera_info: expected exactly two files (left and right), got {len(files)}")
+        a, b = files
+        if "right" in Path(a).name.lower() and "left" in Path(b).name.lower():
+            a, b = b, a
+        return read_ros_pair(a, b, name)
+    return read_stereo_calib(files, units_m, image_size, name)
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(x) for x in str(text).lower().split("x"))
+    except ValueError:
+        raise CalibrationError(f"image size {text!r}: expected WIDTHxHEIGHT, e.g. 640x480") from None
+    if w <= 0 or h <= 0:
+        raise CalibrationError(f"image size {text!r}: must be positive")
+    return w, h
+
+
+def describe(cal: camera.Calibration, depth_range: tuple[float, float] | None = (0.5, 3.0), alpha: float = 0.0
+             ) -> str:
+    """The calibration in the thesis's (Bouguet's) notation: f, cc, kc per camera, om and T (mm)."""
+    lines = [f"calibration: {cal.name or '(unnamed)'}  image {cal.image_size[0]}x{cal.image_size[1]}"]
+    if isinstance(cal, camera.RectifiedRig):
+        m = cal.model
+        lines += ["already rectified:",
+                  f"  f = {m.focal_px:.5f} px   cc = [ {m.cx:.5f}  {m.cy:.5f} ]   baseline = {m.baseline_m * 1000:.5f} mm"]
+    else:
+        for title, c in (("left", cal.left), ("right", cal.right)):
+            lines += [f"{title}:",
+                      f"  f  = [ {c.fx:.5f}  {c.fy:.5f} ]",
+                      f"  cc = [ {c.cx:.5f}  {c.cy:.5f} ]",
+                      f"  alpha_c (skew) = {c.skew / c.fx:.5f}   (K[0,1] = {c.skew:.5f} px, "
+                      f"angle of pixel axes {90.0 - math.degrees(math.atan(c.skew / c.fx)):.5f} deg)",
+                      "  kc = [ " + "  ".join(f"{d:.5f}" for d in c.dist) + " ]"]
+        om = cv2.Rodrigues(cal.R)[0].ravel()
+        T = cal.T * 1000
+        lines += ["right camera wrt left (X_right = R X_left + T):",
+                  f"  om = [ {om[0]:.5f}  {om[1]:.5f}  {om[2]:.5f} ]  (Rodrigues, rad; "
+                  f"{math.degrees(float(np.linalg.norm(om))):.4f} deg)",
+                  "  R  = " + " / ".join("[ " + "  ".join(f"{x:+.6f}" for x in row) + " ]" for row in cal.R),
+                  f"  T  = [ {T[0]:.5f}  {T[1]:.5f}  {T[2]:.5f} ] mm  (|T| = {np.linalg.norm(T):.5f} mm)"]
+    m = camera.rectified_model(cal, alpha)
+    lines += [f"rectified (alpha {alpha:g}): f = {m.focal_px:.5f} px, baseline = {m.baseline_m * 1000:.5f} mm, "
+              f"cc = [ {m.cx:.5f}  {m.cy:.5f} ]"]
+    if depth_range:
+        near, far = depth_range
+        lines.append(f"  depth {near:g}..{far:g} m -> disparity {m.disparity_for_depth(far):.1f}.."
+                     f"{m.disparity_for_depth(near):.1f} px")
+    return "\n".join(lines)
