@@ -27,6 +27,7 @@ PIPELINE = ["capture", "rectify", "disparity", "segmenter"]
 # Modules that add their own subcommands: each has register(sub, common), where `common(parser)`
 # adds --robot-id, --config and the Zenoh options to a parser and returns it.
 COMMAND_MODULES: list[str] = [
+    "ballbot_vision.calibration_commands",
 ]
 
 

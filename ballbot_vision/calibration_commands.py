@@ -1,0 +1,245 @@
+"""`calibrate`, `calibration {import,show,check}` and `rectify`: the calibration and rectification
+commands (registered through cli.py's COMMAND_MODULES hook). The work is done by
+services/rectify/{calibrate,formats,check,core}.py; this module only parses and prints."""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from .common.errors import BallbotError, CalibrationError
+
+
+def _out(text: str = "") -> None:
+    print(text, flush=True)
+
+
+def _depth_range(v: list[float] | None) -> tuple[float, float] | None:
+    if not v:
+        return None
+    near, far = v
+    if not (0 < near < far):
+        raise CalibrationError(f"--depth-range {near} {far}: expected 0 < NEAR < FAR (metres)")
+    return near, far
+
+
+def _pairs_from(left: str, right: str) -> list[tuple[Path, Path]]:
+    from .services.rectify.calibrate import expand_images, pair_files
+
+    return pair_files(expand_images(left, "LEFT"), expand_images(right, "RIGHT"))
+
+
+def _read(path: Path):
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise BallbotError(f"{path}: cannot read the image")
+    return img
+
+
+# --- calibrate ---------------------------------------------------------------------------------
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    from .common import camera
+    from .services.rectify import calibrate as C
+    from .services.rectify.check import row_alignment
+    from .services.rectify.core import Rectifier
+
+    pattern = C.parse_pattern(args.pattern)
+    depth = _depth_range(args.depth_range)
+    if args.square_size is None or args.square_size <= 0:
+        raise CalibrationError("--square-size: give the chessboard's square size in metres (e.g. 0.025)")
+    pairs = C.find_pairs(args.left, args.right, args.pairs)
+    _out(f"calibrate: {len(pairs)} image pairs, pattern {pattern[0]}x{pattern[1]} inner corners, "
+         f"square {args.square_size * 1000:g} mm, skew {'fixed at 0' if args.fix_skew else 'free'}, "
+         f"k3 {'free' if args.k3 else 'fixed at 0'}")
+    result = C.calibrate_stereo(pairs, pattern, args.square_size, fix_skew=args.fix_skew, k3=args.k3,
+                                refine_intrinsics=args.refine_intrinsics, min_views=args.min_views,
+                                max_view_rms=args.max_view_rms, reject_outliers=not args.keep_outliers,
+                                progress=_out, name=args.name or Path(args.output).stem)
+    _out()
+    _out(C.format_report(result, depth, args.alpha))
+    camera.save_calibration(result.rig, args.output)
+    _out()
+    _out(f"wrote {args.output}")
+    v = result.views[0]
+    try:
+        r = Rectifier(result.rig, args.alpha)
+        rl, rr = r.rectify(_read(v.left_path), _read(v.right_path))
+        _out(f"{v.name}: " + row_alignment(rl, rr).format())
+    except BallbotError as e:
+        _out(f"{v.name}: rectification check not possible: {e}")
+    return 0
+
+
+# --- calibration import / show / check ---------------------------------------------------------
+
+def cmd_import(args: argparse.Namespace) -> int:
+    from .common import camera
+    from .services.rectify import formats as F
+
+    size = F.parse_size(args.image_size) if args.image_size else None
+    rig = F.import_files(args.files, args.units_m, size, args.name or Path(args.output).stem)
+    camera.save_calibration(rig, args.output)
+    _out(F.describe(rig))
+    _out(f"wrote {args.output}")
+    return 0
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    from .common import camera
+    from .services.rectify import formats as F
+
+    cal = camera.load_calibration(args.calibration)
+    if not isinstance(cal, camera.RawRig):
+        raise CalibrationError(f"{args.calibration}: an already-rectified calibration has no raw rig to export")
+    a, b = args.files
+    if args.format == "ros":
+        F.write_ros_pair(cal, a, b, args.alpha)
+    else:
+        F.write_stereo_calib(cal, a, b, args.units_m, args.alpha)
+    _out(f"wrote {a} and {b}")
+    return 0
+
+
+def cmd_show(args: argparse.Namespace) -> int:
+    from .common import camera
+    from .services.rectify import formats as F
+
+    _out(F.describe(camera.load_calibration(args.calibration), _depth_range(args.depth_range), args.alpha))
+    return 0
+
+
+def cmd_check(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from .common import camera
+    from .services.rectify.check import row_alignment
+    from .services.rectify.core import Rectifier
+
+    r = Rectifier(camera.load_calibration(args.calibration), args.alpha)
+    medians = []
+    for lp, rp in _pairs_from(args.left, args.right):
+        rl, rr = r.rectify(_read(lp), _read(rp))
+        try:
+            c = row_alignment(rl, rr)
+        except BallbotError as e:
+            _out(f"{lp.name} {rp.name}: {e}")
+            continue
+        medians.append(c.median_dy)
+        _out(f"{lp.name} {rp.name}: {c.format()}")
+    if not medians:
+        raise BallbotError("rectification check: no pair gave enough matches")
+    if len(medians) > 1:
+        _out(f"over {len(medians)} pairs: median of the median |dy| {float(np.median(medians)):.3f} px")
+    return 0
+
+
+# --- rectify (offline) -------------------------------------------------------------------------
+
+def cmd_rectify(args: argparse.Namespace) -> int:
+    import cv2
+
+    from .common import camera
+    from .services.rectify.core import Rectifier
+
+    r = Rectifier(camera.load_calibration(args.calibration), args.alpha)
+    pairs = _pairs_from(args.left, args.right)
+    out = Path(args.output)
+    out.mkdir(parents=True, exist_ok=True)
+    lstems = {p.stem for p, _ in pairs}
+    rstems = {p.stem for _, p in pairs}
+    split = bool(lstems & rstems)  # same names on both sides: left/ and right/ subfolders
+    if split:
+        (out / "left").mkdir(exist_ok=True)
+        (out / "right").mkdir(exist_ok=True)
+    for lp, rp in pairs:
+        rl, rr = r.rectify(_read(lp), _read(rp))
+        for src, img, side in ((lp, rl, "left"), (rp, rr, "right")):
+            dst = (out / side / f"{src.stem}.png") if split else (out / f"{src.stem}.png")
+            if not cv2.imwrite(str(dst), img):
+                raise BallbotError(f"{dst}: cannot write the image")
+        _out(f"{lp} {rp} -> {out}")
+    m = r.model
+    _out(f"rectified {len(pairs)} pair(s): f = {m.focal_px:.3f} px, baseline = {m.baseline_m * 1000:.3f} mm, "
+         f"cc = [{m.cx:.2f} {m.cy:.2f}], {m.width}x{m.height}")
+    return 0
+
+
+# --- parser ------------------------------------------------------------------------------------
+
+def register(sub: argparse._SubParsersAction, common) -> None:
+    c = sub.add_parser("calibrate", help="chessboard image pairs -> calibration YAML, with an RMS report",
+                       description="Detect a chessboard in left/right image pairs, calibrate each camera and "
+                                   "the pair, reject outlier views, and write the calibration YAML.")
+    src = c.add_argument_group("images")
+    src.add_argument("--left", help="left images: a glob ('dir/left*.jpg') or a folder")
+    src.add_argument("--right", help="right images: a glob or a folder (paired by name, else by sorted order)")
+    src.add_argument("--pairs", metavar="DIR", help="a folder with *left* and *right* images, or left/ and right/")
+    c.add_argument("--pattern", default="9x6", help="inner corners per row x per column (default: 9x6)")
+    c.add_argument("--square-size", type=float, default=None, metavar="M", help="square size in metres (required)")
+    skew = c.add_mutually_exclusive_group()
+    skew.add_argument("--fix-skew", dest="fix_skew", action="store_true", default=True,
+                      help="keep the skew at 0 (default)")
+    skew.add_argument("--free-skew", dest="fix_skew", action="store_false", help="estimate the skew too")
+    c.add_argument("--k3", action="store_true", help="estimate the third radial term k3 (default: fixed at 0)")
+    c.add_argument("--refine-intrinsics", action="store_true",
+                   help="let the stereo fit refine the intrinsics (default: fixed from the per-camera fits)")
+    c.add_argument("--min-views", type=int, default=6, help="fewest usable pairs (default: 6)")
+    c.add_argument("--max-view-rms", type=float, default=1.0, metavar="PX",
+                   help="a view above this RMS is always rejected (default: 1.0)")
+    c.add_argument("--keep-outliers", action="store_true", help="do not reject outlier views")
+    c.add_argument("--depth-range", type=float, nargs=2, default=[0.5, 3.0], metavar=("NEAR", "FAR"),
+                   help="report the disparity range for this depth range in metres (default: 0.5 3)")
+    c.add_argument("--alpha", type=float, default=0.0, help="rectification crop: 0 valid pixels only, 1 all")
+    c.add_argument("--name", default=None, help="calibration name (default: the output's stem)")
+    c.add_argument("-o", "--output", default="calib.yaml", help="calibration YAML to write (default: calib.yaml)")
+    common(c)
+    c.set_defaults(func=cmd_calibrate)
+
+    cal = sub.add_parser("calibration", help="import, export, show or check a calibration")
+    cs = cal.add_subparsers(dest="calibration_command", required=True, metavar="ACTION")
+    i = cs.add_parser("import", help="OpenCV stereo_calib intrinsics.yml+extrinsics.yml, or ROS camera_info "
+                                     "left.yaml+right.yaml -> calibration YAML")
+    i.add_argument("files", nargs="+", metavar="FILE")
+    i.add_argument("-o", "--output", required=True, help="calibration YAML to write")
+    i.add_argument("--units-m", type=float, default=1.0,
+                   help="stereo_calib: metres per unit of T (the sample uses square-size units; default 1)")
+    i.add_argument("--image-size", default=None, metavar="WxH", help="stereo_calib: image size (not in its files)")
+    i.add_argument("--name", default=None)
+    i.set_defaults(func=cmd_import)
+
+    e = cs.add_parser("export", help="calibration -> ROS camera_info pair or OpenCV stereo_calib pair")
+    e.add_argument("calibration", metavar="CAL", help="calibration YAML or built-in profile")
+    e.add_argument("files", nargs=2, metavar="FILE", help="left.yaml right.yaml (ros) or intrinsics.yml "
+                                                          "extrinsics.yml (opencv)")
+    e.add_argument("--format", choices=["ros", "opencv"], default="ros")
+    e.add_argument("--units-m", type=float, default=1.0, help="opencv: metres per unit of the written T")
+    e.add_argument("--alpha", type=float, default=0.0)
+    e.set_defaults(func=cmd_export)
+
+    s = cs.add_parser("show", help="print a calibration (file or built-in profile, e.g. lifecam-studio)")
+    s.add_argument("calibration", metavar="CAL")
+    s.add_argument("--depth-range", type=float, nargs=2, default=[0.5, 3.0], metavar=("NEAR", "FAR"))
+    s.add_argument("--alpha", type=float, default=0.0)
+    s.set_defaults(func=cmd_show)
+
+    k = cs.add_parser("check", help="vertical offset of ORB matches after rectification (median, 95th pct.)")
+    k.add_argument("left", metavar="LEFT", help="left image, glob or folder")
+    k.add_argument("right", metavar="RIGHT", help="right image, glob or folder")
+    k.add_argument("--calibration", required=True, metavar="CAL")
+    k.add_argument("--alpha", type=float, default=0.0)
+    k.set_defaults(func=cmd_check)
+
+    r = sub.add_parser("rectify", help="offline: rectify image pairs with a calibration")
+    r.add_argument("left", metavar="LEFT", help="left image, glob or folder")
+    r.add_argument("right", metavar="RIGHT", help="right image, glob or folder")
+    r.add_argument("--calibration", required=True, metavar="CAL")
+    r.add_argument("--alpha", type=float, default=0.0)
+    r.add_argument("-o", "--output", required=True, metavar="DIR")
+    r.set_defaults(func=cmd_rectify)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit("use: ballbot-vision calibrate | calibration | rectify")
