@@ -10,6 +10,8 @@ from pydantic import BaseModel
 
 from .messages import DisparityMap, GroundTruth, ObstacleList, ServiceStats, StereoFrame
 
+from .messages import CalibrationUpdate
+
 
 @dataclass(frozen=True)
 class Topic:
@@ -49,6 +51,8 @@ TOPICS: dict[str, Topic] = {t.name: t for t in [
           ("status",), "per-instance rate, latency, drops and errors, once a second"),
     Topic("alive", "ballbot/{robot_id}/alive/{service}/{instance}", None, "every service", 0.0,
           ("status",), "liveliness token of a running instance"),
+    Topic("calibration", "ballbot/{robot_id}/calibration", CalibrationUpdate, "calibrate", 0.0, ("rectify",),
+          "a new calibration (YAML text) for rectify, applied between frames without a restart"),
 ]}
 
 OBSTACLES_ALL = "ballbot/obstacles/**"

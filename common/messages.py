@@ -145,10 +145,20 @@ class ServiceStats(BaseModel):
     extra: dict[str, float] = Field(default_factory=dict)
 
 
+class CalibrationUpdate(Message):
+    """A new calibration for the rectify service, applied between two frames without a restart.
+    `yaml` is the text of a calibration file (see common/camera.py); a calibration that does not
+    load, or whose image size differs from the stream's, is refused and the old one stays."""
+
+    yaml: str = Field(min_length=1, max_length=1_000_000, description="calibration file text (YAML)")
+    source: str = Field("", description="where it came from (a path, `calibrate`, a user)")
+
+
 PUBLIC_MODELS: dict[str, type[BaseModel]] = {
     "ObstacleList": ObstacleList,
     "StereoFrame": StereoFrame,
     "DisparityMap": DisparityMap,
     "GroundTruth": GroundTruth,
     "ServiceStats": ServiceStats,
+    "CalibrationUpdate": CalibrationUpdate,
 }
