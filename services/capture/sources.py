@@ -1,22 +1,85 @@
 """Capture sources: each yields stereo pairs (left, right as numpy images) plus, for the synthetic
-world, the ground truth of that pair. No Zenoh here."""
+world, the ground truth of that pair. No Zenoh here.
+
+The source interface (what `main.run` relies on):
+
+    name: str                 "synthetic", "cameras", "sbs", "video" or "images" (StereoFrame.source)
+    period_s: float           seconds between pairs the loop should keep; 0 = the source paces itself
+                              (a camera blocks until its next frame) or "as fast as possible"
+    ended: bool               True once a file source has nothing more to give (see read)
+    read() -> CapturedPair | None
+                              the next pair. None means: the stream ended (`ended` is set), or the
+                              loop is stopping (the context's stop event is set). A pair that cannot
+                              be read (an unreadable image file, ...) raises SourceError naming the
+                              file; the loop logs and counts it and goes on with the next pair.
+    close()
+
+Sources that wait (a camera being reconnected) or report (skew, drops) do it through a
+`SourceContext`: they wait on its stop event, never in a bare sleep, report their state through
+`status(text)` (main wires it to the service's status string) and keep numbers in `extra`
+(main copies them into the service's stats).
+"""
 from __future__ import annotations
 
+import re
+import threading
+from collections import deque
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
 from ...common import camera
+from ...common.errors import SourceError
 
 
 @dataclass
 class CapturedPair:
     left: np.ndarray  # (H, W) uint8 or (H, W, 3) BGR, raw (distorted) camera image
     right: np.ndarray
-    t_s: float  # scene time of the pair (synthetic) or capture time (cameras), seconds
+    t_s: float  # scene time of the pair (synthetic), stream position (files) or capture time (cameras), s
     truth: list[Any] | None = None  # synthetic.ObstacleTruth, rectified left camera frame
+    extra: dict[str, float] = field(default_factory=dict)  # e.g. skew_ms of a camera pair
+    stamp_ns: int | None = None  # capture time (ns since the Unix epoch) if the source knows it
+
+
+@dataclass
+class SourceContext:
+    """What a source may use of its surroundings (the Node in the service, plain objects in tests)."""
+
+    stop: threading.Event = field(default_factory=threading.Event)
+    status: Callable[[str], None] = lambda text: None
     extra: dict[str, float] = field(default_factory=dict)
+
+
+class RollingStats:
+    """Median and maximum of the last `n` values (skew of the last pairs, for stats)."""
+
+    def __init__(self, n: int = 120):
+        self.values: deque[float] = deque(maxlen=n)
+
+    def add(self, v: float) -> None:
+        self.values.append(v)
+
+    def p50(self) -> float:
+        return float(np.median(np.fromiter(self.values, float))) if self.values else 0.0
+
+    def max(self) -> float:
+        return max(self.values) if self.values else 0.0
+
+
+def natural_key(text: str) -> list:
+    """Sort key so that img2 < img10 (digits compare as numbers)."""
+    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", str(text))]
+
+
+def split_sbs(frame: np.ndarray, where: str) -> tuple[np.ndarray, np.ndarray]:
+    """A side-by-side frame (H, 2W[, 3]) -> left half, right half, each contiguous (H, W[, 3])."""
+    w = frame.shape[1]
+    if w % 2:
+        raise SourceError(f"{where}: side-by-side frame is {w} px wide, an odd width cannot be split in two")
+    h = w // 2
+    return np.ascontiguousarray(frame[:, :h]), np.ascontiguousarray(frame[:, h:])
 
 
 class SyntheticSource:
@@ -25,6 +88,7 @@ class SyntheticSource:
     front and loops them (benchmarks measure the pipeline, not the renderer)."""
 
     name = "synthetic"
+    ended = False
 
     def __init__(self, scenario: str, calibration: str, rate_hz: float, seed: int = 0,
                  noise_sigma: float = 1.5, preload: int = 0, alpha: float = 0.0):
@@ -39,6 +103,7 @@ class SyntheticSource:
         self.scenario = scenario
         self.world = SyntheticWorld(self.scene, rig, self.rect, seed=seed, noise_sigma=noise_sigma)
         self.dt = 1.0 / rate_hz
+        self.period_s = self.dt
         self.k = 0
         self._loop: list[CapturedPair] = []
         for _ in range(preload):

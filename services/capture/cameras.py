@@ -1,0 +1,331 @@
+"""Live sources: `cameras` (two USB/V4L2 cameras) and `sbs` (one device whose frames hold left and
+right side by side). No Zenoh here.
+
+Both go through the `cv2.VideoCapture` interface (isOpened, grab, retrieve, get, set, release), and
+the function that opens a device is injectable, so everything here, including unplug and replug,
+runs in tests on video files and fakes.
+
+Timing: every device is grab()bed before any is retrieve()d (grab only dequeues a buffer; decoding
+happens in retrieve), so the two frames are as close in time as unsynchronised cameras allow. The
+skew of a pair is the difference of the two frames' capture times: the V4L2 buffer timestamps
+(`skew_clock="driver"`, kernel monotonic clock) when the driver gives them, else the instants the two
+grab() calls returned (`"grab"`, a lower bound). Pairs whose skew exceeds `max_skew_ms` are dropped
+and counted. Stats extra: skew_ms_p50, skew_ms_max (last 120 pairs), dropped_skew, lost, reconnects.
+
+A device that stops delivering (unplugged, driver error) is reported in the status ("camera
+/dev/video1 lost, retrying in 2.0 s"); all devices are closed and reopened with exponential backoff
+until they deliver again, then the stream resumes by itself with the same settings. Waiting happens
+on the context's stop event, so a stop request ends it at once.
+"""
+from __future__ import annotations
+
+import glob
+import logging
+import os
+import re
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import cv2
+
+from ...common.errors import SourceError
+from .sources import CapturedPair, RollingStats, SourceContext, natural_key, split_sbs
+
+log = logging.getLogger("ballbot.capture")
+
+DEV_DIR = "/dev"
+SYS_DIR = "/sys/class/video4linux"
+
+Capture = Any  # anything with the cv2.VideoCapture interface
+Opener = Callable[[Any], Capture]
+
+
+@dataclass
+class CameraConfig:
+    width: int = 640  # per camera; for sbs, the full double-width frame
+    height: int = 480
+    fps: float = 30.0
+    fourcc: str = "MJPG"  # "" keeps the driver's default
+    exposure: float | None = None  # None: automatic; else manual, in driver units (uvcvideo: 100 us)
+    buffers: int = 2  # driver buffers; few keep latency low
+    max_skew_ms: float = 20.0
+    skew_clock: str = "driver"  # "driver" (V4L2 timestamps when present) or "grab"
+    retry_s: float = 0.5  # first reconnect delay; doubles up to retry_max_s
+    retry_max_s: float = 8.0
+    timeout_s: float = 2.0  # a grab that waits longer counts as a lost camera (V4L2 select timeout)
+
+
+# --- devices -------------------------------------------------------------------------------------
+
+def device_path(spec: Any) -> str:
+    """0 or "0" -> "/dev/video0"; a path stays a path."""
+    s = str(spec).strip()
+    return f"{DEV_DIR}/video{s}" if s.isdigit() else s
+
+
+def video_devices() -> list[str]:
+    """The video device nodes present, with the driver's name for each when known:
+    ["/dev/video0 (Microsoft LifeCam Studio)", ...]."""
+    out = []
+    for dev in sorted(glob.glob(f"{DEV_DIR}/video*"), key=natural_key):
+        try:
+            label = (Path(SYS_DIR) / Path(dev).name / "name").read_text().strip()
+        except OSError:
+            label = ""
+        out.append(f"{dev} ({label})" if label else dev)
+    return out
+
+
+def devices_hint() -> str:
+    devs = video_devices()
+    if not devs:
+        return (f"no video devices present ({DEV_DIR}/video* matches nothing: is the camera plugged in, "
+                f"and in a container, is the device passed in with --device?)")
+    return ("video devices present: " + ", ".join(devs)
+            + " (a USB camera often shows two nodes; the first of the two captures)")
+
+
+def open_v4l2(spec: Any) -> cv2.VideoCapture:
+    """The default opener: a camera by index (0), path (/dev/video0) or stable link
+    (/dev/v4l/by-id/...). Raises SourceError naming the device and listing those present."""
+    path = device_path(spec)
+    if "://" not in path:  # a device path, not a stream URL
+        if not os.path.exists(path):
+            raise SourceError(f"camera {path}: no such device; {devices_hint()}")
+        if not os.access(path, os.R_OK | os.W_OK):
+            raise SourceError(f"camera {path}: permission denied (add the user to the 'video' group)")
+    m = re.fullmatch(r"/dev/video(\d+)", os.path.realpath(path))
+    if m:  # by index: what every OpenCV V4L2 build supports
+        cap = cv2.VideoCapture(int(m.group(1)), cv2.CAP_V4L2 if sys.platform.startswith("linux") else cv2.CAP_ANY)
+    else:
+        cap = cv2.VideoCapture(path)
+    if not cap.isOpened():
+        cap.release()
+        raise SourceError(f"camera {path}: cannot be opened (busy in another process, or not a capture "
+                          f"node); {devices_hint()}")
+    return cap
+
+
+def _fourcc_text(v: float) -> str:
+    i = int(v)
+    s = "".join(chr((i >> 8 * k) & 0xFF) for k in range(4))
+    return s if s.isprintable() and s.strip() else "?"
+
+
+def configure(cap: Capture, cfg: CameraConfig, name: str) -> None:
+    """Request format, size, rate, buffers and exposure (in the order V4L2 wants); log what the
+    driver refused or changed. Nothing here is fatal: a camera that cannot do 30 fps still works."""
+    refused = []
+
+    def ask(prop: int, value: float, what: str) -> None:
+        try:
+            ok = cap.set(prop, value)
+        except cv2.error:
+            ok = False
+        if not ok:
+            refused.append(what)
+
+    if cfg.fourcc:
+        ask(cv2.CAP_PROP_FOURCC, cv2.VideoWriter_fourcc(*cfg.fourcc), f"fourcc {cfg.fourcc}")
+    if cfg.width and cfg.height:
+        ask(cv2.CAP_PROP_FRAME_WIDTH, cfg.width, f"width {cfg.width}")
+        ask(cv2.CAP_PROP_FRAME_HEIGHT, cfg.height, f"height {cfg.height}")
+    if cfg.fps:
+        ask(cv2.CAP_PROP_FPS, cfg.fps, f"{cfg.fps:g} fps")
+    if cfg.buffers:
+        ask(cv2.CAP_PROP_BUFFERSIZE, cfg.buffers, f"{cfg.buffers} buffers")
+    if cfg.exposure is not None:
+        ask(cv2.CAP_PROP_AUTO_EXPOSURE, 1, "manual exposure")  # V4L2_EXPOSURE_MANUAL
+        ask(cv2.CAP_PROP_EXPOSURE, cfg.exposure, f"exposure {cfg.exposure:g}")
+    w, h = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+    fps, fourcc = cap.get(cv2.CAP_PROP_FPS), _fourcc_text(cap.get(cv2.CAP_PROP_FOURCC))
+    if refused:
+        log.warning("camera %s: the driver refused %s", name, ", ".join(refused))
+    if cfg.width and cfg.height and (w, h) != (cfg.width, cfg.height):
+        log.warning("camera %s delivers %dx%d, not the requested %dx%d", name, w, h, cfg.width, cfg.height)
+    log.info("camera %s: %dx%d %s %.1f fps", name, w, h, fourcc, fps)
+
+
+# --- the source ----------------------------------------------------------------------------------
+
+def _secs(s: float) -> str:
+    return f"{s:.1f}" if s >= 0.1 else f"{s:.2f}"
+
+
+class _Device:
+    def __init__(self, spec: Any):
+        self.spec = spec
+        self.name = device_path(spec)
+        self.cap: Capture | None = None
+
+    def release(self) -> None:
+        if self.cap is not None:
+            try:
+                self.cap.release()
+            except Exception:  # a vanished device may fail to close; it is gone either way
+                pass
+            self.cap = None
+
+
+class _Lost(Exception):
+    def __init__(self, dev: _Device, why: str):
+        super().__init__(why)
+        self.dev = dev
+
+
+class CameraSource:
+    """Two cameras (left, right) or, with sbs=True, one device whose frames are split in halves.
+    Paced by the devices (period_s = 0). Startup problems raise SourceError (the CLI exits 2);
+    later losses are retried forever (see the module docstring)."""
+
+    period_s = 0.0
+    ended = False
+    SKEW_STATUS_AFTER = 10  # consecutive dropped pairs before the status says so
+
+    def __init__(self, devices: list[Any], cfg: CameraConfig | None = None, ctx: SourceContext | None = None,
+                 opener: Opener | None = None, sbs: bool = False):
+        self.cfg = cfg or CameraConfig()
+        self.ctx = ctx or SourceContext()
+        self.sbs = sbs
+        self.name = "sbs" if sbs else "cameras"
+        if len(devices) != (1 if sbs else 2):
+            raise SourceError(f"{self.name}: expected {1 if sbs else 2} device(s), got {len(devices)}")
+        self.devs = [_Device(d) for d in devices]
+        if not sbs and os.path.realpath(self.devs[0].name) == os.path.realpath(self.devs[1].name):
+            raise SourceError(f"cameras: left and right are the same device {self.devs[0].name}")
+        # OpenCV's V4L2 grab waits this long for a frame before failing (default 10 s); read once
+        os.environ.setdefault("OPENCV_VIDEOIO_V4L_SELECT_TIMEOUT", str(max(1, round(self.cfg.timeout_s))))
+        self.opener = opener or open_v4l2
+        self.skew = RollingStats()
+        self.dropped_skew = 0
+        self._dropping = 0
+        self.reconnects = 0
+        self.lost = 0
+        self._lost_dev: _Device | None = None
+        self._backoff = self.cfg.retry_s
+        self.ctx.extra.update(skew_ms_p50=0.0, skew_ms_max=0.0, dropped_skew=0.0, lost=0.0, reconnects=0.0)
+        try:
+            self._open_all()
+            first = self._read_once()
+        except _Lost as e:
+            self.close()
+            raise SourceError(f"camera {e.dev.name} opened but delivers no frames ({e}); {devices_hint()}") from None
+        except BaseException:
+            self.close()
+            raise
+        self.size = first.left.shape
+        self._pending: CapturedPair | None = first
+
+    # -- opening --------------------------------------------------------------------------------
+    def _open_all(self) -> None:
+        for d in self.devs:
+            cap = self.opener(d.spec)
+            if not cap.isOpened():
+                raise SourceError(f"camera {d.name}: cannot be opened; {devices_hint()}")
+            d.cap = cap
+            configure(cap, self.cfg, d.name)
+
+    def _reconnect(self) -> bool:
+        """Reopen every device, backing off, until a pair of frames arrives. False when stopped."""
+        name = self._lost_dev.name if self._lost_dev else "?"
+        t0 = time.monotonic()
+        while not self.ctx.stop.wait(self._backoff):
+            self.close()
+            try:
+                for d in self.devs:
+                    name = d.name
+                    cap = self.opener(d.spec)
+                    if not cap.isOpened():
+                        raise SourceError("cannot be opened")
+                    d.cap = cap
+                    configure(cap, self.cfg, d.name)
+                    if not cap.grab():  # opens but delivers nothing: not back yet
+                        raise _Lost(d, "no frame")
+            except Exception as e:
+                self._backoff = min(self._backoff * 2, self.cfg.retry_max_s)
+                self.ctx.status(f"camera {name} lost, retrying in {_secs(self._backoff)} s")
+                log.debug("camera %s: reconnect failed: %s", name, e)
+                continue
+            self._lost_dev = None
+            self._backoff = self.cfg.retry_s
+            self.reconnects += 1
+            self.ctx.extra.update(lost=0.0, reconnects=float(self.reconnects))
+            self.ctx.status("ok")
+            log.warning("%s: camera %s is back after %.1f s; capturing again", self.name, name, time.monotonic() - t0)
+            return True
+        return False
+
+    def _lose(self, lost: _Lost) -> None:
+        self.lost += 1
+        self._lost_dev = lost.dev
+        self._backoff = self.cfg.retry_s
+        self.close()
+        self.ctx.extra["lost"] = 1.0
+        self.ctx.status(f"camera {lost.dev.name} lost, retrying in {_secs(self._backoff)} s")
+        log.warning("%s: camera %s lost (%s); retrying with backoff", self.name, lost.dev.name, lost)
+
+    # -- reading --------------------------------------------------------------------------------
+    def _read_once(self) -> CapturedPair:
+        grabbed = []
+        for d in self.devs:
+            if d.cap is None or not d.cap.grab():
+                raise _Lost(d, "grab failed")
+            grabbed.append(time.monotonic_ns())
+        mono, wall = time.monotonic_ns(), time.time_ns()
+        times = grabbed
+        if self.cfg.skew_clock == "driver":
+            drv = [d.cap.get(cv2.CAP_PROP_POS_MSEC) for d in self.devs]
+            # V4L2 buffer timestamps are kernel monotonic ms; anything else (a file position) is not
+            if all(0 < t and abs(mono / 1e6 - t) < 5000 for t in drv):
+                times = [int(t * 1e6) for t in drv]
+        imgs = []
+        for d in self.devs:
+            ok, img = d.cap.retrieve()
+            if not ok or img is None:
+                raise _Lost(d, "retrieve failed")
+            imgs.append(img)
+        if self.sbs:
+            left, right = split_sbs(imgs[0], f"sbs {self.devs[0].name}")
+        else:
+            left, right = imgs
+            if left.shape[:2] != right.shape[:2]:
+                raise SourceError(f"cameras: {self.devs[0].name} delivers {left.shape[1]}x{left.shape[0]} but "
+                                  f"{self.devs[1].name} {right.shape[1]}x{right.shape[0]}; set --camera-width/height")
+        skew_ms = abs(times[-1] - times[0]) / 1e6
+        return CapturedPair(left, right, t_s=times[0] / 1e9, stamp_ns=wall - (mono - times[0]),
+                            extra={"skew_ms": skew_ms})
+
+    def read(self) -> CapturedPair | None:
+        while not self.ctx.stop.is_set():
+            if self._lost_dev is not None and not self._reconnect():
+                return None
+            if self._pending is not None:
+                pair, self._pending = self._pending, None
+            else:
+                try:
+                    pair = self._read_once()
+                except _Lost as e:
+                    self._lose(e)
+                    continue
+            skew = pair.extra["skew_ms"]
+            self.skew.add(skew)
+            self.ctx.extra.update(skew_ms_p50=self.skew.p50(), skew_ms_max=self.skew.max())
+            if not self.sbs and skew > self.cfg.max_skew_ms:
+                self.dropped_skew += 1
+                self._dropping += 1
+                self.ctx.extra["dropped_skew"] = float(self.dropped_skew)
+                if self._dropping == self.SKEW_STATUS_AFTER:
+                    self.ctx.status(f"dropping pairs: left/right skew {skew:.1f} ms > {self.cfg.max_skew_ms:g} ms")
+                continue
+            if self._dropping >= self.SKEW_STATUS_AFTER:
+                self.ctx.status("ok")
+            self._dropping = 0
+            return pair
+        return None
+
+    def close(self) -> None:
+        for d in self.devs:
+            d.release()
