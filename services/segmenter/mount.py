@@ -1,0 +1,101 @@
+"""The camera mount: where the rectified left camera sits on the robot, and what follows from it
+(the base-frame transform and the floor plane as the camera sees it).
+
+Frames
+------
+camera: the rectified left camera, optical (x right, y down, z forward), metres.
+base: the robot base frame, REP 103 (x forward, y left, z up), origin on the floor.
+The camera sits at (x_m, y_m, height_m) in the base frame. Its orientation is yaw (about base z,
+positive turning left), then pitch (about the new y, positive looking DOWN, as in REP 103), then
+roll (about the new x, positive tilting the right side down).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+
+# optical (x right, y down, z forward) -> body (x forward, y left, z up)
+_BODY_FROM_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+
+
+def _rx(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[1.0, 0, 0], [0, c, -s], [0, s, c]])
+
+
+def _ry(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, 0, s], [0, 1.0, 0], [-s, 0, c]])
+
+
+def _rz(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+
+
+@dataclass(frozen=True)
+class Mount:
+    height_m: float = 1.0
+    pitch_deg: float = 15.0
+    yaw_deg: float = 0.0
+    roll_deg: float = 0.0
+    x_m: float = 0.0
+    y_m: float = 0.0
+
+    @cached_property
+    def R_base_camera(self) -> np.ndarray:
+        """(3, 3): base-frame coordinates of a camera-frame vector."""
+        r = (_rz(np.deg2rad(self.yaw_deg)) @ _ry(np.deg2rad(self.pitch_deg)) @ _rx(np.deg2rad(self.roll_deg)))
+        return r @ _BODY_FROM_OPTICAL
+
+    @property
+    def origin_base(self) -> np.ndarray:
+        return np.array([self.x_m, self.y_m, self.height_m])
+
+    def to_base(self, p_camera: np.ndarray) -> np.ndarray:
+        """(..., 3) camera-frame points (m) -> (..., 3) base-frame points (m)."""
+        return np.asarray(p_camera, float) @ self.R_base_camera.T + self.origin_base
+
+    def vector_to_base(self, v_camera: np.ndarray) -> np.ndarray:
+        """(..., 3) camera-frame vectors (velocities) -> base frame."""
+        return np.asarray(v_camera, float) @ self.R_base_camera.T
+
+    @property
+    def down_camera(self) -> np.ndarray:
+        """(3,) unit vector pointing at the floor (base -z), in the camera frame."""
+        return self.R_base_camera.T @ np.array([0.0, 0.0, -1.0])
+
+
+@dataclass(frozen=True)
+class FloorPlane:
+    """The floor in disparity space: a plane d = a u + b v + c over the rectified left image
+    (u, v in px, d in px), with the camera's height above it. Derived from a unit normal n (camera
+    frame, pointing at the floor) and height h: d_floor = f B (n . ray) / h, ray = ((u-cx)/f, (v-cy)/f, 1).
+    A pixel's point lies h (1 - d_floor / d) above the floor."""
+
+    a: float
+    b: float
+    c: float
+    height_m: float
+    fitted: bool = False
+    inliers: int = 0
+
+    @classmethod
+    def from_normal(cls, n: np.ndarray, height_m: float, f: float, cx: float, cy: float, B: float,
+                    fitted: bool = False, inliers: int = 0) -> "FloorPlane":
+        n = np.asarray(n, float) / np.linalg.norm(n)
+        a = B * n[0] / height_m
+        b = B * n[1] / height_m
+        c = f * B * n[2] / height_m - a * cx - b * cy
+        return cls(float(a), float(b), float(c), float(height_m), fitted, inliers)
+
+    def normal_height(self, f: float, cx: float, cy: float, B: float) -> tuple[np.ndarray, float]:
+        """(unit normal (3,) camera frame, camera height m) of this plane."""
+        k = np.array([self.a, self.b, (self.c + self.a * cx + self.b * cy) / f])  # = B n / h
+        norm = float(np.linalg.norm(k))
+        return k / norm, B / norm
+
+    def disparity(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        return self.a * u + self.b * v + self.c
