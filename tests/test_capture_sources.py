@@ -386,10 +386,20 @@ def test_cli_missing_camera_exits_2_with_the_message():
     assert "Traceback" not in r.stderr
 
 
+def test_bench_sources_measures_every_file_source():
+    from ballbot_vision.bench.sources import bench_sources
+
+    r = bench_sources(frames=4, width=W, height=H)
+    assert set(r["sources"]) == {"images-png", "images-jpeg", "video", "video-sbs", "cameras-on-video"}
+    assert all(m["pairs"] == 4 and m["fps"] > 0 for m in r["sources"].values()), r
+
+
 # --- the real process over Zenoh -----------------------------------------------------------------
 
 @pytest.mark.system
 def test_run_capture_images_publishes_pairs_over_zenoh_then_idles_at_end_of_stream(image_dirs):
+    """Two real capture processes on one router: a looping one whose pairs are checked against
+    the files, and one that reaches the end of its 11 pairs and must stay up, idle, then exit 0."""
     from helpers import Collector, cli, free_port
 
     from ballbot_vision.common import codec
@@ -399,35 +409,42 @@ def test_run_capture_images_publishes_pairs_over_zenoh_then_idles_at_end_of_stre
 
     left, right = image_dirs
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    rid = "srctest"
-    router = subprocess.Popen(cli("run", "router", "--listen", endpoint, "--robot-id", rid),
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    capture = None
+    procs: dict[str, subprocess.Popen] = {}
+
+    def capture(rid: str, *more: str) -> subprocess.Popen:
+        return subprocess.Popen(cli("run", "capture", "--connect", endpoint, "--robot-id", rid, "--source", "images",
+                                    "--images-left", str(left), "--images-right", str(right / "*.png"), *more),
+                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+
+    procs["router"] = subprocess.Popen(cli("run", "router", "--listen", endpoint),
+                                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         frames, stats = Collector(StereoFrame), Collector(ServiceStats)
         opts = ZenohOptions(mode="peer", connect=[endpoint], listen=["tcp/127.0.0.1:0"])
-        with open_session(opts) as s:  # retries until the router listens
-            s.declare_subscriber(topic("frames_raw").key(rid), frames)
-            s.declare_subscriber(topic("stats").pattern(rid), stats)
-            capture = subprocess.Popen(cli("run", "capture", "--connect", endpoint, "--robot-id", rid,
-                                           "--source", "images", "--images-left", str(left),
-                                           "--images-right", str(right), "--rate-hz", "20", "--encoding", "png"),
-                                       stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-            assert stats.wait_for(lambda xs: any(x.service == "capture" and x.status == "end of stream"
-                                                 for x in xs), 60), capture.stderr if capture.poll() else stats.items
-            assert capture.poll() is None, "capture stays up, idle, at the end of the stream"
-            # the subscriber may join after the first pairs went out; every pair it saw is complete
-            assert frames.items, "no frames arrived"
+        with open_session(opts) as s:
+            s.declare_subscriber(topic("frames_raw").key("looping"), frames)
+            s.declare_subscriber(topic("stats").pattern("ending"), stats)
+            procs["looping"] = capture("looping", "--loop", "true", "--rate-hz", "30", "--encoding", "png")
+            procs["ending"] = capture("ending", "--rate-hz", "50")
+            # a subscriber may miss the first pairs while routes form; a loop gives it every file
+            assert frames.wait_for(lambda xs: len({m.seq % 11 for m in xs}) == 11, 60), \
+                procs["looping"].stderr.read() if procs["looping"].poll() is not None else len(frames.items)
             for m in frames.items:
                 assert m.source == "images" and m.left.encoding == "png" and (m.left.width, m.left.height) == (W, H)
                 a, b = codec.array_from_image(m.left), codec.array_from_image(m.right)
-                assert index_of(a, 0) == m.seq and level(b) == pytest.approx(120 + 8 * m.seq)
-            assert frames.items[-1].seq == 10
-            assert [m.seq for m in frames.items] == list(range(frames.items[0].seq, 11))
-        capture.terminate()
-        assert capture.wait(10) == 0
+                assert a.shape == (H, W) and index_of(a, 0) == m.seq % 11 and index_of(b, 1) == m.seq % 11
+            seqs = [m.seq for m in frames.items]
+            assert seqs == sorted(seqs) and len(set(seqs)) == len(seqs), "one message per pair, in order"
+            assert stats.wait_for(lambda xs: any(x.status == "end of stream" for x in xs), 60), \
+                procs["ending"].stderr.read() if procs["ending"].poll() is not None else stats.items
+            done = next(x for x in stats.items if x.status == "end of stream")
+            assert done.published == 11 and done.errors == 0
+        for name in ("looping", "ending"):
+            assert procs[name].poll() is None, f"{name} capture must stay up"
+            procs[name].terminate()
+            assert procs[name].wait(10) == 0, procs[name].stderr.read()
     finally:
-        for p in (capture, router):
-            if p is not None and p.poll() is None:
+        for p in procs.values():
+            if p.poll() is None:
                 p.kill()
                 p.wait()
