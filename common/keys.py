@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 from pydantic import BaseModel
 
-from .messages import DisparityMap, GroundTruth, ObstacleList, ServiceStats, StereoFrame
+from .messages import DisparityMap, GroundTruth, ObstacleList, ServiceStats, StereoFrame, WorkDone
 
 from .messages import CalibrationUpdate
 
@@ -45,6 +45,12 @@ TOPICS: dict[str, Topic] = {t.name: t for t in [
           "rectified pair with its camera model", image_stream=True),
     Topic("disparity", "ballbot/{robot_id}/disparity", DisparityMap, "disparity", 30.0, ("segmenter",),
           "disparity map of the rectified left image, fixed point", image_stream=True),
+    Topic("worker", "ballbot/{robot_id}/workers/{instance}", None, "disparity", 0.0, ("disparity",),
+          "liveliness token of a disparity worker ready for work on its own work key"),
+    Topic("work", "ballbot/{robot_id}/work/{instance}", StereoFrame, "disparity", 30.0, ("disparity",),
+          "rectified pair for one worker (dispatcher -> worker; raw, png or jpeg)", image_stream=True),
+    Topic("work_done", "ballbot/{robot_id}/work_done/{instance}", WorkDone, "disparity", 30.0, ("disparity",),
+          "a worker's receipt for one work item (worker -> dispatcher)"),
     Topic("obstacles", "ballbot/obstacles/{robot_id}", ObstacleList, "segmenter", 30.0, ("anyone",),
           "PUBLIC: obstacle list with 3D positions in metres"),
     Topic("stats", "ballbot/{robot_id}/stats/{service}/{instance}", ServiceStats, "every service", 1.0,

@@ -78,6 +78,16 @@ class DisparityMap(Message):
     worker: str = ""
 
 
+class WorkDone(Message):
+    """A disparity worker's receipt for one work item (seq): it frees the worker's slot at the
+    dispatcher. The disparity map itself goes straight to the `disparity` key."""
+
+    worker: str = Field(min_length=1, description="instance name of the worker")
+    ok: bool = Field(description="false: the item was dropped (too old, undecodable, failed)")
+    reason: str = ""
+    proc_ms: float = Field(0.0, ge=0, description="time from receipt to published map, ms")
+
+
 class Obstacle(BaseModel):
     model_config = ConfigDict(extra="forbid")
 

@@ -22,7 +22,7 @@ class ZenohOptions:
     connect: list[str] = field(default_factory=lambda: [DEFAULT_ROUTER])
     listen: list[str] = field(default_factory=lambda: ["tcp/127.0.0.1:0"])
     config_file: str | None = None
-    lease_ms: int | None = None
+    lease_ms: int | None = 2000  # a frozen or cut-off peer is dropped after this (Zenoh's default: 10 s)
 
     def for_router(self) -> "ZenohOptions":
         """The same options for the router that `up` starts: it listens where the others connect."""
