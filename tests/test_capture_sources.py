@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import subprocess
 import threading
+import time
 from pathlib import Path
 
 import cv2
@@ -121,7 +122,8 @@ def test_images_missing_folder_and_same_files(image_dirs, tmp_path):
 def test_images_size_mismatch_names_both_files(image_dirs):
     left, right = image_dirs
     cv2.imwrite(str(right / "f0.png"), np.zeros((H, W + 2), np.uint8))
-    with pytest.raises(SourceError, match=rf"left/f0\.png is {W}x{H} grey but its partner .*right/f0\.png is {W + 2}x{H} grey"):
+    with pytest.raises(SourceError,
+                       match=rf"left/f0\.png is {W}x{H} grey but its partner .*right/f0\.png is {W + 2}x{H} grey"):
         source(source="images", images_left=str(left), images_right=str(right))
 
 
@@ -245,7 +247,6 @@ class FakeCamera:
         if self.world.on_grab:
             self.world.on_grab(self)
         self.k += 1
-        import time
         self.ts = time.monotonic_ns() / 1e6 + self.world.offset_ms.get(self.spec, 0.0)
         return True
 
@@ -253,7 +254,8 @@ class FakeCamera:
         return True, pattern(self.k % 12, self.side)
 
     def get(self, prop):
-        return {cv2.CAP_PROP_POS_MSEC: self.ts, cv2.CAP_PROP_FRAME_WIDTH: W, cv2.CAP_PROP_FRAME_HEIGHT: H}.get(prop, 0.0)
+        known = {cv2.CAP_PROP_POS_MSEC: self.ts, cv2.CAP_PROP_FRAME_WIDTH: W, cv2.CAP_PROP_FRAME_HEIGHT: H}
+        return known.get(prop, 0.0)
 
     def set(self, prop, value):
         return True
@@ -384,6 +386,63 @@ def test_cli_missing_camera_exits_2_with_the_message():
     assert r.returncode == 2, r.stderr
     assert "camera /dev/video97: no such device;" in r.stderr and "video devices" in r.stderr
     assert "Traceback" not in r.stderr
+
+
+def test_run_loop_skips_bad_pairs_converts_to_grey_and_idles_at_end(image_dirs):
+    """main.run on a real Node object without a Zenoh session (publishers replaced)."""
+    from ballbot_vision.common.node import Node
+    from ballbot_vision.common.zenoh_session import ZenohOptions
+    from ballbot_vision.services.capture.main import run
+
+    left, right = image_dirs
+    (left / "f4.png").write_bytes(b"")
+    for i in range(11):  # colour files; the service publishes grey
+        cv2.imwrite(str(right / f"f{i}.png"), pattern(i, 1))
+        if i != 4:
+            cv2.imwrite(str(left / f"f{i}.png"), pattern(i, 0))
+    ended = threading.Event()
+
+    class TestNode(Node):
+        @property
+        def status(self):
+            return self._status
+
+        @status.setter
+        def status(self, v):
+            self._status = v
+            if v == "end of stream":
+                ended.set()
+
+    node = TestNode("capture", ZenohOptions(), "unit", install_signal_handlers=False)
+    sent = {"frames_raw": [], "truth": []}
+
+    class Pub:
+        def __init__(self, name):
+            self.name = name
+
+        def put(self, msg, count=True):
+            sent[self.name].append(msg)
+
+    node.publisher = Pub
+    settings = CaptureSettings(source="images", images_left=str(left), images_right=str(right), pace="max",
+                               grayscale=True, encoding="jpeg", jpeg_quality=95)
+    t = threading.Thread(target=run, args=(node, settings))
+    t.start()
+    try:
+        assert ended.wait(30)
+    finally:
+        node.stop_event.set()
+        t.join(10)
+    assert not t.is_alive()
+    frames = sent["frames_raw"]
+    assert [f.seq for f in frames] == list(range(10)) and node.errors == 1 and not sent["truth"]
+    from ballbot_vision.common import codec
+
+    for f, i in zip(frames, [0, 1, 2, 3, 5, 6, 7, 8, 9, 10]):
+        assert f.left.channels == 1 and f.left.encoding == "jpeg" and f.source == "images"
+        a = codec.array_from_image(f.left)
+        assert abs(level(a) - (20 + 8 * i)) < 2
+    assert len({f.stamp_ns for f in frames}) == 10
 
 
 def test_bench_sources_measures_every_file_source():

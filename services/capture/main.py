@@ -52,17 +52,20 @@ class CaptureSettings(ServiceSettings):
     preload: int = Field(0, ge=0, le=10000, description="synthetic: render this many pairs first, then loop them")
     # --- cameras / sbs (V4L2 devices)
     camera_left: Device = Field(0, description="cameras: left device, index or path (/dev/video0, /dev/v4l/by-id/...)")
-    camera_right: Device = Field(1, description="cameras: right device, index or path")
+    camera_right: Device = Field(2, description="cameras: right device, index or path (a UVC camera has two "
+                                                "nodes, capture and metadata: two cameras are often 0 and 2)")
     camera_width: int = Field(640, ge=0, le=16384, description="cameras, sbs: frame width per device (sbs: the "
                                                                "double-width frame); 0 keeps the driver's")
     camera_height: int = Field(480, ge=0, le=16384, description="cameras, sbs: frame height; 0 keeps the driver's")
-    camera_fps: float = Field(30.0, ge=0, le=1000, description="cameras, sbs: requested frame rate; 0 keeps the driver's")
+    camera_fps: float = Field(30.0, ge=0, le=1000,
+                              description="cameras, sbs: requested frame rate; 0 keeps the driver's")
     camera_fourcc: Literal["MJPG", "YUYV", "default"] = Field(
         "MJPG", description="cameras, sbs: pixel format (MJPG lets two cameras share one USB 2 bus); "
                             "default keeps the driver's")
     camera_exposure: float | None = Field(None, description="cameras, sbs: manual exposure in driver units "
                                                             "(uvcvideo: 100 us); unset: automatic")
-    camera_buffers: int = Field(2, ge=0, le=32, description="cameras, sbs: driver buffers (few: low latency); 0 keeps the driver's")
+    camera_buffers: int = Field(2, ge=0, le=32,
+                                description="cameras, sbs: driver buffers (few: low latency); 0 keeps the driver's")
     camera_max_skew_ms: float = Field(20.0, gt=0, description="cameras: drop pairs whose left/right capture times "
                                                               "differ by more than this")
     camera_skew_clock: Literal["driver", "grab"] = Field(
