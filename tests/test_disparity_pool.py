@@ -217,7 +217,8 @@ def alive_workers(events: list[dict]) -> set[str]:
     return alive
 
 
-def start_robot(procs: Procs, rid: str, endpoint: str, listen: str, rate: float = 15.0) -> None:
+def start_robot(procs: Procs, rid: str, endpoint: str, listen: str, rate: float = 15.0,
+                fallback: str = "none") -> None:
     common = ["--robot-id", rid]
     procs.service("router", "router", "--listen", listen, *common)
     host, port = listen[4:].rsplit(":", 1)
@@ -229,7 +230,7 @@ def start_robot(procs: Procs, rid: str, endpoint: str, listen: str, rate: float 
     c = ["--connect", endpoint, *common]
     procs.service("capture", "capture", *c, "--rate-hz", str(rate), "--preload", "6")
     procs.service("rectify", "rectify", *c)
-    procs.service("dispatch", "disparity", *c, "--fallback", "none", "--max-age-ms", "1000")
+    procs.service("dispatch", "disparity", *c, "--fallback", fallback, "--max-age-ms", "1000")
     procs.service("segmenter", "segmenter", *c)
 
 
@@ -296,6 +297,23 @@ def test_three_worker_processes_survive_a_kill_and_garbage():
                                     for e in ev), 30, "the worker to count bad work items")
         col.wait_for(lambda ev: sum(1 for e in ev if e["k"] == "D" and e["worker"] == workers[1]
                                     and e["t"] > t_inject + 1) >= 3, 30, "the garbage-fed worker to keep working")
+        # a frozen host (SIGSTOP): dropped after the 2 s lease, not Zenoh's default 10 s
+        frozen = procs.procs[workers[1]]
+        t_stop = time.time()
+        frozen.send_signal(signal.SIGSTOP)
+        col.wait_for(lambda ev: workers[1] not in alive_workers(ev), 15, "the frozen worker's token to expire")
+        detected = time.time() - t_stop
+        assert detected < 2.0 + 1.5, f"a frozen worker was noticed only after {detected:.1f} s (lease 2 s)"
+        col.wait_for(lambda ev: sum(1 for e in ev if e["k"] == "D" and e["worker"] == workers[2]
+                                    and e["t"] > t_stop + detected) >= 3, 30, "the last worker to carry on")
+        # nobody left: the dispatcher says so and the obstacle stream marks itself stale
+        frozen.kill()
+        procs.procs[workers[2]].kill()
+        t_none = time.time()
+        col.wait_for(lambda ev: any(e["k"] == "S" and e["status"] == "no worker reachable" and e["t"] > t_none
+                                    for e in ev), 15, "status 'no worker reachable'")
+        col.wait_for(lambda ev: any(e["k"] == "O" and e["stale"] and e["t"] > t_none for e in ev), 15,
+                     "a stale obstacle list")
     finally:
         procs.stop_all()
 
@@ -344,7 +362,7 @@ def test_workers_in_another_network_namespace_survive_a_kill():
         rid = f"ns{tag}"
         port = 7447
         endpoint = f"tcp/{ip_r}:{port}"
-        start_robot(procs_r, rid, f"tcp/127.0.0.1:{port}", f"tcp/0.0.0.0:{port}")
+        start_robot(procs_r, rid, f"tcp/127.0.0.1:{port}", f"tcp/0.0.0.0:{port}", fallback="half")
         col = Collector(procs_r, rid, f"tcp/127.0.0.1:{port}")
         workers = [f"w{i}-{rid}" for i in range(3)]
         for w in workers:  # offboard: clients of the robot's router, across the veth link
@@ -352,6 +370,20 @@ def test_workers_in_another_network_namespace_survive_a_kill():
                             "--connect", endpoint, "--robot-id", rid, "--threads", "1")
         procs_r.procs.update(procs_o.procs)  # so check_kill_continuity can find the victim
         check_kill_continuity(col, procs_r, workers)
+        # cut the link: the offboard workers are dropped after the lease and the robot's half-resolution
+        # onboard fallback takes over, so the robot is not blind
+        t_cut = time.time()
+        sh("ip", "-n", robot, "link", "set", veth_r, "down")
+        col.wait_for(lambda ev: not alive_workers(ev), 15, "the cut-off workers' tokens to expire")
+        detected = time.time() - t_cut
+        assert detected < 2.0 + 1.5, f"a cut-off host was noticed only after {detected:.1f} s (lease 2 s)"
+        col.wait_for(lambda ev: sum(1 for e in ev if e["k"] == "D" and "onboard" in e["method"]
+                                    and e["t"] > t_cut) >= 3, 20, "the onboard fallback to take over")
+        o = [e["seq"] for e in col.of("O") if not e["stale"]]
+        assert all(b > a for a, b in zip(o, o[1:])), "the obstacle stream went backwards"
+        t_all = min(e["t"] for e in col.of("D") if "onboard" not in e["method"])
+        onboard_while_workers = [e for e in col.of("D") if "onboard" in e["method"] and t_all + 0.5 < e["t"] < t_cut]
+        assert not onboard_while_workers, "the onboard fallback ran while offboard workers were alive"
     finally:
         procs_r.stop_all()
         procs_o.stop_all()

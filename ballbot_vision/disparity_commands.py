@@ -1,0 +1,125 @@
+"""`ballbot-vision disparity LEFT RIGHT -o OUT`: the disparity core, offline, on two image files.
+
+Output by extension: .npy float32 px with NaN where invalid; .pfm float32 px with inf where invalid
+(Middlebury's convention); .png a colour picture for people (near = warm, invalid = black).
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .common.errors import BallbotError
+
+FORMATS = (".npy", ".pfm", ".png")
+
+
+def read_image(path: str) -> np.ndarray:
+    import cv2
+
+    img = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise BallbotError(f"{path}: cannot read an image from this file")
+    if img.ndim == 3 and img.shape[2] == 4:
+        img = cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)
+    if img.dtype != np.uint8:
+        raise BallbotError(f"{path}: 8-bit images only, got {img.dtype}")
+    return img
+
+
+def write_pfm(path: str, d: np.ndarray) -> None:
+    """Grey PFM: little-endian float32, rows stored bottom to top; NaN becomes inf."""
+    a = np.where(np.isfinite(d), d, np.inf).astype("<f4")
+    with open(path, "wb") as f:
+        f.write(f"Pf\n{a.shape[1]} {a.shape[0]}\n-1.0\n".encode("ascii"))
+        f.write(np.ascontiguousarray(a[::-1]).tobytes())
+
+
+def read_pfm(path: str) -> np.ndarray:
+    """Inverse of write_pfm (inf stays inf)."""
+    with open(path, "rb") as f:
+        kind = f.readline().strip()
+        w, h = (int(v) for v in f.readline().split())
+        scale = float(f.readline())
+        if kind != b"Pf":
+            raise BallbotError(f"{path}: only grey PFM is supported")
+        a = np.frombuffer(f.read(w * h * 4), dtype="<f4" if scale < 0 else ">f4").reshape(h, w)
+    return a[::-1].astype(np.float32)
+
+
+def colour(d: np.ndarray, max_disparity: float) -> np.ndarray:
+    import cv2
+
+    valid = np.isfinite(d)
+    scaled = np.zeros(d.shape, np.uint8)
+    scaled[valid] = np.clip(d[valid] * (255.0 / max(max_disparity, 1e-6)), 0, 255).astype(np.uint8)
+    out = cv2.applyColorMap(scaled, cv2.COLORMAP_TURBO)
+    out[~valid] = 0
+    return out
+
+
+def cmd_disparity(args: argparse.Namespace) -> int:
+    import cv2
+
+    from .common import camera
+    from .common.settings import load_settings
+    from .services.disparity.main import DisparitySettings
+    from .services.disparity.matchers import StereoMatcher, gate_for_range, to_float
+    from .services.rectify.core import Rectifier
+
+    out = Path(args.output)
+    if out.suffix.lower() not in FORMATS:
+        raise BallbotError(f"-o {args.output}: the extension picks the format, one of {', '.join(FORMATS)}")
+    settings = load_settings(DisparitySettings, args.config, args)
+    if settings.threads:
+        cv2.setNumThreads(settings.threads)
+    left, right = read_image(args.left), read_image(args.right)
+    if left.shape[:2] != right.shape[:2]:
+        raise BallbotError(f"{args.left} is {left.shape[1]}x{left.shape[0]}, {args.right} is "
+                           f"{right.shape[1]}x{right.shape[0]}")
+    gate = 0.0
+    if args.calibration:
+        rect = Rectifier(camera.load_calibration(args.calibration))
+        left, right = rect.rectify(left, right)
+        gate = gate_for_range(settings.max_range_m, rect.model.focal_px, rect.model.baseline_m)
+    elif settings.max_range_m:
+        raise BallbotError("--max-range-m needs --calibration (focal length and baseline turn metres into px)")
+    cfg = settings.matcher_config()
+    t0 = time.perf_counter()
+    raw = StereoMatcher(cfg).compute(left, right, gate or None)
+    ms = (time.perf_counter() - t0) * 1e3
+    d = to_float(raw, 16.0, cfg.invalid_value)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    suffix = out.suffix.lower()
+    if suffix == ".npy":
+        np.save(out, d)
+    elif suffix == ".pfm":
+        write_pfm(str(out), d)
+    else:
+        if not cv2.imwrite(str(out), colour(d, cfg.min_disparity + cfg.num_disparities)):
+            raise BallbotError(f"{out}: cannot write")
+    valid = np.isfinite(d)
+    rng = f"{np.nanmin(d):.1f}..{np.nanmax(d):.1f} px" if valid.any() else "none"
+    print(f"{out}: {d.shape[1]}x{d.shape[0]} {cfg.method}{' +LR' if cfg.lr_check else ''}, "
+          f"{valid.mean() * 100:.1f}% valid, disparity {rng}, {ms:.1f} ms"
+          + (f", range gate d >= {gate:.1f} px" if gate else ""))
+    return 0
+
+
+def register(sub, common) -> None:
+    from .common.settings import add_settings_arguments
+    from .services.disparity.main import DisparitySettings
+
+    p = sub.add_parser("disparity", help="disparity of one stereo pair of image files (offline, in-process)",
+                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("left")
+    p.add_argument("right")
+    p.add_argument("-o", "--output", required=True, help="OUT.npy, OUT.pfm or OUT.png")
+    p.add_argument("--calibration", default=None, help="rectify first with this calibration (YAML or profile); "
+                   "without it the pair must already be rectified")
+    p.add_argument("--config", default=None, metavar="FILE", help="YAML file; its 'disparity' section applies")
+    add_settings_arguments(p, DisparitySettings)
+    p.set_defaults(func=cmd_disparity)
