@@ -118,7 +118,8 @@ def read_gray(path: Path) -> np.ndarray:
 
 def detect_corners(gray: np.ndarray, pattern: tuple[int, int]) -> np.ndarray | None:
     """Inner chessboard corners, (N, 1, 2) float32 in pixels, refined to sub-pixel; None if the
-    whole board is not found. Classic detector + cornerSubPix, the sector-based one as fallback."""
+    whole board is not found. Classic detector + cornerSubPix (the sector-based detector is left
+    out: it also reports a smaller board inside a larger one, which hides a wrong --pattern)."""
     flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
     found, corners = cv2.findChessboardCorners(gray, pattern, flags=flags)
     if found:
@@ -128,8 +129,7 @@ def detect_corners(gray: np.ndarray, pattern: tuple[int, int]) -> np.ndarray | N
         win = int(max(2, min(11, spacing * 0.4)))
         crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 100, 1e-4)
         return cv2.cornerSubPix(gray, corners, (win, win), (-1, -1), crit)
-    found, corners = cv2.findChessboardCornersSB(gray, pattern, flags=cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY)
-    return corners.astype(np.float32).reshape(-1, 1, 2) if found else None
+    return None
 
 
 def board_points(pattern: tuple[int, int], square_size: float) -> np.ndarray:
@@ -241,7 +241,6 @@ def project(obj: np.ndarray, rvecs: np.ndarray, tvecs: np.ndarray, intr: np.ndar
 def _refine_with_skew(obj: np.ndarray, img: list[np.ndarray], start: CameraResult, k3: bool) -> CameraResult:
     """Bundle adjustment of one camera with the skew free (OpenCV's calibrateCamera keeps it 0)."""
     from scipy.optimize import least_squares
-    from scipy.sparse import lil_matrix
 
     M, N = len(img), obj.shape[0]
     obs = np.stack([p.reshape(-1, 2) for p in img]).astype(np.float64)
@@ -261,13 +260,8 @@ def _refine_with_skew(obj: np.ndarray, img: list[np.ndarray], start: CameraResul
         intr, r, t = unpack(x)
         return (project(obj, r, t, intr) - obs).ravel()
 
-    sp = lil_matrix((M * N * 2, x0.size), dtype=np.int8)
-    for m in range(M):
-        rows = slice(m * N * 2, (m + 1) * N * 2)
-        sp[rows, :nf] = 1
-        sp[rows, nf + 3 * m:nf + 3 * m + 3] = 1
-        sp[rows, nf + 3 * M + 3 * m:nf + 3 * M + 3 * m + 3] = 1
-    sol = least_squares(residuals, x0, jac_sparsity=sp, method="trf", x_scale="jac", xtol=1e-12, ftol=1e-12)
+    # Levenberg-Marquardt from OpenCV's skew-free solution: a few iterations of a small problem.
+    sol = least_squares(residuals, x0, method="lm", x_scale="jac", xtol=1e-10, ftol=1e-10, max_nfev=200 * x0.size)
     intr, r, t = unpack(sol.x)
     res = sol.fun.reshape(M, N, 2)
     J = sol.jac.toarray() if hasattr(sol.jac, "toarray") else sol.jac
@@ -440,16 +434,44 @@ def calibrate_stereo(pairs: Sequence[tuple[Path, Path]], pattern: tuple[int, int
         rejected.extend(out)
         views = [v for v in views if id(v) not in bad]
 
-    progress(f"calibrating the pair on {len(views)} views ...")
-    pl = [deskew_points(v.left, cl.K) for v in views]
-    pr = [deskew_points(v.right, cr.K) for v in views]
     flags = cv2.CALIB_FIX_INTRINSIC
     if refine_intrinsics:
         flags = cv2.CALIB_USE_INTRINSIC_GUESS | _mono_flags(k3)
     Kl, Kr = _no_skew(cl.K), _no_skew(cr.K)
-    rms, Kl2, Dl2, Kr2, Dr2, R, T, _E, _F, rvecs, tvecs, per_view = cv2.stereoCalibrateExtended(
-        [obj] * len(views), pl, pr, Kl, cl.D.reshape(1, 5), Kr, cr.D.reshape(1, 5), size, None, None,
-        flags=flags, criteria=(cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-12))
+    for _round in range(5):
+        progress(f"calibrating the pair on {len(views)} views ...")
+        pl = [deskew_points(v.left, cl.K) for v in views]
+        pr = [deskew_points(v.right, cr.K) for v in views]
+        rms, Kl2, Dl2, Kr2, Dr2, R, T, _E, _F, rvecs, tvecs, per_view = cv2.stereoCalibrateExtended(
+            [obj] * len(views), pl, pr, Kl.copy(), cl.D.reshape(1, 5).copy(), Kr.copy(), cr.D.reshape(1, 5).copy(),
+            size, None, None, flags=flags, criteria=(cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-12))
+        per_view = np.asarray(per_view).reshape(-1, 2)
+        if not reject_outliers:
+            break
+        # A pair can be fine for each camera alone and still wrong as a pair (images from
+        # different moments, a swapped file): the stereo per-view errors catch that.
+        # One wrong pair drags R, T and so every view's error up: first drop the views that stand
+        # out from the others, refit, and only then apply the absolute limit.
+        err = per_view.max(axis=1)
+        thr = outlier_threshold(err, float("inf"))
+        if not np.any(err > thr):
+            thr = min(thr, max_view_rms)
+        bad = [(v, f"stereo RMS {e:.3f} px > {thr:.3f} px") for v, e in zip(views, err) if e > thr]
+        if not bad:
+            break
+        if len(views) - len(bad) < min_views:
+            progress(f"not rejecting {len(bad)} stereo outlier view(s): fewer than {min_views} would remain")
+            break
+        for v, why in bad:
+            progress(f"rejecting {v.name}: {why}")
+        rejected.extend(bad)
+        ids = {id(v) for v, _ in bad}
+        keep = [i for i, v in enumerate(views) if id(v) not in ids]
+        views = [views[i] for i in keep]
+        for c in (cl, cr):  # keep the per-camera per-view errors aligned with `views`
+            c.per_view = c.per_view[keep]
+            c.rvecs = [c.rvecs[i] for i in keep]
+            c.tvecs = [c.tvecs[i] for i in keep]
     if refine_intrinsics:
         Kl2[0, 1], Kr2[0, 1] = cl.K[0, 1], cr.K[0, 1]
         cl.K, cl.D = Kl2, np.asarray(Dl2).ravel()[:5]
@@ -464,7 +486,7 @@ def calibrate_stereo(pairs: Sequence[tuple[Path, Path]], pattern: tuple[int, int
         rig = camera.RawRig(size, cl.intrinsics, cr.intrinsics, R, T, name)
     except CalibrationError as e:
         raise CalibrationError(f"the stereo calibration is not usable: {e}") from None
-    return StereoResult(size, pattern, square_size, cl, cr, R, T, float(rms), np.asarray(per_view).reshape(-1, 2),
+    return StereoResult(size, pattern, square_size, cl, cr, R, T, float(rms), per_view,
                         views, rejected, missing, len(views_all), rig, om_std, T_std)
 
 

@@ -1,15 +1,26 @@
-"""rectify: frames_raw -> frames_rect (with the rectified camera model)."""
+"""rectify: frames_raw -> frames_rect (with the rectified camera model).
+
+A new calibration is taken at run time, without a restart and without a torn frame: published on
+the `calibration` key (a CalibrationUpdate with the YAML text), or the calibration file changed on
+disk (checked once a second). A bad one is logged and refused; the old one stays in use.
+"""
 from __future__ import annotations
+
+import queue
+import threading
+import time
 
 from pydantic import Field
 
-from ...common import camera, codec
-from ...common.messages import StereoFrame
+from ...common import codec
+from ...common.errors import DecodeError
+from ...common.keys import topic
+from ...common.messages import CalibrationUpdate, StereoFrame
 from ...common.node import Node
 from ...common.settings import ServiceSettings
-from .core import Rectifier
+from .core import CalibrationHolder
 
-SUBSCRIBES = ["frames_raw"]
+SUBSCRIBES = ["frames_raw", "calibration"]
 PUBLISHES = ["frames_rect"]
 
 
@@ -17,14 +28,54 @@ class RectifySettings(ServiceSettings):
     section = "rectify"
     calibration: str = Field("lifecam-studio", description="calibration YAML or built-in profile")
     alpha: float = Field(0.0, ge=0.0, le=1.0, description="0: crop to valid pixels, 1: keep all source pixels")
+    watch_s: float = Field(1.0, ge=0.0, le=3600.0, description="check the calibration file for changes this often (0: never)")
+
+
+def reloader(node: Node, holder: CalibrationHolder, updates: "queue.Queue[CalibrationUpdate]", watch_s: float) -> None:
+    """Off the frame loop: applies calibration messages and watches the calibration file."""
+    next_poll = time.monotonic() + watch_s
+    while node.running:
+        timeout = max(0.0, next_poll - time.monotonic()) if watch_s > 0 else 0.5
+        try:
+            upd = updates.get(timeout=timeout)
+        except queue.Empty:
+            upd = None
+        if upd is not None:
+            holder.offer_yaml(upd.yaml, f"the calibration key ({upd.source or 'message'})")
+        if watch_s > 0 and time.monotonic() >= next_poll:
+            holder.poll_file()
+            next_poll = time.monotonic() + watch_s
+        node.extra["calibration_generation"] = float(holder.generation)
+        node.extra["calibration_refused"] = float(holder.refused)
 
 
 def run(node: Node, settings: RectifySettings) -> None:
-    rectifier = Rectifier(camera.load_calibration(settings.calibration), settings.alpha)
+    holder = CalibrationHolder(settings.calibration, settings.alpha)
+    updates: queue.Queue[CalibrationUpdate] = queue.Queue(maxsize=8)
+
+    def on_calibration(sample) -> None:  # Zenoh's thread: decode and hand over, nothing heavy
+        try:
+            msg = codec.decode(sample.payload.to_bytes(), CalibrationUpdate)
+            if msg.robot_id != node.robot_id:
+                raise DecodeError(f"CalibrationUpdate: robot_id {msg.robot_id!r} on {node.robot_id!r}'s key")
+        except DecodeError as e:
+            node.decode_errors += 1
+            node.warn("calibration", f"dropped calibration message: {e}")
+            return
+        try:
+            updates.put_nowait(msg)
+        except queue.Full:
+            node.warn("calibration", "calibration messages arrive faster than they can be applied; dropped one")
+
+    node.subscribe(topic("calibration").key(node.robot_id), on_calibration)
+    threading.Thread(target=reloader, args=(node, holder, updates, settings.watch_s), name="calibration",
+                     daemon=True).start()
     inbox = node.latest("frames_raw")
     out = node.publisher("frames_rect")
     for msg in node.receive(inbox):
         with node.processing(msg):
+            rectifier = holder.current()  # one calibration for the whole pair
+            holder.note_frame(msg.left.width, msg.left.height)
             left = codec.array_from_image(msg.left, "left")
             right = codec.array_from_image(msg.right, "right")
             rl, rr = rectifier.rectify(left, right)
