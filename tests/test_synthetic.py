@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from ballbot_vision.common import camera
+from ballbot_vision.common.errors import ConfigError
 from ballbot_vision.services.capture import synthetic as S
 
 
@@ -21,14 +22,25 @@ def rect(rig) -> camera.Rectification:
     return camera.rectify_rig(rig, 0.0)
 
 
+_WORLDS: dict = {}
+
+
+def _world(name: str, rig, rect, **kw) -> S.SyntheticWorld:
+    """One world per (scenario, settings) for the whole module: building one costs ~0.5 s."""
+    key = (name, tuple(sorted(kw.items())))
+    if key not in _WORLDS:
+        _WORLDS[key] = S.SyntheticWorld(S.Scene.builtin(name), rig, rect, **kw)
+    return _WORLDS[key]
+
+
 @pytest.fixture(scope="module")
 def world(rig, rect) -> S.SyntheticWorld:
-    return S.SyntheticWorld(S.Scene.default(), rig, rect, seed=0)
+    return _world("two-boxes", rig, rect)
 
 
 @pytest.fixture(scope="module")
 def clean_world(rig, rect) -> S.SyntheticWorld:
-    return S.SyntheticWorld(S.Scene.default(), rig, rect, seed=0, noise_sigma=0.0)
+    return _world("two-boxes", rig, rect, noise_sigma=0.0)
 
 
 def _local_std(img: np.ndarray, k: int = 7) -> np.ndarray:
@@ -179,26 +191,29 @@ def _matchable(disp: np.ndarray) -> np.ndarray:
     return smooth & (right_min > xr - 0.5)
 
 
-def test_rectified_pair_agrees_with_true_disparity(clean_world, rig, rect):
+@pytest.mark.parametrize("name,t", [("two-boxes", 0.0), ("chair", 0.0), ("person-walking", 1.3)])
+def test_rectified_pair_agrees_with_true_disparity(name, t, rig, rect):
     """Rectify the rendered raw pair with OpenCV: the right image sampled at x - true disparity
     must reproduce the left one, and visibly less so 0.25 px off. This proves renderer, lens
-    distortion, rig and ground truth agree."""
-    left, right = clean_world.render()
-    rl, rr = _rectified(clean_world, rig, rect, left, right)
-    disp = clean_world.true_disparity()
-    ids = clean_world.obstacle_ids()
+    distortion, rig and ground truth agree (for moving objects too)."""
+    world = _world(name, rig, rect, noise_sigma=0.0)
+    left, right = world.render(t)
+    rl, rr = _rectified(world, rig, rect, left, right)
+    disp = world.true_disparity(t)
+    ids = world.obstacle_ids(t)
     h, w = disp.shape
     xs, ys = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
     mask = _matchable(disp)
+    regions = {"floor": (ids == -1) & (ys > 300), "wall": (ids == -1) & (ys < 100)}
+    regions.update({b.name: ids == i for i, b in enumerate(world.scene.boxes)})
     errs = {}
     for shift in (0.0, 0.25, 1.0):
         warped = cv2.remap(rr, xs - disp - shift, ys, cv2.INTER_LINEAR, borderValue=np.nan)
         ok = mask & np.isfinite(warped) & np.isfinite(rl)
         e = np.abs(warped - rl)
-        errs[shift] = {k: float(e[ok & sel].mean()) for k, sel in
-                       (("all", True), ("floor", (ids == -1) & (ys > 250)), ("wall", (ids == -1) & (ys < 150)),
-                        ("box-a", ids == 0), ("box-b", ids == 1))}
+        errs[shift] = {k: float(e[ok & sel].mean()) for k, sel in regions.items() if (ok & sel).sum() > 500}
     assert ok.sum() > 0.7 * h * w
+    assert set(errs[0.0]) == set(regions), errs  # every region was checked
     for region, e0 in errs[0.0].items():
         # the floor is slanted and finely textured, so resampling costs it most
         assert e0 < (3.0 if region == "floor" else 2.0), errs
@@ -234,3 +249,163 @@ def test_subpixel_matches_agree_with_true_disparity(clean_world, rig, rect):
         errors.append(x - (lo + sub) - d)
     errors = np.abs(np.array(errors))
     assert np.median(errors) < 0.1 and errors.max() < 0.2, errors.round(3)
+
+
+# --- scenarios ---------------------------------------------------------------------------------------
+
+def test_builtin_scenarios_listed():
+    assert S.list_builtin_scenarios() == ["border", "chair", "person-walking", "toolbox", "touching", "two-boxes"]
+    with pytest.raises(ConfigError, match="no-such-scene.*built-in: border, chair"):
+        S.Scene.builtin("no-such-scene")
+
+
+def test_default_scene_numbers():
+    sc = S.Scene.default()
+    assert (sc.name, sc.camera_height_m, sc.camera_pitch_deg, sc.wall_distance_m) == ("two-boxes", 1.0, 15.0, 5.0)
+    a, b = sc.boxes
+    assert (a.name, a.center, a.size) == ("box-a", (1.8, 0.35, 0.3), (0.5, 0.6, 0.3))
+    assert (b.name, b.center, b.size) == ("box-b", (2.4, -0.5, 0.4), (0.4, 0.8, 0.3))
+
+
+@pytest.mark.parametrize("name", ["two-boxes", "toolbox", "chair", "person-walking", "touching", "border"])
+def test_every_scenario_shows_every_obstacle(name, rig, rect):
+    world = _world(name, rig, rect)
+    times = [0.0] if world.is_static() else list(np.arange(0.0, 6.0, 0.5))
+    w, h = rect.model.width, rect.model.height
+    for t in times:
+        left, right = world.render(t)
+        assert left.shape == (h, w) and right.dtype == np.uint8
+        for o in world.truth(t):
+            assert o.visible_px > 500, (name, t, o.name, o.visible_px)
+            assert np.all(np.isfinite(o.visible_centroid_m)) and o.nearest_m > 0.5
+
+
+def test_compound_objects_are_one_obstacle(rig, rect):
+    world = _world("chair", rig, rect)
+    (chair,) = world.truth()
+    assert chair.kind == "chair"
+    assert np.allclose(chair.size_m, (0.44, 0.945, 0.42))  # union of seat, back and legs
+    ids = world.obstacle_ids()
+    assert chair.visible_px == int((ids == 0).sum())
+    # thin legs: floor shows between them, inside the chair's bbox
+    x0, y0, x1, y1 = chair.bbox_px
+    assert (ids[y0:y1 + 1, x0:x1 + 1] == -1).mean() > 0.2
+
+
+def test_touching_boxes_overlap_in_the_image(rig, rect):
+    world = _world("touching", rig, rect)
+    near, far = world.truth()
+    (ax0, ay0, ax1, ay1), (bx0, by0, bx1, by1) = near.bbox_px, far.bbox_px
+    assert ax0 < bx1 and bx0 < ax1 and ay0 < by1 and by0 < ay1  # the bboxes intersect
+    assert far.center_m[2] - near.center_m[2] > 0.5
+    ids = world.obstacle_ids()
+    # the near box hides part of the far one: some rows go straight from one to the other
+    touching = (ids[:, :-1] == 0) & (ids[:, 1:] == 1)
+    assert touching.sum() > 20
+
+
+def test_border_object_is_cut(rig, rect):
+    world = _world("border", rig, rect)
+    (o,) = world.truth()
+    assert o.bbox_px[0] == 0
+    u = rect.P1[0, 0] * o.center_m[0] / o.center_m[2] + rect.P1[0, 2]
+    assert u < 0  # the centre itself is outside the image
+
+
+# --- moving objects --------------------------------------------------------------------------------
+
+def test_moving_truth(rig, rect):
+    world = _world("person-walking", rig, rect)
+    assert not world.is_static()
+    (p0,) = world.truth(0.5)
+    (p1,) = world.truth(0.6)
+    assert p0.kind == "person" and np.isclose(p0.size_m[1], 1.75)
+    assert np.isclose(np.linalg.norm(p0.velocity_mps), 0.8)
+    # velocity (rectified frame) is the derivative of the centre
+    assert np.allclose((p1.center_m - p0.center_m) / 0.1, p0.velocity_mps, atol=1e-6)
+    assert not np.array_equal(world.render(0.5)[0], world.render(0.6)[0])
+    assert p0.bbox_px != p1.bbox_px
+    # back and forth: the path is closed, so the person comes back
+    period = 2 * np.hypot(1.5, 1.3) / 0.8
+    (pp,) = world.truth(0.5 + period)
+    assert np.allclose(pp.center_m, p0.center_m, atol=1e-9)
+    (back,) = world.truth(0.5 + period / 2)
+    assert np.dot(back.velocity_mps, p0.velocity_mps) < 0
+
+
+def test_moving_render_is_deterministic_and_prerender_matches(rig, rect):
+    a = _world("person-walking", rig, rect)
+    b = S.SyntheticWorld(S.Scene.builtin("person-walking"), rig, rect)
+    b.prerender([0.4, 0.8])
+    for t in (0.4, 0.8):
+        assert all(np.array_equal(x, y) for x, y in zip(a.render(t), b.render(t)))
+        ta, tb = a.truth(t), b.truth(t)
+        assert ta[0].bbox_px == tb[0].bbox_px and np.allclose(ta[0].center_m, tb[0].center_m)
+
+
+def test_box_path_stops_without_loop():
+    box = S.Box("b", "box", (0, 0, 0.2), (0.4, 0.4, 0.4), path=[(1.0, 0.0), (2.0, 0.0)], speed_mps=0.5, loop=False)
+    c, _, v = box.pose(1.0)
+    assert np.allclose(c, (1.5, 0.0, 0.2)) and np.allclose(v, (0.5, 0, 0))
+    c, _, v = box.pose(10.0)
+    assert np.allclose(c, (2.0, 0.0, 0.2)) and np.allclose(v, 0)
+
+
+# --- scenario files ----------------------------------------------------------------------------------
+
+_GOOD = """
+name: mine
+camera_height_m: 0.8
+camera_pitch_deg: 10
+objects:
+  - name: crate
+    kind: box
+    size: [0.3, 0.3, 0.3]
+    position: [2.0, 0.0, 0.5]
+"""
+
+
+def test_yaml_round_trip(tmp_path):
+    f = tmp_path / "mine.yaml"
+    f.write_text(_GOOD)
+    sc = S.Scene.from_yaml(f)
+    assert (sc.name, sc.camera_height_m, sc.camera_pitch_deg, sc.wall_distance_m) == ("mine", 0.8, 10.0, 5.0)
+    assert sc.boxes[0].center == (2.0, 0.0, 0.5)  # [x, y, z] is the centre, not on the floor
+    assert S.Scene.builtin(str(f)).boxes[0].name == "crate"  # a file path works where a name does
+
+
+@pytest.mark.parametrize("edit,message", [
+    (("    size: [0.3, 0.3, 0.3]\n", ""), r"objects\[0\] \('crate'\): missing field 'size'"),
+    (("  - name: crate\n", "  - kind: box\n"), r"objects\[0\]: missing field 'name'"),
+    (("    position: [2.0, 0.0, 0.5]\n", ""), r"missing field 'position'"),
+    (("camera_height_m: 0.8", "camera_height_m: high"), r"field 'camera_height_m' must be a number"),
+    (("size: [0.3, 0.3, 0.3]", "size: [0.3, 0.3]"), r"field 'size' must be a list of 3 numbers"),
+    (("size: [0.3, 0.3, 0.3]", "size: [0.3, -0.3, 0.3]"), r"field 'size' must hold positive numbers"),
+    (("    kind: box\n", "    kind: box\n    colour: red\n"), r"unknown field\(s\) 'colour'"),
+    (("    position: [2.0, 0.0, 0.5]\n", "    position: [2.0, 0.0]\n    path: {waypoints: [[1, 0]], speed_mps: 1}\n"),
+     r"needs at least 2 points"),
+    (("    position: [2.0, 0.0, 0.5]\n", "    position: [2.0, 0.0]\n    path: {waypoints: [[1, 0], [2, 0]]}\n"),
+     r"path: missing field 'speed_mps'"),
+    (("    size: [0.3, 0.3, 0.3]\n", "    size: [0.3, 0.3, 0.3]\n    parts: [{offset: [0, 0, 0], size: [1, 1, 1]}]\n"),
+     r"either 'size' or 'parts'"),
+    (("name: mine\n", "name: mine\nwall_distance_m: 1.5\n"), r"'crate' stands behind the wall"),
+])
+def test_yaml_errors_name_file_and_field(tmp_path, edit, message):
+    f = tmp_path / "bad.yaml"
+    assert edit[0] in _GOOD
+    f.write_text(_GOOD.replace(*edit))
+    with pytest.raises(ConfigError, match=message) as e:
+        S.Scene.from_yaml(f)
+    assert str(f) in str(e.value)
+
+
+def test_yaml_not_a_mapping_or_not_yaml(tmp_path):
+    f = tmp_path / "x.yaml"
+    f.write_text("- 1\n- 2\n")
+    with pytest.raises(ConfigError, match="expected a mapping"):
+        S.Scene.from_yaml(f)
+    f.write_text("name: [unclosed\n")
+    with pytest.raises(ConfigError, match="not valid YAML"):
+        S.Scene.from_yaml(f)
+    with pytest.raises(ConfigError, match="cannot read"):
+        S.Scene.from_yaml(tmp_path / "missing.yaml")

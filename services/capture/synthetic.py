@@ -23,6 +23,7 @@ z, x), i.e. width across, height, depth along the viewing direction when yaw = 0
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from dataclasses import dataclass, field
@@ -32,8 +33,10 @@ from typing import Any, Sequence
 import cv2
 import numpy as np
 
-from ballbot_vision.common import camera
-from ballbot_vision.common.errors import ConfigError
+from ...common import camera
+from ...common.errors import ConfigError
+
+SCENARIO_DIR = Path(__file__).with_name("scenarios")
 
 # --- texture ---------------------------------------------------------------------------------------
 
@@ -83,9 +86,10 @@ def _remap_1d(img: np.ndarray, mx: np.ndarray, my: np.ndarray) -> np.ndarray:
     n = mx.size
     cols = 1024
     rows = -(-n // cols)
-    pad = rows * cols - n
-    mx2 = np.pad(mx.astype(np.float32), (0, pad)).reshape(rows, cols)
-    my2 = np.pad(my.astype(np.float32), (0, pad)).reshape(rows, cols)
+    mx2 = np.zeros(rows * cols, np.float32)
+    my2 = np.zeros(rows * cols, np.float32)
+    mx2[:n], my2[:n] = mx, my
+    mx2, my2 = mx2.reshape(rows, cols), my2.reshape(rows, cols)
     return cv2.remap(img, mx2, my2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP).ravel()[:n]
 
 
@@ -98,6 +102,11 @@ class _SurfaceTex:
     sin: float
     off_u: float
     off_v: float
+
+    @property
+    def params(self) -> np.ndarray:
+        """(5,) float32: scale, cos, sin, off_u, off_v, as `_sample` takes them."""
+        return np.array([self.scale, self.cos, self.sin, self.off_u, self.off_v], np.float32)
 
     @classmethod
     def from_seed(cls, *seed: int) -> "_SurfaceTex":
@@ -147,7 +156,7 @@ def _trilinear(levels: Sequence[np.ndarray], tu: np.ndarray, tv: np.ndarray, lev
     w1 = (lev - i0).astype(np.float32)
     out = np.zeros(tu.shape, np.float32)
     for lv in range(_N_LEVELS):
-        lo, hi = i0 == lv, i0 + 1 == lv
+        lo, hi = i0 == lv, (i0 + 1 == lv) & (w1 > 0)  # most pixels need one level only
         m = lo | hi
         if not m.any():
             continue
@@ -228,7 +237,6 @@ class Box:
                                            np.asarray(p.size, float)) for p in self.part_list()])
         return pts.min(0), pts.max(0)
 
-    @property
     def is_static(self) -> bool:
         return self.path is None
 
@@ -293,21 +301,181 @@ class Scene:
 
     @classmethod
     def default(cls) -> "Scene":
-        """The two-boxes scene (camera 1.0 m high, 15 deg down; wall 5 m ahead)."""
-        return cls(
-            name="two-boxes",
-            camera_height_m=1.0,
-            camera_pitch_deg=15.0,
-            wall_distance_m=5.0,
-            boxes=[
-                Box("box-a", "box", (1.8, 0.35, 0.3), (0.5, 0.6, 0.3), texture_seed=11),
-                Box("box-b", "box", (2.4, -0.5, 0.4), (0.4, 0.8, 0.3), texture_seed=12),
-            ],
-            description="Two boxes on the floor at 1.8 m (left) and 2.4 m (right), wall at 5 m.",
+        """The two-boxes scene: camera 1.0 m high, 15 deg down; box-a (0.5 x 0.6 x 0.3 m) 1.8 m
+        ahead, 0.35 m left; box-b (0.4 x 0.8 x 0.3 m) 2.4 m ahead, 0.5 m right; wall at 5 m."""
+        return cls.builtin("two-boxes")
+
+    @classmethod
+    def builtin(cls, name: str) -> "Scene":
+        """A shipped scenario by name (see `list_builtin_scenarios`); a path to a scenario YAML
+        file is accepted too, so one setting can name either."""
+        path = SCENARIO_DIR / f"{name}.yaml"
+        if path.is_file():
+            return cls.from_yaml(path)
+        if str(name).endswith((".yaml", ".yml")) and Path(name).is_file():
+            return cls.from_yaml(name)
+        raise ConfigError(f"{name}: no such built-in scenario or scenario file "
+                          f"(built-in: {', '.join(list_builtin_scenarios())})")
+
+    @classmethod
+    def from_yaml(cls, path: str | Path) -> "Scene":
+        """Load a scenario file; errors name the file, the object and the field."""
+        import yaml
+
+        path = Path(path)
+        try:
+            doc = yaml.safe_load(path.read_text())
+        except OSError as e:
+            raise ConfigError(f"{path}: cannot read scenario: {e.strerror}") from None
+        except yaml.YAMLError as e:
+            raise ConfigError(f"{path}: not valid YAML: {e}") from None
+        return cls.from_dict(doc, where=str(path), default_name=path.stem)
+
+    @classmethod
+    def from_dict(cls, doc: Any, where: str = "scenario", default_name: str = "") -> "Scene":
+        """Build a scene from a parsed scenario document (the YAML format, see scenarios/*.yaml)."""
+        r = _Reader(doc, where)
+        scene = cls(
+            name=r.str("name", default_name or None),
+            description=r.str("description", ""),
+            camera_height_m=r.num("camera_height_m", 1.0, lo=0.05),
+            camera_pitch_deg=r.num("camera_pitch_deg", 15.0, lo=-60.0, hi=60.0),
+            wall_distance_m=r.num("wall_distance_m", 5.0, lo=0.5),
+            noise_sigma=r.num("noise_sigma", 1.5, lo=0.0, hi=50.0),
+            floor_texture_seed=r.int("floor_texture_seed", 1),
+            wall_texture_seed=r.int("wall_texture_seed", 2),
+            boxes=[_box_from_dict(o, f"{where}: objects[{i}]") for i, o in enumerate(r.list("objects"))],
         )
+        r.done()
+        names = [b.name for b in scene.boxes]
+        if len(set(names)) != len(names):
+            raise ConfigError(f"{where}: object names must be unique, got {names}")
+        for b in scene.boxes:
+            if b.center[0] - b.size[2] / 2 >= scene.wall_distance_m:
+                raise ConfigError(f"{where}: object '{b.name}' stands behind the wall")
+        return scene
 
     def is_static(self) -> bool:
-        return all(b.is_static for b in self.boxes)
+        return all(b.is_static() for b in self.boxes)
+
+
+def list_builtin_scenarios() -> list[str]:
+    """Names of the shipped scenarios (services/capture/scenarios/*.yaml)."""
+    return sorted(p.stem for p in SCENARIO_DIR.glob("*.yaml"))
+
+
+class _Reader:
+    """Typed access to one mapping of a scenario file; every error names where and which field,
+    and fields nobody read are reported (typos must not pass silently)."""
+
+    _MISSING = object()
+
+    def __init__(self, doc: Any, where: str) -> None:
+        if not isinstance(doc, dict):
+            raise ConfigError(f"{where}: expected a mapping, got {type(doc).__name__}")
+        self.doc, self.where, self.used = doc, where, set()
+
+    def _get(self, key: str, default: Any) -> Any:
+        self.used.add(key)
+        if key in self.doc and self.doc[key] is not None:
+            return self.doc[key]
+        if default is self._MISSING or default is None:
+            raise ConfigError(f"{self.where}: missing field '{key}'")
+        return default
+
+    def has(self, key: str) -> bool:
+        return self.doc.get(key) is not None
+
+    def str(self, key: str, default: Any = _MISSING) -> str:
+        return str(self._get(key, default))
+
+    def num(self, key: str, default: Any = _MISSING, lo: float = -math.inf, hi: float = math.inf) -> float:
+        v = self._get(key, default)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise ConfigError(f"{self.where}: field '{key}' must be a number, got {v!r}")
+        if not lo <= v <= hi:
+            raise ConfigError(f"{self.where}: field '{key}' = {v} is outside [{lo}, {hi}]")
+        return float(v)
+
+    def int(self, key: str, default: Any = _MISSING) -> int:
+        v = self._get(key, default)
+        if isinstance(v, bool) or not isinstance(v, int):
+            raise ConfigError(f"{self.where}: field '{key}' must be an integer, got {v!r}")
+        return v
+
+    def bool(self, key: str, default: Any = _MISSING) -> bool:
+        v = self._get(key, default)
+        if not isinstance(v, bool):
+            raise ConfigError(f"{self.where}: field '{key}' must be true or false, got {v!r}")
+        return v
+
+    def vec(self, key: str, sizes: tuple[int, ...], default: Any = _MISSING, positive: bool = False) -> tuple[float, ...]:
+        v = self._get(key, default)
+        ok = isinstance(v, (list, tuple)) and len(v) in sizes and all(
+            isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v)
+        if not ok:
+            n = " or ".join(str(k) for k in sizes)
+            raise ConfigError(f"{self.where}: field '{key}' must be a list of {n} numbers, got {v!r}")
+        if positive and min(v) <= 0:
+            raise ConfigError(f"{self.where}: field '{key}' must hold positive numbers, got {v!r}")
+        return tuple(float(x) for x in v)
+
+    def list(self, key: str, default: Any = _MISSING) -> list:
+        v = self._get(key, default)
+        if not isinstance(v, list):
+            raise ConfigError(f"{self.where}: field '{key}' must be a list, got {type(v).__name__}")
+        return v
+
+    def done(self) -> None:
+        extra = sorted(set(map(str, self.doc)) - self.used)
+        if extra:
+            raise ConfigError(f"{self.where}: unknown field(s) {', '.join(repr(k) for k in extra)}")
+
+
+def _box_from_dict(doc: Any, where: str) -> Box:
+    """One entry of `objects:`. position [x, y] stands the object on the floor; [x, y, z] gives its
+    centre (simple box) or origin (compound) explicitly."""
+    r = _Reader(doc, where)
+    name = r.str("name")
+    where = f"{where} ('{name}')"
+    r.where = where
+    kind = r.str("kind", "box")
+    parts = None
+    if r.has("parts"):
+        if r.has("size"):
+            raise ConfigError(f"{where}: give either 'size' or 'parts', not both")
+        parts = []
+        for j, pd in enumerate(r.list("parts")):
+            pr = _Reader(pd, f"{where}: parts[{j}]")
+            parts.append(Part(offset=pr.vec("offset", (3,)), size=pr.vec("size", (3,), positive=True),
+                              yaw_deg=pr.num("yaw_deg", 0.0), name=pr.str("name", "")))
+            pr.done()
+        if not parts:
+            raise ConfigError(f"{where}: field 'parts' must not be empty")
+        size = None
+    else:
+        size = r.vec("size", (3,), positive=True)
+    path = speed = None
+    loop = face = False
+    if r.has("path"):
+        pr = _Reader(r._get("path", None), f"{where}: path")
+        wps = pr.list("waypoints")
+        path = [_Reader({"waypoint": w}, f"{where}: path").vec("waypoint", (2,)) for w in wps]
+        if len(path) < 2:
+            raise ConfigError(f"{where}: path: field 'waypoints' needs at least 2 points")
+        speed = pr.num("speed_mps", lo=1e-6)
+        loop = pr.bool("loop", True)
+        face = pr.bool("face_motion", False)
+        pr.done()
+    pos = r.vec("position", (2, 3), default=path[0] if path else _Reader._MISSING)
+    if len(pos) == 2:
+        z = 0.0 if parts else size[1] / 2.0  # type: ignore[index]
+        pos = (pos[0], pos[1], z)
+    box = Box(name=name, kind=kind, center=pos, size=size, yaw_deg=r.num("yaw_deg", 0.0),  # type: ignore[arg-type]
+              texture_seed=r.int("texture_seed", 0), path=path, speed_mps=speed or 0.0, loop=loop,
+              face_motion=face, parts=parts)
+    r.done()
+    return box
 
 
 # --- ground truth ------------------------------------------------------------------------------------
@@ -340,12 +508,31 @@ class ObstacleTruth:
 
 @dataclass
 class _View:
-    """A camera's rays: origin (3,) and unit directions (N, 3) float32, both in the world frame."""
+    """A camera's rays: origin (3,) and unit directions (N, 3) float32, both in the world frame,
+    one per pixel, row-major; plus what `_window` needs to bound an object in the image."""
 
     origin: np.ndarray
     dirs: np.ndarray
     shape: tuple[int, int]  # H, W
     pix_angle: float  # rad per pixel, for texture prefiltering
+    shaded: bool  # False: geometry only (the ground-truth view needs no image)
+    R_cam_world: np.ndarray  # 3x3, world -> camera rotation
+    K: np.ndarray  # 3x3 pinhole part of the camera
+    slack_px: float  # max distance between a pixel and the pinhole projection of its ray, + margin
+
+    def window(self, corners_world: np.ndarray) -> tuple[int, int, int, int] | None:
+        """Pixel rectangle (y0, y1, x0, x1), end-exclusive, holding every ray that can hit the
+        convex hull of `corners_world` (k, 3); None if it is outside the image."""
+        h, w = self.shape
+        X = (corners_world - self.origin) @ self.R_cam_world.T
+        if np.any(X[:, 2] < 0.05):  # near or behind the camera: no safe projection, test all rays
+            return 0, h, 0, w
+        uv = (X[:, :2] / X[:, 2:]) @ self.K[:2, :2].T + self.K[:2, 2]
+        x0 = max(int(math.floor(uv[:, 0].min() - self.slack_px)), 0)
+        x1 = min(int(math.ceil(uv[:, 0].max() + self.slack_px)) + 1, w)
+        y0 = max(int(math.floor(uv[:, 1].min() - self.slack_px)), 0)
+        y1 = min(int(math.ceil(uv[:, 1].max() + self.slack_px)) + 1, h)
+        return (y0, y1, x0, x1) if x0 < x1 and y0 < y1 else None
 
 
 @dataclass
@@ -367,20 +554,29 @@ class _PlacedPart:
     center: np.ndarray  # (3,) world
     yaw: float
     half: np.ndarray  # (3,) half extents along local x, y, z
-    tex: tuple[_SurfaceTex, ...]  # 6 faces: -x, +x, -y, +y, -z, +z
+    tex: np.ndarray  # (6, 5) texture parameters of the faces -x, +x, -y, +y, -z, +z
     light: np.ndarray  # (6,) Lambert factor per face
 
 
 def _undistorted_rays(K: np.ndarray, D: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     """Unit ray (N, 3) float64 in the camera frame through the centre of every pixel of the raw
-    (distorted) image, row-major."""
+    (distorted) image, row-major. Read-only, shared between worlds of the same camera."""
+    return _undistorted_rays_cached(tuple(np.asarray(K, float).ravel()), tuple(np.asarray(D, float).ravel()),
+                                    tuple(size))
+
+
+@functools.lru_cache(maxsize=8)
+def _undistorted_rays_cached(K: tuple, D: tuple, size: tuple[int, int]) -> np.ndarray:
+    K, D = np.array(K).reshape(3, 3), np.array(D)
     w, h = size
     xs, ys = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
     pix = np.stack([xs.ravel(), ys.ravel()], 1).reshape(-1, 1, 2)
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
     xy = cv2.undistortPoints(pix, K, D, criteria=crit).reshape(-1, 2)
     d = np.concatenate([xy, np.ones((xy.shape[0], 1))], 1)
-    return d / np.linalg.norm(d, axis=1, keepdims=True)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    d.setflags(write=False)
+    return d
 
 
 def _pinhole_rays(f: float, cx: float, cy: float, size: tuple[int, int]) -> np.ndarray:
@@ -391,33 +587,43 @@ def _pinhole_rays(f: float, cx: float, cy: float, size: tuple[int, int]) -> np.n
 
 
 def _intersect_box(origin: np.ndarray, dirs: np.ndarray, p: _PlacedPart):
-    """Slab test of rays against an oriented box. Returns (t (n,), face (n,) int, local hit
-    (n, 3)) for every ray; t = inf where the ray misses or starts inside."""
+    """Slab test of unit rays `dirs` (n, 3) from `origin` (world) against an oriented box.
+
+    Returns (hits, t, face, u, v, du, dv, cos_i) for the rays that hit (the camera is never inside):
+    their indices into `dirs`, distance t (m), entry face (index into _FACE_NORMALS), the hit's
+    surface coordinates (u, v) on that face (m, part frame), the ray direction's components along
+    u and v, and |cos| of its angle to the face normal; all (k,) arrays.
+    """
     c, s = math.cos(p.yaw), math.sin(p.yaw)
     o = origin - p.center
-    ol = np.array([c * o[0] + s * o[1], -s * o[0] + c * o[1], o[2]], np.float32)
-    dl = np.empty_like(dirs)
-    dl[:, 0] = c * dirs[:, 0] + s * dirs[:, 1]
-    dl[:, 1] = -s * dirs[:, 0] + c * dirs[:, 1]
-    dl[:, 2] = dirs[:, 2]
-    half = p.half.astype(np.float32)
+    ol = (c * o[0] + s * o[1], -s * o[0] + c * o[1], o[2])
+    dl = (c * dirs[:, 0] + s * dirs[:, 1], -s * dirs[:, 0] + c * dirs[:, 1], np.ascontiguousarray(dirs[:, 2]))
+    n = dirs.shape[0]
+    tnear = np.full(n, -np.inf, np.float32)
+    tfar = np.full(n, np.inf, np.float32)
+    axis = np.zeros(n, np.int8)
     with np.errstate(divide="ignore", invalid="ignore"):
-        inv = 1.0 / dl
-        t1 = (-half - ol) * inv
-        t2 = (half - ol) * inv
-    tmin = np.minimum(t1, t2)
-    tnear = tmin.max(1)
-    tfar = np.maximum(t1, t2).min(1)
-    axis = tmin.argmax(1)
-    hit = (tnear <= tfar) & (tnear > 1e-4)
-    t = np.where(hit, tnear, np.inf).astype(np.float32)
-    dax = np.take_along_axis(dl, axis[:, None], 1)[:, 0]
-    face = 2 * axis + (dax < 0)  # entering through the face whose normal opposes the ray
-    local = ol + np.where(hit, tnear, 0.0)[:, None] * dl
-    return t, face, local
-
-
-_FACE_UV = np.array([[1, 2], [1, 2], [0, 2], [0, 2], [0, 1], [0, 1]])  # local axes spanning each face
+        for a in range(3):
+            inv = np.float32(1.0) / dl[a]
+            t1 = (np.float32(-p.half[a] - ol[a])) * inv
+            t2 = (np.float32(p.half[a] - ol[a])) * inv
+            lo = np.minimum(t1, t2)
+            nearer = lo > tnear  # NaN (a ray in a slab's plane) never updates
+            tnear = np.where(nearer, lo, tnear)
+            axis[nearer] = a
+            tfar = np.minimum(tfar, np.maximum(t1, t2))
+    hits = np.flatnonzero((tnear <= tfar) & (tnear > 1e-4))
+    t, axis = tnear[hits], axis[hits]
+    d = [x[hits] for x in dl]
+    local = [ol[k] + t * d[k] for k in range(3)]
+    dax = np.where(axis == 0, d[0], np.where(axis == 1, d[1], d[2]))
+    face = 2 * axis.astype(np.int64) + (dax < 0)  # entered through the face whose normal opposes the ray
+    # each face is spanned by the two other local axes: x-faces by (y, z), y-faces (x, z), z-faces (x, y)
+    u = np.where(axis == 0, local[1], local[0])
+    v = np.where(axis == 2, local[1], local[2])
+    du = np.where(axis == 0, d[1], d[0])
+    dv = np.where(axis == 2, d[1], d[2])
+    return hits, t, face, u, v, du, dv, np.abs(dax)
 
 
 class SyntheticWorld:
@@ -426,11 +632,17 @@ class SyntheticWorld:
     rig: the raw rig whose images are rendered (distortion included). rect: its rectification
     (`camera.rectify_rig(rig, alpha)`), which defines the ground-truth frame and images.
     seed: texture and sensor-noise seed. noise_sigma: grey levels per pixel per frame (None = the
-    scene's). blur_sigma: Gaussian optical blur, px. Everything is deterministic for (scene, rig, rect, seed, noise_sigma, t).
+    scene's). blur_sigma: Gaussian optical blur, px. Everything is deterministic for these and t.
+
+    Cost: floor, wall and static objects are ray-cast once per camera; a frame then casts only the
+    moving objects' rays (their image windows). A static scene is rendered once and each frame only
+    adds its noise.
     """
 
     def __init__(self, scene: Scene, rig: camera.RawRig, rect: camera.Rectification, seed: int = 0,
                  noise_sigma: float | None = None, blur_sigma: float = 0.6) -> None:
+        if not isinstance(rig, camera.RawRig):
+            raise camera.CalibrationError("the synthetic world needs a raw rig (K, D, R, T), not a rectified one")
         self.scene = scene
         self.blur_sigma = float(blur_sigma)
         self.rig = rig
@@ -451,26 +663,39 @@ class SyntheticWorld:
         Rl, Tl = np.asarray(rig.R, float), np.asarray(rig.T, float)
         origin_right = self.origin_left + self.R_world_left @ (-Rl.T @ Tl)
 
-        def view(origin, dirs_cam, R_world_cam, f):
+        def view(origin, dirs_cam, R_world_cam, K, shaded=True):
             dw = (dirs_cam @ R_world_cam.T).astype(np.float32)
-            return _View(origin, dw, self.shape, 1.0 / f)
+            # lens distortion moves pixels off their pinhole position; objects are bounded in the
+            # image by pinhole projection, so widen their windows by the largest such offset
+            h, w = self.shape
+            pin = dirs_cam[:, :2] / dirs_cam[:, 2:] @ K[:2, :2].T + K[:2, 2]
+            xs, ys = np.meshgrid(np.arange(w), np.arange(h))
+            off = np.abs(pin - np.stack([xs.ravel(), ys.ravel()], 1)).max()
+            return _View(origin, dw, self.shape, 1.0 / K[0, 0], shaded, R_world_cam.T, K, float(off) + 2.0)
 
         self._left = view(self.origin_left, _undistorted_rays(rig.left.K, rig.left.D, rig.image_size),
-                          self.R_world_left, rig.left.fx)
+                          self.R_world_left, rig.left.K)
         self._right = view(origin_right, _undistorted_rays(rig.right.K, rig.right.D, rig.image_size),
-                           self.R_world_left @ Rl.T, rig.right.fx)
+                           self.R_world_left @ Rl.T, rig.right.K)
         m = rect.model
         rect_dirs = _pinhole_rays(m.focal_px, m.cx, m.cy, (m.width, m.height))
-        self._rect = view(self.origin_left, rect_dirs, self.R_world_rect, m.focal_px)
+        K_rect = np.array([[m.focal_px, 0.0, m.cx], [0.0, m.focal_px, m.cy], [0.0, 0.0, 1.0]])
+        self._rect = view(self.origin_left, rect_dirs, self.R_world_rect, K_rect, shaded=False)
         self._rect_dirs = rect_dirs.astype(np.float32)  # the same rays in the rectified frame
         self._rect_shape = (m.height, m.width)
 
         self._floor_tex = _SurfaceTex.from_seed(scene.floor_texture_seed, seed)
         self._wall_tex = _SurfaceTex.from_seed(scene.wall_texture_seed, seed)
-        self._static_objs = [i for i, b in enumerate(scene.boxes) if b.is_static]
-        self._moving_objs = [i for i, b in enumerate(scene.boxes) if not b.is_static]
+        self._part_tex = [[np.stack([_SurfaceTex.from_seed(b.texture_seed, j, f, seed).params for f in range(6)])
+                           for j in range(len(b.part_list()))] for b in scene.boxes]
+        self._static_objs = [i for i, b in enumerate(scene.boxes) if b.is_static()]
+        self._moving_objs = [i for i, b in enumerate(scene.boxes) if not b.is_static()]
         self._static_layers: dict[int, _Layer] = {}
         self._frame_cache: dict[tuple[int, float], _Layer] = {}
+        self._truth_cache: dict[float, list[ObstacleTruth]] = {}
+        self._prerendered: dict[float, tuple[np.ndarray, np.ndarray]] = {}
+        self._truth_prerendered: dict[float, list[ObstacleTruth]] = {}
+        self._disp_cache: dict[float, np.ndarray] = {}
 
         rng = np.random.default_rng([seed, 0x401CE])
         pad = 64  # per-frame noise = a window of a larger seeded field at a per-frame offset
@@ -490,15 +715,33 @@ class SyntheticWorld:
                 self._clean = self._render_clean(0.0)
             clean = self._clean
         else:
-            clean = self._render_clean(t)
+            clean = self._prerendered.get(float(t)) or self._render_clean(t)
         return self._add_noise(clean[0], t, 0), self._add_noise(clean[1], t, 1)
+
+    def prerender(self, times: Sequence[float]) -> None:
+        """Render the (noise-free) pairs and the truth for `times` (s) now, and keep them: render(t)
+        and truth(t) at those exact times then cost a copy plus the noise. ~2.5 MB per time."""
+        for t in times:
+            if not self.is_static():
+                self._prerendered[float(t)] = self._render_clean(float(t))
+            self._truth_prerendered[0.0 if self.is_static() else float(t)] = self._compute_truth(float(t))
 
     def truth(self, t: float = 0.0) -> list[ObstacleTruth]:
         """Ground truth of every obstacle at time t, in scene order, rectified left frame."""
+        key = 0.0 if self.is_static() else float(t)
+        if key in self._truth_prerendered:
+            self._truth_cache[key] = self._truth_prerendered[key]
+        elif key not in self._truth_cache:
+            if len(self._truth_cache) > 8:
+                self._truth_cache.clear()
+            self._truth_cache[key] = self._compute_truth(key)
+        return [dataclasses.replace(o, center_m=o.center_m.copy(), visible_centroid_m=o.visible_centroid_m.copy(),
+                                    velocity_mps=o.velocity_mps.copy()) for o in self._truth_cache[key]]
+
+    def _compute_truth(self, t: float) -> list[ObstacleTruth]:
         layer = self._layer(2, t)
-        h, w = self._rect_shape
+        w = self._rect_shape[1]
         R_rect_world = self.R_world_rect.T
-        pts = layer.t[:, None] * self._rect_dirs  # rectified frame, origin = left camera centre
         out = []
         for i, b in enumerate(self.scene.boxes):
             origin, yaw, vel = b.pose(t)
@@ -506,10 +749,11 @@ class SyntheticWorld:
             center = R_rect_world @ (center_w - self.origin_left)
             idx = np.flatnonzero(layer.obj == i)
             if idx.size:
-                vis = pts[idx].astype(np.float64)
+                # rectified frame, origin = the left camera centre
+                ti = layer.t[idx]
+                centroid = (ti[:, None] * self._rect_dirs[idx]).mean(0, dtype=np.float64)
+                nearest = float(ti.min())  # unit rays from the camera centre: t is the distance
                 ys, xs = np.divmod(idx, w)
-                centroid = vis.mean(0)
-                nearest = float(np.linalg.norm(vis, axis=1).min())
                 bbox: tuple[int, int, int, int] | None = (int(xs.min()), int(ys.min()), int(xs.max()), int(ys.max()))
             else:
                 centroid, nearest, bbox = np.full(3, np.nan), float("nan"), None
@@ -520,17 +764,21 @@ class SyntheticWorld:
     def true_disparity(self, t: float = 0.0) -> np.ndarray:
         """Exact disparity f*B/Z of the rectified left image at time t: float32 (H, W) px,
         NaN where the ray hits no surface. Z is along the rectified optical axis."""
-        layer = self._layer(2, t)
-        z = layer.t * self._rect_dirs[:, 2]
-        m = self.rect.model
-        with np.errstate(divide="ignore"):
-            d = np.where(np.isfinite(z) & (z > 0), m.focal_px * m.baseline_m / z, np.nan)
-        return d.astype(np.float32).reshape(self._rect_shape)
+        key = 0.0 if self.is_static() else float(t)
+        if key not in self._disp_cache:
+            if len(self._disp_cache) > 8:
+                self._disp_cache.clear()
+            z = self._layer(2, key).t * self._rect_dirs[:, 2]
+            m = self.rect.model
+            with np.errstate(divide="ignore"):
+                d = np.where(np.isfinite(z) & (z > 0), m.focal_px * m.baseline_m / z, np.nan)
+            self._disp_cache[key] = d.astype(np.float32).reshape(self._rect_shape)
+        return self._disp_cache[key].copy()
 
     def true_depth(self, t: float = 0.0) -> np.ndarray:
         """Z (m, along the rectified optical axis) of the rectified left image: float32 (H, W), NaN = none."""
-        layer = self._layer(2, t)
-        return (layer.t * self._rect_dirs[:, 2]).astype(np.float32).reshape(self._rect_shape)
+        z = self._layer(2, t).t * self._rect_dirs[:, 2]
+        return np.where(np.isfinite(z), z, np.nan).astype(np.float32).reshape(self._rect_shape)
 
     def obstacle_ids(self, t: float = 0.0) -> np.ndarray:
         """Index into scene.boxes of the obstacle seen at each rectified left pixel, -1 = floor or
@@ -600,6 +848,8 @@ class SyntheticWorld:
         floor = t_floor < t_wall
         t = np.minimum(t_floor, t_wall).astype(np.float32)
         shade = np.zeros(t.shape, np.float32)
+        if not v.shaded:
+            return _Layer(t, shade, np.full(t.shape, -1, np.int16))
         for mask, tex, normal, uv_axes in ((floor, self._floor_tex, np.array([0.0, 0.0, 1.0]), (0, 1)),
                                            (~floor & np.isfinite(t), self._wall_tex, np.array([-1.0, 0.0, 0.0]), (1, 2))):
             idx = np.flatnonzero(mask)
@@ -610,22 +860,21 @@ class SyntheticWorld:
             cos_i = np.abs(d[idx] @ normal.astype(np.float32))
             di = d[idx]
             shade[idx] = self._shade(p[:, uv_axes[0]], p[:, uv_axes[1]], ti, di[:, uv_axes[0]], di[:, uv_axes[1]],
-                                     cos_i, v.pix_angle, [tex], np.zeros(idx.size, np.int64)) * _lambert(normal)
+                                     cos_i, v.pix_angle, tex.params[None]) * _lambert(normal)
         return _Layer(t, shade, np.full(t.shape, -1, np.int16))
 
-    def _shade(self, u, v, t, dir_u, dir_v, cos_i, pix_angle, texs: Sequence[_SurfaceTex],
-               which: np.ndarray) -> np.ndarray:
+    def _shade(self, u, v, t, dir_u, dir_v, cos_i, pix_angle, tex: np.ndarray) -> np.ndarray:
         """Texture value at surface coordinates (u, v) m, for rays of length t (m) whose unit direction
-        has components dir_u, dir_v along the surface axes and |cos| cos_i to its normal; `which`
-        selects each pixel's surface in `texs`."""
+        has components dir_u, dir_v along the surface axes and |cos| cos_i to its normal; tex: (n, 5)
+        or (1, 5) each pixel's surface parameters (`_SurfaceTex.params`)."""
         minor = t * pix_angle
         major = minor / np.maximum(cos_i, 0.05)
         norm = np.maximum(np.hypot(dir_u, dir_v), 1e-9)
-        arr = np.array([(s.scale, s.cos, s.sin, s.off_u, s.off_v) for s in texs], np.float32)[which]
         return _sample(self._levels, u, v, minor.astype(np.float32), major.astype(np.float32),
-                       dir_u / norm, dir_v / norm, arr)
+                       dir_u / norm, dir_v / norm, np.broadcast_to(tex, (u.shape[0], 5)))
 
     def _placed_parts(self, i: int, t: float) -> list[_PlacedPart]:
+        """Obstacle i's parts posed at time t."""
         b = self.scene.boxes[i]
         origin, yaw, _ = b.pose(t)
         Rz = _rot_z(yaw)
@@ -633,46 +882,50 @@ class SyntheticWorld:
         for j, part in enumerate(b.part_list()):
             pyaw = yaw + math.radians(part.yaw_deg)
             w, h, d = part.size
-            normals = np.array([[-1, 0, 0], [1, 0, 0], [0, -1, 0], [0, 1, 0], [0, 0, -1], [0, 0, 1]], float) @ _rot_z(pyaw).T
+            normals = _FACE_NORMALS @ _rot_z(pyaw).T
             out.append(_PlacedPart(
                 obj=i, center=origin + Rz @ np.asarray(part.offset, float), yaw=pyaw,
-                half=np.array([d, w, h]) / 2.0,
-                tex=tuple(_SurfaceTex.from_seed(b.texture_seed, j, f, self.seed) for f in range(6)),
+                half=np.array([d, w, h]) / 2.0, tex=self._part_tex[i][j],
                 light=np.array([_lambert(n) for n in normals], np.float32)))
         return out
 
-    def _draw(self, v: _View, layer: _Layer, i: int, t: float) -> None:
+    def _draw(self, v_: _View, layer: _Layer, i: int, t: float) -> None:
         """Z-buffer obstacle i's parts into `layer` (in place)."""
+        h, w = v_.shape
+        dirs2, t2, shade2, obj2 = (a.reshape(h, w, -1) if a.ndim == 2 else a.reshape(h, w)
+                                   for a in (v_.dirs, layer.t, layer.shade, layer.obj))
+        found = []
         for p in self._placed_parts(i, t):
-            cand = _candidates(v, p)
-            if cand.size == 0:
+            # only rays in the part's image window are tested: slices are views, no gathers
+            win = v_.window(_box_corners(p.center, p.yaw, np.array([p.half[1], p.half[2], p.half[0]]) * 2))
+            if win is None:
                 continue
-            tt, face, local = _intersect_box(v.origin, v.dirs[cand], p)
-            win = tt < layer.t[cand]
-            if not win.any():
+            y0, y1, x0, x1 = win
+            hits, tt, face, u, v, du, dv, cos_i = _intersect_box(v_.origin, dirs2[y0:y1, x0:x1].reshape(-1, 3), p)
+            r, c = np.divmod(hits, x1 - x0)
+            r += y0
+            c += x0
+            nearer = tt < t2[r, c]
+            if not nearer.any():
                 continue
-            idx, tt, face, local = cand[win], tt[win], face[win], local[win]
-            uv = np.take_along_axis(local, _FACE_UV[face], 1)
-            dl = v.dirs[idx] @ _rot_z(p.yaw).astype(np.float32)  # ray directions in the part frame
-            duv = np.take_along_axis(dl, _FACE_UV[face], 1)
-            cos_i = np.abs(np.take_along_axis(dl, (face // 2)[:, None], 1)[:, 0])
-            shade = self._shade(uv[:, 0], uv[:, 1], tt, duv[:, 0], duv[:, 1], cos_i, v.pix_angle, p.tex,
-                                face) * p.light[face]
-            layer.t[idx] = tt
-            layer.shade[idx] = shade
-            layer.obj[idx] = i
+            r, c, tt, face = r[nearer], c[nearer], tt[nearer], face[nearer]
+            t2[r, c] = tt
+            obj2[r, c] = i
+            if v_.shaded:
+                found.append((r, c, tt, u[nearer], v[nearer], du[nearer], dv[nearer], cos_i[nearer],
+                              p.tex[face], p.light[face]))
+        if not found:
+            return
+        # shade once per object, only what is still in front after all its parts were drawn
+        r, c, tt, u, v, du, dv, cos_i, tex, light = (np.concatenate(x) for x in zip(*found))
+        keep = t2[r, c] == tt
+        r, c = r[keep], c[keep]
+        shade2[r, c] = self._shade(u[keep], v[keep], tt[keep], du[keep], dv[keep], cos_i[keep], v_.pix_angle,
+                                   tex[keep]) * light[keep]
+
+
+_FACE_NORMALS = np.array([[-1, 0, 0], [1, 0, 0], [0, -1, 0], [0, 1, 0], [0, 0, -1], [0, 0, 1]], float)
 
 
 def _lambert(normal_world: np.ndarray) -> float:
     return float(_AMBIENT + (1.0 - _AMBIENT) * max(0.0, float(np.dot(normal_world, _LIGHT_DIR))))
-
-
-def _candidates(v: _View, p: _PlacedPart) -> np.ndarray:
-    """Indices of the rays that can hit the part: those within its bounding sphere's cone."""
-    to_c = p.center - v.origin
-    dist = float(np.linalg.norm(to_c))
-    r = float(np.linalg.norm(p.half)) * 1.001 + 1e-6
-    if dist <= r:
-        return np.arange(v.dirs.shape[0])
-    cos_min = math.sqrt(max(0.0, 1.0 - (r / dist) ** 2))
-    return np.flatnonzero(v.dirs @ (to_c / dist).astype(np.float32) >= cos_min - 1e-6)
