@@ -1,0 +1,157 @@
+"""Rectify: refusing malformed calibrations, swapping a calibration at run time, offline command."""
+from __future__ import annotations
+
+import os
+import threading
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+
+from ballbot_vision.cli import main
+from ballbot_vision.common import camera
+from ballbot_vision.common.errors import BallbotError, CalibrationError
+from ballbot_vision.services.rectify.core import CalibrationHolder, Rectifier
+
+
+def _doc() -> dict:
+    return camera.calibration_to_dict(camera.load_calibration("lifecam-studio"))
+
+
+def _write(path, doc) -> str:
+    path.write_text(yaml.safe_dump(doc))
+    return str(path)
+
+
+@pytest.mark.parametrize("mutate, field", [
+    (lambda d: d["left"].pop("K"), "'K'"),
+    (lambda d: d.pop("T"), "'T'"),
+    (lambda d: d.pop("image_size"), "'image_size'"),
+    (lambda d: d.__setitem__("R", [1, 0, 0, 0, 2, 0, 0, 0, 1]), "R: not a rotation"),
+    (lambda d: d["right"].__setitem__("distortion", [0.1, 0.2]), "'distortion'"),
+    (lambda d: d["left"].__setitem__("image_size", [320, 240]), "'image_size'"),
+])
+def test_malformed_calibration_is_refused(tmp_path, mutate, field):
+    d = _doc()
+    mutate(d)
+    with pytest.raises(CalibrationError, match=field):
+        camera.load_calibration(_write(tmp_path / "bad.yaml", d))
+
+
+def test_wrong_image_size_names_both_sizes():
+    r = Rectifier(camera.load_calibration("lifecam-studio"))
+    with pytest.raises(BallbotError, match="320x240.*640x480"):
+        r.rectify(np.zeros((240, 320), np.uint8), np.zeros((240, 320), np.uint8))
+
+
+def test_skew_is_honoured_by_the_maps():
+    rig = camera.load_calibration("lifecam-studio")
+    skewed = camera.RawRig(rig.image_size, camera.Intrinsics(rig.left.fx, rig.left.fy, rig.left.cx, rig.left.cy, 3.0,
+                                                             rig.left.dist), rig.right, rig.R, rig.T)
+    a, b = Rectifier(rig), Rectifier(skewed)
+    (la, _), (lb, _) = a._maps[0], b._maps[0]
+    # the source column of the skewed camera moves by s (v - cy) / fy: zero near cy, ~2 px at the top
+    d = lb[..., 0].astype(float) - la[..., 0].astype(float)
+    assert abs(np.median(d[240])) <= 1 and np.median(d[0]) <= -1
+
+
+def _pair(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    img = cv2.GaussianBlur(rng.integers(0, 255, (480, 640), dtype=np.uint8), (5, 5), 0)
+    return img, np.roll(img, -20, axis=1)
+
+
+def test_hot_reload_by_message_and_by_file(tmp_path):
+    path = tmp_path / "cal.yaml"
+    d = _doc()
+    _write(path, d)
+    h = CalibrationHolder(str(path))
+    first = h.current()
+    h.note_frame(640, 480)
+
+    d2 = _doc()
+    d2["T"] = [-0.12, 0.0, 0.0]
+    assert h.offer_yaml(yaml.safe_dump(d2), "test") is True
+    assert h.current() is not first and h.current().model.baseline_m == pytest.approx(0.12)
+    second = h.current()
+
+    # refused, old one stays: bad YAML, a missing field, a non-rotation, another image size
+    assert h.offer_yaml("{not: [yaml", "test") is False
+    bad = _doc()
+    bad.pop("R")
+    assert h.offer_yaml(yaml.safe_dump(bad), "test") is False and "'R'" in h.last_error
+    bad = _doc()
+    bad["R"] = [1, 0, 0, 0, 1, 0, 0, 0, -1]
+    assert h.offer_yaml(yaml.safe_dump(bad), "test") is False and "rotation" in h.last_error
+    bad = _doc()
+    bad["image_size"] = [1280, 720]
+    assert h.offer_yaml(yaml.safe_dump(bad), "test") is False and "image_size" in h.last_error
+    assert h.current() is second and h.refused == 4
+
+    # the file changes on disk: picked up by the poll, unchanged file is not reloaded
+    assert h.poll_file() is None
+    d3 = _doc()
+    d3["T"] = [-0.08, 0.0, 0.0]
+    _write(path, d3)
+    st = os.stat(path)
+    os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns + 2_000_000_000))
+    assert h.poll_file() is True and h.current().model.baseline_m == pytest.approx(0.08)
+    assert h.poll_file() is None
+    path.write_text("left: {}\n")  # a broken save: refused, 0.08 stays
+    os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns + 4_000_000_000))
+    assert h.poll_file() is False and h.current().model.baseline_m == pytest.approx(0.08)
+
+
+def test_swap_never_tears_a_frame():
+    """The frame loop takes one Rectifier per pair; swaps from another thread land between pairs."""
+    d_a, d_b = _doc(), _doc()
+    d_b["T"] = [-0.12, 0.001, 0.0]
+    text = {0: yaml.safe_dump(d_a), 1: yaml.safe_dump(d_b)}
+    h = CalibrationHolder("lifecam-studio")
+    left, right = _pair()
+    expect = {}
+    for k in (0, 1):
+        r = Rectifier(camera.calibration_from_dict(yaml.safe_load(text[k])))
+        expect[round(r.model.baseline_m, 4)] = r.rectify(left, right)
+    stop = threading.Event()
+
+    def flipper() -> None:
+        k = 1
+        while not stop.is_set():
+            h.offer_yaml(text[k], "flipper")
+            k = 1 - k
+
+    t = threading.Thread(target=flipper)
+    t.start()
+    seen = set()
+    try:
+        for _ in range(40):
+            r = h.current()
+            rl, rr = r.rectify(left, right)
+            el, er = expect[round(r.model.baseline_m, 4)]
+            assert np.array_equal(rl, el) and np.array_equal(rr, er)
+            seen.add(round(r.model.baseline_m, 4))
+    finally:
+        stop.set()
+        t.join(10)
+    assert h.generation > 0
+
+
+def test_offline_rectify_command(tmp_path, capsys):
+    left, right = _pair()
+    (tmp_path / "in").mkdir()
+    for i in range(2):
+        cv2.imwrite(str(tmp_path / "in" / f"left{i}.png"), left)
+        cv2.imwrite(str(tmp_path / "in" / f"right{i}.png"), right)
+    out = tmp_path / "out"
+    rc = main(["rectify", str(tmp_path / "in" / "left*.png"), str(tmp_path / "in" / "right*.png"),
+               "--calibration", "lifecam-studio", "-o", str(out)])
+    assert rc == 0
+    files = sorted(p.name for p in out.iterdir())
+    assert files == ["left0.png", "left1.png", "right0.png", "right1.png"]
+    expect = Rectifier(camera.load_calibration("lifecam-studio")).rectify(left, right)
+    assert np.array_equal(cv2.imread(str(out / "left1.png"), cv2.IMREAD_UNCHANGED), expect[0])
+    rc = main(["rectify", str(tmp_path / "in" / "left0.png"), str(tmp_path / "in" / "right0.png"),
+               "--calibration", str(tmp_path / "missing.yaml"), "-o", str(out)])
+    assert rc == 2 and "missing.yaml" in capsys.readouterr().err
