@@ -28,6 +28,7 @@ PIPELINE = ["capture", "rectify", "disparity", "segmenter"]
 # adds --robot-id, --config and the Zenoh options to a parser and returns it.
 COMMAND_MODULES: list[str] = [
     "ballbot_vision.calibration_commands",
+    "ballbot_vision.segmenter_commands",
     "ballbot_vision.disparity_commands",
 ]
 

@@ -123,7 +123,7 @@ def render_scenario(name: str, frames: int | None = None, fps: float | None = No
     fps = fps or fps_def
     stereo = StereoMatcher(matcher)
     out = []
-    x_valid = matcher.min_disparity + matcher.num_disparities + matcher.block_size // 2 - 1
+    x_valid = matcher.min_disparity + matcher.num_disparities + matcher.block // 2 - 1
     static = _truth_maps(world, 0.0, x_valid) if scene.is_static() else None
     for k in range(frames):
         t = k / fps

@@ -1,5 +1,12 @@
-"""Track ids and velocities across frames: greedy nearest-neighbour association in 3D with a
-gate, a constant-velocity prediction, and a timeout so short occlusions keep their id."""
+"""Track ids and velocities across frames.
+
+Each track is a constant-velocity Kalman filter in 3D (camera frame, metres; the three axes are
+independent, so the filter is three 2-state filters sharing one covariance shape). Association is
+one-to-one (Hungarian) on the distance between a track's prediction and a detection, gated at
+gate_m plus how far the track may have drifted while unseen (max_speed_mps * time unseen). A track
+unseen for longer than timeout_s is dropped, so a short occlusion keeps its id and a long one
+does not. Velocities are the filter's, zero until a track has been seen twice.
+"""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -10,52 +17,86 @@ import numpy as np
 @dataclass
 class Track:
     id: int
-    position: np.ndarray
-    velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    position: np.ndarray  # (3,) m, filtered
+    velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))  # (3,) m/s
     last_seen_s: float = 0.0
     hits: int = 1
+    P: np.ndarray = field(default_factory=lambda: np.diag([0.05, 0.05, 1.0]))  # pos var, cov, vel var (per axis)
+
+    def predicted(self, t_s: float) -> np.ndarray:
+        return self.position + self.velocity * max(0.0, t_s - self.last_seen_s)
 
 
 class Tracker:
-    def __init__(self, gate_m: float = 0.6, timeout_s: float = 1.0, velocity_smoothing: float = 0.5):
+    """update(positions, t) -> one Track per position, in order (new tracks get new ids)."""
+
+    def __init__(self, gate_m: float = 0.6, timeout_s: float = 1.0, velocity_smoothing: float = 0.5,
+                 accel_mps2: float = 2.0, max_speed_mps: float = 2.5):
         self.gate_m = gate_m
         self.timeout_s = timeout_s
-        self.alpha = velocity_smoothing
+        # velocity_smoothing is kept for compatibility; the Kalman gain replaces it
+        self.accel = accel_mps2
+        self.max_speed = max_speed_mps
         self.tracks: list[Track] = []
         self._next_id = 1
 
-    def update(self, positions: list[np.ndarray], t_s: float) -> list[Track]:
-        """positions: 3D points (camera frame, m) seen at time t_s -> one track per position, in order."""
-        self.tracks = [tr for tr in self.tracks if t_s - tr.last_seen_s <= self.timeout_s]
-        pairs = []
-        for ti, tr in enumerate(self.tracks):
-            predicted = tr.position + tr.velocity * (t_s - tr.last_seen_s)
-            for pi, p in enumerate(positions):
-                dist = float(np.linalg.norm(predicted - p))
-                if dist <= self.gate_m:
-                    pairs.append((dist, ti, pi))
-        pairs.sort()
-        assigned: dict[int, Track] = {}
-        used: set[int] = set()
-        for _, ti, pi in pairs:
-            if ti in used or pi in assigned:
-                continue
-            tr = self.tracks[ti]
-            dt = t_s - tr.last_seen_s
+    @staticmethod
+    def measurement_var(p: np.ndarray) -> float:
+        """Centroid noise (m^2) of a detection at p: stereo depth noise grows with distance."""
+        z = float(abs(p[2]))
+        return (0.01 + 0.005 * z * z) ** 2
+
+    def _correct(self, tr: Track, p: np.ndarray, t_s: float) -> None:
+        dt = t_s - tr.last_seen_s
+        if tr.hits == 1:
+            # second sighting: velocity from the two positions, with its uncertainty
             if dt > 1e-6:
-                v = (positions[pi] - tr.position) / dt
-                tr.velocity = v if tr.hits == 1 else self.alpha * v + (1 - self.alpha) * tr.velocity
-            tr.position = np.asarray(positions[pi], dtype=float)
-            tr.last_seen_s = t_s
-            tr.hits += 1
-            used.add(ti)
-            assigned[pi] = tr
+                tr.velocity = (p - tr.position) / dt
+                r = self.measurement_var(p)
+                tr.P = np.array([r, r / dt, 2 * r / dt ** 2 + self.accel ** 2 * dt])
+            tr.position = p.copy()
+        else:
+            pp, pv, vv = tr.P
+            if dt > 0:
+                q = self.accel ** 2
+                pp, pv, vv = (pp + 2 * dt * pv + dt * dt * vv + q * dt ** 4 / 4, pv + dt * vv + q * dt ** 3 / 2,
+                              vv + q * dt * dt)
+            x = tr.position + tr.velocity * dt
+            r = self.measurement_var(p)
+            s = pp + r
+            kp, kv = pp / s, pv / s
+            innov = p - x
+            tr.position = x + kp * innov
+            tr.velocity = tr.velocity + kv * innov
+            tr.P = np.array([(1 - kp) * pp, (1 - kp) * pv, vv - kv * pv])
+        tr.last_seen_s = t_s
+        tr.hits += 1
+
+    def update(self, positions: list[np.ndarray], t_s: float) -> list[Track]:
+        """positions: 3D points (camera frame, m) seen at time t_s (s) -> one track per position."""
+        self.tracks = [tr for tr in self.tracks if t_s - tr.last_seen_s <= self.timeout_s]
+        pos = [np.asarray(p, dtype=float) for p in positions]
+        assigned: dict[int, Track] = {}
+        if self.tracks and pos:
+            from scipy.optimize import linear_sum_assignment
+
+            pred = np.array([tr.predicted(t_s) for tr in self.tracks])
+            P = np.array(pos)
+            D = np.linalg.norm(pred[:, None, :] - P[None, :, :], axis=2)
+            unseen = np.array([t_s - tr.last_seen_s for tr in self.tracks])
+            gate = self.gate_m + self.max_speed * np.maximum(0.0, unseen - 0.1)
+            cost = np.where(D <= gate[:, None], D, 1e6)
+            for ti, pi in zip(*linear_sum_assignment(cost)):
+                if cost[ti, pi] < 1e6:
+                    assigned[int(pi)] = self.tracks[int(ti)]
         out = []
-        for pi, p in enumerate(positions):
+        for pi, p in enumerate(pos):
             tr = assigned.get(pi)
             if tr is None:
-                tr = Track(self._next_id, np.asarray(p, dtype=float), last_seen_s=t_s)
+                tr = Track(self._next_id, p.copy(), last_seen_s=t_s)
                 self._next_id += 1
                 self.tracks.append(tr)
+            else:
+                self._correct(tr, p, t_s)
             out.append(tr)
         return out

@@ -1,0 +1,178 @@
+"""`obstacles`, `eval` and `bench-segmenter`: the segmenter's offline commands (registered through
+cli.py's COMMAND_MODULES hook). The work is done by services/segmenter/{main,layers,seed,eval}.py
+and bench/segmenter.py; this module only parses and prints."""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from .common.errors import BallbotError
+
+
+def _out(text: str = "") -> None:
+    print(text, flush=True)
+
+
+def _read(path: Path):
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise BallbotError(f"{path}: cannot read the image")
+    if img.ndim == 3 and img.shape[2] == 4:
+        img = cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)
+    if img.dtype != "uint8":
+        raise BallbotError(f"{path}: 8-bit images only, got {img.dtype}")
+    return img
+
+
+def _segmenter_settings(args: argparse.Namespace):
+    from .common.settings import load_settings
+    from .services.segmenter.main import SegmenterSettings
+
+    return load_settings(SegmenterSettings, getattr(args, "config", None), args)
+
+
+# --- obstacles ---------------------------------------------------------------------------------
+
+def format_obstacles(obstacles, header: str = "") -> str:
+    lines = [header] if header else []
+    if not obstacles:
+        lines.append("  (no obstacles)")
+        return "\n".join(lines)
+    lines.append(f"  {'id':>3} {'x m':>7} {'y m':>7} {'z m':>7} {'dist m':>7} {'w m':>6} {'h m':>6} {'d m':>6} "
+                 f"{'disp px':>8} {'area px':>8} {'conf':>5}  bbox px{'':14} base x,y,z m")
+    for o in obstacles:
+        base = ("" if o.position_base_m is None else " ".join(f"{v:6.2f}" for v in o.position_base_m))
+        bbox = ",".join(str(v) for v in o.bbox_px)
+        lines.append(f"  {o.id:>3} {o.position_m[0]:7.3f} {o.position_m[1]:7.3f} {o.position_m[2]:7.3f} "
+                     f"{o.distance_m:7.3f} {o.size_m[0]:6.2f} {o.size_m[1]:6.2f} {o.size_m[2]:6.2f} "
+                     f"{o.disparity_px:8.2f} {o.area_px:8d} {o.confidence:5.2f}  {bbox:20} {base}")
+    return "\n".join(lines)
+
+
+def cmd_obstacles(args: argparse.Namespace) -> int:
+    import time
+
+    from .common import camera
+    from .common.messages import ObstacleList
+    from .services.disparity.matchers import SCALE, MatcherConfig, StereoMatcher, to_float
+    from .services.rectify.calibrate import expand_images, pair_files
+    from .services.rectify.core import Rectifier
+    from .services.segmenter.main import ObstacleBuilder
+
+    settings = _segmenter_settings(args)
+    rect = Rectifier(camera.load_calibration(args.calibration), args.alpha)
+    mcfg = MatcherConfig(method=args.matcher, num_disparities=args.num_disparities, block_size=args.block_size)
+    stereo = StereoMatcher(mcfg)
+    builder = ObstacleBuilder(settings)
+    pairs = pair_files(expand_images(args.left, "LEFT"), expand_images(args.right, "RIGHT"))
+    for k, (lp, rp) in enumerate(pairs):
+        left, right = rect.rectify(_read(lp), _read(rp))
+        d = to_float(stereo.compute(left, right), SCALE, mcfg.invalid_value)
+        t0 = time.perf_counter()
+        dets = builder.segmenter.detect(d, rect.model, left)
+        ms = (time.perf_counter() - t0) * 1e3
+        stamp_s = k / args.fps
+        obstacles = builder.obstacles(dets, stamp_s)
+        if args.json:
+            msg = ObstacleList(robot_id="offline", seq=k, stamp_ns=int(stamp_s * 1e9), publish_ns=time.time_ns(),
+                               stale=False, method=settings.method, obstacles=obstacles)
+            doc = json.loads(msg.model_dump_json())
+            doc["left"], doc["right"] = str(lp), str(rp)
+            _out(json.dumps(doc))
+        else:
+            _out(format_obstacles(obstacles, f"{lp} {rp}: {len(obstacles)} obstacle(s), {settings.method}, "
+                                             f"{ms:.1f} ms (camera frame: x right, y down, z forward)"))
+    return 0
+
+
+# --- eval --------------------------------------------------------------------------------------
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    from .services.capture.synthetic import list_builtin_scenarios
+    from .services.disparity.matchers import MatcherConfig
+    from .services.segmenter import eval as E
+
+    scenarios = args.scenarios or list_builtin_scenarios()
+    methods = args.method or E.DEFAULT_METHODS
+    for m in methods:
+        if m not in E.METHODS:
+            raise BallbotError(f"--method {m}: unknown (known: {', '.join(E.METHODS)})")
+    matcher = MatcherConfig(method=args.matcher, num_disparities=args.num_disparities, block_size=args.block_size)
+    if not args.json:
+        _out(f"eval: {', '.join(scenarios)}; methods {', '.join(methods)}; matcher {args.matcher}")
+    result = E.evaluate(scenarios, methods, frames=args.frames, fps=args.fps, seed=args.seed, matcher=matcher)
+    if args.json:
+        _out(json.dumps(E.result_to_json(result), indent=2))
+    else:
+        _out(E.format_table(result))
+        _out("\nerrors against the centroid of each obstacle's surface visible to the matcher; "
+             "depth % for truths at 0.5-4 m; vel err after 4 frames of a track")
+    return 0
+
+
+# --- bench-segmenter ---------------------------------------------------------------------------
+
+def cmd_bench_segmenter(args: argparse.Namespace) -> int:
+    from .bench.segmenter import bench_segmenter, format_bench
+
+    result = bench_segmenter(args.scenario, args.method or None, args.repeat)
+    _out(json.dumps(result, indent=2) if args.json else format_bench(result))
+    return 0
+
+
+# --- parser ------------------------------------------------------------------------------------
+
+def _matcher_args(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("disparity")
+    g.add_argument("--matcher", choices=["bm", "sgbm"], default="bm", help="disparity method (default: bm)")
+    g.add_argument("--num-disparities", type=int, default=64, help="search range, px (default: 64)")
+    g.add_argument("--block-size", type=int, default=0, help="matching window, odd px (0: bm 15, sgbm 5)")
+
+
+def register(sub: argparse._SubParsersAction, common) -> None:
+    from .common.settings import add_settings_arguments
+    from .services.segmenter.main import SegmenterSettings
+
+    o = sub.add_parser("obstacles", help="offline: image pairs -> rectify, disparity, obstacles",
+                       description="Rectify, match and segment one image pair or two folders (a sequence, "
+                                   "tracked as frames FPS apart) in-process, and print the obstacles.")
+    o.add_argument("left", metavar="LEFT", help="left image, glob or folder")
+    o.add_argument("right", metavar="RIGHT", help="right image, glob or folder")
+    o.add_argument("--calibration", required=True, metavar="CAL", help="calibration YAML or profile")
+    o.add_argument("--alpha", type=float, default=0.0, help="rectification alpha (default: 0)")
+    o.add_argument("--json", action="store_true", help="one ObstacleList JSON object per pair")
+    o.add_argument("--fps", type=float, default=15.0, help="frame rate of a sequence, for velocities")
+    o.add_argument("--config", default=None, metavar="FILE", help="YAML with a 'segmenter' section")
+    _matcher_args(o)
+    add_settings_arguments(o, SegmenterSettings)
+    o.set_defaults(func=cmd_obstacles)
+
+    e = sub.add_parser("eval", help="synthetic scenarios with ground truth -> detection and position-error report",
+                       description="Render the built-in scenarios, run them through the real rectify, "
+                                   "disparity and segmenter cores, and score each method against the truth.")
+    e.add_argument("scenarios", nargs="*", metavar="SCENARIO", help="built-in scenario names or YAML files "
+                   "(default: all built-in)")
+    e.add_argument("--method", action="append", metavar="M",
+                   help="seed (the thesis), seed+floor, layers; repeat for several (default: all three)")
+    e.add_argument("--json", action="store_true")
+    e.add_argument("--frames", type=int, default=None, help="frames per scenario (default: 3 static, 45 moving)")
+    e.add_argument("--fps", type=float, default=None, help="scene frame rate (default: 15)")
+    e.add_argument("--seed", type=int, default=0, help="texture and noise seed")
+    _matcher_args(e)
+    e.set_defaults(func=cmd_eval)
+
+    b = sub.add_parser("bench-segmenter", help="segmentation time per frame for each method",
+                       description="Time each segmentation method on disparity maps of a synthetic scenario.")
+    b.add_argument("--scenario", default="two-boxes")
+    b.add_argument("--method", action="append", metavar="M", help="seed or layers (default: both)")
+    b.add_argument("--repeat", type=int, default=50, help="timed runs per method")
+    b.add_argument("--json", action="store_true")
+    b.set_defaults(func=cmd_bench_segmenter)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit("use: ballbot-vision obstacles | eval | bench-segmenter")

@@ -1,0 +1,73 @@
+"""Tracker: stable ids, velocities, short occlusions bridged, long ones not, no swaps on crossing."""
+from __future__ import annotations
+
+import numpy as np
+
+from ballbot_vision.services.segmenter.tracking import Tracker
+
+
+def _walk(p0, v, t):
+    return np.asarray(p0, float) + np.asarray(v, float) * t
+
+
+def test_ids_stable_and_velocity_converges_with_noise():
+    rng = np.random.default_rng(0)
+    tr = Tracker()
+    ids = set()
+    for k in range(40):
+        t = k / 15
+        p = _walk([1.0, 0.2, 3.0], [-0.5, 0.0, -0.6], t) + rng.normal(0, 0.01, 3)
+        (track,) = tr.update([p], t)
+        ids.add(track.id)
+    assert ids == {1}
+    assert np.allclose(track.velocity, [-0.5, 0.0, -0.6], atol=0.12), track.velocity
+
+
+def test_static_objects_keep_ids_and_near_zero_velocity():
+    rng = np.random.default_rng(1)
+    tr = Tracker()
+    a, b = np.array([-0.4, 0.2, 1.8]), np.array([0.5, 0.0, 2.4])
+    for k in range(30):
+        ta, tb = tr.update([b + rng.normal(0, 0.01, 3), a + rng.normal(0, 0.01, 3)] if k % 2 else
+                           [a + rng.normal(0, 0.01, 3), b + rng.normal(0, 0.01, 3)], k / 30)
+        if k % 2:
+            ta, tb = tb, ta
+        assert (ta.id, tb.id) == (1, 2)
+    assert np.linalg.norm(ta.velocity) < 0.1 and np.linalg.norm(tb.velocity) < 0.1
+
+
+def test_short_occlusion_keeps_the_id_long_one_does_not():
+    tr = Tracker(timeout_s=1.0)
+    v = np.array([0.8, 0.0, 0.0])
+    for k in range(10):
+        (first,) = tr.update([_walk([0, 0, 2.5], v, k / 15)], k / 15)
+    for k in range(10, 22):  # 0.8 s unseen (behind something), still walking
+        tr.update([], k / 15)
+    (back,) = tr.update([_walk([0, 0, 2.5], v, 22 / 15)], 22 / 15)
+    assert back.id == first.id
+    for k in range(23, 45):  # 1.4 s unseen: dropped
+        tr.update([], k / 15)
+    (new,) = tr.update([_walk([0, 0, 2.5], v, 45 / 15)], 45 / 15)
+    assert new.id != first.id
+    assert all(t.id != first.id for t in tr.tracks)
+
+
+def test_crossing_objects_do_not_swap_ids():
+    tr = Tracker()
+    ids = None
+    for k in range(30):
+        t = k / 15
+        a = _walk([-1.0, 0.0, 2.5], [1.0, 0.0, 0.0], t)
+        b = _walk([1.0, 0.0, 2.9], [-1.0, 0.0, 0.0], t)
+        ta, tb = tr.update([a, b], t)
+        if ids is None:
+            ids = (ta.id, tb.id)
+        assert (ta.id, tb.id) == ids, k
+
+
+def test_new_object_far_from_tracks_gets_a_new_id():
+    tr = Tracker(gate_m=0.6)
+    (a,) = tr.update([np.array([0.0, 0.0, 2.0])], 0.0)
+    a2, b = tr.update([np.array([0.0, 0.0, 2.0]), np.array([1.5, 0.0, 2.0])], 0.1)
+    assert a2.id == a.id and b.id != a.id
+    assert tr.update([], 0.2) == []
