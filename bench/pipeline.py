@@ -22,6 +22,8 @@ def add_bench_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rate", type=float, default=60.0, help="capture rate offered to the pipeline, pairs/s")
     p.add_argument("--method", default="bm", choices=["bm", "sgbm"], help="disparity method")
     p.add_argument("--preload", type=int, default=16, help="pre-rendered pairs looped by capture")
+    p.add_argument("--workers", type=int, default=0, help="disparity worker processes (one OpenCV thread each) "
+                   "behind the dispatcher; 0: the dispatcher's onboard matcher (the single-host default)")
     p.add_argument("--json", action="store_true", help="one JSON document on stdout")
 
 
@@ -75,7 +77,7 @@ def compute_ceiling(method: str, preload: int, seconds: float = 3.0) -> dict:
 
 
 def pipeline_run(rate: float, method: str, preload: int, warmup_s: float, seconds: float,
-                 extra_args: dict[str, list[str]] | None = None) -> dict:
+                 extra_args: dict[str, list[str]] | None = None, workers: int = 0) -> dict:
     from ..common import codec
     from ..common.keys import topic
     from ..common.messages import ObstacleList
@@ -89,12 +91,15 @@ def pipeline_run(rate: float, method: str, preload: int, warmup_s: float, second
     sup.add("router", ["run", "router", "--listen", endpoint] + common)
     per_service = {
         "capture": ["--preload", str(preload), "--rate-hz", str(rate)],
-        "disparity": ["--method", method],
+        "disparity": ["--method", method] + (["--fallback", "none"] if workers else []),
     }
     for name, more in (extra_args or {}).items():
         per_service.setdefault(name, []).extend(more)
     for name in STAGES:
         sup.add(name, ["run", name, "--connect", endpoint] + common + per_service.get(name, []))
+    for i in range(workers):
+        sup.add(f"worker{i}", ["run", "disparity", "--role", "worker", "--instance", f"bench-worker{i}",
+                               "--threads", "1", "--method", method, "--connect", endpoint] + common)
     received: list[tuple[float, ObstacleList]] = []
     lock = threading.Lock()
     measuring = threading.Event()
@@ -144,8 +149,9 @@ def bench_main(args: argparse.Namespace) -> int:
     if not args.json:
         print(f"running the pipeline over Zenoh for {args.seconds:g} s at {args.rate:g} pairs/s offered ...",
               file=sys.stderr, flush=True)
-    pipe = pipeline_run(args.rate, args.method, args.preload, args.warmup, args.seconds)
-    report = {"image": "640x480", "method": args.method, "num_disparities": 64, "ceiling": ceiling,
+    pipe = pipeline_run(args.rate, args.method, args.preload, args.warmup, args.seconds,
+                        workers=getattr(args, "workers", 0))
+    report = {"image": "640x480", "method": args.method, "workers": getattr(args, "workers", 0), "num_disparities": 64, "ceiling": ceiling,
               "pipeline": pipe, "ratio_fps": pipe["fps"] / ceiling["fps"] if ceiling["fps"] else 0.0,
               "targets": {"fps": 60.0, "latency_p50_ms": 25.0}}
     if args.json:
