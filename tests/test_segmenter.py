@@ -1,0 +1,253 @@
+"""Segmenter cores on analytic disparity maps (floor plane + fronto-parallel boxes), the camera
+mount, settings, bad input, and the offline `obstacles` command on rendered images."""
+from __future__ import annotations
+
+import json
+import time
+
+import numpy as np
+import pytest
+
+from ballbot_vision.common import camera
+from ballbot_vision.common.errors import DecodeError
+from ballbot_vision.common.messages import CameraModel, DisparityMap, Image
+from ballbot_vision.services.segmenter import layers, seed
+from ballbot_vision.services.segmenter.main import (ObstacleBuilder, Segmenter, SegmenterSettings,
+                                                    camera_to_base)
+from ballbot_vision.services.segmenter.mount import FloorPlane, Mount
+
+MODEL = camera.RectifiedModel(640, 480, 665.0, 320.0, 240.0, 0.1)
+FB = MODEL.focal_px * MODEL.baseline_m
+
+
+def floor_plane(mount: Mount) -> FloorPlane:
+    return FloorPlane.from_normal(mount.down_camera, mount.height_m, MODEL.focal_px, MODEL.cx, MODEL.cy,
+                                  MODEL.baseline_m)
+
+
+def scene(boxes=(), mount: Mount = Mount(1.0, 15.0), wall_m: float = 5.0, noise: float = 0.08,
+          holes: float = 0.03, seed_: int = 0) -> np.ndarray:
+    """Disparity (H, W) float32 of a floor seen from `mount`, a wall at wall_m, and boxes standing on
+    the floor: (u0, u1, z_m, height_px) columns u0..u1 at depth z, bottom where the floor is at z."""
+    rng = np.random.default_rng(seed_)
+    v, u = np.mgrid[0:MODEL.height, 0:MODEL.width].astype(np.float32)
+    fp = floor_plane(mount)
+    d = np.maximum(fp.disparity(u, v), FB / wall_m).astype(np.float32)
+    for u0, u1, z, h_px in boxes:
+        dz = FB / z
+        # bottom row: where the floor's disparity equals the box's (solve along the middle column)
+        col = int((u0 + u1) / 2)
+        rows = np.nonzero(fp.disparity(np.float32(col), np.arange(MODEL.height, dtype=np.float32)) <= dz)[0]
+        bottom = int(rows.max()) if rows.size else MODEL.height
+        d[max(0, bottom - h_px):bottom, max(0, u0):min(MODEL.width, u1)] = dz
+    d += rng.normal(0, noise, d.shape).astype(np.float32)
+    d[rng.random(d.shape) < holes] = np.nan
+    d[:, :70] = np.nan  # block matching has no match in the left num_disparities columns
+    return d
+
+
+def _depths(dets):
+    return sorted(round(float(x.position_m[2]), 1) for x in dets)
+
+
+# --- layers ----------------------------------------------------------------------------------
+
+def test_layers_separates_objects_touching_in_the_image_at_different_depths():
+    d = scene([(200, 330, 1.8, 150), (330, 470, 2.5, 200)])  # share the column 330
+    dets = layers.segment(d, MODEL, layers.LayersConfig())
+    assert _depths(dets) == [1.8, 2.5]
+    near = min(dets, key=lambda x: x.position_m[2])
+    assert abs(near.position_m[2] - 1.8) < 0.03
+    assert near.bbox_px[0] <= 202 and near.bbox_px[2] >= 328
+    assert 0.9 < near.confidence <= 1.0
+    # the thesis's single threshold merges them (or loses one)
+    assert len(seed.segment(d, MODEL, seed.SeedConfig())) < 2
+
+
+def test_layers_keeps_an_object_cut_by_the_image_border():
+    d = scene([(560, 700, 2.0, 200)])
+    dets = layers.segment(d, MODEL, layers.LayersConfig())
+    assert _depths(dets) == [2.0]
+    assert dets[0].bbox_px[2] == MODEL.width
+    assert seed.segment(d, MODEL, seed.SeedConfig()) == []  # the thesis clears the border
+
+
+@pytest.mark.parametrize("prior", [Mount(1.0, 15.0), Mount(1.12, 12.0, roll_deg=2.0), None],
+                         ids=["exact-mount", "wrong-mount", "no-mount"])
+def test_layers_removes_the_floor_with_or_without_a_good_mount(prior):
+    d = scene([(250, 390, 2.2, 180)])
+    fl = []
+    dets = layers.segment(d, MODEL, layers.LayersConfig(mount=prior), floor_out=fl)
+    assert _depths(dets) == [2.2]
+    assert fl[0] is not None and abs(fl[0].height_m - 1.0) < 0.05
+    n, h = fl[0].normal_height(MODEL.focal_px, MODEL.cx, MODEL.cy, MODEL.baseline_m)
+    assert np.degrees(np.arccos(n @ Mount(1.0, 15.0).down_camera)) < 1.0
+
+
+def test_layers_fits_a_tilted_floor_when_the_robot_rolls():
+    true = Mount(1.0, 15.0, roll_deg=4.0)
+    d = scene([(250, 390, 2.2, 180)], mount=true)
+    fl = []
+    dets = layers.segment(d, MODEL, layers.LayersConfig(mount=Mount(1.0, 15.0)), floor_out=fl)
+    assert _depths(dets) == [2.2]
+    n, _ = fl[0].normal_height(MODEL.focal_px, MODEL.cx, MODEL.cy, MODEL.baseline_m)
+    assert np.degrees(np.arccos(n @ true.down_camera)) < 0.5
+
+
+def test_floor_only_and_far_things_give_nothing():
+    assert layers.segment(scene([]), MODEL, layers.LayersConfig()) == []
+    assert layers.segment(scene([(250, 390, 4.8, 100)]), MODEL, layers.LayersConfig()) == []  # beyond 4.5 m
+
+
+def test_minimum_size_is_in_metres():
+    # 12 px at 1.2 m is 2 cm wide: dropped; 40 px at 4 m is 24 cm: kept
+    d = scene([(300, 312, 1.2, 12), (400, 440, 4.0, 60)])
+    dets = layers.segment(d, MODEL, layers.LayersConfig())
+    assert _depths(dets) == [4.0]
+    assert 0.15 < dets[0].size_m[0] < 0.35
+
+
+def test_bad_input_gives_no_obstacles_and_a_size_mismatch_raises():
+    cfg = layers.LayersConfig()
+    h, w = MODEL.height, MODEL.width
+    for d in (np.full((h, w), np.nan, np.float32), np.zeros((h, w), np.float32),
+              np.full((h, w), np.inf, np.float32), -np.ones((h, w), np.float32)):
+        assert layers.segment(d, MODEL, cfg) == []
+        assert seed.segment(d, MODEL, seed.SeedConfig()) == []
+    with pytest.raises(ValueError, match="camera model"):
+        layers.segment(np.zeros((10, 10), np.float32), MODEL, cfg)
+    assert Segmenter(SegmenterSettings()).detect(np.zeros((0, 0), np.float32), MODEL) == []
+
+
+def test_edge_refinement_snaps_the_box_to_intensity_edges():
+    d = scene([(250, 390, 2.0, 180)], noise=0.0, holes=0.0)
+    img = np.full(d.shape, 60, np.uint8)
+    img[:, 247:393] = 200
+    dets = layers.segment(d, MODEL, layers.LayersConfig(edge_refine=True), image=img)
+    assert len(dets) == 1
+    x0, _, x1, _ = dets[0].bbox_px
+    assert abs(x0 - 247) <= 1 and abs(x1 - 393) <= 1
+
+
+def test_layers_is_fast_enough():
+    d = scene([(200, 330, 1.8, 150), (330, 470, 2.5, 200)])
+    seg = Segmenter(SegmenterSettings())
+    seg.detect(d, MODEL)
+    best = min(_timed(seg, d) for _ in range(7))
+    assert best < 0.015, f"{best * 1e3:.1f} ms (target 5 ms on a quiet machine)"
+
+
+def _timed(seg, d) -> float:
+    t0 = time.perf_counter()
+    seg.detect(d, MODEL)
+    return time.perf_counter() - t0
+
+
+# --- mount -----------------------------------------------------------------------------------
+
+def test_mount_matches_the_height_pitch_transform_and_rep103():
+    m = Mount(1.0, 15.0)
+    for p in ([0.3, -0.2, 2.0], [1.0, 2.0, 3.0]):
+        assert np.allclose(m.to_base(np.array(p)), camera_to_base(np.array(p), 1.0, 15.0))
+    # straight ahead on the optical axis, camera level: forward in the base frame
+    level = Mount(0.5, 0.0)
+    assert np.allclose(level.to_base([0, 0, 2.0]), [2.0, 0, 0.5])
+    assert np.allclose(level.to_base([1.0, 0, 0]), [0, -1.0, 0.5])  # camera x (right) = base -y
+    assert np.allclose(level.to_base([0, 1.0, 0]), [0, 0, -0.5])  # camera y (down) = base -z
+    # yaw 90 deg left: the camera looks along base +y; offset moves the origin
+    m = Mount(0.5, 0.0, yaw_deg=90.0, x_m=0.2, y_m=-0.1)
+    assert np.allclose(m.to_base([0, 0, 1.0]), [0.2, 0.9, 0.5])
+    # roll: positive tilts the right side down
+    r = Mount(1.0, 0.0, roll_deg=10.0)
+    assert r.to_base([1.0, 0, 0])[2] < 1.0
+
+
+def test_floor_plane_round_trip():
+    m = Mount(1.3, 20.0, roll_deg=3.0)
+    fp = floor_plane(m)
+    n, h = fp.normal_height(MODEL.focal_px, MODEL.cx, MODEL.cy, MODEL.baseline_m)
+    assert abs(h - 1.3) < 1e-9 and np.allclose(n, m.down_camera)
+    # a floor pixel's disparity puts its point on the floor
+    u, v = 400.0, 420.0
+    z = FB / fp.disparity(u, v)
+    p = np.array([(u - MODEL.cx) * z / MODEL.focal_px, (v - MODEL.cy) * z / MODEL.focal_px, z])
+    assert abs(m.to_base(p)[2]) < 1e-9
+
+
+# --- settings and the service core -------------------------------------------------------------
+
+def test_settings_default_to_layers_and_seed_can_reproduce_the_thesis():
+    s = SegmenterSettings()
+    assert s.method == "layers" and s.range_m == 4.5
+    thesis = SegmenterSettings(method="seed", floor_removal=False)
+    assert thesis.range_m == 3.0 and thesis.seed_config().mount_height_m is None
+    assert SegmenterSettings(method="seed").seed_config().mount_height_m == 1.0
+    assert SegmenterSettings(mount_height_m=None).mount() is None
+    cfg = SegmenterSettings(mount_roll_deg=2.0, mount_x_m=0.1).layers_config()
+    assert cfg.mount == Mount(1.0, 15.0, 0.0, 2.0, 0.1, 0.0)
+
+
+def _message(d: np.ndarray, model=MODEL, width=None) -> DisparityMap:
+    raw = np.where(np.isfinite(d), np.round(d * 16), -16).astype(np.int16)
+    cam = CameraModel(width=model.width, height=model.height, focal_px=model.focal_px, cx=model.cx, cy=model.cy,
+                      baseline_m=model.baseline_m, Q=[float(x) for x in model.Q.ravel()])
+    return DisparityMap(robot_id="t", seq=1, stamp_ns=time.time_ns(),
+                        image=Image(width=width or raw.shape[1], height=raw.shape[0], dtype="int16",
+                                    data=raw.tobytes()), scale=16.0, invalid_value=-16, min_disparity=0,
+                        num_disparities=64, camera=cam, method="bm")
+
+
+def test_builder_publishes_every_field_and_the_base_frame():
+    b = ObstacleBuilder(SegmenterSettings())
+    msg = _message(scene([(200, 330, 1.8, 150), (330, 470, 2.5, 200)]))
+    out = b.build(msg, b.detect(msg), stale=False)
+    assert out.method == "layers" and len(out.obstacles) == 2
+    near, far = out.obstacles  # nearest first
+    assert near.distance_m < far.distance_m
+    assert near.id != far.id and near.confidence > 0.8 and near.area_px > 1000
+    assert abs(near.disparity_px - FB / 1.8) < 0.3
+    base = np.array(near.position_base_m)
+    assert np.allclose(base, Mount(1.0, 15.0).to_base(near.position_m))
+    assert 1.6 < base[0] < 2.0 and base[2] > 0.05  # ahead, above the floor
+    # the same scene again: the same ids, no velocity
+    again = b.build(msg, b.detect(msg), stale=False)
+    assert [o.id for o in again.obstacles] == [near.id, far.id]
+    assert np.linalg.norm(again.obstacles[0].velocity_mps) < 0.05
+
+
+def test_builder_on_bad_maps():
+    b = ObstacleBuilder(SegmenterSettings())
+    msg = _message(np.full((MODEL.height, MODEL.width), np.nan, np.float32))
+    assert b.build(msg, b.detect(msg), stale=False).obstacles == []
+    bad = _message(np.zeros((MODEL.height, MODEL.width - 10), np.float32))
+    with pytest.raises(DecodeError, match="camera model"):
+        b.detect(bad)
+
+
+# --- the offline command -----------------------------------------------------------------------
+
+def test_obstacles_command_on_rendered_images(tmp_path, capsys):
+    import cv2
+
+    from ballbot_vision.cli import main
+    from ballbot_vision.services.capture.synthetic import Scene, SyntheticWorld
+
+    rig = camera.load_calibration("lifecam-studio")
+    world = SyntheticWorld(Scene.builtin("touching"), rig, camera.rectify_rig(rig), seed=0)
+    left, right = world.render(0.0)
+    cv2.imwrite(str(tmp_path / "left.png"), left)
+    cv2.imwrite(str(tmp_path / "right.png"), right)
+    assert main(["obstacles", str(tmp_path / "left.png"), str(tmp_path / "right.png"),
+                 "--calibration", "lifecam-studio", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    truth = world.truth(0.0)
+    assert len(doc["obstacles"]) == len(truth) == 2
+    for t in truth:
+        o = min(doc["obstacles"], key=lambda o: np.linalg.norm(np.array(o["position_m"]) - t.visible_centroid_m))
+        assert np.linalg.norm(np.array(o["position_m"]) - t.visible_centroid_m) < 0.05 * t.visible_centroid_m[2]
+    assert main(["obstacles", str(tmp_path / "left.png"), str(tmp_path / "right.png"),
+                 "--calibration", "lifecam-studio", "--method", "seed"]) == 0
+    assert "seed" in capsys.readouterr().out
+    assert main(["obstacles", str(tmp_path / "left.png"), str(tmp_path / "nope.png"),
+                 "--calibration", "lifecam-studio"]) == 2
+    assert "nope.png" in capsys.readouterr().err
