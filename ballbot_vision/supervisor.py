@@ -85,14 +85,22 @@ class Supervisor:
         try:
             self.start_all(wait_for_endpoint)
             while not self.stop.wait(0.1):
-                self._restart_dead()
+                failed = self._restart_dead()
+                if failed:
+                    log.error("%s refused to start (exit status 2: a usage or configuration error, see "
+                              "above); stopping everything", failed)
+                    return 2
         finally:
             self.stop_all()
         return 0
 
-    def _restart_dead(self) -> None:
+    def _restart_dead(self) -> str | None:
+        """Restart crashed children with backoff; returns the name of one that exited with status 2
+        (bad settings or input: restarting cannot help)."""
         now = time.monotonic()
         for c in self.children:
+            if c.proc is not None and c.proc.poll() == 2:
+                return c.name
             if c.proc is not None and c.proc.poll() is not None:
                 log.warning("%s exited with status %s; restarting in %.1f s", c.name, c.proc.returncode, c.backoff_s)
                 c.proc = None
@@ -101,6 +109,7 @@ class Supervisor:
                 c.restarts += 1
             elif c.proc is None and now >= c.next_start:
                 self._start(c)
+        return None
 
     def stop_all(self) -> None:
         live = [c.proc for c in self.children if c.proc is not None and c.proc.poll() is None]
