@@ -87,6 +87,20 @@ def _ransac_plane(u: np.ndarray, v: np.ndarray, d: np.ndarray, rng: np.random.Ge
     return planes[int(score.argmax())]
 
 
+def _lstsq_plane(u: np.ndarray, v: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Least-squares (a, b, c) of d = a u + b v + c, by the 3x3 normal equations (centred)."""
+    u = u.astype(np.float64)
+    v = v.astype(np.float64)
+    d = d.astype(np.float64)
+    mu, mv, md = u.mean(), v.mean(), d.mean()
+    u -= mu
+    v -= mv
+    d -= md
+    A = np.array([[u @ u, u @ v], [u @ v, v @ v]])
+    a, b = np.linalg.solve(A + 1e-9 * np.eye(2), np.array([u @ d, v @ d]))
+    return np.array([a, b, md - a * mu - b * mv])
+
+
 def fit_floor(d: np.ndarray, model: camera.RectifiedModel, cfg: LayersConfig, step: int) -> FloorPlane | None:
     """The floor plane in disparity space from a (median-filtered) working-resolution disparity map
     d (0 = invalid); the mount's plane when the fit fails or disagrees with it; None when there is
@@ -119,8 +133,7 @@ def fit_floor(d: np.ndarray, model: camera.RectifiedModel, cfg: LayersConfig, st
         inl = (pred > 0) & (np.abs(dv - pred) <= np.maximum(0.6, tol * pred))
         if inl.sum() < 200:
             return prior
-        A = np.stack([u[inl], v[inl], np.ones(int(inl.sum()), np.float32)], 1).astype(np.float64)
-        p = np.linalg.lstsq(A, dv[inl].astype(np.float64), rcond=None)[0]
+        p = _lstsq_plane(u[inl], v[inl], dv[inl])
     fitted = FloorPlane(float(p[0]), float(p[1]), float(p[2]), 1.0, True, int(inl.sum()))
     n, height = fitted.normal_height(model.focal_px, model.cx, model.cy, model.baseline_m)
     fitted = FloorPlane(fitted.a, fitted.b, fitted.c, height, True, fitted.inliers)
@@ -173,7 +186,8 @@ def _merge_close(regions: list[_Region], gap_m: float) -> list[_Region]:
             out.append(g[0])
             continue
         pts = np.concatenate([r.pts for r in g])
-        out.append(_Region(pts, np.percentile(pts, 2, axis=0), np.percentile(pts, 98, axis=0),
+        lo, hi = np.percentile(pts[::max(1, len(pts) // _STAT_SAMPLES)], [2, 98], axis=0)
+        out.append(_Region(pts, lo, hi,
                            (min(r.bbox[0] for r in g), min(r.bbox[1] for r in g),
                             max(r.bbox[2] for r in g), max(r.bbox[3] for r in g)),
                            sum(r.area for r in g), sum(r.valid for r in g),
@@ -181,6 +195,7 @@ def _merge_close(regions: list[_Region], gap_m: float) -> list[_Region]:
     return out
 
 
+_STAT_SAMPLES = 1500  # percentiles of a region are taken on at most ~2x this many of its points
 _CROSS = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
 _GRIDS: dict[tuple[int, int, int], tuple[np.ndarray, np.ndarray]] = {}
 
@@ -244,15 +259,16 @@ def segment(disparity: np.ndarray, model: camera.RectifiedModel, cfg: LayersConf
         pts = np.stack([((xs[good] + x0) * step - model.cx) * zs / f, ((ys[good] + y0) * step - model.cy) * zs / f,
                         zs], 1)
         valid = int(np.count_nonzero(d0[y0:y0 + bh, x0:x0 + bw][ys, xs]))
-        regions.append(_Region(pts, np.percentile(pts, 2, axis=0), np.percentile(pts, 98, axis=0),
-                               (x0, y0, x0 + bw, y0 + bh), area, valid, dg))
+        lo, hi = np.percentile(pts[::max(1, len(pts) // _STAT_SAMPLES)], [2, 98], axis=0)
+        regions.append(_Region(pts, lo, hi, (x0, y0, x0 + bw, y0 + bh), area, valid, dg))
     regions = _merge_close(regions, cfg.merge_gap_m)
     out: list[Detection] = []
     for r in regions:
         size = r.hi - r.lo
         if max(size[0], size[1]) < cfg.min_size_m or r.area * (float(np.mean(r.pts[:, 2])) / f * step) ** 2 < cfg.min_area_m2:
             continue
-        rng = np.sqrt((r.pts * r.pts).sum(1))
+        sub = r.pts[::max(1, len(r.pts) // _STAT_SAMPLES)]
+        rng = np.sqrt((sub * sub).sum(1))
         x0, y0, x1, y1 = r.bbox
         out.append(Detection(position_m=r.pts.mean(0), size_m=np.maximum(size, 0.0),
                              distance_m=float(np.percentile(rng, 2)),
