@@ -120,8 +120,8 @@ class TruthObstacle(BaseModel):
     size_m: Vec3
     visible_centroid_m: Vec3
     nearest_m: float
-    visible_px: int
-    bbox_px: tuple[int, int, int, int]
+    visible_px: int = Field(ge=0, description="pixels of the obstacle seen in the rectified left image")
+    bbox_px: tuple[int, int, int, int] | None = Field(description="None when no pixel is visible")
     velocity_mps: Vec3 = (0.0, 0.0, 0.0)
 
 

@@ -65,7 +65,7 @@ def load_settings(cls: type[S], config_file: str | None = None, args: argparse.N
             sources[k] = f"{config_file}: {cls.section}.{k}"
     for name in cls.model_fields:
         env = os.environ.get(cls.env_var(name))
-        if env is not None:
+        if env:  # an empty variable (common in compose files) means "not set"
             values[name] = _parse_scalar(env)
             sources[name] = f"environment variable {cls.env_var(name)}"
     if args is not None:

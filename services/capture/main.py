@@ -129,7 +129,8 @@ def truth_message(robot_id: str, seq: int, stamp_ns: int, scenario: str, truth: 
     return GroundTruth(robot_id=robot_id, seq=seq, stamp_ns=stamp_ns, scenario=scenario, obstacles=[
         TruthObstacle(name=o.name, kind=o.kind, center_m=v3(o.center_m), size_m=v3(o.size_m),
                       visible_centroid_m=v3(o.visible_centroid_m), nearest_m=float(o.nearest_m),
-                      visible_px=int(o.visible_px), bbox_px=tuple(int(x) for x in o.bbox_px),
+                      visible_px=int(o.visible_px),
+                      bbox_px=None if o.bbox_px is None else tuple(int(x) for x in o.bbox_px),
                       velocity_mps=v3(o.velocity_mps)) for o in truth])
 
 
