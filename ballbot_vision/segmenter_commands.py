@@ -43,13 +43,14 @@ def format_obstacles(obstacles, header: str = "") -> str:
         lines.append("  (no obstacles)")
         return "\n".join(lines)
     lines.append(f"  {'id':>3} {'x m':>7} {'y m':>7} {'z m':>7} {'dist m':>7} {'w m':>6} {'h m':>6} {'d m':>6} "
-                 f"{'disp px':>8} {'area px':>8} {'conf':>5}  bbox px{'':14} base x,y,z m")
+                 f"{'disp px':>8} {'area px':>8} {'conf':>5} {'vx,vy,vz m/s':>17}  bbox px{'':14} base x,y,z m")
     for o in obstacles:
         base = ("" if o.position_base_m is None else " ".join(f"{v:6.2f}" for v in o.position_base_m))
         bbox = ",".join(str(v) for v in o.bbox_px)
+        vel = " ".join(f"{v:5.2f}" for v in o.velocity_mps)
         lines.append(f"  {o.id:>3} {o.position_m[0]:7.3f} {o.position_m[1]:7.3f} {o.position_m[2]:7.3f} "
                      f"{o.distance_m:7.3f} {o.size_m[0]:6.2f} {o.size_m[1]:6.2f} {o.size_m[2]:6.2f} "
-                     f"{o.disparity_px:8.2f} {o.area_px:8d} {o.confidence:5.2f}  {bbox:20} {base}")
+                     f"{o.disparity_px:8.2f} {o.area_px:8d} {o.confidence:5.2f} {vel:>17}  {bbox:20} {base}")
     return "\n".join(lines)
 
 

@@ -50,7 +50,7 @@ class LayersConfig:
     min_pixels: int = 12  # at the working resolution
     floor_removal: bool = True
     fit_floor: bool = True
-    floor_margin_m: float = 0.06
+    floor_margin_m: float = 0.08
     max_tilt_deg: float = 10.0
     mount: Mount | None = Mount()
     merge_gap_m: float = 0.12
