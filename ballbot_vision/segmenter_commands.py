@@ -105,7 +105,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
     matcher = MatcherConfig(method=args.matcher, num_disparities=args.num_disparities, block_size=args.block_size)
     if not args.json:
         _out(f"eval: {', '.join(scenarios)}; methods {', '.join(methods)}; matcher {args.matcher}")
-    result = E.evaluate(scenarios, methods, frames=args.frames, fps=args.fps, seed=args.seed, matcher=matcher)
+    error = {"pitch_deg": args.mount_pitch_error, "roll_deg": args.mount_roll_error,
+             "height_m": args.mount_height_error}
+    result = E.evaluate(scenarios, methods, frames=args.frames, fps=args.fps, seed=args.seed, matcher=matcher,
+                        mount_error=error)
     if args.json:
         _out(json.dumps(E.result_to_json(result), indent=2))
     else:
@@ -163,6 +166,10 @@ def register(sub: argparse._SubParsersAction, common) -> None:
     e.add_argument("--frames", type=int, default=None, help="frames per scenario (default: 3 static, 45 moving)")
     e.add_argument("--fps", type=float, default=None, help="scene frame rate (default: 15)")
     e.add_argument("--seed", type=int, default=0, help="texture and noise seed")
+    g = e.add_argument_group("mount error", "tell the segmenter a wrong camera mount (a balancing robot leans)")
+    g.add_argument("--mount-pitch-error", type=float, default=0.0, metavar="DEG")
+    g.add_argument("--mount-roll-error", type=float, default=0.0, metavar="DEG")
+    g.add_argument("--mount-height-error", type=float, default=0.0, metavar="M")
     _matcher_args(e)
     e.set_defaults(func=cmd_eval)
 

@@ -211,11 +211,15 @@ def _match(obstacles, centroids: list[np.ndarray], gate_m: float, gate_rel: floa
 
 def score_method(data: ScenarioData, method: str, overrides: dict | None = None, min_visible_px: int = 400,
                  eval_range_m: float = 4.5, gate_m: float = 0.3, gate_rel: float = 0.15,
-                 vel_warmup: int = 4) -> Score:
+                 vel_warmup: int = 4, mount_error: dict | None = None) -> Score:
+    """mount_error: added to the true mount the segmenter is told, e.g. {"pitch_deg": 5,
+    "height_m": 0.1} (a balancing robot leans; the floor fit should absorb it)."""
     m = data.mount
+    err = {"height_m": 0.0, "pitch_deg": 0.0, "roll_deg": 0.0, **(mount_error or {})}
     cfg = dict(METHODS[method])
-    cfg.update(mount_height_m=m.height_m, mount_pitch_deg=m.pitch_deg, mount_yaw_deg=m.yaw_deg,
-               mount_roll_deg=m.roll_deg, mount_x_m=m.x_m, mount_y_m=m.y_m)
+    cfg.update(mount_height_m=m.height_m + err["height_m"], mount_pitch_deg=m.pitch_deg + err["pitch_deg"],
+               mount_yaw_deg=m.yaw_deg, mount_roll_deg=m.roll_deg + err["roll_deg"], mount_x_m=m.x_m,
+               mount_y_m=m.y_m)
     cfg.update(overrides or {})
     builder = ObstacleBuilder(SegmenterSettings(**cfg))
     sc = Score(data.name, method, frames=len(data.frames))
@@ -279,7 +283,8 @@ def score_method(data: ScenarioData, method: str, overrides: dict | None = None,
 
 def evaluate(scenarios: list[str] | None = None, methods: list[str] | None = None, frames: int | None = None,
              fps: float | None = None, seed: int = 0, matcher: MatcherConfig = MatcherConfig(),
-             overrides: dict | None = None, data: dict[str, ScenarioData] | None = None) -> dict:
+             overrides: dict | None = None, data: dict[str, ScenarioData] | None = None,
+             mount_error: dict | None = None) -> dict:
     """-> {"scenarios": {name: {method: Score}}, "overall": {method: Score}, "render_s": {name: s}}.
     `data` may hold already-rendered scenarios (reused, e.g. by tests)."""
     scenarios = scenarios or S.list_builtin_scenarios()
@@ -293,7 +298,7 @@ def evaluate(scenarios: list[str] | None = None, methods: list[str] | None = Non
         if data is not None:
             data[name] = d
         result["render_s"][name] = d.render_s
-        result["scenarios"][name] = {m: score_method(d, m, overrides) for m in methods}
+        result["scenarios"][name] = {m: score_method(d, m, overrides, mount_error=mount_error) for m in methods}
     for m in methods:
         result["overall"][m] = Score.pooled([result["scenarios"][n][m] for n in scenarios])
     return result
