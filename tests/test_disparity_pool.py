@@ -285,6 +285,12 @@ def test_three_worker_processes_survive_a_kill_and_garbage():
             procs.service(w, "disparity", "--role", "worker", "--instance", w, "--connect", endpoint,
                           "--robot-id", rid, "--threads", "1")
         check_kill_continuity(col, procs, workers)
+        # bytes per second on each link, in the stats of both ends
+        col.wait_for(lambda ev: any(e["k"] == "S" and any(k.startswith("rate_out_work_") and v > 1e5
+                                                          for k, v in e["extra"].items()) for e in ev), 15,
+                     "the dispatcher's per-worker link rate in its stats")
+        col.wait_for(lambda ev: any(e["k"] == "S" and e["extra"].get("rate_in_work_Bps", 0) > 1e5 for e in ev), 15,
+                     "a worker's incoming link rate in its stats")
         # garbage work items and receipts: logged, counted, dropped; nothing stalls
         t_inject = time.time()
         inj = procs.start("inject", [PY, "-c", INJECT, rid, endpoint, workers[1]])

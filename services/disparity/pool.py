@@ -105,8 +105,9 @@ def reencode_frame(msg: StereoFrame, encoding: str, jpeg_quality: int = 90) -> S
 # --- rates for stats ------------------------------------------------------------------------------
 
 class Rates:
-    """Byte counters whose per-second rates go into node.extra as '<name>_Bps' (and totals as
-    '<name>_bytes'), refreshed at most once a second by tick()."""
+    """Byte counters per link: totals go into node.extra as '<name>_bytes' (name starts with in_ or
+    out_, so `status` sums them with the node's own counters) and per-second rates as
+    'rate_<name>_Bps', refreshed at most once a second by tick()."""
 
     def __init__(self, node: Node):
         self.node = node
@@ -123,7 +124,7 @@ class Rates:
         with self._lock:
             self._bytes.pop(name, None)
             self._last.pop(name, None)
-        self.node.extra.pop(f"{name}_Bps", None)
+        self.node.extra.pop(f"rate_{name}_Bps", None)
         self.node.extra.pop(f"{name}_bytes", None)
 
     def tick(self) -> None:
@@ -134,7 +135,7 @@ class Rates:
         self._t = now
         with self._lock:
             for name, total in self._bytes.items():
-                self.node.extra[f"{name}_Bps"] = (total - self._last.get(name, 0)) / dt
+                self.node.extra[f"rate_{name}_Bps"] = (total - self._last.get(name, 0)) / dt
                 self.node.extra[f"{name}_bytes"] = float(total)
                 self._last[name] = total
 
