@@ -54,9 +54,12 @@ def test_layers_tracks_the_walking_person_without_an_id_switch(result):
 
 
 def test_layers_positions_against_the_truth(result):
-    for name in ("two-boxes", "touching", "toolbox"):
+    # the strip that floor removal cuts off objects standing on the floor is filled back in
+    for name in ("two-boxes", "touching", "toolbox", "chair", "person-walking"):
         s = result["scenarios"][name]["layers"]
-        assert s.pos_err_p95_pct <= 5.0, (name, s.pos_err_p95_pct)
+        assert s.pos_err_p95_pct <= 2.0, (name, s.pos_err_p95_pct)
+        det = [v for v in s.per_truth.values()]
+        assert all(d["matched"] == d["seen"] for d in det)
 
 
 def test_seed_reproduces_the_thesis_on_its_one_object_scene(result):

@@ -54,6 +54,7 @@ class LayersConfig:
     max_tilt_deg: float = 10.0
     mount: Mount | None = Mount()
     merge_gap_m: float = 0.12
+    fill_to_floor: bool = True
     edge_refine: bool = False
 
 
@@ -156,6 +157,48 @@ class _Region:
     area: int  # working-resolution pixels
     valid: int  # of which with a valid raw disparity
     disparities: np.ndarray  # (n,) px
+    filled: int = 0  # points added by _fill_to_floor (included in pts)
+
+
+def _fill_to_floor(mask: np.ndarray, d_box: np.ndarray, x0: int, y0: int, floor: FloorPlane, cfg: LayersConfig,
+                   model: camera.RectifiedModel, step: int) -> np.ndarray | None:
+    """The strip of an object that floor removal cut off: where a column of the region ends less
+    than floor_margin_m (+4 cm) above the floor, the object is taken to stand on it, and points
+    are added straight down (along the floor normal: a vertical face) to the floor, one per
+    working-grid row they cover. -> (k, 3) camera-frame points, or None."""
+    has = mask.any(0)
+    if not has.any():
+        return None
+    f, cx, cy, B = model.focal_px, model.cx, model.cy, model.baseline_m
+    n_down, _ = floor.normal_height(f, cx, cy, B)
+    bh = mask.shape[0]
+    cols = np.nonzero(has)[0]
+    rows = (bh - 1 - np.argmax(mask[::-1], axis=0))[cols]
+    db = d_box[rows, cols].astype(np.float64)
+    ok = db > 0
+    if not ok.any():
+        return None
+    cols, rows, db = cols[ok], rows[ok], db[ok]
+    u = (cols + x0).astype(np.float64) * step
+    v = (rows + y0).astype(np.float64) * step
+    z = f * B / db
+    P = np.stack([(u - cx) * z / f, (v - cy) * z / f, z], 1)
+    height = floor.height_m - P @ n_down  # above the floor
+    reach = cfg.floor_margin_m + 0.04
+    on_floor = (height > -0.02) & (height <= reach)
+    if not on_floor.any():
+        return None
+    P, v, height = P[on_floor], v[on_floor], np.maximum(height[on_floor], 0.0)
+    F = P + height[:, None] * n_down  # the foot of each column on the floor
+    v_foot = np.minimum(F[:, 1] * f / F[:, 2] + cy, model.height - 1)
+    n = np.maximum(np.floor((v_foot - v) / step), 0).astype(np.int64)
+    total = int(n.sum())
+    if total == 0:
+        return None
+    idx = np.repeat(np.arange(len(n)), n)
+    k = np.arange(total) - np.repeat(np.cumsum(n) - n, n) + 1
+    t = (k / n[idx]) * height[idx]
+    return P[idx] + t[:, None] * n_down
 
 
 def _merge_close(regions: list[_Region], gap_m: float) -> list[_Region]:
@@ -191,7 +234,7 @@ def _merge_close(regions: list[_Region], gap_m: float) -> list[_Region]:
                            (min(r.bbox[0] for r in g), min(r.bbox[1] for r in g),
                             max(r.bbox[2] for r in g), max(r.bbox[3] for r in g)),
                            sum(r.area for r in g), sum(r.valid for r in g),
-                           np.concatenate([r.disparities for r in g])))
+                           np.concatenate([r.disparities for r in g]), sum(r.filled for r in g)))
     return out
 
 
@@ -259,8 +302,16 @@ def segment(disparity: np.ndarray, model: camera.RectifiedModel, cfg: LayersConf
         pts = np.stack([((xs[good] + x0) * step - model.cx) * zs / f, ((ys[good] + y0) * step - model.cy) * zs / f,
                         zs], 1)
         valid = int(np.count_nonzero(d0[y0:y0 + bh, x0:x0 + bw][ys, xs]))
+        y1 = y0 + bh
+        filled = 0
+        if floor is not None and cfg.fill_to_floor:
+            extra = _fill_to_floor(lab == i, dk[y0:y0 + bh, x0:x0 + bw], x0, y0, floor, cfg, model, step)
+            if extra is not None:
+                pts = np.concatenate([pts, extra])
+                filled = len(extra)
+                y1 = max(y1, min(h, int(np.ceil((float(np.max(extra[:, 1] / extra[:, 2])) * f + model.cy) / step)) + 1))
         lo, hi = np.percentile(pts[::max(1, len(pts) // _STAT_SAMPLES)], [2, 98], axis=0)
-        regions.append(_Region(pts, lo, hi, (x0, y0, x0 + bw, y0 + bh), area, valid, dg))
+        regions.append(_Region(pts, lo, hi, (x0, y0, x0 + bw, y1), area, valid, dg, filled))
     regions = _merge_close(regions, cfg.merge_gap_m)
     out: list[Detection] = []
     for r in regions:
@@ -273,7 +324,8 @@ def segment(disparity: np.ndarray, model: camera.RectifiedModel, cfg: LayersConf
         out.append(Detection(position_m=r.pts.mean(0), size_m=np.maximum(size, 0.0),
                              distance_m=float(np.percentile(rng, 2)),
                              bbox_px=(x0 * step, y0 * step, min(model.width, x1 * step), min(model.height, y1 * step)),
-                             area_px=int(r.area * step * step), disparity_px=float(np.median(r.disparities)),
+                             area_px=int((r.area + r.filled) * step * step),
+                             disparity_px=float(np.median(r.disparities)),
                              confidence=r.valid / max(1, r.area)))
     if cfg.edge_refine and image is not None and out:
         out = [_refine_box(det, image) for det in out]
