@@ -10,20 +10,25 @@ plane rather than "whatever is far".
  2. 5x5 median filter (removes block-matching speckle, keeps depth steps sharp)
  3. range gate: min_range_m <= Z <= max_range_m
  4. floor: a plane d = a u + b v + c in disparity space (a flat floor is a plane there),
-    fitted to the pixels near the plane the camera mount predicts (iteratively re-weighted least
-    squares), checked against the mount (normal within max_tilt_deg, height within 30 %), the
-    mount's plane as the fallback; pixels less than floor_margin_m above it are floor
+    fitted by least squares to the pixels in a band around the plane the camera mount predicts,
+    the band narrowed over three passes (without a mount: RANSAC on the lower half first);
+    checked against the mount (normal within max_tilt_deg, height within 30 %), the mount's plane
+    as the fallback; pixels less than floor_margin_m above it are floor
  5. region growing with a similarity tolerance: 4-neighbours belong together when their
     disparities differ by at most step_px + step_rel * d. Implemented as one connected-components
-    pass after removing the far pixel of every neighbour pair that breaks the tolerance (so no
-    region can leak across a depth step)
+    pass after removing every pixel with a 4-neighbour nearer by more than the tolerance (one
+    3x3 dilation), so no region can leak across a depth step
  6. regions smaller than min_size_m (largest extent) or min_area_m2 (frontal area) are dropped
- 7. per region, from its pixels' 3D points (outliers beyond the tolerance of the median disparity
-    dropped): centroid (mean, like the surface points a camera sees), extent (5th-95th
-    percentile), nearest distance (2nd percentile of range), bbox, area, median disparity,
-    confidence = fraction of the region's pixels with a valid raw disparity
- 8. optional boundary refinement (edge_refine): each region's box is snapped to the strongest
-    intensity edges of the left image within a few pixels (the thesis's hybrid idea)
+ 7. per region, its pixels' 3D points (outliers beyond the tolerance of the median disparity
+    dropped); where a column ends within floor_margin_m (+4 cm) of the floor, the object stands on
+    it and the strip that floor removal cut off is filled back in along the floor normal
+ 8. regions whose 3D extents come within merge_gap_m of each other on every axis are one object
+    (a chair's back leg, seen between its front legs, is apart from the seat in the image)
+ 9. per object: centroid (mean of the points, like the surface points a camera sees), extent
+    (2nd-98th percentile), nearest distance (2nd percentile of range), bbox, area, median
+    disparity, confidence = fraction of the region's pixels with a valid raw disparity
+10. optional boundary refinement (edge_refine): each box side is snapped to the strongest
+    intensity edge of the left image within a few pixels (the thesis's hybrid idea)
 """
 from __future__ import annotations
 
