@@ -53,7 +53,8 @@ def zenoh_options(args: argparse.Namespace, service: str | None = None) -> Zenoh
         # A router listens where the others connect; it connects out only when told to.
         explicit_listen = getattr(args, "listen", None) or os.environ.get("BALLBOT_LISTEN")
         o.mode = "router"
-        o.listen = o.listen if explicit_listen else [DEFAULT_ROUTER]
+        # With --zenoh-config and no --listen/BALLBOT_LISTEN, the file's listen endpoints stand.
+        o.listen = o.listen if explicit_listen else ([] if o.config_file else [DEFAULT_ROUTER])
         o.connect = getattr(args, "connect", None) or [e for e in os.environ.get("BALLBOT_CONNECT", "").split(",") if e]
     return o
 
@@ -76,7 +77,7 @@ def run_router(o: ZenohOptions, rid: str) -> int:
     from .common.node import Node
 
     with Node("router", o, rid) as node:
-        log.info("zenoh router listening on %s", ", ".join(o.listen))
+        log.info("zenoh router listening on %s", ", ".join(o.listen) or f"the endpoints of {o.config_file}")
         node.stop_event.wait()
     return 0
 
