@@ -1,11 +1,12 @@
 """Disparity worker pool scaling: disparity maps per second with 1..N worker processes (one OpenCV
 thread each) behind the dispatcher, beside the single-process compute ceiling.
 
-Measured stage: capture (preloaded synthetic pairs) -> rectify -> dispatcher -> N workers ->
-`disparity`, counted by a subscriber; the segmenter is not run, so the workers have the CPU the
-pipeline leaves them. The offered rate is 1.25x what min(N, cores) single-thread workers can do
-(from the in-process single-thread time), so capture and rectify do not burn CPU on frames that
-would be dropped anyway.
+Measured stage: dispatcher -> N workers -> `disparity`, counted by a subscriber. By default the
+bench itself feeds pre-rectified, pre-encoded synthetic pairs on `frames_rect` (--source feeder), so
+the measurement is the pool's and the workers have all the CPU the pool leaves them; --source
+pipeline runs capture and rectify processes instead (on 2 cores they compete with the workers).
+The offered rate is rate_factor x what min(N, cores) single-thread workers can do (from the
+in-process single-thread time); the dispatcher drops what no worker is free for.
 
     python -m ballbot_vision.bench.scaling --method sgbm --workers 1 2 3
 """
@@ -18,6 +19,7 @@ import sys
 import threading
 import time
 
+import msgpack
 import numpy as np
 
 
@@ -52,7 +54,60 @@ def ceiling(method: str, threads: int, seconds: float = 3.0) -> dict:
     return {"threads": threads or cv2.getNumThreads(), "ms_p50": ms, "fps": 1000.0 / ms}
 
 
-def pool_run(method: str, workers: int, rate: float, warmup_s: float, seconds: float) -> dict:
+def rectified_payloads(rid: str, n: int = 4) -> list[tuple[int, bytes]]:
+    """n rectified synthetic pairs as StereoFrame payloads (seq and stamp are patched per send)."""
+    from ..common import camera, codec
+    from ..common.messages import StereoFrame
+    from ..services.capture.sources import SyntheticSource
+    from ..services.rectify.core import Rectifier
+
+    src = SyntheticSource("two-boxes", "lifecam-studio", 30.0, preload=n)
+    rect = Rectifier(camera.load_calibration("lifecam-studio"))
+    out = []
+    for i in range(n):
+        p = src.read()
+        l, r = rect.rectify(p.left, p.right)
+        out.append(StereoFrame(robot_id=rid, seq=0, stamp_ns=0, left=codec.image_from_array(l),
+                               right=codec.image_from_array(r), camera=rect.model_message, source="bench"))
+    return out
+
+
+def _feed(session, rid: str, frames: list, rate: float, stop: threading.Event) -> None:
+    import zenoh
+
+    from ..common import codec
+    from ..common.keys import topic
+
+    pub = session.declare_publisher(topic("frames_rect").key(rid), congestion_control=zenoh.CongestionControl.DROP)
+    period, seq = 1.0 / rate, 0
+    t_next = time.monotonic()
+    while not stop.is_set():
+        f = frames[seq % len(frames)]
+        f.seq, f.stamp_ns, f.stages = seq, time.time_ns(), {}
+        pub.put(codec.encode(f))
+        seq += 1
+        t_next += period
+        stop.wait(max(0.0, t_next - time.monotonic()))
+
+
+def _cpu_s(pid: int) -> float:
+    """CPU time (user + system, s) of a process so far, from /proc; 0 when gone."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return 0.0
+
+
+def _cpu_all(sup) -> dict[str, float]:
+    out = {c.name: _cpu_s(c.proc.pid) for c in sup.children if c.proc is not None}
+    out["bench"] = time.process_time()
+    return out
+
+
+def pool_run(method: str, workers: int, rate: float, warmup_s: float, seconds: float, max_in_flight: int = 1,
+             source: str = "feeder") -> dict:
     from ..common import codec
     from ..common.keys import topic
     from ..common.messages import DisparityMap, ServiceStats
@@ -66,9 +121,13 @@ def pool_run(method: str, workers: int, rate: float, warmup_s: float, seconds: f
     sup = Supervisor()
     sup.add("router", ["run", "router", "--listen", endpoint] + common)
     c = ["--connect", endpoint] + common
-    sup.add("capture", ["run", "capture", *c, "--preload", "8", "--rate-hz", f"{rate:.2f}"])
-    sup.add("rectify", ["run", "rectify", *c])
-    sup.add("dispatch", ["run", "disparity", *c, "--method", method, "--fallback", "none"])
+    if source == "pipeline":
+        sup.add("capture", ["run", "capture", *c, "--preload", "8", "--rate-hz", f"{rate:.2f}"])
+        sup.add("rectify", ["run", "rectify", *c])
+    frames = rectified_payloads(rid) if source == "feeder" else []
+    stop_feed = threading.Event()
+    sup.add("dispatch", ["run", "disparity", *c, "--method", method, "--fallback", "none",
+                         "--max-in-flight", str(max_in_flight)])
     for i in range(workers):
         sup.add(f"worker{i}", ["run", "disparity", *c, "--role", "worker", "--instance", f"w{i}", "--threads", "1",
                                "--method", method])
@@ -79,9 +138,9 @@ def pool_run(method: str, workers: int, rate: float, warmup_s: float, seconds: f
 
     def on_disp(sample) -> None:
         if measuring.is_set():
-            m = codec.decode(sample.payload.to_bytes(), DisparityMap)
+            m = msgpack.unpackb(sample.payload.to_bytes())  # seq, worker, stamp only: keep the bench light
             with lock:
-                got.append((m.seq, m.worker, (time.time_ns() - m.stamp_ns) / 1e6))
+                got.append((m["seq"], m["worker"], (time.time_ns() - m["stamp_ns"]) / 1e6))
 
     def on_stats(sample) -> None:
         s = codec.decode(sample.payload.to_bytes(), ServiceStats)
@@ -95,21 +154,38 @@ def pool_run(method: str, workers: int, rate: float, warmup_s: float, seconds: f
         with open_session(ZenohOptions(mode="peer", connect=[endpoint], listen=["tcp/127.0.0.1:0"])) as session:
             session.declare_subscriber(topic("disparity").key(rid), on_disp)
             session.declare_subscriber(topic("stats").pattern(rid), on_stats)
+            if frames:
+                threading.Thread(target=_feed, args=(session, rid, frames, rate, stop_feed), daemon=True).start()
             time.sleep(warmup_s)  # a benchmark's fixed warm-up, not a test synchronisation
+            cpu0 = _cpu_all(sup)
             measuring.set()
             t0 = time.monotonic()
             time.sleep(seconds)
             measuring.clear()
             elapsed = time.monotonic() - t0
+            cpu1 = _cpu_all(sup)
+            stop_feed.set()
     finally:
+        stop_feed.set()
         sup.stop_all()
     per_worker: dict[str, int] = {}
     for _, w, _ in got:
         per_worker[w] = per_worker.get(w, 0) + 1
     seqs = [s for s, _, _ in got]
-    return {"workers": workers, "offered_hz": rate, "seconds": elapsed, "maps": len(got),
+    return {"workers": workers, "source": source, "offered_hz": rate, "seconds": elapsed, "maps": len(got),
             "fps": len(got) / elapsed, "per_worker": per_worker, "latency_ms": percentiles([a for *_, a in got]),
-            "duplicates": len(seqs) - len(set(seqs)), "link_Bps": link}
+            "duplicates": len(seqs) - len(set(seqs)), "link_Bps": link,
+            # CPU seconds each process used per map in the window: what the pool costs besides matching
+            "cpu_ms_per_map": {k: (cpu1[k] - cpu0.get(k, 0.0)) * 1e3 / max(1, len(got)) for k in cpu1},
+            "load_avg_1min": os.getloadavg()[0]}
+
+
+def projected(workers: int, cores: int, work_ms: float, rest_ms: float) -> float:
+    """Maps/s the measured CPU costs allow with nothing else running: each single-thread worker
+    needs work_ms of CPU per map, and all processes together need work_ms + rest_ms per map."""
+    if work_ms <= 0:
+        return 0.0
+    return min(min(workers, cores) * 1e3 / work_ms, cores * 1e3 / (work_ms + rest_ms))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -118,29 +194,44 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--workers", type=int, nargs="+", default=[1, 2, 3])
     p.add_argument("--seconds", type=float, default=10.0)
     p.add_argument("--warmup", type=float, default=5.0)
+    p.add_argument("--max-in-flight", type=int, default=1, help="frames in flight per worker")
+    p.add_argument("--rate-factor", type=float, default=1.25,
+                   help="offered rate = factor x min(N, cores) x the single-thread in-process rate")
+    p.add_argument("--source", choices=["feeder", "pipeline"], default="feeder",
+                   help="feeder: this bench publishes rectified pairs; pipeline: capture + rectify processes")
     p.add_argument("--json", action="store_true")
     a = p.parse_args(argv)
     cores = os.cpu_count() or 1
     one, ceil = ceiling(a.method, 1), ceiling(a.method, 0)
     runs = []
     for n in a.workers:
-        rate = min(120.0, 1.25 * min(n, cores) * one["fps"])
+        rate = min(120.0, a.rate_factor * min(n, cores) * one["fps"])
         if not a.json:
             print(f"{n} worker(s), offering {rate:.1f} pairs/s ...", file=sys.stderr, flush=True)
-        runs.append(pool_run(a.method, n, rate, a.warmup, a.seconds))
+        runs.append(pool_run(a.method, n, rate, a.warmup, a.seconds, a.max_in_flight, a.source))
     base = runs[0]["fps"] if runs and runs[0]["workers"] == 1 else None
-    report = {"method": a.method, "image": "640x480", "cores": cores, "ceiling_one_thread": one,
+    report = {"method": a.method, "image": "640x480", "cores": cores, "max_in_flight": a.max_in_flight,
+              "source": a.source,
+              "rate_factor": a.rate_factor, "ceiling_one_thread": one,
               "ceiling_all_threads": ceil, "runs": runs}
     if a.json:
         print(json.dumps(report, indent=2))
         return 0
-    print(f"{a.method}, 640x480, 64 disparities, {cores} cores")
+    print(f"{a.method}, 640x480, 64 disparities, {cores} cores, max_in_flight {a.max_in_flight}, "
+          f"offered {a.rate_factor:g} x min(N, cores) x the 1-thread rate by the {a.source}")
     print(f"in-process ceiling: 1 thread {one['fps']:.1f} fps ({one['ms_p50']:.1f} ms), "
           f"{ceil['threads']} threads {ceil['fps']:.1f} fps ({ceil['ms_p50']:.1f} ms)")
     for r in runs:
         speedup = f"{r['fps'] / base:.2f}x" if base else "-"
         print(f"{r['workers']} worker(s): {r['fps']:6.1f} maps/s ({speedup} of 1 worker), offered {r['offered_hz']:.1f}/s, "
-              f"latency p50 {r['latency_ms']['p50']:.0f} ms, per worker {r['per_worker']}, duplicates {r['duplicates']}")
+              f"latency p50 {r['latency_ms']['p50']:.0f} ms, per worker {r['per_worker']}, duplicates {r['duplicates']}, "
+              f"load avg {r['load_avg_1min']:.1f}")
+        cpu = r["cpu_ms_per_map"]
+        work = sum(v for k, v in cpu.items() if k.startswith("worker"))
+        rest = sum(v for k, v in cpu.items() if not k.startswith("worker"))
+        print(f"    CPU per map: workers {work:.1f} ms, everything else {rest:.1f} ms ("
+              + ", ".join(f"{k} {v:.1f}" for k, v in cpu.items() if not k.startswith("worker")) + ")"
+              + f" -> a quiet {cores}-core machine allows {projected(r['workers'], cores, work, rest):.1f} maps/s")
     return 0
 
 
