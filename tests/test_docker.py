@@ -1,0 +1,221 @@
+"""The deployment as users run it: build the image (deploy/build-base-image.sh, deploy/fetch-wheels.sh,
+docker build), `docker-compose up` the top-level docker-compose.yml, watch obstacles from the host,
+scale to 3 disparity workers, stop one, cut the offboard network and bring it back.
+
+Select with `-m docker`. Skipped only where no Docker engine answers (`docker info` fails). Reruns
+are fast: the base image and the wheelhouse are reused when present, the image build is cached.
+Every project this test starts is torn down (`docker-compose -p NAME down -v`), even on failure.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import threading
+import time
+import uuid
+
+import pytest
+
+from ballbot_vision.common import codec
+from ballbot_vision.common.keys import topic
+from ballbot_vision.common.messages import ObstacleList
+from ballbot_vision.common.zenoh_session import ZenohOptions, open_session
+
+from helpers import REPO, cli, free_port
+
+BASE_IMAGE = "ballbot-vision/python-base:3.11-bookworm"
+IMAGE = os.environ.get("BALLBOT_TEST_IMAGE", "ballbot-vision:latest")
+RID = "dockertest"
+
+
+def _docker_missing() -> str | None:
+    if not shutil.which("docker"):
+        return "no docker CLI on this machine"
+    r = subprocess.run(["docker", "info"], capture_output=True, text=True, timeout=60)
+    if r.returncode != 0:
+        return f"no Docker engine answers `docker info`: {(r.stderr or r.stdout).strip()[:200]}"
+    return None
+
+
+_missing = _docker_missing()
+pytestmark = [pytest.mark.docker, pytest.mark.timeout(1200),
+              pytest.mark.skipif(_missing is not None, reason=_missing or "")]
+
+
+def compose_cmd() -> list[str]:
+    if shutil.which("docker-compose"):
+        return ["docker-compose"]
+    return ["docker", "compose"]
+
+
+def run(cmd: list[str], timeout: float = 600, env: dict | None = None, check: bool = True) -> subprocess.CompletedProcess:
+    t0 = time.monotonic()
+    r = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=timeout, env=env)
+    print(f"$ {' '.join(cmd)}  ({time.monotonic() - t0:.1f} s, exit {r.returncode})")
+    if check and r.returncode != 0:
+        pytest.fail(f"{' '.join(cmd)} failed ({r.returncode}):\n{r.stdout[-3000:]}\n{r.stderr[-3000:]}")
+    return r
+
+
+@pytest.fixture(scope="module")
+def image() -> str:
+    """The app image from this checkout, on the locally built base image (no registry here)."""
+    t0 = time.monotonic()
+    run(["bash", "deploy/build-base-image.sh"], timeout=900)  # does nothing when the tag exists
+    wheels = REPO / "build" / "wheelhouse"
+    constraints = [l.split("==")[0].lower().replace("-", "_") for l in
+                   (REPO / "deploy/constraints.txt").read_text().splitlines() if "==" in l and not l.startswith("#")]
+    have = {w.name.split("-")[0].lower() for w in wheels.glob("*.whl")}
+    if not set(constraints) <= have:
+        run(["bash", "deploy/fetch-wheels.sh"], timeout=900)
+    run(["docker", "build", "-q", "--build-arg", f"BASE_IMAGE={BASE_IMAGE}", "-t", IMAGE, "."], timeout=1200)
+    print(f"image {IMAGE} ready in {time.monotonic() - t0:.0f} s")
+    return IMAGE
+
+
+class Project:
+    """One docker-compose project with a unique name and a free host port for the router."""
+
+    def __init__(self, image: str):
+        self.name = f"bvtest{uuid.uuid4().hex[:8]}"
+        self.port = free_port()
+        self.env = dict(os.environ, ROUTER_PORT=str(self.port), ROUTER_BIND="127.0.0.1", BALLBOT_IMAGE=image,
+                        BASE_IMAGE=BASE_IMAGE, BALLBOT_ROBOT_ID=RID, CAPTURE_RATE_HZ="15",
+                        BALLBOT_LEASE_MS="2000", BALLBOT_LOG="INFO")
+        self.endpoint = f"tcp/127.0.0.1:{self.port}"
+
+    def compose(self, *args: str, timeout: float = 300, check: bool = True) -> subprocess.CompletedProcess:
+        return run(compose_cmd() + ["-f", "docker-compose.yml", "-p", self.name, *args], timeout, self.env, check)
+
+    def containers(self, service: str) -> list[str]:
+        out = run(["docker", "ps", "--filter", f"label=com.docker.compose.project={self.name}",
+                   "--filter", f"label=com.docker.compose.service={service}", "--format", "{{.Names}}"]).stdout
+        return sorted(out.split())
+
+    def down(self) -> None:
+        r = self.compose("logs", "--no-color", "--tail", "40", timeout=120, check=False)
+        print(r.stdout[-12000:])
+        self.compose("down", "-v", "--remove-orphans", "-t", "5", timeout=300, check=False)
+
+
+@pytest.fixture
+def project(image):
+    p = Project(image)
+    try:
+        yield p
+    finally:
+        p.down()
+
+
+class Stream:
+    """Obstacle lists as the host sees them (receive time, seq, stale) and the workers' liveliness."""
+
+    def __init__(self, endpoint: str):
+        self.lists: list[tuple[float, int, bool]] = []
+        self.workers: set[str] = set()
+        self.cond = threading.Condition()
+        self.session = open_session(ZenohOptions(mode="client", connect=[endpoint], listen=[]))
+        self.session.declare_subscriber(topic("obstacles").key(RID), self._on_list)
+        self.session.liveliness().declare_subscriber(topic("worker").pattern(RID), self._on_token, history=True)
+
+    def _on_list(self, sample) -> None:
+        msg = codec.decode(sample.payload.to_bytes(), ObstacleList)
+        with self.cond:
+            self.lists.append((time.monotonic(), msg.seq, msg.stale))
+            self.cond.notify_all()
+
+    def _on_token(self, sample) -> None:
+        import zenoh
+
+        name = str(sample.key_expr).rsplit("/", 1)[-1]
+        with self.cond:
+            (self.workers.add if sample.kind == zenoh.SampleKind.PUT else self.workers.discard)(name)
+            self.cond.notify_all()
+
+    def wait(self, pred, timeout: float, what: str) -> None:
+        deadline = time.monotonic() + timeout
+        with self.cond:
+            while not pred():
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    pytest.fail(f"timed out after {timeout:g} s waiting for {what}; workers {self.workers}, "
+                                f"last lists {self.lists[-5:]}")
+                self.cond.wait(min(left, 0.5))
+
+    def fresh_since(self, t: float) -> int:
+        return sum(1 for (rt, _, stale) in self.lists if rt >= t and not stale)
+
+    def stale_since(self, t: float) -> int:
+        return sum(1 for (rt, _, stale) in self.lists if rt >= t and stale)
+
+    def close(self) -> None:
+        self.session.close()
+
+
+def test_compose_up_scale_stop_and_offboard_network_drop(project):
+    t_up = time.monotonic()
+    project.compose("up", "-d", "--scale", "disparity=3", timeout=600)
+    print(f"compose up: {time.monotonic() - t_up:.1f} s")
+
+    # 1. What a user types on the host.
+    w = subprocess.run(cli("watch", "--connect", project.endpoint, "--count", "5", "--json", "--timeout", "120"),
+                       capture_output=True, text=True, timeout=300, cwd=REPO)
+    assert w.returncode == 0, w.stderr
+    lists = [ObstacleList.model_validate(json.loads(line)) for line in w.stdout.splitlines()]
+    assert len(lists) == 5 and all(m.robot_id == RID for m in lists)
+    print(f"first obstacles on the host {time.monotonic() - t_up:.1f} s after `up`")
+
+    s = Stream(project.endpoint)
+    try:
+        # 2. Three workers share the stream.
+        workers = project.containers("disparity")
+        assert len(workers) == 3, workers
+        s.wait(lambda: len(s.workers) == 3, 120, "3 worker tokens")
+        t = time.monotonic()
+        s.wait(lambda: s.fresh_since(t) >= 20, 60, "20 fresh lists with 3 workers")
+
+        # 3. Stop one worker container: the stream goes on within 1 s.
+        t_stop = time.monotonic()
+        run(["docker", "stop", "-t", "10", workers[0]])
+        t_stopped = time.monotonic()
+        s.wait(lambda: len(s.workers) == 2, 30, "the stopped worker's token to vanish")
+        s.wait(lambda: s.fresh_since(t_stopped) >= 20, 60, "20 fresh lists after the stop")
+        with s.cond:
+            window = [(rt, seq) for (rt, seq, stale) in s.lists if t_stop - 2 <= rt and not stale]
+        gaps = [b[0] - a[0] for a, b in zip(window, window[1:])]
+        seqs = [seq for _, seq in window]
+        print(f"docker stop took {t_stopped - t_stop:.2f} s; {len(window)} fresh lists around it, "
+              f"max gap {max(gaps):.3f} s")
+        assert max(gaps) < 1.0, f"the obstacle stream paused {max(gaps):.2f} s around the stop"
+        assert len(seqs) == len(set(seqs)), "a seq was published twice"
+        assert all(b > a for a, b in zip(seqs, seqs[1:])), f"seq went backwards: {seqs}"
+
+        # 4. Cut the offboard network (the remaining workers lose the router): stale (or fallback)
+        #    until it comes back, then fresh lists from the workers again.
+        net = f"{project.name}_offboard"
+        alive = workers[1:]
+        t_cut = time.monotonic()
+        for c in alive:
+            run(["docker", "network", "disconnect", net, c])
+        s.wait(lambda: not s.workers, 30, "the cut-off workers' tokens to expire (lease)")
+        t_gone = time.monotonic()
+        # The segmenter flags the stream stale while no disparity arrives; the dispatcher's
+        # onboard fallback then serves it fresh again.
+        s.wait(lambda: s.stale_since(t_cut) >= 1 or s.fresh_since(t_gone) >= 5, 30,
+               "stale lists (or the fallback's fresh ones) after the cut")
+        print(f"cut: tokens gone after {t_gone - t_cut:.1f} s; {s.stale_since(t_cut)} stale, "
+              f"{s.fresh_since(t_gone)} fresh (fallback) lists since")
+        t_back = time.monotonic()
+        for c in alive:
+            run(["docker", "network", "connect", net, c])
+        s.wait(lambda: len(s.workers) == 2, 90, "the workers to reconnect after the network came back")
+        t_rejoined = time.monotonic()
+        print(f"network back: workers rejoined after {t_rejoined - t_back:.1f} s")
+        s.wait(lambda: s.fresh_since(t_rejoined + 2) >= 10, 60, "fresh lists after the workers rejoined")
+        with s.cond:
+            tail = [stale for (rt, _, stale) in s.lists if rt >= t_rejoined + 2]
+        assert not any(tail[-5:]), "the stream is still stale after the workers came back"
+    finally:
+        s.close()
