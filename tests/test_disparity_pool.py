@@ -72,6 +72,31 @@ def test_a_removed_worker_costs_only_its_in_flight_frames():
     assert st.claim(4) == "a"
 
 
+def test_frames_to_workers_png_is_lossless_jpeg_is_smaller():
+    import numpy as np
+
+    from ballbot_vision.common import codec
+    from ballbot_vision.common.messages import CameraModel, StereoFrame
+    from ballbot_vision.services.disparity.pool import reencode_frame
+
+    rng = np.random.default_rng(0)
+    img = cv2_blur(rng.integers(0, 255, (120, 160), dtype=np.uint8))
+    cam = CameraModel(width=160, height=120, focal_px=100, cx=80, cy=60, baseline_m=0.1, Q=[0.0] * 16)
+    f = StereoFrame(robot_id="r", seq=1, stamp_ns=1, left=codec.image_from_array(img),
+                    right=codec.image_from_array(img), camera=cam)
+    png, jpeg = reencode_frame(f, "png"), reencode_frame(f, "jpeg", 80)
+    assert png.left.encoding == "png" and np.array_equal(codec.array_from_image(png.left), img)
+    assert len(jpeg.left.data) < len(png.left.data) < len(f.left.data)
+    assert np.abs(codec.array_from_image(jpeg.right).astype(int) - img).mean() < 4
+    assert reencode_frame(f, "raw") is f and (png.seq, png.camera) == (f.seq, f.camera)
+
+
+def cv2_blur(a):
+    import cv2
+
+    return cv2.GaussianBlur(a, (5, 5), 1.5)
+
+
 def test_attachment_round_trip_and_garbage():
     assert parse_attachment(make_attachment(12.5, 500)) == (12.5, 500.0)
     assert parse_attachment(None) == (0.0, float("inf"))
@@ -218,7 +243,7 @@ def alive_workers(events: list[dict]) -> set[str]:
 
 
 def start_robot(procs: Procs, rid: str, endpoint: str, listen: str, rate: float = 15.0,
-                fallback: str = "none") -> None:
+                fallback: str = "none", transport: str = "raw") -> None:
     common = ["--robot-id", rid]
     procs.service("router", "router", "--listen", listen, *common)
     host, port = listen[4:].rsplit(":", 1)
@@ -230,7 +255,8 @@ def start_robot(procs: Procs, rid: str, endpoint: str, listen: str, rate: float 
     c = ["--connect", endpoint, *common]
     procs.service("capture", "capture", *c, "--rate-hz", str(rate), "--preload", "6")
     procs.service("rectify", "rectify", *c)
-    procs.service("dispatch", "disparity", *c, "--fallback", fallback, "--max-age-ms", "1000")
+    procs.service("dispatch", "disparity", *c, "--fallback", fallback, "--max-age-ms", "1000",
+                  "--transport", transport)
     procs.service("segmenter", "segmenter", *c)
 
 
@@ -373,12 +399,13 @@ def test_workers_in_another_network_namespace_survive_a_kill():
         rid = f"ns{tag}"
         port = 7447
         endpoint = f"tcp/{ip_r}:{port}"
-        start_robot(procs_r, rid, f"tcp/127.0.0.1:{port}", f"tcp/0.0.0.0:{port}", fallback="half")
+        start_robot(procs_r, rid, f"tcp/127.0.0.1:{port}", f"tcp/0.0.0.0:{port}", fallback="half",
+                    transport="png")  # a narrow link: lossless png both ways
         col = Collector(procs_r, rid, f"tcp/127.0.0.1:{port}")
         workers = [f"w{i}-{rid}" for i in range(3)]
         for w in workers:  # offboard: clients of the robot's router, across the veth link
             procs_o.service(w, "disparity", "--role", "worker", "--instance", w, "--mode", "client",
-                            "--connect", endpoint, "--robot-id", rid, "--threads", "1")
+                            "--connect", endpoint, "--robot-id", rid, "--threads", "1", "--result-encoding", "png")
         procs_r.procs.update(procs_o.procs)  # so check_kill_continuity can find the victim
         check_kill_continuity(col, procs_r, workers)
         # cut the link: the offboard workers are dropped after the lease and the robot's half-resolution
