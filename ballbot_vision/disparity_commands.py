@@ -6,7 +6,6 @@ Output by extension: .npy float32 px with NaN where invalid; .pfm float32 px wit
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 

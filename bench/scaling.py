@@ -110,7 +110,7 @@ def pool_run(method: str, workers: int, rate: float, warmup_s: float, seconds: f
              source: str = "feeder") -> dict:
     from ..common import codec
     from ..common.keys import topic
-    from ..common.messages import DisparityMap, ServiceStats
+    from ..common.messages import ServiceStats
     from ..common.zenoh_session import ZenohOptions, open_session
     from ..supervisor import Supervisor
     from .pipeline import free_port, percentiles

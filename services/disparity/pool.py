@@ -42,7 +42,7 @@ import numpy as np
 from ...common import codec
 from ...common.errors import BallbotError, DecodeError
 from ...common.keys import topic
-from ...common.messages import CameraModel, DisparityMap, StereoFrame, WorkDone
+from ...common.messages import DisparityMap, StereoFrame, WorkDone
 from ...common.node import Node
 from .matchers import SCALE, MatcherConfig, gate_for_range, make_matcher
 
