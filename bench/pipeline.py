@@ -46,15 +46,14 @@ def compute_ceiling(method: str, preload: int, seconds: float = 3.0) -> dict:
     from ..services.disparity.main import DisparitySettings
     from ..services.disparity.matchers import StereoMatcher, to_float
     from ..services.rectify.core import Rectifier
-    from ..services.segmenter.main import SegmenterSettings
-    from ..services.segmenter.seed import segment
+    from ..services.segmenter.main import Segmenter, SegmenterSettings
     from ..common import camera
 
     src = SyntheticSource("two-boxes", "lifecam-studio", 30.0, preload=max(1, min(preload, 8)))
     rect = Rectifier(camera.load_calibration("lifecam-studio"))
     cfg = DisparitySettings(method=method).matcher_config()
     matcher = StereoMatcher(cfg)
-    seg_cfg = SegmenterSettings().seed_config()
+    segmenter = Segmenter(SegmenterSettings())  # the service's default method
     times = {"rectify": [], "disparity": [], "segmenter": []}
     t_end = time.perf_counter() + seconds
     n = 0
@@ -65,7 +64,7 @@ def compute_ceiling(method: str, preload: int, seconds: float = 3.0) -> dict:
         t1 = time.perf_counter()
         d = matcher.compute(l, r)
         t2 = time.perf_counter()
-        segment(to_float(d, 16.0, cfg.invalid_value), rect.model, seg_cfg)
+        segmenter.detect(to_float(d, 16.0, cfg.invalid_value), rect.model)
         t3 = time.perf_counter()
         times["rectify"].append((t1 - t0) * 1e3)
         times["disparity"].append((t2 - t1) * 1e3)
