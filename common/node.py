@@ -16,6 +16,7 @@ import logging
 import os
 import signal
 import socket
+import struct
 import threading
 import time
 import uuid
@@ -33,25 +34,51 @@ from .zenoh_session import ZenohOptions, open_session
 log = logging.getLogger("ballbot")
 
 
+# Publishers attach the capture stamp of what they publish, so an inbox can order payloads
+# without decoding them.
+_STAMP = struct.Struct(">Q")
+
+
+def stamp_of(attachment: Any) -> int | None:
+    try:
+        raw = attachment.to_bytes() if attachment is not None else None
+        return _STAMP.unpack(raw)[0] if raw is not None and len(raw) == _STAMP.size else None
+    except Exception:  # a foreign publisher's attachment: no ordering information
+        return None
+
+
 class Inbox:
     """A slot that holds only the newest payload (a ring channel of one). Zenoh's callback thread
-    only swaps a reference here, so a slow service never backs up the network."""
+    only swaps a reference here, so a slow service never backs up the network.
+
+    "Newest" is by capture stamp when the publisher attached one: results that arrive out of order
+    (several disparity workers) never replace a newer waiting payload, and nothing older than what
+    was already taken gets through. Ordering by capture time rather than seq survives a capture
+    restart, which starts seq again at 0."""
 
     def __init__(self, topic: Topic):
         self.topic = topic
         self._cond = threading.Condition()
         self._payload: bytes | None = None
+        self._stamp: int | None = None
+        self._taken_stamp = -1
         self.received = 0
         self.overwritten = 0
+        self.late = 0
         self.bytes = 0
 
-    def offer(self, payload: bytes) -> None:
+    def offer(self, payload: bytes, stamp_ns: int | None = None) -> None:
         with self._cond:
+            self.received += 1
+            self.bytes += len(payload)
+            if stamp_ns is not None and (stamp_ns <= self._taken_stamp
+                                         or (self._stamp is not None and stamp_ns < self._stamp)):
+                self.late += 1
+                return
             if self._payload is not None:
                 self.overwritten += 1
             self._payload = payload
-            self.received += 1
-            self.bytes += len(payload)
+            self._stamp = stamp_ns
             self._cond.notify()
 
     def take(self, timeout: float) -> bytes | None:
@@ -59,6 +86,9 @@ class Inbox:
             if self._payload is None:
                 self._cond.wait(timeout)
             p, self._payload = self._payload, None
+            if p is not None and self._stamp is not None:
+                self._taken_stamp = self._stamp
+            self._stamp = None
             return p
 
 
@@ -97,7 +127,7 @@ class Publisher:
         now = time.time_ns()
         msg.stages[self.node.service] = now
         payload = codec.encode(msg)
-        self._pub.put(payload)
+        self._pub.put(payload, attachment=_STAMP.pack(msg.stamp_ns))
         self.bytes += len(payload)
         if count:
             self.node._published(now - msg.stamp_ns)
@@ -158,7 +188,7 @@ class Node:
         t = topic(name)
         inbox = Inbox(t)
         sub = self.session.declare_subscriber(key or t.key(self.robot_id),
-                                              lambda s: inbox.offer(s.payload.to_bytes()))
+                                              lambda s: inbox.offer(s.payload.to_bytes(), stamp_of(s.attachment)))
         self._subscribers.append(sub)
         self._inboxes.append(inbox)
         return inbox
@@ -242,6 +272,7 @@ class Node:
         extra = dict(self.extra)
         for inbox in self._inboxes:
             extra[f"in_{inbox.topic.name}_bytes"] = float(inbox.bytes)
+            extra[f"in_{inbox.topic.name}_late"] = float(inbox.late)
         for p in self._publishers:
             extra[f"out_{p.topic.name}_bytes"] = float(p.bytes)
         return ServiceStats(
@@ -249,7 +280,7 @@ class Node:
             pid=os.getpid(), stamp_ns=time.time_ns(), uptime_s=now - self._started,
             rate_hz=published / window, proc_ms_p50=self._proc.median_and_clear(),
             age_ms_p50=self._age.median_and_clear(), processed=self.processed, published=self.published,
-            drops=sum(i.overwritten for i in self._inboxes), decode_errors=self.decode_errors,
+            drops=sum(i.overwritten + i.late for i in self._inboxes), decode_errors=self.decode_errors,
             errors=self.errors, status=self.status, extra=extra)
 
     def _stats_loop(self) -> None:

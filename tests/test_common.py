@@ -114,3 +114,19 @@ def test_bad_settings_name_where_the_value_came_from(tmp_path, monkeypatch):
     cfg.write_text("segmenter:\n  no_such_setting: 1\n")
     with pytest.raises(ConfigError, match="segmenter.no_such_setting"):
         load_settings(SegmenterSettings, str(cfg))
+
+
+def test_inbox_keeps_the_newest_by_capture_stamp_and_counts_what_it_drops():
+    from ballbot_vision.common.node import Inbox
+    inbox = Inbox(keys.topic("disparity"))
+    inbox.offer(b"t20", 20)
+    inbox.offer(b"t10", 10)  # a slow worker's older result must not replace the newer one
+    assert inbox.take(0.01) == b"t20"
+    inbox.offer(b"t15", 15)  # older than what was already processed
+    assert inbox.take(0.01) is None
+    inbox.offer(b"t30", 30)
+    inbox.offer(b"t40", 40)
+    assert inbox.take(0.01) == b"t40"
+    assert (inbox.received, inbox.late, inbox.overwritten) == (5, 2, 1)
+    inbox.offer(b"foreign", None)  # no stamp attached: plain newest-wins
+    assert inbox.take(0.01) == b"foreign"

@@ -177,10 +177,10 @@ def run(node: Node, settings: SegmenterSettings) -> None:
                         out.put(prev, count=False)
 
     threading.Thread(target=heartbeat, name="stale-heartbeat", daemon=True).start()
-    last_seq = -1
+    last_stamp = -1  # capture time orders frames; seq restarts with capture
     for msg in node.receive(inbox):
         with node.processing(msg):
-            if msg.seq <= last_seq:
+            if msg.stamp_ns <= last_stamp:
                 node.extra["out_of_order"] = node.extra.get("out_of_order", 0) + 1
                 continue
             detections = builder.detect(msg)
@@ -189,5 +189,5 @@ def run(node: Node, settings: SegmenterSettings) -> None:
             with lock:
                 out.put(result)
                 last["list"], last["time"] = result, time.monotonic()
-                last_seq = msg.seq
+                last_stamp = msg.stamp_ns
             node.status = "stale: input too old" if stale else "ok"
