@@ -16,7 +16,14 @@ import numpy as np
 STAGES = ["capture", "rectify", "disparity", "segmenter"]
 
 
+PARTS = ["pipeline", "sources", "renderer", "segmenter", "scaling", "accuracy"]
+
+
 def add_bench_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("part", nargs="?", default="pipeline", choices=PARTS,
+                   help="pipeline: the four services over Zenoh (default); sources: file capture sources; "
+                        "renderer: the synthetic world; segmenter: time per method; scaling: disparity "
+                        "workers 1-3 (sgbm); accuracy: bad-2px on a Middlebury pair")
     p.add_argument("--seconds", type=float, default=10.0, help="measured duration of the pipeline run")
     p.add_argument("--warmup", type=float, default=3.0, help="seconds discarded before measuring")
     p.add_argument("--rate", type=float, default=60.0, help="capture rate offered to the pipeline, pairs/s")
@@ -141,7 +148,30 @@ def pipeline_run(rate: float, method: str, preload: int, warmup_s: float, second
     }
 
 
+def bench_part(part: str, as_json: bool) -> int:
+    flags = ["--json"] if as_json else []
+    if part == "sources":
+        from .sources import main
+        return main(flags)
+    if part == "scaling":
+        from .scaling import main
+        return main(flags)
+    if part == "accuracy":
+        from .accuracy import main
+        return main(flags)
+    if part == "segmenter":
+        from .segmenter import bench_segmenter, format_bench
+        r = bench_segmenter()
+    else:
+        from .renderer import bench_renderer, format_renderer
+        r = bench_renderer()
+    print(json.dumps(r, indent=2) if as_json else (format_bench(r) if part == "segmenter" else format_renderer(r)))
+    return 0
+
+
 def bench_main(args: argparse.Namespace) -> int:
+    if args.part != "pipeline":
+        return bench_part(args.part, args.json)
     if not args.json:
         print("measuring the in-process compute ceiling ...", file=sys.stderr, flush=True)
     ceiling = compute_ceiling(args.method, args.preload)
