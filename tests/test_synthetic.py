@@ -254,8 +254,9 @@ def test_subpixel_matches_agree_with_true_disparity(clean_world, rig, rect):
 # --- scenarios ---------------------------------------------------------------------------------------
 
 def test_builtin_scenarios_listed():
-    assert S.list_builtin_scenarios() == ["border", "chair", "person-walking", "toolbox", "touching", "two-boxes"]
-    with pytest.raises(ConfigError, match="no-such-scene.*built-in: border, chair"):
+    assert S.list_builtin_scenarios() == ["border", "border-right", "chair", "occlusion", "person-walking",
+                                          "toolbox", "touching", "two-boxes"]
+    with pytest.raises(ConfigError, match="no-such-scene.*built-in: border, border-right, chair"):
         S.Scene.builtin("no-such-scene")
 
 
@@ -267,7 +268,9 @@ def test_default_scene_numbers():
     assert (b.name, b.center, b.size) == ("box-b", (2.4, -0.5, 0.4), (0.4, 0.8, 0.3))
 
 
-@pytest.mark.parametrize("name", ["two-boxes", "toolbox", "chair", "person-walking", "touching", "border"])
+# occlusion hides its person on purpose (tests/test_occlusion.py)
+@pytest.mark.parametrize("name", ["two-boxes", "toolbox", "chair", "person-walking", "touching", "border",
+                                  "border-right"])
 def test_every_scenario_shows_every_obstacle(name, rig, rect):
     world = _world(name, rig, rect)
     times = [0.0] if world.is_static() else list(np.arange(0.0, 6.0, 0.5))
