@@ -50,7 +50,12 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     depth = _depth_range(args.depth_range)
     if args.square_size is None or args.square_size <= 0:
         raise CalibrationError("--square-size: give the chessboard's square size in metres (e.g. 0.025)")
-    pairs = C.find_pairs(args.left, args.right, args.pairs)
+    if args.live:
+        if args.left or args.right or args.pairs:
+            raise CalibrationError("--live collects views from a running capture: leave out --left/--right/--pairs")
+        pairs = _collect_live(args, pattern)
+    else:
+        pairs = C.find_pairs(args.left, args.right, args.pairs)
     _out(f"calibrate: {len(pairs)} image pairs, pattern {pattern[0]}x{pattern[1]} inner corners, "
          f"square {args.square_size * 1000:g} mm, skew {'fixed at 0' if args.fix_skew else 'free'}, "
          f"k3 {'free' if args.k3 else 'fixed at 0'}")
@@ -71,6 +76,116 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     except BallbotError as e:
         _out(f"{v.name}: rectification check not possible: {e}")
     return 0
+
+
+# --- calibrate --live ----------------------------------------------------------------------------
+
+def _collect_live(args: argparse.Namespace, pattern: tuple[int, int]) -> list[tuple[Path, Path]]:
+    """Collect chessboard views from the raw frames of a running capture until --views are accepted,
+    the stream stalls, or Ctrl-C; save each accepted pair as PNG; return the saved pairs. The
+    choice of views is services/rectify/live.py's; this is only the Zenoh loop around it."""
+    import tempfile
+    import time
+
+    import cv2
+
+    from .cli import robot_id, zenoh_options
+    from .common import codec
+    from .common.errors import DecodeError
+    from .common.keys import topic
+    from .common.node import Inbox, stamp_of
+    from .common.zenoh_session import open_session
+    from .services.rectify import calibrate as C
+    from .services.rectify.live import Coverage
+
+    if args.views < 1:
+        raise CalibrationError(f"--views {args.views}: must be at least 1")
+    if args.timeout <= 0:
+        raise CalibrationError(f"--timeout {args.timeout}: must be positive (seconds)")
+    if args.save_dir:
+        save_dir = Path(args.save_dir)
+        save_dir.mkdir(parents=True, exist_ok=True)
+    else:
+        save_dir = Path(tempfile.mkdtemp(prefix="ballbot-calib-"))
+    rid = robot_id(args)
+    t = topic("frames_raw")
+    key = t.key(rid)
+    _out(f"calibrate --live: collecting {args.views} views of a {pattern[0]}x{pattern[1]} board from {key}; "
+         f"accepted pairs are saved in {save_dir}; Ctrl-C stops and calibrates with what was collected")
+    inbox = Inbox(t)  # newest wins: frames that arrive while a pair is being searched are skipped
+    pairs: list[tuple[Path, Path]] = []
+    cov: Coverage | None = None
+    size: tuple[int, int] | None = None
+    frames = 0
+    fast = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_FAST_CHECK
+    with open_session(zenoh_options(args)) as session:
+        sub = session.declare_subscriber(key, lambda s: inbox.offer(s.payload.to_bytes(), stamp_of(s.attachment)))
+        last = time.monotonic()
+        try:
+            while len(pairs) < args.views:
+                payload = inbox.take(0.2)
+                if payload is None:
+                    if time.monotonic() - last < args.timeout:
+                        continue
+                    if frames == 0:
+                        raise CalibrationError(f"no frames on {key} within {args.timeout:g} s: is capture running "
+                                               f"and --connect right?")
+                    _out(f"no frames on {key} for {args.timeout:g} s: the stream stopped; "
+                         f"stopping with {len(pairs)} views")
+                    break
+                last = time.monotonic()
+                try:
+                    msg = codec.decode(payload, t.model)
+                    left = codec.array_from_image(msg.left, "left")
+                    right = codec.array_from_image(msg.right, "right")
+                except DecodeError as e:
+                    _out(f"skipping an undecodable frame: {e}")
+                    continue
+                frames += 1
+                if left.shape != right.shape:
+                    raise CalibrationError(f"frame {msg.seq}: left is {left.shape[1]}x{left.shape[0]} but right is "
+                                           f"{right.shape[1]}x{right.shape[0]}")
+                s = (left.shape[1], left.shape[0])
+                if size is None:
+                    size = s
+                    cov = Coverage(pattern, size)
+                elif s != size:
+                    raise CalibrationError(f"frame {msg.seq}: image size changed from {size[0]}x{size[1]} "
+                                           f"to {s[0]}x{s[1]}")
+                gl = cv2.cvtColor(left, cv2.COLOR_BGR2GRAY) if left.ndim == 3 else left
+                gr = cv2.cvtColor(right, cv2.COLOR_BGR2GRAY) if right.ndim == 3 else right
+                if gl.dtype != "uint8":
+                    gl = cv2.convertScaleAbs(gl, alpha=255.0 / max(float(gl.max()), 1.0))
+                    gr = cv2.convertScaleAbs(gr, alpha=255.0 / max(float(gr.max()), 1.0))
+                # a cheap look first: most live frames of someone walking around hold no full board
+                if not cv2.findChessboardCorners(gl, pattern, flags=fast)[0]:
+                    continue
+                cl = C.detect_corners(gl, pattern)
+                cr = C.detect_corners(gr, pattern) if cl is not None else None
+                if cl is None or cr is None:
+                    continue
+                ok, why = cov.consider(cl, C._same_order(cl, cr))
+                if not ok:
+                    continue
+                n = len(pairs) + 1
+                lp, rp = save_dir / f"left{n:02d}.png", save_dir / f"right{n:02d}.png"
+                for path, img in ((lp, left), (rp, right)):
+                    if not cv2.imwrite(str(path), img):
+                        raise CalibrationError(f"{path}: cannot write the image (--save-dir {save_dir})")
+                pairs.append((lp, rp))
+                _out(f"view {n}/{args.views} accepted (frame {msg.seq}, {why}); {cov.summary()}")
+        except KeyboardInterrupt:
+            _out(f"\nstopped: {len(pairs)} views collected")
+        finally:
+            try:
+                sub.undeclare()
+            except Exception:  # the session is closing anyway
+                pass
+    _out(f"collected {len(pairs)} views from {frames} frames; saved in {save_dir}")
+    if len(pairs) < args.min_views:
+        raise CalibrationError(f"only {len(pairs)} views with the board in both images were collected; at least "
+                               f"--min-views {args.min_views} are needed (the pairs are saved in {save_dir})")
+    return pairs
 
 
 # --- calibration import / show / check ---------------------------------------------------------
@@ -171,12 +286,22 @@ def cmd_rectify(args: argparse.Namespace) -> int:
 
 def register(sub: argparse._SubParsersAction, common) -> None:
     c = sub.add_parser("calibrate", help="chessboard image pairs -> calibration YAML, with an RMS report",
-                       description="Detect a chessboard in left/right image pairs, calibrate each camera and "
-                                   "the pair, reject outlier views, and write the calibration YAML.")
+                       description="Detect a chessboard in left/right image pairs (files, or --live from a "
+                                   "running capture), calibrate each camera and the pair, reject outlier views, "
+                                   "and write the calibration YAML.")
     src = c.add_argument_group("images")
     src.add_argument("--left", help="left images: a glob ('dir/left*.jpg') or a folder")
     src.add_argument("--right", help="right images: a glob or a folder (paired by name, else by sorted order)")
     src.add_argument("--pairs", metavar="DIR", help="a folder with *left* and *right* images, or left/ and right/")
+    live = c.add_argument_group("live (from a running capture's raw frames; Zenoh options below)")
+    live.add_argument("--live", action="store_true",
+                      help="collect views from the running capture instead of image files; prints which image "
+                           "cells and tilts are still missing after each accepted view")
+    live.add_argument("--views", type=int, default=20, help="--live: stop after this many views (default: 20)")
+    live.add_argument("--save-dir", default=None, metavar="DIR",
+                      help="--live: save accepted pairs here as PNG (default: a new temporary folder, printed)")
+    live.add_argument("--timeout", type=float, default=10.0, metavar="S",
+                      help="--live: give up when no frame arrives for S seconds (default: 10)")
     c.add_argument("--pattern", default="9x6", help="inner corners per row x per column (default: 9x6)")
     c.add_argument("--square-size", type=float, default=None, metavar="M", help="square size in metres (required)")
     skew = c.add_mutually_exclusive_group()

@@ -103,7 +103,8 @@ def find_pairs(left: str | None = None, right: str | None = None, pairs_dir: str
                                    f"(found {len(imgs)} images), and no left/ and right/ subfolders")
         return pair_files(ls, rs)
     if left is None or right is None:
-        raise CalibrationError("give --left and --right (globs or folders), or --pairs DIR")
+        raise CalibrationError("give --left and --right (globs or folders), or --pairs DIR, "
+                               "or --live (views from a running capture)")
     return pair_files(expand_images(left, "--left"), expand_images(right, "--right"))
 
 
