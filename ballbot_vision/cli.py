@@ -7,7 +7,6 @@ import json
 import logging
 import os
 import sys
-import time
 
 from .common.errors import BallbotError
 from .common.settings import add_settings_arguments, load_settings

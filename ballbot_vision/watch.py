@@ -1,7 +1,6 @@
 """`ballbot-vision watch`: what a planner would see on ballbot/obstacles/**."""
 from __future__ import annotations
 
-import json
 import queue
 import sys
 import time

@@ -195,5 +195,5 @@ def bench_main(args: argparse.Namespace) -> int:
     print(f"capture -> obstacles published: p50 {lat['p50']:.1f} ms  p95 {lat['p95']:.1f} ms  p99 {lat['p99']:.1f} ms")
     for s, v in p["stage_latency_ms"].items():
         print(f"  {s:10} (since previous stage published): p50 {v['p50']:.2f}  p95 {v['p95']:.2f}  p99 {v['p99']:.2f} ms")
-    print(f"targets: >= 60 fps, p50 <= 25 ms")
+    print("targets: >= 60 fps, p50 <= 25 ms")
     return 0

@@ -22,7 +22,7 @@ import time
 import uuid
 from collections import deque
 from contextlib import contextmanager
-from typing import Any, Callable, Iterator
+from typing import Any, Callable, Iterator, TypeVar
 
 import numpy as np
 from . import codec
@@ -32,6 +32,7 @@ from .messages import Message, ServiceStats
 from .zenoh_session import ZenohOptions, open_session
 
 log = logging.getLogger("ballbot")
+M = TypeVar("M", bound=Message)
 
 
 # Publishers attach the capture stamp of what they publish, so an inbox can order payloads
@@ -206,15 +207,25 @@ class Node:
             payload = inbox.take(poll_s)
             if payload is None:
                 continue
-            try:
-                msg = codec.decode(payload, model)
-                if msg.robot_id != self.robot_id:
-                    raise DecodeError(f"{model.__name__}: robot_id {msg.robot_id!r} on {self.robot_id!r}'s key")
-            except DecodeError as e:
-                self.decode_errors += 1
-                self.warn("decode", f"dropped input on {inbox.topic.name}: {e}")
-                continue
-            yield msg
+            msg = self.decode_or_drop(payload, model, f"input on {inbox.topic.name}")
+            if msg is not None:
+                yield msg
+
+    def decode(self, payload: bytes, model: type[M]) -> M:
+        """Decode a message that must be this robot's; raises DecodeError otherwise."""
+        msg = codec.decode(payload, model)
+        if msg.robot_id != self.robot_id:
+            raise DecodeError(f"{model.__name__}: robot_id {msg.robot_id!r} on {self.robot_id!r}'s key")
+        return msg
+
+    def decode_or_drop(self, payload: bytes, model: type[M], what: str, kind: str = "decode") -> M | None:
+        """decode(), or None after counting the decode error and logging (rate-limited) what was dropped."""
+        try:
+            return self.decode(payload, model)
+        except DecodeError as e:
+            self.decode_errors += 1
+            self.warn(kind, f"dropped {what}: {e}")
+            return None
 
     @contextmanager
     def processing(self, msg: Message | None = None) -> Iterator[None]:

@@ -103,3 +103,19 @@ def pid_alive(pid: int) -> bool:
         return Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0] != "Z"
     except OSError:
         return False
+
+
+def wait_port(port: int, proc: subprocess.Popen, timeout: float = 30.0) -> None:
+    """Until something accepts TCP connections on 127.0.0.1:port; fails early if proc exits."""
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            socket.create_connection(("127.0.0.1", port), 0.5).close()
+            return
+        except OSError:
+            assert proc.poll() is None, f"process exited with {proc.returncode} before listening on {port}"
+            assert time.monotonic() < deadline, f"nothing listens on {port} after {timeout:g} s"
+            try:
+                proc.wait(0.1)  # polling a port: there is no event to wait on
+            except subprocess.TimeoutExpired:
+                pass

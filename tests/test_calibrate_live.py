@@ -4,7 +4,6 @@ board corners, and end to end: a router, a real capture looping rendered chessbo
 from __future__ import annotations
 
 import signal
-import socket
 import subprocess
 import time
 from pathlib import Path
@@ -13,7 +12,7 @@ import cv2
 import numpy as np
 import pytest
 
-from helpers import REPO, cli, free_port
+from helpers import REPO, cli, free_port, wait_port
 from test_calibration import PATTERN, SIZE, SQUARE, TRUE_LEFT, TRUE_R, TRUE_RIGHT, TRUE_T, _rays, _render, _texture
 
 from ballbot_vision.common import camera
@@ -135,21 +134,6 @@ def live_views(tmp_path_factory) -> Path:
     return out
 
 
-def _wait_port(port: int, proc: subprocess.Popen, timeout: float = 30.0) -> None:
-    deadline = time.monotonic() + timeout
-    while True:
-        try:
-            socket.create_connection(("127.0.0.1", port), 0.5).close()
-            return
-        except OSError:
-            assert proc.poll() is None, f"the router exited with {proc.returncode}"
-            assert time.monotonic() < deadline, f"nothing listens on {port} after {timeout:g} s"
-            try:
-                proc.wait(0.1)  # polling a port: there is no event to wait on
-            except subprocess.TimeoutExpired:
-                pass
-
-
 @pytest.fixture
 def running_capture(live_views):
     """A router and a real capture looping the rendered pairs at 8 Hz: (endpoint, robot id)."""
@@ -160,7 +144,7 @@ def running_capture(live_views):
     try:
         procs["router"] = subprocess.Popen(cli("run", "router", "--listen", endpoint), cwd=REPO,
                                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        _wait_port(port, procs["router"])
+        wait_port(port, procs["router"])
         procs["capture"] = subprocess.Popen(
             cli("run", "capture", "--connect", endpoint, "--robot-id", rid, "--source", "images",
                 "--images-left", str(live_views / "left"), "--images-right", str(live_views / "right"),

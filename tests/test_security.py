@@ -10,11 +10,9 @@ client config. Obstacles flowing fresh therefore prove that an authenticated wor
 """
 from __future__ import annotations
 
-import json
 import os
 import re
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -29,23 +27,11 @@ from ballbot_vision.common.keys import topic
 from ballbot_vision.common.messages import ObstacleList
 from ballbot_vision.common.zenoh_session import ZenohOptions, open_session
 
-from helpers import REPO, free_port
+from helpers import REPO, free_port, wait_port
 
 pytestmark = pytest.mark.system
 RID = "sec"
 NOTHING_S = 3.0  # bounded wait for "nothing arrives" (stated; everything else waits on events)
-
-
-def wait_port(port: int, proc: subprocess.Popen, timeout: float = 30.0) -> None:
-    deadline = time.monotonic() + timeout
-    while True:
-        try:
-            socket.create_connection(("127.0.0.1", port), 0.5).close()
-            return
-        except OSError:
-            assert proc.poll() is None, f"process exited with {proc.returncode} before listening on {port}"
-            assert time.monotonic() < deadline, f"nothing listens on {port} after {timeout:g} s"
-            time.sleep(0.1)  # polling a port: there is no event to wait on
 
 
 class Counter:

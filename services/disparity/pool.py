@@ -352,13 +352,8 @@ class Dispatcher:
     def _on_done(self, sample) -> None:
         payload = sample.payload.to_bytes()
         self.rates.add("in_work_done", len(payload))
-        try:
-            msg = codec.decode(payload, WorkDone)
-            if msg.robot_id != self.rid:
-                raise DecodeError(f"WorkDone: robot_id {msg.robot_id!r} on {self.rid!r}'s key")
-        except DecodeError as e:
-            self.node.decode_errors += 1
-            self.node.warn("receipt", f"dropped receipt: {e}")
+        msg = self.node.decode_or_drop(payload, WorkDone, "receipt", "receipt")
+        if msg is None:
             return
         verdict = self.state.done(msg.worker, msg.seq, msg.ok)
         if verdict not in ("ok", "failed"):
@@ -401,15 +396,7 @@ class Dispatcher:
         self.rates.tick()
 
     def _decode(self, payload: bytes) -> StereoFrame | None:
-        try:
-            msg = codec.decode(payload, StereoFrame)
-            if msg.robot_id != self.rid:
-                raise DecodeError(f"StereoFrame: robot_id {msg.robot_id!r} on {self.rid!r}'s key")
-            return msg
-        except DecodeError as e:
-            self.node.decode_errors += 1
-            self.node.warn("decode", f"dropped input on frames_rect: {e}")
-            return None
+        return self.node.decode_or_drop(payload, StereoFrame, "input on frames_rect")
 
     def _too_old(self, msg: StereoFrame) -> bool:
         if (time.time_ns() - msg.stamp_ns) / 1e6 > self.max_age_ms:
@@ -540,9 +527,7 @@ def run_worker(node: Node, settings: Any) -> None:
                 continue
             payload, attachment, received = item
             try:
-                msg = codec.decode(payload, StereoFrame)
-                if msg.robot_id != rid:
-                    raise DecodeError(f"StereoFrame: robot_id {msg.robot_id!r} on {rid!r}'s key")
+                msg = node.decode(payload, StereoFrame)
                 age_ms, max_age_ms = parse_attachment(attachment)
             except DecodeError as e:
                 node.decode_errors += 1

@@ -13,7 +13,6 @@ import time
 from pydantic import Field
 
 from ...common import codec
-from ...common.errors import DecodeError
 from ...common.keys import topic
 from ...common.messages import CalibrationUpdate, StereoFrame
 from ...common.node import Node
@@ -54,13 +53,8 @@ def run(node: Node, settings: RectifySettings) -> None:
     updates: queue.Queue[CalibrationUpdate] = queue.Queue(maxsize=8)
 
     def on_calibration(sample) -> None:  # Zenoh's thread: decode and hand over, nothing heavy
-        try:
-            msg = codec.decode(sample.payload.to_bytes(), CalibrationUpdate)
-            if msg.robot_id != node.robot_id:
-                raise DecodeError(f"CalibrationUpdate: robot_id {msg.robot_id!r} on {node.robot_id!r}'s key")
-        except DecodeError as e:
-            node.decode_errors += 1
-            node.warn("calibration", f"dropped calibration message: {e}")
+        msg = node.decode_or_drop(sample.payload.to_bytes(), CalibrationUpdate, "calibration message", "calibration")
+        if msg is None:
             return
         try:
             updates.put_nowait(msg)
