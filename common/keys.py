@@ -1,6 +1,6 @@
 """The one table of Zenoh keys. No service spells a key string itself: it asks this table.
 
-Public: `ballbot/obstacles/<robot_id>`. Everything else lives under `ballbot/<robot_id>/`.
+Public: `ballbot/obstacles/<robot_id>` and `ballbot/freespace/<robot_id>`. Everything else lives under `ballbot/<robot_id>/`.
 """
 from __future__ import annotations
 
@@ -8,9 +8,8 @@ from dataclasses import dataclass
 
 from pydantic import BaseModel
 
-from .messages import DisparityMap, GroundTruth, ObstacleList, ServiceStats, StereoFrame, WorkDone
-
-from .messages import CalibrationUpdate
+from .messages import (CalibrationUpdate, DisparityMap, FreeSpace, GroundTruth, ObstacleList, Odometry, ServiceStats,
+                       StereoFrame, WorkDone)
 
 
 @dataclass(frozen=True)
@@ -23,6 +22,7 @@ class Topic:
     consumers: tuple[str, ...]
     description: str
     image_stream: bool = False  # large payloads: newest wins, DROP under congestion
+    public: bool = False  # a contract with users: ballbot/<what>/<robot_id>, outside the internal tree
 
     def key(self, robot_id: str, **fields: str) -> str:
         return self.template.format(robot_id=robot_id, **fields)
@@ -52,7 +52,11 @@ TOPICS: dict[str, Topic] = {t.name: t for t in [
     Topic("work_done", "ballbot/{robot_id}/work_done/{instance}", WorkDone, "disparity", 30.0, ("disparity",),
           "a worker's receipt for one work item (worker -> dispatcher)"),
     Topic("obstacles", "ballbot/obstacles/{robot_id}", ObstacleList, "segmenter", 30.0, ("anyone",),
-          "PUBLIC: obstacle list with 3D positions in metres"),
+          "PUBLIC: obstacle list with 3D positions in metres", public=True),
+    Topic("freespace", "ballbot/freespace/{robot_id}", FreeSpace, "segmenter", 30.0, ("anyone",),
+          "PUBLIC: occupancy grid of the ground around the robot, base frame", public=True),
+    Topic("odometry", "ballbot/{robot_id}/odometry", Odometry, "robot", 0.0, ("segmenter",),
+          "the robot's own velocity over the ground (optional input: ground-referenced obstacle velocities)"),
     Topic("stats", "ballbot/{robot_id}/stats/{service}/{instance}", ServiceStats, "every service", 1.0,
           ("status",), "per-instance rate, latency, drops and errors, once a second"),
     Topic("alive", "ballbot/{robot_id}/alive/{service}/{instance}", None, "every service", 0.0,
@@ -62,6 +66,7 @@ TOPICS: dict[str, Topic] = {t.name: t for t in [
 ]}
 
 OBSTACLES_ALL = "ballbot/obstacles/**"
+FREESPACE_ALL = "ballbot/freespace/**"
 
 
 def topic(name: str) -> Topic:

@@ -13,7 +13,9 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-SCHEMA_VERSION = 1
+# 2: ground estimate, track confirmation and base-frame velocities in ObstacleList; FreeSpace;
+#    Odometry; an optional confidence image beside a disparity map.
+SCHEMA_VERSION = 2
 
 Vec3 = tuple[float, float, float]
 
@@ -76,6 +78,8 @@ class DisparityMap(Message):
     camera: CameraModel
     method: str
     worker: str = ""
+    confidence: Image | None = Field(None, description="per-pixel confidence of the disparity, uint8, same size: "
+                                     "0 = no measurement, 255 = certain (None: the method gives none)")
 
 
 class WorkDone(Message):
@@ -101,6 +105,24 @@ class Obstacle(BaseModel):
     disparity_px: float = Field(description="robust (mode) disparity of the region")
     confidence: float = Field(ge=0, le=1, description="fraction of the region with valid disparity")
     position_base_m: Vec3 | None = Field(default=None, description="3D centroid in the robot base frame, if mounted")
+    velocity_base_mps: Vec3 | None = Field(default=None, description="velocity in the robot base frame, if mounted "
+                                           "(relative to what ObstacleList.velocity_reference says)")
+    confirmed: bool = Field(True, description="the track was seen in enough recent frames to be trusted")
+    track_frames: int = Field(1, ge=0, description="frames this track has been seen in")
+
+
+class GroundEstimate(BaseModel):
+    """The floor / road plane under the camera for this frame: where the camera is above it."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    height_m: float = Field(description="camera height above the ground plane, m")
+    pitch_deg: float = Field(description="camera pitch, positive looking down")
+    roll_deg: float = Field(description="camera roll, positive right side down")
+    source: Literal["fitted", "tracked", "prior", "none"] = Field(
+        description="fitted: from this frame's disparity; tracked: fit rejected, the smoothed estimate of the "
+                    "last frames; prior: the configured mount; none: unknown (no floor removed)")
+    inlier_fraction: float = Field(0.0, ge=0, le=1, description="share of the valid pixels on the plane")
 
 
 class ObstacleList(Message):
@@ -109,6 +131,37 @@ class ObstacleList(Message):
     frame_id: Literal["camera"] = "camera"
     method: str = ""
     obstacles: list[Obstacle] = Field(default_factory=list)
+    ground: GroundEstimate | None = Field(None, description="the ground plane used for this list")
+    velocity_reference: Literal["camera", "ground"] = Field(
+        "camera", description="camera: velocities relative to the moving camera; ground: over the ground "
+                              "(the robot's own motion from odometry removed)")
+
+
+class FreeSpace(Message):
+    """What the robot may drive on: a 2D occupancy grid on the ground plane in the robot base frame
+    (REP 103: x forward, y left), laid out like ROS nav_msgs/OccupancyGrid. Cell (row, col) covers
+    x in [origin_m[0] + col*res, +res), y in [origin_m[1] + row*res, +res); `cells[row*width + col]`
+    is an int8: -1 unknown (not seen), 0 free (seen ground), 100 occupied (an obstacle stands there)."""
+
+    model_config = ConfigDict(extra="forbid", ser_json_bytes="base64", val_json_bytes="base64")
+
+    publish_ns: int = Field(ge=0)
+    frame_id: Literal["base"] = "base"
+    resolution_m: float = Field(gt=0, le=10, description="cell size, m")
+    width: int = Field(gt=0, le=4096, description="cells along base x")
+    height: int = Field(gt=0, le=4096, description="cells along base y")
+    origin_m: tuple[float, float] = Field(description="base-frame (x, y) of the outer corner of cell (0, 0), m")
+    cells: bytes = Field(description="width*height int8, row-major: -1 unknown, 0 free, 100 occupied")
+    ground: GroundEstimate | None = None
+
+
+class Odometry(Message):
+    """The robot's own motion (wheel odometry, IMU, a recording's poses), base frame at `stamp_ns`.
+    Optional input: with it, obstacle velocities are given over the ground."""
+
+    linear_mps: Vec3 = Field(description="base-frame linear velocity, m/s")
+    angular_radps: Vec3 = Field((0.0, 0.0, 0.0), description="base-frame angular velocity, rad/s")
+    source: str = ""
 
 
 class TruthObstacle(BaseModel):
@@ -166,6 +219,8 @@ class CalibrationUpdate(Message):
 
 PUBLIC_MODELS: dict[str, type[BaseModel]] = {
     "ObstacleList": ObstacleList,
+    "FreeSpace": FreeSpace,
+    "Odometry": Odometry,
     "StereoFrame": StereoFrame,
     "DisparityMap": DisparityMap,
     "GroundTruth": GroundTruth,

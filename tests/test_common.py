@@ -10,7 +10,7 @@ import pytest
 
 from ballbot_vision.common import codec, keys
 from ballbot_vision.common.errors import ConfigError, DecodeError
-from ballbot_vision.common.messages import Image, ObstacleList, StereoFrame
+from ballbot_vision.common.messages import SCHEMA_VERSION, FreeSpace, Image, ObstacleList, StereoFrame
 from ballbot_vision.common.settings import load_settings
 from ballbot_vision.services.segmenter.main import SegmenterSettings
 
@@ -51,10 +51,10 @@ def test_garbage_wrong_version_and_missing_fields_are_decode_errors():
     with pytest.raises(DecodeError, match="not msgpack|expected a map"):
         codec.decode(b"\xc1\xc1garbage", StereoFrame)
     doc = frame().model_dump()
-    doc["schema_version"] = 2
-    with pytest.raises(DecodeError, match="schema_version 2"):
+    doc["schema_version"] = SCHEMA_VERSION + 1
+    with pytest.raises(DecodeError, match=f"schema_version {SCHEMA_VERSION + 1}"):
         codec.decode(msgpack.packb(doc), StereoFrame)
-    doc["schema_version"] = 1
+    doc["schema_version"] = SCHEMA_VERSION
     del doc["left"]
     with pytest.raises(DecodeError, match="StereoFrame.left"):
         codec.decode(msgpack.packb(doc), StereoFrame)
@@ -74,7 +74,9 @@ def test_key_table_is_the_only_place_keys_are_spelled():
     assert keys.topic("stats").pattern("r") == "ballbot/r/stats/*/*"
     for t in keys.TOPICS.values():
         assert t.template.startswith("ballbot/")
-        if t.name != "obstacles":
+        if t.public:
+            assert t.template == f"ballbot/{t.name}/{{robot_id}}"
+        else:
             assert t.template.startswith("ballbot/{robot_id}/")
     offenders = []
     for p in list((REPO / "services").rglob("*.py")) + list((REPO / "ballbot_vision").rglob("*.py")):
@@ -130,3 +132,18 @@ def test_inbox_keeps_the_newest_by_capture_stamp_and_counts_what_it_drops():
     assert (inbox.received, inbox.late, inbox.overwritten) == (5, 2, 1)
     inbox.offer(b"foreign", None)  # no stamp attached: plain newest-wins
     assert inbox.take(0.01) == b"foreign"
+
+
+def test_freespace_round_trips_on_the_wire_and_as_json():
+    import json
+
+    grid = np.full((4, 6), -1, np.int8)
+    grid[1:3, 2:5] = 0
+    grid[2, 4] = 100
+    msg = FreeSpace(robot_id="r", seq=3, stamp_ns=5, publish_ns=6, resolution_m=0.1, width=6, height=4,
+                    origin_m=(0.0, -0.2), cells=grid.tobytes())
+    back = codec.decode(codec.encode(msg), FreeSpace)
+    assert np.array_equal(np.frombuffer(back.cells, np.int8).reshape(4, 6), grid)
+    doc = json.loads(msg.model_dump_json())  # cells travel as base64 in JSON
+    assert FreeSpace.model_validate_json(json.dumps(doc)).cells == msg.cells
+    assert "FreeSpace" in json.dumps(FreeSpace.model_json_schema()) or FreeSpace.model_json_schema()["title"] == "FreeSpace"
