@@ -117,9 +117,9 @@ def opencv_matcher(method: str):
     """OpenCV's matcher object alone, with the settings the disparity service uses by default."""
     import cv2
 
-    from ..services.disparity.main import DisparitySettings
+    from ..services.disparity.matchers import MatcherConfig
 
-    c = DisparitySettings(method=method).matcher_config()
+    c = MatcherConfig(method=method)
     if method == "bm":
         m = cv2.StereoBM_create(numDisparities=c.num_disparities, blockSize=c.block)
         m.setMinDisparity(c.min_disparity)
@@ -166,11 +166,11 @@ def in_process_compute(frames: Frames, method: str, seconds: float) -> dict:
     """The pipeline's cores serially in this process, no messaging: rectify, disparity (the
     service's matcher, OpenCV's default threads), segmenter and tracking (the service's defaults).
     -> per-stage median ms and their sum, the per-frame compute."""
-    from ..services.disparity.main import DisparitySettings
-    from ..services.disparity.matchers import StereoMatcher, to_float
+    from ..common.disparity import to_float
+    from ..services.disparity.matchers import MatcherConfig, StereoMatcher
     from ..services.segmenter.main import ObstacleBuilder, SegmenterSettings
 
-    cfg = DisparitySettings(method=method).matcher_config()
+    cfg = MatcherConfig(method=method)
     matcher = StereoMatcher(cfg)
     builder = ObstacleBuilder(SegmenterSettings())
     rect = frames.rectifier
