@@ -28,6 +28,7 @@ from .sources import CapturedPair, SourceContext
 IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED = "sensor_msgs/msg/CompressedImage"
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
+CALIBRATION_REPEAT_S = 10.0  # a rectify started later still gets the CameraInfo calibration
 
 
 @dataclass
@@ -113,6 +114,8 @@ class Ros2Source:
         self._ready: tuple[Stamped, Stamped] | None = None
         self._infos: dict[str, Any] = {}
         self._calibration_sent = ""
+        self._calibration_at = -1e9
+        self._infos_used: tuple[int, int] | None = None
         self.received = {"left": 0, "right": 0}
         self.errors = 0
         try:
@@ -189,6 +192,12 @@ class Ros2Source:
             left, right = self._infos.get("left"), self._infos.get("right")
         if self._calibration is None or left is None or right is None:
             return
+        # the same CameraInfo objects as last time: nothing to derive, unless it is time to repeat
+        # it for a rectify that (re)started since
+        fresh = (id(left), id(right)) != self._infos_used
+        if not fresh and time.monotonic() - self._calibration_at < CALIBRATION_REPEAT_S:
+            return
+        self._infos_used = (id(left), id(right))
         try:
             cal = self._convert.calibration_from_camera_infos(left, right, self.settings.ros2_rectified,
                                                               "ros2 CameraInfo")
@@ -196,12 +205,13 @@ class Ros2Source:
             self._count_error(f"calibration from CameraInfo refused: {e}")
             return
         text = yaml.safe_dump(camera.calibration_to_dict(cal), sort_keys=False)
-        if text == self._calibration_sent:
+        if text == self._calibration_sent and time.monotonic() - self._calibration_at < CALIBRATION_REPEAT_S:
             return
         node = self.ctx.node
         self._calibration.put(CalibrationUpdate(robot_id=node.robot_id, seq=0, stamp_ns=time.time_ns(), yaml=text,
                                                 source="capture --source ros2 (CameraInfo)"), count=False)
         self._calibration_sent = text
+        self._calibration_at = time.monotonic()
 
     def read(self) -> CapturedPair | None:
         while not self.ctx.stop.is_set():
