@@ -362,3 +362,68 @@ def test_capture_from_ros2_camera_topics_gives_obstacles(tmp_path):
     assert any(e.node_name == "ballbot_vision_capture" for e in graph.subscribers)
     assert cap, "capture did not count the garbage sample in its ros2_errors"
     assert up.returncode in (0, -15)
+
+
+def test_humble_domain_namespace_and_stale_lists(tmp_path):
+    """`run ros2 --distro humble` on domain 5 under /robot1, fed obstacle lists by hand: Humble's
+    keys and tokens carry TypeHashNotSupported and 24-byte GIDs; stale lists and garbage are not
+    republished."""
+    import zenoh
+    import zenoh.ext as zext
+
+    port = free_port()
+    ep = f"tcp/127.0.0.1:{port}"
+    router = start(["run", "router", "--listen", ep, "--robot-id", "rh"], tmp_path / "router.log")
+    bridge = None
+    got: list = []
+    tokens: set[str] = set()
+    try:
+        wait_port(port, router)
+        bridge = start(["run", "ros2", "--connect", ep, "--robot-id", "rh", "--distro", "humble", "--domain-id", "5",
+                        "--namespace", "/robot1", "--publish-image", "false", "--publish-points", "false"],
+                       tmp_path / "ros2.log")
+        with open_session(ZenohOptions(mode="peer", connect=[ep])) as s:
+            s.declare_subscriber("5/robot1/obstacles/detections/**",
+                                 lambda smp: got.append((str(smp.key_expr), smp.payload.to_bytes(),
+                                                         smp.attachment.to_bytes())))
+            s.liveliness().declare_subscriber("@ros2_lv/5/**", lambda smp: tokens.add(str(smp.key_expr)), history=True)
+            wait_until(lambda: any("/MP/" in t for t in tokens), 60, "the bridge's publisher tokens")
+            key = topic("obstacles").key("rh")
+
+            stale_stamps: set[int] = set()
+
+            def put(stale: bool, seq: int) -> None:
+                ol = ObstacleList(robot_id="rh", seq=seq, stamp_ns=time.time_ns(), publish_ns=time.time_ns(),
+                                  stale=stale, obstacles=[])
+                if stale:
+                    stale_stamps.add(ol.stamp_ns)
+                s.put(key, codec.encode(ol))
+
+            for seq in range(1, 400, 2):  # stale and fresh lists alternate: only fresh ones may come out
+                s.put(key, b"\xc1garbage")
+                put(True, seq)
+                threading.Event().wait(0.05)
+                put(False, seq + 1)
+                if len(got) >= 3:
+                    break
+                threading.Event().wait(0.05)
+            wait_until(lambda: len(got) >= 3, 30, "Detection3DArrays on domain 5")
+    finally:
+        if bridge is not None:
+            stop(bridge)
+        stop(router)
+    k, payload, att = got[0]
+    assert k == "5/robot1/obstacles/detections/vision_msgs::msg::dds_::Detection3DArray_/TypeHashNotSupported"
+    seq, ts, gid = zext.z_deserialize(tuple[zext.Int64, zext.Int64, list[zext.UInt8]], zenoh.ZBytes(att))
+    assert len(gid) == 24 and bytes(gid[16:]) == bytes(8)
+    msg = independent_typestore().deserialize_cdr(payload, "vision_msgs/msg/Detection3DArray")
+    assert msg.detections == []
+    mp = [t for t in tokens if "/MP/" in t and "%robot1%obstacles%detections" in t]
+    assert len(mp) == 1 and mp[0].split("/")[7:9] == ["%robot1", "ballbot_vision"]
+    assert mp[0].split("/")[11] == "TypeHashNotSupported"
+    log = (tmp_path / "ros2.log").read_text()
+    assert "dropped" in log  # the garbage, logged and counted; the service went on
+    store = independent_typestore()
+    stamps = {(lambda m: m.header.stamp.sec * 10**9 + m.header.stamp.nanosec)(
+        store.deserialize_cdr(p, "vision_msgs/msg/Detection3DArray")) for _, p, _ in got}
+    assert stale_stamps and not stamps & stale_stamps, "a stale obstacle list was republished"
