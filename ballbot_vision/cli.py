@@ -20,6 +20,7 @@ SERVICES = {
     "rectify": ("ballbot_vision.services.rectify.main", "RectifySettings"),
     "disparity": ("ballbot_vision.services.disparity.main", "DisparitySettings"),
     "segmenter": ("ballbot_vision.services.segmenter.main", "SegmenterSettings"),
+    "ros2": ("ballbot_vision.services.ros2.main", "Ros2Settings"),
 }
 PIPELINE = ["capture", "rectify", "disparity", "segmenter"]
 
@@ -91,9 +92,10 @@ def cmd_up(args: argparse.Namespace) -> int:
         common += ["--config", config_file(args)]
     sup = Supervisor()
     sup.add("router", ["run", "router", "--listen", endpoint] + common)
-    for name in PIPELINE:
+    services = PIPELINE + (["ros2"] if getattr(args, "ros2", False) else [])
+    for name in services:
         sup.add(name, ["run", name, "--connect", endpoint] + common)
-    print(f"ballbot-vision: starting {', '.join(['router'] + PIPELINE)}; router on {endpoint}", flush=True)
+    print(f"ballbot-vision: starting {', '.join(['router'] + services)}; router on {endpoint}", flush=True)
     print(f"ballbot-vision: obstacles are published on ballbot/obstacles/{robot_id(args)} "
           f"(watch them with: ballbot-vision watch --connect {endpoint})", flush=True)
     return sup.run(wait_for_endpoint=endpoint)
@@ -230,6 +232,8 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
 
     if needed("up"):
         up = common(sub.add_parser("up", help="start every service as a separate process; Ctrl-C stops all"))
+        up.add_argument("--ros2", action="store_true", help="also start the ROS 2 bridge (`run ros2`: topics on "
+                        "rmw_zenoh; settings in the config's ros2 section)")
         up.set_defaults(func=cmd_up)
     else:
         stub("up")

@@ -1,7 +1,7 @@
 """capture: a stereo source -> frames_raw (+ truth for the synthetic world).
 
-Sources (`--source`): synthetic (default), cameras, sbs, video, images; see sources.py, cameras.py
-and files.py. Problems found at start (a missing camera, an unreadable first image, left/right
+Sources (`--source`): synthetic (default), cameras, sbs, video, images, ros2; see sources.py,
+cameras.py, files.py and ros2.py. Problems found at start (a missing camera, an unreadable first image, left/right
 count or size mismatch) raise SourceError: `run capture` prints it and exits 2. A pair that cannot
 be read later is logged, counted in `errors` and skipped. When a file source ends (without
 --loop) the service reports status "end of stream" and stays up, idle, until stopped (exit 0),
@@ -44,8 +44,8 @@ class CaptureSettings(ServiceSettings):
     every source's core read (CameraSource takes it as it is); defaults live here only."""
 
     section = "capture"
-    source: Literal["synthetic", "cameras", "sbs", "video", "images"] = Field(
-        "synthetic", description="where pairs come from: synthetic, cameras, sbs, video, images")
+    source: Literal["synthetic", "cameras", "sbs", "video", "images", "ros2"] = Field(
+        "synthetic", description="where pairs come from: synthetic, cameras, sbs, video, images, ros2")
     # --- every source
     rate_hz: float = Field(30.0, gt=0, le=1000, description="pairs per second (synthetic, images; video with "
                                                             "--pace rate or when the file states no rate)")
@@ -94,11 +94,31 @@ class CaptureSettings(ServiceSettings):
     # --- images
     images_left: str = Field("", description="images: left folder or glob pattern (paired with right by sorted name)")
     images_right: str = Field("", description="images: right folder or glob pattern")
+    # --- ros2 (a ROS 2 camera driver on rmw_zenoh, same Zenoh network)
+    ros2_left: str = Field("", description="ros2: left image topic (sensor_msgs/Image, or .../compressed)")
+    ros2_right: str = Field("", description="ros2: right image topic")
+    ros2_left_info: str = Field("", description="ros2: left CameraInfo topic (empty: camera_info beside the image)")
+    ros2_right_info: str = Field("", description="ros2: right CameraInfo topic (empty: camera_info beside the image)")
+    ros2_domain_id: int = Field(0, ge=0, le=232, description="ros2: ROS_DOMAIN_ID")
+    ros2_distro: Literal["humble", "jazzy"] = Field("jazzy", description="ros2: the driver's ROS distro (graph tokens)")
+    ros2_namespace: str = Field("/", description="ros2: namespace of this subscriber node (relative topics too)")
+    ros2_node_name: str = Field("ballbot_vision_capture", description="ros2: node name in the ROS graph")
+    ros2_max_skew_ms: float = Field(5.0, ge=0, le=1000, description="ros2: left/right header stamps differ by "
+                                                                    "at most this to pair")
+    ros2_calibration: Literal["camera_info", "none"] = Field(
+        "camera_info", description="ros2: camera_info: send rectify the calibration the CameraInfo pair gives; "
+                                   "none: rectify keeps its own --calibration")
+    ros2_rectified: bool = Field(False, description="ros2: the topics carry rectified images (image_rect): "
+                                                    "only the projection matrices count")
 
 
 def open_source(s: CaptureSettings, ctx: SourceContext | None = None, opener=None):
     """The source the settings name. `opener` replaces cv2.VideoCapture for cameras/sbs (tests)."""
     ctx = ctx or SourceContext()
+    if s.source == "ros2":
+        from .ros2 import Ros2Source
+
+        return Ros2Source(s, ctx)
     if s.source == "synthetic":
         src = SyntheticSource(s.scenario, s.calibration, s.rate_hz, s.seed, s.noise_sigma, s.preload)
         if s.pace == "max":
@@ -146,7 +166,7 @@ def run(node: Node, settings: CaptureSettings, source=None) -> None:
     def set_status(text: str) -> None:
         node.status = text
 
-    ctx = SourceContext(stop=node.stop_event, status=set_status, extra=node.extra)
+    ctx = SourceContext(stop=node.stop_event, status=set_status, extra=node.extra, node=node)
     source = source or open_source(settings, ctx)
     frames = node.publisher("frames_raw")
     truth = node.publisher("truth")
