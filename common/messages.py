@@ -90,6 +90,8 @@ class WorkDone(Message):
     ok: bool = Field(description="false: the item was dropped (too old, undecodable, failed)")
     reason: str = ""
     proc_ms: float = Field(0.0, ge=0, description="time from receipt to published map, ms")
+    method: str = Field("", description="the matcher that produced the map (its DisparityMap.method); "
+                        "empty for a dropped item")
 
 
 class Obstacle(BaseModel):
@@ -217,6 +219,16 @@ class CalibrationUpdate(Message):
     source: str = Field("", description="where it came from (a path, `calibrate`, a user)")
 
 
+class ReplayControl(Message):
+    """A command to the capture service while it replays a recording (`--source mcap`): play,
+    pause, or step N pairs and pause again; `speed` (optional) changes the playback speed factor.
+    `seq` and `stamp_ns` are the sender's own counter and send time."""
+
+    action: Literal["play", "pause", "step"]
+    frames: int = Field(1, ge=1, le=100000, description="step: how many pairs to publish before pausing again")
+    speed: float | None = Field(None, gt=0, le=1000, description="new playback speed factor (1 = as recorded)")
+
+
 PUBLIC_MODELS: dict[str, type[BaseModel]] = {
     "ObstacleList": ObstacleList,
     "FreeSpace": FreeSpace,
@@ -226,4 +238,5 @@ PUBLIC_MODELS: dict[str, type[BaseModel]] = {
     "GroundTruth": GroundTruth,
     "ServiceStats": ServiceStats,
     "CalibrationUpdate": CalibrationUpdate,
+    "ReplayControl": ReplayControl,
 }

@@ -10,7 +10,7 @@ from ...common import camera, codec
 from ...common.errors import DecodeError
 from ...common.messages import DisparityMap, Obstacle, ObstacleList
 from ...common.node import Node
-from ..disparity.matchers import to_float
+from ...common.disparity import to_float
 from . import layers, seed
 from .mount import Mount
 from .seed import Detection
