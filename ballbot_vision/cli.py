@@ -30,6 +30,7 @@ COMMAND_MODULES: list[str] = [
     "ballbot_vision.calibration_commands",
     "ballbot_vision.segmenter_commands",
     "ballbot_vision.disparity_commands",
+    "ballbot_vision.mcap_commands",
 ]
 
 
