@@ -31,6 +31,7 @@ COMMAND_MODULES: list[str] = [
     "ballbot_vision.segmenter_commands",
     "ballbot_vision.disparity_commands",
     "ballbot_vision.sample_commands",
+    "ballbot_vision.mcap_commands",
 ]
 
 
