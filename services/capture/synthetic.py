@@ -28,10 +28,11 @@ import functools
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Annotated, Any, Sequence
 
 import cv2
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, Strict, ValidationError, model_validator
 
 from ...common import camera
 from ...common.errors import ConfigError
@@ -320,36 +321,31 @@ class Scene:
     @classmethod
     def from_yaml(cls, path: str | Path) -> "Scene":
         """Load a scenario file; errors name the file, the object and the field."""
-        import yaml
+        from ...common.errors import FileError
+        from ...common.files import read_yaml
 
-        path = Path(path)
         try:
-            doc = yaml.safe_load(path.read_text())
-        except OSError as e:
-            raise ConfigError(f"{path}: cannot read scenario: {e.strerror}") from None
-        except yaml.YAMLError as e:
-            raise ConfigError(f"{path}: not valid YAML: {e}") from None
-        return cls.from_dict(doc, where=str(path), default_name=path.stem)
+            doc = read_yaml(path, "scenario")
+        except FileError as e:  # missing, empty, binary, not YAML: one line naming the file
+            raise ConfigError(str(e)) from None
+        return cls.from_dict(doc, where=str(path), default_name=Path(path).stem)
 
     @classmethod
     def from_dict(cls, doc: Any, where: str = "scenario", default_name: str = "") -> "Scene":
-        """Build a scene from a parsed scenario document (the YAML format, see scenarios/*.yaml)."""
-        r = _Reader(doc, where)
-        scene = cls(
-            name=r.str("name", default_name or None),
-            description=r.str("description", ""),
-            camera_height_m=r.num("camera_height_m", 1.0, lo=0.05),
-            camera_pitch_deg=r.num("camera_pitch_deg", 15.0, lo=-60.0, hi=60.0),
-            wall_distance_m=r.num("wall_distance_m", 5.0, lo=0.5),
-            noise_sigma=r.num("noise_sigma", 1.5, lo=0.0, hi=50.0),
-            floor_texture_seed=r.int("floor_texture_seed", 1),
-            wall_texture_seed=r.int("wall_texture_seed", 2),
-            boxes=[_box_from_dict(o, f"{where}: objects[{i}]") for i, o in enumerate(r.list("objects"))],
-        )
-        r.done()
-        names = [b.name for b in scene.boxes]
-        if len(set(names)) != len(names):
-            raise ConfigError(f"{where}: object names must be unique, got {names}")
+        """Build a scene from a parsed scenario document (the YAML format, see scenarios/*.yaml and
+        SceneDoc): validated by pydantic, every error naming where, which object and which field."""
+        if not isinstance(doc, dict):
+            raise ConfigError(f"{where}: expected a mapping, got {type(doc).__name__}")
+        if default_name and doc.get("name") is None:
+            doc = {**doc, "name": default_name}
+        try:
+            d = SceneDoc.model_validate(doc)
+        except ValidationError as e:
+            raise ConfigError(_scene_errors(e, doc, where)) from None
+        scene = cls(name=d.name, description=d.description, camera_height_m=d.camera_height_m,
+                    camera_pitch_deg=d.camera_pitch_deg, wall_distance_m=d.wall_distance_m,
+                    noise_sigma=d.noise_sigma, floor_texture_seed=d.floor_texture_seed,
+                    wall_texture_seed=d.wall_texture_seed, boxes=[o.box() for o in d.objects])
         for b in scene.boxes:
             if b.center[0] - b.size[2] / 2 >= scene.wall_distance_m:
                 raise ConfigError(f"{where}: object '{b.name}' stands behind the wall")
@@ -364,118 +360,129 @@ def list_builtin_scenarios() -> list[str]:
     return sorted(p.stem for p in SCENARIO_DIR.glob("*.yaml"))
 
 
-class _Reader:
-    """Typed access to one mapping of a scenario file; every error names where and which field,
-    and fields nobody read are reported (typos must not pass silently)."""
+# --- the scenario file format (scenarios/*.yaml), validated ------------------------------------------
 
-    _MISSING = object()
-
-    def __init__(self, doc: Any, where: str) -> None:
-        if not isinstance(doc, dict):
-            raise ConfigError(f"{where}: expected a mapping, got {type(doc).__name__}")
-        self.doc, self.where, self.used = doc, where, set()
-
-    def _get(self, key: str, default: Any) -> Any:
-        self.used.add(key)
-        if key in self.doc and self.doc[key] is not None:
-            return self.doc[key]
-        if default is self._MISSING or default is None:
-            raise ConfigError(f"{self.where}: missing field '{key}'")
-        return default
-
-    def has(self, key: str) -> bool:
-        return self.doc.get(key) is not None
-
-    def str(self, key: str, default: Any = _MISSING) -> str:
-        return str(self._get(key, default))
-
-    def num(self, key: str, default: Any = _MISSING, lo: float = -math.inf, hi: float = math.inf) -> float:
-        v = self._get(key, default)
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-            raise ConfigError(f"{self.where}: field '{key}' must be a number, got {v!r}")
-        if not lo <= v <= hi:
-            raise ConfigError(f"{self.where}: field '{key}' = {v} is outside [{lo}, {hi}]")
-        return float(v)
-
-    def int(self, key: str, default: Any = _MISSING) -> int:
-        v = self._get(key, default)
-        if isinstance(v, bool) or not isinstance(v, int):
-            raise ConfigError(f"{self.where}: field '{key}' must be an integer, got {v!r}")
-        return v
-
-    def bool(self, key: str, default: Any = _MISSING) -> bool:
-        v = self._get(key, default)
-        if not isinstance(v, bool):
-            raise ConfigError(f"{self.where}: field '{key}' must be true or false, got {v!r}")
-        return v
-
-    def vec(self, key: str, sizes: tuple[int, ...], default: Any = _MISSING, positive: bool = False) -> tuple[float, ...]:
-        v = self._get(key, default)
-        ok = isinstance(v, (list, tuple)) and len(v) in sizes and all(
-            isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v)
-        if not ok:
-            n = " or ".join(str(k) for k in sizes)
-            raise ConfigError(f"{self.where}: field '{key}' must be a list of {n} numbers, got {v!r}")
-        if positive and min(v) <= 0:
-            raise ConfigError(f"{self.where}: field '{key}' must hold positive numbers, got {v!r}")
-        return tuple(float(x) for x in v)
-
-    def list(self, key: str, default: Any = _MISSING) -> list:
-        v = self._get(key, default)
-        if not isinstance(v, list):
-            raise ConfigError(f"{self.where}: field '{key}' must be a list, got {type(v).__name__}")
-        return v
-
-    def done(self) -> None:
-        extra = sorted(set(map(str, self.doc)) - self.used)
-        if extra:
-            raise ConfigError(f"{self.where}: unknown field(s) {', '.join(repr(k) for k in extra)}")
+_Num = Annotated[float, Strict(), Field(allow_inf_nan=False)]  # a YAML number (int or float), not "1" or true
+_Int = Annotated[int, Strict()]
+_Positive = Annotated[float, Strict(), Field(gt=0, allow_inf_nan=False)]
+_Vec2 = Annotated[list[_Num], Field(min_length=2, max_length=2)]
+_Vec3 = Annotated[list[_Num], Field(min_length=3, max_length=3)]
+_Size = Annotated[list[_Positive], Field(min_length=3, max_length=3)]
 
 
-def _box_from_dict(doc: Any, where: str) -> Box:
-    """One entry of `objects:`. position [x, y] stands the object on the floor; [x, y, z] gives its
-    centre (simple box) or origin (compound) explicitly."""
-    r = _Reader(doc, where)
-    name = r.str("name")
-    where = f"{where} ('{name}')"
-    r.where = where
-    kind = r.str("kind", "box")
-    parts = None
-    if r.has("parts"):
-        if r.has("size"):
-            raise ConfigError(f"{where}: give either 'size' or 'parts', not both")
-        parts = []
-        for j, pd in enumerate(r.list("parts")):
-            pr = _Reader(pd, f"{where}: parts[{j}]")
-            parts.append(Part(offset=pr.vec("offset", (3,)), size=pr.vec("size", (3,), positive=True),
-                              yaw_deg=pr.num("yaw_deg", 0.0), name=pr.str("name", "")))
-            pr.done()
-        if not parts:
-            raise ConfigError(f"{where}: field 'parts' must not be empty")
-        size = None
-    else:
-        size = r.vec("size", (3,), positive=True)
-    path = speed = None
-    loop = face = False
-    if r.has("path"):
-        pr = _Reader(r._get("path", None), f"{where}: path")
-        wps = pr.list("waypoints")
-        path = [_Reader({"waypoint": w}, f"{where}: path").vec("waypoint", (2,)) for w in wps]
-        if len(path) < 2:
-            raise ConfigError(f"{where}: path: field 'waypoints' needs at least 2 points")
-        speed = pr.num("speed_mps", lo=1e-6)
-        loop = pr.bool("loop", True)
-        face = pr.bool("face_motion", False)
-        pr.done()
-    pos = r.vec("position", (2, 3), default=path[0] if path else _Reader._MISSING)
-    if len(pos) == 2:
-        z = 0.0 if parts else size[1] / 2.0  # type: ignore[index]
-        pos = (pos[0], pos[1], z)
-    box = Box(name=name, kind=kind, center=pos, size=size, yaw_deg=r.num("yaw_deg", 0.0),  # type: ignore[arg-type]
-              texture_seed=r.int("texture_seed", 0), path=path, speed_mps=speed or 0.0, loop=loop,
-              face_motion=face, parts=parts)
-    r.done()
-    return box
+class _Doc(BaseModel):
+    model_config = ConfigDict(extra="forbid", coerce_numbers_to_str=True)
+
+
+class PartDoc(_Doc):
+    """One box of a compound object, object frame: offset [x, y, z] m, size [w, h, d] m."""
+
+    offset: _Vec3
+    size: _Size
+    yaw_deg: _Num = 0.0
+    name: str = ""
+
+
+class PathDoc(_Doc):
+    """Waypoints [[x, y], ...] (world, m) followed at speed_mps; loop back to the first or stop."""
+
+    waypoints: Annotated[list[_Vec2], Field(min_length=2)]
+    speed_mps: Annotated[float, Strict(), Field(gt=0, allow_inf_nan=False)]
+    loop: Annotated[bool, Strict()] = True
+    face_motion: Annotated[bool, Strict()] = False
+
+
+class ObjectDoc(_Doc):
+    """One entry of `objects:`: a box (`size`) or a compound (`parts`). position [x, y] stands the
+    object on the floor; [x, y, z] gives its centre (simple box) or origin (compound) explicitly;
+    with a path and no position it starts at the first waypoint."""
+
+    name: str
+    kind: str = "box"
+    position: Annotated[list[_Num], Field(min_length=2, max_length=3)] | None = None
+    size: _Size | None = None
+    parts: Annotated[list[PartDoc], Field(min_length=1)] | None = None
+    yaw_deg: _Num = 0.0
+    texture_seed: _Int = 0
+    path: PathDoc | None = None
+
+    @model_validator(mode="after")
+    def _shape(self) -> "ObjectDoc":
+        if self.size is not None and self.parts is not None:
+            raise ValueError("give either 'size' or 'parts', not both")
+        if self.size is None and self.parts is None:
+            raise ValueError("missing field 'size' (or 'parts' for a compound object)")
+        if self.position is None and self.path is None:
+            raise ValueError("missing field 'position'")
+        return self
+
+    def box(self) -> Box:
+        path = [tuple(w) for w in self.path.waypoints] if self.path else None
+        pos = tuple(self.position) if self.position is not None else path[0]  # type: ignore[index]
+        if len(pos) == 2:
+            z = 0.0 if self.parts else self.size[1] / 2.0  # type: ignore[index]
+            pos = (pos[0], pos[1], z)
+        parts = [Part(tuple(p.offset), tuple(p.size), p.yaw_deg, p.name) for p in self.parts] if self.parts else None
+        return Box(name=self.name, kind=self.kind, center=pos, size=tuple(self.size) if self.size else None,
+                   yaw_deg=self.yaw_deg, texture_seed=self.texture_seed, path=path,
+                   speed_mps=self.path.speed_mps if self.path else 0.0, loop=self.path.loop if self.path else True,
+                   face_motion=self.path.face_motion if self.path else False, parts=parts)  # type: ignore[arg-type]
+
+
+class SceneDoc(_Doc):
+    """A scenario file: camera mount, floor, wall, noise, and the obstacles (world frame, m)."""
+
+    name: str
+    description: str = ""
+    camera_height_m: Annotated[float, Strict(), Field(ge=0.05, allow_inf_nan=False)] = 1.0
+    camera_pitch_deg: Annotated[float, Strict(), Field(ge=-60.0, le=60.0)] = 15.0
+    wall_distance_m: Annotated[float, Strict(), Field(ge=0.5, allow_inf_nan=False)] = 5.0
+    noise_sigma: Annotated[float, Strict(), Field(ge=0.0, le=50.0)] = 1.5
+    floor_texture_seed: _Int = 1
+    wall_texture_seed: _Int = 2
+    objects: list[ObjectDoc]
+
+    @model_validator(mode="after")
+    def _unique(self) -> "SceneDoc":
+        names = [o.name for o in self.objects]
+        if len(set(names)) != len(names):
+            raise ValueError(f"object names must be unique, got {names}")
+        return self
+
+
+def _scene_errors(e: ValidationError, doc: Any, where: str) -> str:
+    """pydantic's errors in the scenario file's words: file, object (by index and name), field."""
+    out = []
+    for err in e.errors():
+        loc, node, parts = list(err["loc"]), doc, []
+        field_name = None
+        for i, key in enumerate(loc):
+            if isinstance(key, int):
+                name = node[key].get("name") if isinstance(node, list) and key < len(node) and \
+                    isinstance(node[key], dict) else None
+                parts[-1] = f"{parts[-1]}[{key}]" + (f" ('{name}')" if name else "")
+                node = node[key] if isinstance(node, list) and key < len(node) else None
+            elif i == len(loc) - 1 or (i == len(loc) - 2 and isinstance(loc[-1], int) and key not in
+                                         ("objects", "parts")):
+                field_name = f"'{key}'" + (f" item {loc[-1]}" if i == len(loc) - 2 else "")
+                break
+            else:
+                parts.append(str(key))
+                node = node.get(key) if isinstance(node, dict) else None
+        at = ": ".join(parts)
+        msg = err["msg"].removeprefix("Value error, ")
+        got = err.get("input")
+        if err["type"] == "missing":
+            text = f"missing field {field_name}"
+        elif err["type"] == "extra_forbidden":
+            text = f"unknown field {field_name}"
+        elif field_name:
+            shown = f" (got {got!r})" if not isinstance(got, (dict, list)) else ""
+            text = f"field {field_name}: {msg}{shown}"
+        else:
+            text = msg
+        out.append(f"{where}: {at + ': ' if at else ''}{text}")
+    return "; ".join(out)
 
 
 # --- ground truth ------------------------------------------------------------------------------------
