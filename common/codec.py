@@ -1,14 +1,16 @@
 """msgpack on the wire, and numpy <-> Image payloads (raw, png, jpeg)."""
 from __future__ import annotations
 
-from typing import TypeVar
+from typing import TYPE_CHECKING, TypeVar
 
 import msgpack
-import numpy as np
 from pydantic import BaseModel, ValidationError
 
 from .errors import DecodeError
 from .messages import SCHEMA_VERSION, Image
+
+if TYPE_CHECKING:  # numpy is imported where images are handled: `run router` and healthcheck never need it
+    import numpy as np
 
 M = TypeVar("M", bound=BaseModel)
 
@@ -40,6 +42,7 @@ def image_from_array(a: np.ndarray, encoding: str = "raw", jpeg_quality: int = 9
     """a: (H, W) or (H, W, 3) array of uint8/uint16/int16/float32. png keeps uint8/uint16 lossless;
     jpeg is uint8 only."""
     import cv2
+    import numpy as np
 
     if a.ndim not in (2, 3) or (a.ndim == 3 and a.shape[2] != 3):
         raise ValueError(f"image must be HxW or HxWx3, got shape {a.shape}")
@@ -66,6 +69,7 @@ def array_from_image(img: Image, name: str = "image") -> np.ndarray:
     """Inverse of image_from_array; checks the payload against the stated size and dtype.
     The returned array may be read-only (it can share the message's buffer)."""
     import cv2
+    import numpy as np
 
     shape = (img.height, img.width) if img.channels == 1 else (img.height, img.width, img.channels)
     dtype = np.dtype(img.dtype)

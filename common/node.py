@@ -16,6 +16,7 @@ import logging
 import os
 import signal
 import socket
+import statistics
 import struct
 import threading
 import time
@@ -24,7 +25,6 @@ from collections import deque
 from contextlib import contextmanager
 from typing import Any, Callable, Iterator, TypeVar
 
-import numpy as np
 from . import codec
 from .errors import BallbotError, DecodeError
 from .keys import Topic, topic
@@ -105,7 +105,7 @@ class _Window:
     def median_and_clear(self) -> float:
         if not self.values:
             return 0.0
-        m = float(np.median(np.fromiter(self.values, float)))
+        m = float(statistics.median(self.values))
         self.values.clear()
         return m
 

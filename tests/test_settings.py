@@ -104,11 +104,11 @@ def test_several_stages_in_one_command_keep_their_values_apart():
 
 @pytest.mark.parametrize("argv", [["run", "router", "--help"], ["healthcheck", "--help"],
                                   ["--log-level", "DEBUG", "run", "router", "--help"], ["keys"], ["schema"]])
-def test_router_and_healthcheck_import_neither_opencv_nor_any_service(argv):
+def test_router_and_healthcheck_import_neither_opencv_numpy_nor_any_service(argv):
     code = ("import sys\nfrom ballbot_vision import cli\n"
             "try:\n    cli.main(sys.argv[1:])\nexcept SystemExit:\n    pass\n"
-            "heavy = sorted(m for m in sys.modules if m == 'cv2' or m == 'scipy' or m.startswith('ballbot_vision.services')"
-            " or m.startswith('ballbot_vision.bench'))\n"
+            "heavy = sorted(m for m in sys.modules if m in ('cv2', 'scipy', 'numpy')"
+            " or m.startswith(('ballbot_vision.services', 'ballbot_vision.bench')))\n"
             "print('HEAVY', heavy, file=sys.stderr)\n")
     r = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True, timeout=120)
     assert "HEAVY []" in r.stderr, r.stderr[-2000:]
