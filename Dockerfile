@@ -1,23 +1,23 @@
-# ballbot-vision: one image for every service (capture, rectify, disparity, segmenter, router).
+# ballbot-vision: one image for every service (capture, rectify, disparity, segmenter, router, and
+# the optional ones: every runtime extra of pyproject.toml is installed, see deploy/image-extras.py).
 #
-#   docker build -t ballbot-vision .                      # from python:3.11-slim-bookworm
+#   deploy/docker-up.sh --build-only       # base image, wheels and this build, in order, no registry
 #   docker run --rm ballbot-vision --help
-#   docker compose up                                     # the whole pipeline, see docker-compose.yml
+#   docker compose up                      # the whole pipeline, see docker-compose.yml
 #
-# Without a container registry, build the base image from Debian packages first and use it:
+# By hand: the base image comes from Debian packages (no container registry needed), the pinned
+# wheels from the host (pip inside a build may not verify TLS behind an intercepting proxy):
 #
-#   deploy/build-base-image.sh                            # -> ballbot-vision/python-base:3.11-bookworm
-#   docker build --build-arg BASE_IMAGE=ballbot-vision/python-base:3.11-bookworm -t ballbot-vision .
+#   deploy/build-base-image.sh             # -> ballbot-vision/python-base:3.11-bookworm (root, once)
+#   deploy/fetch-wheels.sh                 # -> build/wheelhouse/: the build installs with --no-index
+#   docker build -t ballbot-vision .
 #
-# Without a package index at build time (offline, or a proxy the container does not trust), put
-# the pinned wheels in build/wheelhouse/ first with deploy/fetch-wheels.sh: the build then
-# installs from there with --no-index.
-#
+# Where a registry is reachable: --build-arg BASE_IMAGE=python:3.11-slim-bookworm.
 # Python dependencies are pinned by deploy/constraints.txt (regenerate with
 # deploy/lock-constraints.sh after changing pyproject.toml). Only classic-builder features are
 # used, so it builds with and without BuildKit.
 
-ARG BASE_IMAGE=python:3.11-slim-bookworm
+ARG BASE_IMAGE=ballbot-vision/python-base:3.11-bookworm
 
 # ---------------------------------------------------------------------------------------------
 # build: a venv in /opt/venv with the pinned dependencies and the project wheel
@@ -42,19 +42,21 @@ RUN set -eu; \
     python3 -m venv /opt/buildtools; \
     /opt/buildtools/bin/pip install -r /tmp/pip/build-constraints.txt
 
-# 2. The project: build a wheel (non-editable) and install it without touching the index; then
-#    check that the pinned set satisfies pyproject.toml. If this fails after a dependency change,
-#    run deploy/lock-constraints.sh and commit deploy/constraints.txt. Dropped from the runtime
-#    venv: pip and setuptools, and the test suites of numpy and scipy (never imported at run time).
+# 2. The project with the image's extras: build a wheel (non-editable) and install it without
+#    touching the index, so every requirement (extras included) must already be there from the
+#    pins; then `pip check`. If this fails after a dependency change, run
+#    deploy/lock-constraints.sh and commit deploy/constraints.txt. Dropped from the runtime venv:
+#    pip and setuptools, and the test suites of numpy and scipy (never imported at run time).
 COPY . /src
 RUN set -eu; \
     /opt/buildtools/bin/pip wheel --no-deps --no-build-isolation --no-index -w /tmp/dist /src; \
-    /opt/venv/bin/pip install --no-deps --no-index /tmp/dist/*.whl; \
-    /opt/venv/bin/pip check || { \
+    extras=$(python3 /src/deploy/image-extras.py /src/pyproject.toml); \
+    echo "installing ballbot-vision with extras: ${extras:-none}"; \
+    { /opt/venv/bin/pip install --no-index --find-links /tmp/dist "ballbot-vision${extras:+[$extras]}" \
+      && /opt/venv/bin/pip check; } || { \
         echo "dependencies of pyproject.toml are not satisfied by deploy/constraints.txt:" \
              "run deploy/lock-constraints.sh and commit the result" >&2; exit 1; }; \
-    /opt/venv/bin/ballbot-vision --help >/dev/null 2>&1 \
-        || echo "note: 'ballbot-vision --help' does not run yet (CLI unfinished?)" >&2; \
+    /opt/venv/bin/ballbot-vision --help >/dev/null; \
     find /opt/venv/lib -depth -type d -name tests \
         \( -path '*/site-packages/numpy/*' -o -path '*/site-packages/scipy/*' \) \
         -exec rm -rf {} +; \

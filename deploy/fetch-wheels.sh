@@ -56,4 +56,22 @@ ABI="cp${PYV/./}"
 # Build backend: pure-Python wheels.
 "$PY" -m pip download --disable-pip-version-check --no-deps --only-binary=:all: \
     -r <(grep -v '^#' "$HERE/build-constraints.txt") -d "$DEST"
+# Wheels of versions no longer pinned only grow the Docker build context: remove them.
+"$PY" - "$HERE/constraints.txt" "$HERE/build-constraints.txt" "$DEST" <<'EOF'
+import re, sys
+from pathlib import Path
+norm = lambda s: re.sub(r"[-_.]+", "_", s).lower()
+pins = set()
+for f in sys.argv[1:3]:
+    for line in Path(f).read_text().splitlines():
+        line = line.split("#")[0].strip()
+        if "==" in line:
+            name, version = (x.strip() for x in line.split(";")[0].split("=="))
+            pins.add((norm(name), version))
+for w in Path(sys.argv[3]).glob("*.whl"):
+    name, version = w.name.split("-")[:2]
+    if (norm(name), version) not in pins:
+        print(f"removing {w.name} (not pinned any more)", file=sys.stderr)
+        w.unlink()
+EOF
 echo "wheelhouse: $DEST ($(ls "$DEST"/*.whl | wc -l) wheels, $(du -sh "$DEST" | cut -f1))" >&2
