@@ -205,6 +205,9 @@ class ServiceStats(BaseModel):
     decode_errors: int
     errors: int
     status: str = "ok"
+    health: Literal["starting", "ok", "degraded", "failed"] = Field(
+        "ok", description="progress, not liveness: degraded/failed when input arrives but nothing is "
+                          "published, or every input fails (the reason is in status)")
     extra: dict[str, float] = Field(default_factory=dict)
 
 
