@@ -372,7 +372,7 @@ class Dispatcher:
 
         if self.transport != "raw" or msg.left.encoding != "raw":
             payload = codec.encode(reencode_frame(msg, self.transport, self.jpeg_quality))
-        age_ms = (time.time_ns() - msg.stamp_ns) / 1e6
+        age_ms = self.node.age_s(msg) * 1e3
         self.node.session.put(self._work.key(self.rid, instance=name), payload,
                               congestion_control=zenoh.CongestionControl.DROP, priority=zenoh.Priority.DATA,
                               attachment=make_attachment(age_ms, self.max_age_ms))
@@ -395,11 +395,8 @@ class Dispatcher:
             self.node.status = "no worker reachable"
         self.rates.tick()
 
-    def _decode(self, payload: bytes) -> StereoFrame | None:
-        return self.node.decode_or_drop(payload, StereoFrame, "input on frames_rect")
-
     def _too_old(self, msg: StereoFrame) -> bool:
-        if (time.time_ns() - msg.stamp_ns) / 1e6 > self.max_age_ms:
+        if self.node.age_s(msg) * 1e3 > self.max_age_ms:
             self.node.extra["too_old"] = self.node.extra.get("too_old", 0) + 1
             return True
         return False
@@ -421,24 +418,21 @@ class Dispatcher:
                 if self.fallback is None:
                     inbox.take(0.1)  # drain: overwritten frames count as drops; nothing to do
                     continue
-                payload = inbox.take(0.1)
-                if payload is None:
+                got = node.take(inbox, 0.1)
+                if got is None or self._too_old(got[0]):
                     continue
-                msg = self._decode(payload)
-                if msg is None or self._too_old(msg):
-                    continue
+                msg = got[0]
                 with node.processing(msg):
                     out.put(self.fallback.compute(msg, node.instance))
                     self.node.extra["fallback_frames"] = self.node.extra.get("fallback_frames", 0) + 1
                 continue
             if not self.state.wait_free(0.1):
                 continue
-            payload = inbox.take(0.0 if pending else 0.1)
-            if payload is not None:
+            got = node.take(inbox, 0.0 if pending else 0.1)
+            if got is not None:
                 if pending is not None:
                     node.extra["replaced_pending"] = node.extra.get("replaced_pending", 0) + 1
-                msg = self._decode(payload)
-                pending = (msg, payload) if msg is not None else pending
+                pending = got
             if pending is None:
                 continue
             msg, payload = pending
@@ -455,7 +449,7 @@ class Dispatcher:
                 except BaseException:
                     self.state.unclaim(name, msg.seq)
                     raise
-                node._published((time.time_ns() - msg.stamp_ns))
+                node._published(node.age_ns(msg))
 
 
 def run_dispatcher(node: Node, settings: Any) -> None:
@@ -502,6 +496,10 @@ def run_worker(node: Node, settings: Any) -> None:
 
     def on_work(sample) -> None:
         att = sample.attachment
+        node.count_input()
+        if len(sample.payload) > topic("work").max_bytes:
+            node.extra["in_work_oversized"] = node.extra.get("in_work_oversized", 0) + 1
+            return
         payload = sample.payload.to_bytes()
         rates.add("in_work", len(payload))
         queue.offer(payload, att.to_bytes() if att is not None else None)
