@@ -8,8 +8,8 @@ from dataclasses import dataclass
 
 from pydantic import BaseModel
 
-from .messages import (CalibrationUpdate, DisparityMap, FreeSpace, GroundTruth, ObstacleList, Odometry, ServiceStats,
-                       StereoFrame, WorkDone)
+from .messages import (CalibrationUpdate, DisparityMap, FreeSpace, GroundTruth, ObstacleList, Odometry, ReplayControl,
+                       ServiceStats, StereoFrame, WorkDone)
 
 
 @dataclass(frozen=True)
@@ -67,8 +67,10 @@ TOPICS: dict[str, Topic] = {t.name: t for t in [
           ("status",), "per-instance rate, latency, drops and errors, once a second", max_bytes=256 << 10),
     Topic("alive", "ballbot/{robot_id}/alive/{service}/{instance}", None, "every service", 0.0,
           ("status",), "liveliness token of a running instance"),
-    Topic("calibration", "ballbot/{robot_id}/calibration", CalibrationUpdate, "calibrate", 0.0, ("rectify",),
+    Topic("calibration", "ballbot/{robot_id}/calibration", CalibrationUpdate, "calibrate, capture", 0.0, ("rectify",),
           "a new calibration (YAML text) for rectify, applied between frames without a restart", max_bytes=2 << 20),
+    Topic("replay_control", "ballbot/{robot_id}/replay/control", ReplayControl, "viewer, replay", 0.0, ("capture",),
+          "play / pause / step a replayed recording (capture --source mcap)", max_bytes=64 << 10),
 ]}
 
 OBSTACLES_ALL = "ballbot/obstacles/**"

@@ -220,6 +220,16 @@ class CalibrationUpdate(Message):
     source: str = Field("", description="where it came from (a path, `calibrate`, a user)")
 
 
+class ReplayControl(Message):
+    """A command to the capture service while it replays a recording (`--source mcap`): play,
+    pause, or step N pairs and pause again; `speed` (optional) changes the playback speed factor.
+    `seq` and `stamp_ns` are the sender's own counter and send time."""
+
+    action: Literal["play", "pause", "step"]
+    frames: int = Field(1, ge=1, le=100000, description="step: how many pairs to publish before pausing again")
+    speed: float | None = Field(None, gt=0, le=1000, description="new playback speed factor (1 = as recorded)")
+
+
 PUBLIC_MODELS: dict[str, type[BaseModel]] = {
     "ObstacleList": ObstacleList,
     "FreeSpace": FreeSpace,
@@ -229,4 +239,5 @@ PUBLIC_MODELS: dict[str, type[BaseModel]] = {
     "GroundTruth": GroundTruth,
     "ServiceStats": ServiceStats,
     "CalibrationUpdate": CalibrationUpdate,
+    "ReplayControl": ReplayControl,
 }
