@@ -191,6 +191,7 @@ class ServiceStats(BaseModel):
     schema_version: int = SCHEMA_VERSION
     robot_id: str
     service: str
+    role: str = Field("", description="what this instance does within its service (disparity: dispatcher or worker)")
     instance: str
     host: str
     pid: int
