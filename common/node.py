@@ -424,6 +424,7 @@ class Node:
         self.limits = limits or FreshnessLimits.from_env()
         self.stop_event = threading.Event()
         self.status = "starting"
+        self.role = ""  # shown by `status`: e.g. disparity's dispatcher or worker
         self.health = "starting"
         self.extra: dict[str, float] = {}
         self._lock = threading.Lock()
@@ -645,7 +646,8 @@ class Node:
         self.health = health
         status = self.status if health == "ok" else f"{health}: {why}"
         return ServiceStats(
-            robot_id=self.robot_id, service=self.service, instance=self.instance, host=socket.gethostname(),
+            robot_id=self.robot_id, service=self.service, role=self.role, instance=self.instance,
+            host=socket.gethostname(),
             pid=os.getpid(), stamp_ns=self.clock.wall_ns(), uptime_s=now - self._started,
             rate_hz=published / window, proc_ms_p50=self._proc.median_and_clear(),
             age_ms_p50=self._age.median_and_clear(), processed=self.processed, published=self.published,

@@ -82,6 +82,8 @@ def run(node: Node, settings: DisparitySettings) -> None:
     if settings.threads:
         cv2.setNumThreads(settings.threads)
     if settings.role == "worker":
+        node.role = "worker"
         run_worker(node, settings)
     else:
+        node.role = "dispatcher"
         run_dispatcher(node, settings)
