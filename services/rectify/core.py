@@ -79,6 +79,21 @@ class Rectifier:
 log = logging.getLogger("ballbot.rectify")
 
 
+def implausible_change(old: camera.RectifiedModel, new: camera.RectifiedModel, max_change: float) -> str:
+    """Why swapping `old` for `new` at run time is implausible, or "" if it is not. Every distance
+    is f*B/d: a baseline or focal length that changes by more than max_change (a fraction) between
+    two calibrations of the same rig is a different rig or a mistake, and would silently rescale
+    every obstacle (half the baseline halves every distance). 0 disables the check."""
+    if max_change <= 0:
+        return ""
+    for what, a, b, unit, k in (("baseline", old.baseline_m, new.baseline_m, "mm", 1000.0),
+                                ("focal length", old.focal_px, new.focal_px, "px", 1.0)):
+        if abs(b - a) > max_change * abs(a):
+            return (f"its {what} {b * k:.2f} {unit} differs from the one in use ({a * k:.2f} {unit}) by "
+                    f"{abs(b - a) / abs(a):.0%}, more than {max_change:.0%}")
+    return ""
+
+
 class CalibrationHolder:
     """The Rectifier in use, and how a new calibration replaces it at run time.
 
@@ -90,8 +105,9 @@ class CalibrationHolder:
     is logged and refused; the old one stays in use.
     """
 
-    def __init__(self, spec: str, alpha: float = 0.0):
+    def __init__(self, spec: str, alpha: float = 0.0, max_change: float = 0.05):
         self.alpha = alpha
+        self.max_change = max_change
         self.spec = spec
         self._lock = threading.Lock()  # serialises offers (file watcher vs. messages), not frames
         self._rectifier = Rectifier(camera.load_calibration(spec), alpha)
@@ -128,6 +144,10 @@ class CalibrationHolder:
                 return self._refuse(origin, str(e))
             except cv2.error as e:
                 return self._refuse(origin, f"OpenCV cannot rectify with it: {str(e).strip().splitlines()[-1]}")
+            jump = implausible_change(self._rectifier.model, new.model, self.max_change)
+            if jump:
+                return self._refuse(origin, f"{jump}; a change this large is not applied at run time "
+                                            f"(restart rectify with the new calibration if it is right)")
             self._rectifier = new  # the swap: one reference assignment, between two frames
             self.generation += 1
             m = new.model
