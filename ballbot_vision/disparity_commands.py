@@ -65,16 +65,16 @@ def cmd_disparity(args: argparse.Namespace) -> int:
 
     from .common import camera
     from .common.settings import load_settings
-    from .services.disparity.main import DisparitySettings
-    from .services.disparity.matchers import StereoMatcher, gate_for_range, to_float
+    from .common.disparity import to_float
+    from .services.disparity.matchers import MatcherConfig, StereoMatcher, gate_for_range
     from .services.rectify.core import Rectifier
 
     out = Path(args.output)
     if out.suffix.lower() not in FORMATS:
         raise BallbotError(f"-o {args.output}: the extension picks the format, one of {', '.join(FORMATS)}")
-    settings = load_settings(DisparitySettings, args.config, args)
-    if settings.threads:
-        cv2.setNumThreads(settings.threads)
+    cfg = load_settings(MatcherConfig, args.config, args)
+    if cfg.threads:
+        cv2.setNumThreads(cfg.threads)
     left, right = read_image(args.left), read_image(args.right)
     if left.shape[:2] != right.shape[:2]:
         raise BallbotError(f"{args.left} is {left.shape[1]}x{left.shape[0]}, {args.right} is "
@@ -83,12 +83,11 @@ def cmd_disparity(args: argparse.Namespace) -> int:
     if args.calibration:
         rect = Rectifier(camera.load_calibration(args.calibration))
         left, right = rect.rectify(left, right)
-        gate = gate_for_range(settings.max_range_m, rect.model.focal_px, rect.model.baseline_m)
-    elif settings.max_range_m:
+        gate = gate_for_range(cfg.max_range_m, rect.model.focal_px, rect.model.baseline_m)
+    elif cfg.max_range_m:
         raise BallbotError("--max-range-m needs --calibration (focal length and baseline turn metres into px)")
-    cfg = settings.matcher_config()
     t0 = time.perf_counter()
-    raw = StereoMatcher(cfg).compute(left, right, gate or None)
+    raw = StereoMatcher(cfg).compute(left, right, gate)
     ms = (time.perf_counter() - t0) * 1e3
     d = to_float(raw, 16.0, cfg.invalid_value)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -110,7 +109,7 @@ def cmd_disparity(args: argparse.Namespace) -> int:
 
 def register(sub, common) -> None:
     from .common.settings import add_settings_arguments
-    from .services.disparity.main import DisparitySettings
+    from .services.disparity.config import MatcherConfig
 
     p = sub.add_parser("disparity", help="disparity of one stereo pair of image files (offline, in-process)",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -120,5 +119,5 @@ def register(sub, common) -> None:
     p.add_argument("--calibration", default=None, help="rectify first with this calibration (YAML or profile); "
                    "without it the pair must already be rectified")
     p.add_argument("--config", default=None, metavar="FILE", help="YAML file; its 'disparity' section applies")
-    add_settings_arguments(p, DisparitySettings)
+    add_settings_arguments(p, MatcherConfig)  # matching settings only: no pool flags offline
     p.set_defaults(func=cmd_disparity)

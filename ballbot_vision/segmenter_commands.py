@@ -59,7 +59,8 @@ def cmd_obstacles(args: argparse.Namespace) -> int:
 
     from .common import camera
     from .common.messages import ObstacleList
-    from .services.disparity.matchers import SCALE, MatcherConfig, StereoMatcher, to_float
+    from .common.disparity import to_float
+    from .services.disparity.matchers import SCALE, MatcherConfig, StereoMatcher
     from .services.rectify.calibrate import expand_images, pair_files
     from .services.rectify.core import Rectifier
     from .services.segmenter.main import ObstacleBuilder

@@ -46,8 +46,8 @@ def methods(num_disparities: int):
     """name -> compute(left, right) -> float px with NaN invalid."""
     import cv2
 
-    from ..services.disparity.main import DisparitySettings
-    from ..services.disparity.matchers import StereoMatcher, to_float
+    from ..common.disparity import to_float
+    from ..services.disparity.matchers import MatcherConfig, StereoMatcher
 
     def opencv(make):
         def run(l, r):
@@ -58,7 +58,7 @@ def methods(num_disparities: int):
         return run
 
     def ours(**kw):
-        cfg = DisparitySettings(num_disparities=num_disparities, **kw).matcher_config()
+        cfg = MatcherConfig(num_disparities=num_disparities, **kw)
         m = StereoMatcher(cfg)
         return lambda l, r: to_float(m.compute(l, r), 16.0, cfg.invalid_value)
 

@@ -50,15 +50,15 @@ def percentiles(values: list[float]) -> dict[str, float]:
 def compute_ceiling(method: str, preload: int, seconds: float = 3.0) -> dict:
     """The same cores, serially, in this process: what the hardware allows with no messaging."""
     from ..services.capture.sources import SyntheticSource
-    from ..services.disparity.main import DisparitySettings
-    from ..services.disparity.matchers import StereoMatcher, to_float
+    from ..common.disparity import to_float
+    from ..services.disparity.matchers import MatcherConfig, StereoMatcher
     from ..services.rectify.core import Rectifier
     from ..services.segmenter.main import Segmenter, SegmenterSettings
     from ..common import camera
 
     src = SyntheticSource("two-boxes", "lifecam-studio", 30.0, preload=max(1, min(preload, 8)))
     rect = Rectifier(camera.load_calibration("lifecam-studio"))
-    cfg = DisparitySettings(method=method).matcher_config()
+    cfg = MatcherConfig(method=method)
     matcher = StereoMatcher(cfg)
     segmenter = Segmenter(SegmenterSettings())  # the service's default method
     times = {"rectify": [], "disparity": [], "segmenter": []}

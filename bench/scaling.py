@@ -30,14 +30,13 @@ def ceiling(method: str, threads: int, seconds: float = 3.0) -> dict:
 
     from ..common import camera
     from ..services.capture.sources import SyntheticSource
-    from ..services.disparity.main import DisparitySettings
-    from ..services.disparity.matchers import StereoMatcher
+    from ..services.disparity.matchers import MatcherConfig, StereoMatcher
     from ..services.rectify.core import Rectifier
 
     src = SyntheticSource("two-boxes", "lifecam-studio", 30.0, preload=2)
     rect = Rectifier(camera.load_calibration("lifecam-studio"))
     pairs = [rect.rectify(p.left, p.right) for p in (src.read(), src.read())]
-    m = StereoMatcher(DisparitySettings(method=method).matcher_config())
+    m = StereoMatcher(MatcherConfig(method=method))
     before = cv2.getNumThreads()
     cv2.setNumThreads(threads if threads else -1)
     try:

@@ -90,6 +90,8 @@ class WorkDone(Message):
     ok: bool = Field(description="false: the item was dropped (too old, undecodable, failed)")
     reason: str = ""
     proc_ms: float = Field(0.0, ge=0, description="time from receipt to published map, ms")
+    method: str = Field("", description="the matcher that produced the map (its DisparityMap.method); "
+                        "empty for a dropped item")
 
 
 class Obstacle(BaseModel):

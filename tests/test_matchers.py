@@ -7,12 +7,15 @@ import numpy as np
 import pytest
 
 from ballbot_vision.common import camera, codec
-from ballbot_vision.common.errors import BallbotError, ConfigError
+from pydantic import ValidationError
+
+from ballbot_vision.common.disparity import to_float
+from ballbot_vision.common.errors import ConfigError
 from ballbot_vision.common.settings import load_settings
 from ballbot_vision.services.capture import synthetic as S
 from ballbot_vision.services.disparity.main import DisparitySettings
 from ballbot_vision.services.disparity.matchers import (HalfResolutionMatcher, MatcherConfig, StereoMatcher,
-                                                       gate_for_range, to_float)
+                                                       gate_for_range)
 from ballbot_vision.services.rectify.core import Rectifier
 
 
@@ -63,8 +66,6 @@ def test_range_gate_in_metres(scene):
     assert np.nanmin(full) < gate <= np.nanmin(gated)
     keep = np.isfinite(full) & (full >= gate)
     assert np.array_equal(np.isfinite(gated), keep)
-    cfg_gated = MatcherConfig(method="bm", min_valid_disparity=gate)  # the same from the config
-    assert np.array_equal(StereoMatcher(cfg_gated).compute(left, right), m.compute(left, right, gate))
 
 
 def test_fixed_point_contract(scene):
@@ -93,16 +94,18 @@ def test_half_resolution_fallback_keeps_the_contract(scene):
 
 
 def test_bad_settings_are_refused():
-    with pytest.raises(BallbotError, match="multiple of 16"):
+    with pytest.raises(ValidationError, match="multiple of 16"):
         MatcherConfig(num_disparities=50)
-    with pytest.raises(BallbotError, match="odd"):
+    with pytest.raises(ValidationError, match="odd"):
         MatcherConfig(method="sgbm", block_size=4)
-    with pytest.raises(BallbotError, match="p2"):
+    with pytest.raises(ValidationError, match="p2"):
         MatcherConfig(method="sgbm", p1=100, p2=50)
     with pytest.raises(ConfigError, match="odd"):
         load_settings(DisparitySettings, block_size=8)
+    with pytest.raises(ConfigError, match="multiple of 16"):
+        load_settings(MatcherConfig, num_disparities=50)
     s = load_settings(DisparitySettings, fallback="none", method="sgbm")
-    assert s.matcher_config().block == 5 and s.fallback == "none"
+    assert s.block == 5 and s.fallback == "none"
 
 
 def test_png_results_are_lossless(scene):
@@ -157,3 +160,19 @@ def test_offline_command_writes_npy_pfm_png(scene, tmp_path):
     same = np.isfinite(npy)
     assert np.array_equal(npy[same], pfm[same])  # the gate only removes pixels; the rest is the same core
     assert cv2.imread(str(tmp_path / "d.png")).shape == (*gt.shape, 3)
+
+
+def test_one_model_for_the_matching_settings(capsys):
+    """The service's settings are the matching settings plus pool fields: one default per setting,
+    and the cores take the service's settings as they are."""
+    from ballbot_vision.cli import main
+
+    service = DisparitySettings()
+    assert isinstance(service, MatcherConfig)
+    assert not set(DisparitySettings.__annotations__) & set(MatcherConfig.model_fields)  # no setting twice
+    assert StereoMatcher(service).config is service
+    with pytest.raises(SystemExit):
+        main(["disparity", "--help"])
+    help_text = capsys.readouterr().out
+    assert "--num-disparities" in help_text and "--block-size" in help_text
+    assert "--role" not in help_text and "--max-in-flight" not in help_text  # pool flags are service-only

@@ -7,7 +7,8 @@ import pytest
 from ballbot_vision.common import camera
 from ballbot_vision.common.errors import BallbotError
 from ballbot_vision.services.capture.sources import SyntheticSource
-from ballbot_vision.services.disparity.matchers import MatcherConfig, StereoMatcher, to_float
+from ballbot_vision.common.disparity import to_float
+from ballbot_vision.services.disparity.matchers import MatcherConfig, StereoMatcher
 from ballbot_vision.services.rectify.core import Rectifier
 from ballbot_vision.services.segmenter.seed import SeedConfig, segment
 

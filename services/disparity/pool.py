@@ -62,15 +62,13 @@ class FrameComputer:
     (min_disparity-1)*16; 'png': lossless uint16 for narrow links, invalid 0 (a disparity of exactly
     0, a point at infinity, is then invalid too; needs min_disparity >= 0)."""
 
-    def __init__(self, config: MatcherConfig, scale: float = 1.0, max_range_m: float = 0.0,
-                 result_encoding: str = "raw", label: str = ""):
+    def __init__(self, config: MatcherConfig, scale: float = 1.0, result_encoding: str = "raw", label: str = ""):
         if result_encoding not in ("raw", "png"):
             raise BallbotError(f"result_encoding: raw or png, got {result_encoding!r}")
         if result_encoding == "png" and config.min_disparity < 0:
             raise BallbotError("result_encoding png needs min_disparity >= 0")
         self.config = config
         self.matcher = make_matcher(config, scale)
-        self.max_range_m = max_range_m
         self.result_encoding = result_encoding
         self.method = config.method + ("" if scale == 1.0 else f"@{scale:g}") + (label and f"/{label}")
 
@@ -82,8 +80,8 @@ class FrameComputer:
                               f"{msg.camera.width}x{msg.camera.height}")
         left = codec.array_from_image(msg.left, "left")
         right = codec.array_from_image(msg.right, "right")
-        gate = gate_for_range(self.max_range_m, msg.camera.focal_px, msg.camera.baseline_m)
-        disp = self.matcher.compute(left, right, gate or None)
+        gate = gate_for_range(self.config.max_range_m, msg.camera.focal_px, msg.camera.baseline_m)
+        disp = self.matcher.compute(left, right, gate)
         c = self.config
         if self.result_encoding == "png":
             invalid = 0.0
@@ -559,7 +557,7 @@ def run_dispatcher(node: Node, settings: Any) -> None:
     fallback = None
     if settings.fallback != "none":
         scale = 0.5 if settings.fallback == "half" else 1.0
-        fallback = FrameComputer(settings.matcher_config(), scale, settings.max_range_m, "raw", label="onboard")
+        fallback = FrameComputer(settings, scale, "raw", label="onboard")
     state = DispatchState(settings.max_in_flight, settings.result_timeout_s)
     Dispatcher(node, state, settings.max_age_ms, settings.transport, settings.jpeg_quality, fallback).run()
 
@@ -592,7 +590,7 @@ class WorkQueue:
 
 
 def run_worker(node: Node, settings: Any) -> None:
-    computer = FrameComputer(settings.matcher_config(), 1.0, settings.max_range_m, settings.result_encoding)
+    computer = FrameComputer(settings, 1.0, settings.result_encoding)
     rid, me = node.robot_id, node.instance
     queue = WorkQueue()
     rates = Rates(node)

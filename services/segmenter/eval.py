@@ -38,7 +38,8 @@ import numpy as np
 
 from ...common import camera
 from ..capture import synthetic as S
-from ..disparity.matchers import SCALE, MatcherConfig, StereoMatcher, to_float
+from ...common.disparity import to_float
+from ..disparity.matchers import SCALE, MatcherConfig, StereoMatcher
 from ..rectify.core import Rectifier
 from .main import ObstacleBuilder, SegmenterSettings
 from .mount import Mount

@@ -13,7 +13,7 @@ from ...common.errors import DecodeError
 from ...common.messages import DisparityMap, Obstacle, ObstacleList
 from ...common.node import Node
 from ...common.settings import ServiceSettings
-from ..disparity.matchers import to_float
+from ...common.disparity import to_float
 from . import layers, seed
 from .mount import Mount
 from .seed import Detection
