@@ -91,6 +91,36 @@ class Clock:
 SYSTEM_CLOCK = Clock()
 
 
+class OffsetFileClock(Clock):
+    """Fault injection: the wall clock plus the offset (seconds, may be negative) written in a file,
+    re-read every 50 ms. With BALLBOT_FAULT_CLOCK_OFFSET_FILE set, every service of a test run
+    sees one simulated NTP step when the test writes the file, without touching the machine's
+    clock; the monotonic clock is untouched, as with a real step."""
+
+    def __init__(self, path: str):
+        self.path = path
+        self._offset_ns = 0
+        self._read_at = -1.0
+        self._lock = threading.Lock()
+
+    def wall_ns(self) -> int:
+        now = time.monotonic()
+        with self._lock:
+            if now - self._read_at >= 0.05:
+                self._read_at = now
+                try:
+                    with open(self.path) as f:
+                        self._offset_ns = int(float(f.read().strip() or 0) * 1e9)
+                except (OSError, ValueError):
+                    pass  # keep the last offset
+            return time.time_ns() + self._offset_ns
+
+
+def clock_from_env() -> Clock:
+    path = os.environ.get("BALLBOT_FAULT_CLOCK_OFFSET_FILE")
+    return OffsetFileClock(path) if path else SYSTEM_CLOCK
+
+
 @dataclass
 class FreshnessLimits:
     """max_future_s: a stamp this far ahead of our clock (plus the learned offset) is refused: no
@@ -414,13 +444,13 @@ class _Progress:
 
 class Node:
     def __init__(self, service: str, options: ZenohOptions, robot_id: str, instance: str | None = None,
-                 install_signal_handlers: bool = True, clock: Clock = SYSTEM_CLOCK,
+                 install_signal_handlers: bool = True, clock: Clock | None = None,
                  limits: FreshnessLimits | None = None):
         self.service = service
         self.robot_id = robot_id
         self.instance = instance or f"{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:4]}"
         self.options = options
-        self.clock = clock
+        self.clock = clock or clock_from_env()
         self.limits = limits or FreshnessLimits.from_env()
         self.stop_event = threading.Event()
         self.status = "starting"
