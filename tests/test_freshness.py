@@ -155,3 +155,46 @@ def test_a_flood_of_forged_stamps_cannot_resync_the_gate_while_real_frames_pass(
             assert not deliver(box, forger.meta(clock.wall + 3600 * S))
         assert deliver(box, cam.meta())
     assert box.gate.counts["resyncs"] == 0 and box.gate.counts["future"] == 500
+
+
+def test_a_starved_tracker_keeps_ids_of_what_it_had_no_frame_to_see():
+    """Frames 1.5 s apart (a segmenter starved of CPU): a static obstacle is seen in every frame it
+    gets, so it keeps its id; one that is really gone is dropped after timeout_s and 3 frames."""
+    from ballbot_vision.services.segmenter.tracking import Tracker
+
+    tr = Tracker(timeout_s=1.0)
+    box, other = [1.0, 0.0, 3.0], [-1.0, 0.0, 4.0]
+    ids = {t.id for t in tr.update([box, other], 0.0)}
+    for k in range(1, 6):
+        ids |= {t.id for t in tr.update([box, other], 1.5 * k)}
+    assert ids == {1, 2}
+    for k in range(6, 9):
+        assert [t.id for t in tr.update([box], 1.5 * k)] == [1]
+    assert [t.id for t in tr.update([box, other], 1.5 * 9)] == [1, 3]  # gone 3 frames and 4.5 s: a new one
+
+
+def test_node_frame_time_is_monotonic_across_a_wall_clock_step():
+    """The tracker's time base: the capture moment on the monotonic clock, never going backwards."""
+    from ballbot_vision.common.messages import ObstacleList
+    from ballbot_vision.common.node import Node
+    from ballbot_vision.common.zenoh_session import ZenohOptions
+
+    clock = StepClock()
+    node = Node("t", ZenohOptions(), "r", clock=clock)
+    box, cam = Inbox(topic("disparity"), FreshnessGate(clock), clock=clock), Stream(clock, 1)
+    times = []
+    for k in range(20):
+        clock.advance(0.033)
+        if k == 10:
+            clock.wall -= 10 * S  # NTP steps back; capture's stamps step with it
+        meta = cam.meta()
+        box.offer(b"x", meta)
+        d = box.take_delivery(0)
+        if d is None:
+            continue
+        box.commit(meta.stamp_ns)
+        node._capture_mono[meta.stamp_ns] = d.mono_ns - box.gate.age_ns(meta.stamp_ns, d.wall_ns)
+        msg = ObstacleList(robot_id="r", seq=k, stamp_ns=meta.stamp_ns, publish_ns=0, stale=False)
+        times.append(node.frame_time_s(msg))
+    steps = [b - a for a, b in zip(times, times[1:])]
+    assert len(times) >= 19 and all(abs(s - 0.033) < 1e-6 for s in steps), steps
