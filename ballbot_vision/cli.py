@@ -110,7 +110,9 @@ def cmd_up(args: argparse.Namespace) -> int:
     common = ["--robot-id", robot_id(args)]
     if config_file(args):
         common += ["--config", config_file(args)]
-    sup = Supervisor(stop_timeout_s=args.stop_timeout)
+    if args.nice < 0 and os.geteuid() != 0:
+        log.warning("up --nice %d needs root (or CAP_SYS_NICE); the services run at the default priority", args.nice)
+    sup = Supervisor(stop_timeout_s=args.stop_timeout, nice=args.nice)
     sup.add("router", ["run", "router"] + [a for e in listen for a in ("--listen", e)] + common)
     for name in PIPELINE:
         sup.add(name, ["run", name, "--connect", endpoint] + common)
@@ -239,6 +241,9 @@ def build_parser() -> argparse.ArgumentParser:
                                            "router listens and the services connect (default tcp/127.0.0.1:7447)"))
     up.add_argument("--stop-timeout", type=float, default=10.0, metavar="S",
                     help="seconds the services get to stop after SIGTERM before they are killed (default: 10)")
+    up.add_argument("--nice", type=int, default=int(os.environ.get("BALLBOT_NICE", 0)), metavar="N",
+                    help="scheduling priority of the services, -20..19 (negative: ahead of other work on the robot, "
+                         "e.g. -5; needs root) [BALLBOT_NICE] (default: 0)")
     up.set_defaults(func=cmd_up)
 
     run = sub.add_parser("run", help="start one service (what a container runs)")

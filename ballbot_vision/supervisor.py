@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import ctypes
 import logging
+import os
 import signal
 import socket
 import subprocess
@@ -68,8 +69,9 @@ class Supervisor:
     again, so a crash every half hour is not punished like a crash loop."""
 
     def __init__(self, stop_timeout_s: float = 10.0, env: dict[str, str] | None = None,
-                 healthy_after_s: float = 30.0):
+                 healthy_after_s: float = 30.0, nice: int = 0):
         self.env = env
+        self.nice = nice
         self.children: list[Child] = []
         self.stop = threading.Event()
         self.stop_timeout_s = stop_timeout_s
@@ -79,10 +81,19 @@ class Supervisor:
         self.children.append(Child(name, argv))
 
     def _start(self, c: Child) -> None:
-        c.proc = subprocess.Popen([sys.executable, "-m", "ballbot_vision.cli", *c.argv], preexec_fn=_die_with_parent,
-                                  env=self.env)
+        c.proc = subprocess.Popen([sys.executable, "-m", "ballbot_vision.cli", *c.argv],
+                                  preexec_fn=self._child_setup, env=self.env)
         c.started_at = time.monotonic()
         log.info("started %s (pid %d)", c.name, c.proc.pid)
+
+    def _child_setup(self) -> None:
+        """In the child before exec: die with the supervisor; run at the requested priority."""
+        _die_with_parent()
+        if self.nice:
+            try:
+                os.setpriority(os.PRIO_PROCESS, 0, self.nice)
+            except OSError:  # a negative nice needs root or CAP_SYS_NICE: run at the default
+                pass
 
     def start_all(self, wait_for_endpoint: str | None = None) -> None:
         """Start the first child (the router), wait until it accepts connections, then the rest."""
