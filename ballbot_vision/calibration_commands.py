@@ -195,7 +195,8 @@ def cmd_import(args: argparse.Namespace) -> int:
     from .services.rectify import formats as F
 
     size = F.parse_size(args.image_size) if args.image_size else None
-    rig = F.import_files(args.files, args.units_m, size, args.name or Path(args.output).stem)
+    rig = F.import_files(args.files, args.units_m, size, args.name or Path(args.output).stem,
+                         tuple(args.cameras) if args.cameras else None)
     camera.save_calibration(rig, args.output)
     _out(F.describe(rig))
     _out(f"wrote {args.output}")
@@ -325,9 +326,16 @@ def register(sub: argparse._SubParsersAction, common) -> None:
 
     cal = sub.add_parser("calibration", help="import, export, show or check a calibration")
     cs = cal.add_subparsers(dest="calibration_command", required=True, metavar="ACTION")
-    i = cs.add_parser("import", help="OpenCV stereo_calib intrinsics.yml+extrinsics.yml, or ROS camera_info "
-                                     "left.yaml+right.yaml -> calibration YAML")
+    i = cs.add_parser("import", help="another tool's calibration -> calibration YAML (Kalibr camchain, "
+                                     "EuRoC sensor.yaml pair, ROS camera_info pair, OpenCV stereo_calib)",
+                      description="Convert another tool's stereo calibration into this program's raw-rig YAML, "
+                                  "checked as every command checks it on loading. Accepted: a Kalibr camchain.yaml "
+                                  "(one file); EuRoC cam0/sensor.yaml + cam1/sensor.yaml (left first); ROS "
+                                  "camera_info left.yaml + right.yaml; OpenCV stereo_calib intrinsics.yml + "
+                                  "extrinsics.yml (with --image-size).")
     i.add_argument("files", nargs="+", metavar="FILE")
+    i.add_argument("--cameras", nargs=2, metavar=("LEFT", "RIGHT"), default=None,
+                   help="Kalibr camchain: the two cameras of the chain to use (default: cam0 cam1)")
     i.add_argument("-o", "--output", required=True, help="calibration YAML to write")
     i.add_argument("--units-m", type=float, default=1.0,
                    help="stereo_calib: metres per unit of T (the sample uses square-size units; default 1)")

@@ -223,7 +223,41 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 # --- parser ------------------------------------------------------------------------------------
 
-def build_parser() -> argparse.ArgumentParser:
+BUILTIN_COMMANDS = ("up", "run", "watch", "status", "schema", "healthcheck", "keys", "bench")
+
+
+def _wanted(argv: list[str] | None) -> tuple[str | None, str | None]:
+    """(command, service of `run`) named on the command line, so that only their parsers are built
+    and only their modules imported: `run router` and `healthcheck` start without OpenCV or any
+    service. (None, None) when unclear (help, typos): then everything is built."""
+    if argv is None:
+        return None, None
+    words: list[str] = []
+    skip = False
+    for a in argv:
+        if skip:
+            skip = False
+        elif a == "--log-level":
+            skip = True
+        elif not a.startswith("-"):
+            words.append(a)
+            if len(words) == 2:
+                break
+        elif not words and a in ("-h", "--help"):
+            return None, None
+    command = words[0] if words else None
+    service = words[1] if command == "run" and len(words) > 1 else None
+    return command, service
+
+
+def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
+    """The whole CLI; given the argv about to be parsed, only the parts it names are built fully
+    (the others are bare names: enough for argparse to pick the command)."""
+    wanted, wanted_service = _wanted(argv)
+
+    def needed(name: str) -> bool:
+        return wanted is None or wanted == name
+
     p = argparse.ArgumentParser(prog="ballbot-vision", description=__doc__)
     p.add_argument("--log-level", default=os.environ.get("BALLBOT_LOG", "INFO"), help="[BALLBOT_LOG]")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -235,70 +269,104 @@ def build_parser() -> argparse.ArgumentParser:
         add_zenoh_arguments(sp)
         return sp
 
-    up = common(sub.add_parser("up", help="start every service as a separate process; Ctrl-C stops all",
-                               description="--listen: where the router listens (e.g. tcp/0.0.0.0:7447 for offboard "
-                                           "workers; the services connect to it on loopback); --connect: where the "
-                                           "router listens and the services connect (default tcp/127.0.0.1:7447)"))
-    up.add_argument("--stop-timeout", type=float, default=10.0, metavar="S",
-                    help="seconds the services get to stop after SIGTERM before they are killed (default: 10)")
-    up.add_argument("--nice", type=int, default=int(os.environ.get("BALLBOT_NICE", 0)), metavar="N",
-                    help="scheduling priority of the services, -20..19 (negative: ahead of other work on the robot, "
-                         "e.g. -5; needs root) [BALLBOT_NICE] (default: 0)")
-    up.set_defaults(func=cmd_up)
+    def stub(name: str) -> None:
+        sub.add_parser(name, add_help=False)
 
-    run = sub.add_parser("run", help="start one service (what a container runs)")
-    run_sub = run.add_subparsers(dest="service", required=True, metavar="SERVICE")
-    r = common(run_sub.add_parser("router", help="a Zenoh router (a Python session in router mode)"))
-    r.add_argument("--instance", default=None)
-    r.set_defaults(func=cmd_run)
-    for name in SERVICES:
-        _, settings_cls = service_module(name)
-        sp = common(run_sub.add_parser(name, help=(service_module(name)[0].__doc__ or "").strip().splitlines()[0]))
-        sp.add_argument("--instance", default=None, help="instance name in stats and liveliness (default: host-pid)")
-        add_settings_arguments(sp, settings_cls)
-        sp.set_defaults(func=cmd_run)
+    if needed("up"):
+        up = common(sub.add_parser("up", help="start every service as a separate process; Ctrl-C stops all",
+                                   description="--listen: where the router listens (e.g. tcp/0.0.0.0:7447 for "
+                                               "offboard workers; the services connect to it on loopback); --connect: "
+                                               "where the router listens and the services connect (default "
+                                               "tcp/127.0.0.1:7447)"))
+        up.add_argument("--stop-timeout", type=float, default=10.0, metavar="S",
+                        help="seconds the services get to stop after SIGTERM before they are killed (default: 10)")
+        up.add_argument("--nice", type=int, default=int(os.environ.get("BALLBOT_NICE", 0)), metavar="N",
+                        help="scheduling priority of the services, -20..19 (negative: ahead of other work on the "
+                             "robot, e.g. -5; needs root) [BALLBOT_NICE] (default: 0)")
+        up.set_defaults(func=cmd_up)
+    else:
+        stub("up")
 
-    w = common(sub.add_parser("watch", help="print obstacle lists from ballbot/obstacles/**"))
-    w.add_argument("--robot", default=None, help="only this robot (default: every robot)")
-    w.add_argument("--json", action="store_true", help="one JSON object per obstacle list")
-    w.add_argument("--count", type=int, default=0, help="exit after N lists (0: run until Ctrl-C)")
-    w.add_argument("--timeout", type=float, default=0, help="exit with status 1 if nothing arrives in this many s")
-    w.set_defaults(func=cmd_watch)
+    if needed("run"):
+        run = sub.add_parser("run", help="start one service (what a container runs)")
+        run_sub = run.add_subparsers(dest="service", required=True, metavar="SERVICE")
+        r = common(run_sub.add_parser("router", help="a Zenoh router (a Python session in router mode)"))
+        r.add_argument("--instance", default=None)
+        r.set_defaults(func=cmd_run)
+        for name in SERVICES:
+            if wanted_service not in (None, name) and wanted_service in list(SERVICES) + ["router"]:
+                run_sub.add_parser(name, add_help=False)
+                continue
+            m, settings_cls = service_module(name)
+            sp = common(run_sub.add_parser(name, help=(m.__doc__ or "").strip().splitlines()[0]))
+            sp.add_argument("--instance", default=None, help="instance name in stats and liveliness (default: host-pid)")
+            add_settings_arguments(sp, settings_cls)
+            sp.set_defaults(func=cmd_run)
+    else:
+        stub("run")
 
-    s = common(sub.add_parser("status", help="every live service instance: rate, latency, drops, errors"))
-    s.add_argument("--robot", default=None, help="only this robot")
-    s.add_argument("--wait", type=float, default=2.5, help="seconds to listen for stats")
-    s.add_argument("--json", action="store_true")
-    s.set_defaults(func=cmd_status)
+    if needed("watch"):
+        w = common(sub.add_parser("watch", help="print obstacle lists from ballbot/obstacles/**"))
+        w.add_argument("--robot", default=None, help="only this robot (default: every robot)")
+        w.add_argument("--json", action="store_true", help="one JSON object per obstacle list")
+        w.add_argument("--count", type=int, default=0, help="exit after N lists (0: run until Ctrl-C)")
+        w.add_argument("--timeout", type=float, default=0, help="exit with status 1 if nothing arrives in this many s")
+        w.set_defaults(func=cmd_watch)
+    else:
+        stub("watch")
 
-    sc = sub.add_parser("schema", help="JSON Schema of the public messages")
-    sc.add_argument("model", nargs="?", default=None, help="one message (default: all)")
-    sc.set_defaults(func=cmd_schema)
+    if needed("status"):
+        s = common(sub.add_parser("status", help="every live service instance: rate, latency, drops, errors"))
+        s.add_argument("--robot", default=None, help="only this robot")
+        s.add_argument("--wait", type=float, default=2.5, help="seconds to listen for stats")
+        s.add_argument("--json", action="store_true")
+        s.set_defaults(func=cmd_status)
+    else:
+        stub("status")
 
-    hc = common(sub.add_parser("healthcheck", help="exit 0 if the services on this host report progress (containers)"))
-    hc.add_argument("--service", default=None, help="only this service")
-    hc.add_argument("--timeout", type=float, default=3.0)
-    hc.set_defaults(func=cmd_healthcheck)
+    if needed("schema"):
+        sc = sub.add_parser("schema", help="JSON Schema of the public messages")
+        sc.add_argument("model", nargs="?", default=None, help="one message (default: all)")
+        sc.set_defaults(func=cmd_schema)
+    else:
+        stub("schema")
 
-    k = sub.add_parser("keys", help="the Zenoh key table")
-    k.add_argument("--robot-id", default=None)
-    k.set_defaults(func=cmd_keys)
+    if needed("healthcheck"):
+        hc = common(sub.add_parser("healthcheck", help="exit 0 if the services on this host report progress "
+                                                                "(containers)"))
+        hc.add_argument("--service", default=None, help="only this service")
+        hc.add_argument("--timeout", type=float, default=3.0)
+        hc.set_defaults(func=cmd_healthcheck)
+    else:
+        stub("healthcheck")
 
-    b = common(sub.add_parser("bench", help="throughput and latency, per stage and end to end"))
-    from .bench.pipeline import add_bench_arguments
+    if needed("keys"):
+        k = sub.add_parser("keys", help="the Zenoh key table")
+        k.add_argument("--robot-id", default=None)
+        k.set_defaults(func=cmd_keys)
+    else:
+        stub("keys")
 
-    add_bench_arguments(b)
-    b.set_defaults(func=cmd_bench)
+    if needed("bench"):
+        b = common(sub.add_parser("bench", help="throughput and latency, per stage and end to end"))
+        from .bench.pipeline import add_bench_arguments
 
-    for module in COMMAND_MODULES:
-        importlib.import_module(module).register(sub, common)
+        add_bench_arguments(b)
+        b.set_defaults(func=cmd_bench)
+    else:
+        stub("bench")
+
+    if wanted is None or wanted not in BUILTIN_COMMANDS:
+        for module in COMMAND_MODULES:
+            importlib.import_module(module).register(sub, common)
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
     from .common.node import setup_logging
 
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    args = build_parser(argv).parse_args(argv)
     setup_logging(args.log_level.upper())
     try:
         return args.func(args) or 0

@@ -197,9 +197,16 @@ def _vec(doc: dict, key: str, n: int, where: str) -> np.ndarray:
 
 
 def _size(doc: dict, where: str) -> tuple[int, int]:
+    from .errors import FileError
+    from .files import check_image_size
+
     s = _vec(doc, "image_size", 2, where)
     if np.any(s <= 0) or np.any(s != np.round(s)):
         raise CalibrationError(f"{where}: field 'image_size' must be two positive integers [width, height]")
+    try:  # remap tables for 200000x200000 pixels would ask for ~240 GB
+        check_image_size(int(s[0]), int(s[1]), f"{where}: field 'image_size'")
+    except FileError as e:
+        raise CalibrationError(str(e)) from None
     return int(s[0]), int(s[1])
 
 
@@ -252,27 +259,60 @@ def calibration_to_dict(cal: Calibration) -> dict:
     return out
 
 
+# Fields that only other tools' calibration files have: their presence earns a hint to import.
+_FOREIGN_FIELDS = {"M1": "OpenCV stereo_calib", "camera_matrix": "ROS camera_info", "cam0": "Kalibr camchain",
+                   "T_BS": "EuRoC sensor.yaml", "intrinsics": "Kalibr/EuRoC"}
+
+
 def load_calibration(spec: str | Path) -> Calibration:
-    """A built-in profile name (e.g. ``lifecam-studio``) or a path to a calibration YAML."""
-    import yaml
+    """A built-in profile name (e.g. ``lifecam-studio``) or a path to a calibration YAML. A missing,
+    empty or binary file is a FileError, another tool's format a CalibrationError that says how to
+    import it, both in one line."""
+    from .errors import FileError
+    from .files import read_yaml
 
     s = str(spec)
     if s in PROFILES:
         return PROFILES[s]()
-    p = Path(s)
-    if not p.exists():
+    if not Path(s).expanduser().exists():
         raise CalibrationError(f"{s}: no such calibration file or built-in profile "
                                f"(profiles: {', '.join(sorted(PROFILES))})")
     try:
-        doc = yaml.safe_load(p.read_text())
-    except yaml.YAMLError as e:
-        raise CalibrationError(f"{s}: not valid YAML: {e}") from None
+        doc = read_yaml(s, "calibration")
+    except FileError as e:
+        if "not valid YAML" in str(e) and _looks_like_opencv(s):
+            raise CalibrationError(f"calibration {s}: an OpenCV FileStorage file, not this program's calibration "
+                                   f"YAML; convert it with: ballbot-vision calibration import {s} ... -o rig.yaml") from None
+        raise
+    if isinstance(doc, dict) and not {"rectified", "left", "K"} & set(doc):
+        foreign = [tool for key, tool in _FOREIGN_FIELDS.items() if key in doc]
+        if foreign:
+            raise CalibrationError(f"calibration {s}: a {foreign[0]} file, not this program's calibration YAML; "
+                                   f"convert it with: ballbot-vision calibration import {s} ... -o rig.yaml")
     return calibration_from_dict(doc, where=s)
 
 
+def _looks_like_opencv(path: str) -> bool:
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4096)
+    except OSError:
+        return False
+    return head.startswith(b"%YAML:1.0") or b"!!opencv-matrix" in head
+
+
+def validate_calibration(cal: Calibration, where: str) -> Calibration:
+    """Exactly the checks the loader makes (finite positive focal lengths, a rotation, a baseline,
+    a possible image size, ...), on a calibration about to be written: nothing is written that
+    load_calibration would refuse."""
+    return calibration_from_dict(calibration_to_dict(cal), where=where)
+
+
 def save_calibration(cal: Calibration, path: str | Path) -> None:
+    """Write the calibration YAML; refuses (CalibrationError) what the loader would refuse."""
     import yaml
 
+    validate_calibration(cal, f"refusing to write {path}")
     Path(path).write_text(yaml.safe_dump(calibration_to_dict(cal), sort_keys=False))
 
 

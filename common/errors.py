@@ -19,3 +19,8 @@ class DecodeError(BallbotError):
 
 class SourceError(BallbotError):
     """A capture source that cannot be opened or read."""
+
+
+class FileError(BallbotError):
+    """A file the user gave that is missing, unreadable, empty, binary, truncated, corrupt or of an
+    impossible size (see common/files.py for the one wording every command uses)."""

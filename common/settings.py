@@ -1,26 +1,43 @@
-"""Per-service settings: one pydantic model each, with defaults, ranges and descriptions.
+"""Per-service settings: one pydantic model each, with defaults, ranges and descriptions. The
+model is the one source of truth: the service's core consumes it directly, and every flag, its
+help text and its environment variable are generated from it.
 
 Where a value comes from, lowest to highest priority: the model's default, the service's section
 of `--config FILE` (YAML: `capture: {rate_hz: 15}`), the environment variable
 BALLBOT_<SERVICE>_<FIELD> (e.g. BALLBOT_CAPTURE_RATE_HZ=15), and the command-line flag
-(`--rate-hz 15`). Every flag is generated from the model, so `run SERVICE --help` documents them.
+(`--rate-hz 15`).
+
+Text from the environment or a flag is converted by the field's own type with pydantic's
+coercion (`--camera-left 010` is device 10, `--lr-check yes` is True), never guessed as YAML
+(where 010 is octal 8 and `no` is False). Fields that take a list or a mapping take JSON
+(`--foo '[1, 2]'`); a field that may be unset takes `null` (or `none`). A bool flag alone means
+true (`--lr-check`).
+
+This module stays light (pydantic and PyYAML only): `run router` and `healthcheck` import it.
 """
 from __future__ import annotations
 
 import argparse
 import os
+import types
+import typing
 from pathlib import Path
 from typing import Any, ClassVar, TypeVar
 
-import yaml
-from pydantic import BaseModel, ConfigDict, ValidationError
+from pydantic import BaseModel, ConfigDict, TypeAdapter, ValidationError
 
 from .errors import ConfigError
 
 S = TypeVar("S", bound="ServiceSettings")
 
+NULL_WORDS = ("null", "none")
+
 
 class ServiceSettings(BaseModel):
+    """Base of every service's settings. `section` names the service: its `--config` section and
+    the middle of its environment variables. An offline command that runs a service's core takes
+    the model of that core's settings only (e.g. the matcher's, without the worker pool's)."""
+
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
     section: ClassVar[str] = ""
 
@@ -28,60 +45,155 @@ class ServiceSettings(BaseModel):
     def env_var(cls, field: str) -> str:
         return f"BALLBOT_{cls.section.upper()}_{field.upper()}"
 
+    @classmethod
+    def flag(cls, field: str, prefix: str = "") -> str:
+        return "--" + (prefix + field).replace("_", "-")
 
-def add_settings_arguments(p: argparse.ArgumentParser, cls: type[ServiceSettings]) -> None:
-    g = p.add_argument_group(f"{cls.section} settings (also --config FILE section '{cls.section}', or env)")
+
+def _allows_none(annotation: Any) -> bool:
+    if annotation is None or annotation is type(None):
+        return True
+    origin = typing.get_origin(annotation)
+    if origin is typing.Annotated:
+        return _allows_none(typing.get_args(annotation)[0])
+    if origin in (typing.Union, types.UnionType):
+        return any(_allows_none(a) for a in typing.get_args(annotation))
+    return annotation is Any
+
+
+def _is_bool(annotation: Any) -> bool:
+    if typing.get_origin(annotation) is typing.Annotated:
+        annotation = typing.get_args(annotation)[0]
+    if typing.get_origin(annotation) in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(annotation) if a is not type(None)]
+        return len(args) == 1 and _is_bool(args[0])
+    return annotation is bool
+
+
+_ADAPTERS: dict[tuple[type, str], TypeAdapter] = {}
+
+
+def _adapter(cls: type[ServiceSettings], name: str) -> TypeAdapter:
+    key = (cls, name)
+    if key not in _ADAPTERS:
+        f = cls.model_fields[name]
+        _ADAPTERS[key] = TypeAdapter(typing.Annotated[f.annotation, *f.metadata] if f.metadata else f.annotation)
+    return _ADAPTERS[key]
+
+
+def parse_text(cls: type[ServiceSettings], name: str, text: str) -> Any:
+    """One setting given as text (a flag or an environment variable) -> a value of the field's
+    type, by pydantic's string coercion; JSON for lists, mappings and numeric choices; `null` or
+    `none` for a field that may be unset. Raises ValueError with pydantic's message."""
+    f = cls.model_fields[name]
+    if text.strip().lower() in NULL_WORDS and _allows_none(f.annotation):
+        return None
+    adapter = _adapter(cls, name)
+    try:
+        return adapter.validate_strings(text)
+    except ValidationError as first:
+        try:  # [1, 2], {"a": 1}, a Literal[1, 3, 5] given as "3"
+            return adapter.validate_json(text)
+        except ValidationError:
+            raise ValueError("; ".join(e["msg"] for e in first.errors())) from None
+
+
+def add_settings_arguments(p: argparse.ArgumentParser, cls: type[ServiceSettings], *, prefix: str = "",
+                           title: str | None = None) -> None:
+    """One flag per field of `cls` (`--rate-hz`), documented from the model. In a command that runs
+    several stages, `prefix` marks the settings of the stages that are not the command's own
+    (`obstacles --disparity-method sgbm` beside the segmenter's `--method`); load them with the same
+    prefix. Values land in per-section attributes, so two models never share a flag's value."""
+    g = p.add_argument_group(title or f"{cls.section} settings (also the '{cls.section}' section of --config "
+                                      f"FILE, or the environment variable shown)")
     for name, f in cls.model_fields.items():
         default = f.default if f.default_factory is None else f.default_factory()
-        g.add_argument("--" + name.replace("_", "-"), dest=f"set_{name}", default=argparse.SUPPRESS,
-                       metavar="V", help=f"{f.description or ''} (default: {default}) [{cls.env_var(name)}]")
+        kw: dict[str, Any] = {"nargs": "?", "const": "true", "metavar": "BOOL"} if _is_bool(f.annotation) \
+            else {"metavar": "V"}
+        g.add_argument(cls.flag(name, prefix), dest=_dest(cls, name), default=argparse.SUPPRESS,
+                       help=f"{f.description or ''} (default: {_show(default)}) [{cls.env_var(name)}]", **kw)
 
 
-def _parse_scalar(text: str) -> Any:
-    """'15' -> 15, 'true' -> True, '[1, 2]' -> [1, 2]; anything else stays a string."""
+def _dest(cls: type[ServiceSettings], name: str) -> str:
+    return f"set_{cls.section}__{name}"
+
+
+def _show(v: Any) -> str:
+    if v is None:
+        return "null"
+    if isinstance(v, bool):
+        return str(v).lower()
+    return str(v)
+
+
+def flags_given(cls: type[ServiceSettings], args: argparse.Namespace | None) -> dict[str, str]:
+    """{field: text} of the flags of `cls` given on the command line."""
+    if args is None:
+        return {}
+    out = {}
+    for name in cls.model_fields:
+        if hasattr(args, _dest(cls, name)):
+            out[name] = getattr(args, _dest(cls, name))
+    return out
+
+
+def read_config_section(config_file: str, section: str) -> dict[str, Any]:
+    """The mapping under `section` in a `--config` YAML file ({} when absent)."""
+    import yaml
+
+    path = Path(config_file)
     try:
-        return yaml.safe_load(text)
-    except yaml.YAMLError:
-        return text
+        doc = yaml.safe_load(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"{config_file}: no such config file") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise ConfigError(f"{config_file}: cannot read the config file ({getattr(e, 'strerror', None) or e})") from None
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{config_file}: not valid YAML: {e}") from None
+    doc = doc or {}
+    if not isinstance(doc, dict):
+        raise ConfigError(f"{config_file}: expected a mapping of service sections (capture:, rectify:, ...)")
+    sec = doc.get(section) or {}
+    if not isinstance(sec, dict):
+        raise ConfigError(f"{config_file}: section '{section}' must be a mapping")
+    return sec
 
 
 def load_settings(cls: type[S], config_file: str | None = None, args: argparse.Namespace | None = None,
-                  **overrides: Any) -> S:
+                  prefix: str = "", **overrides: Any) -> S:
+    """The settings of one service from defaults, config file, environment and flags (in rising
+    priority), validated; a ConfigError names each bad value and where it came from."""
     values: dict[str, Any] = {}
     sources: dict[str, str] = {}
+    problems: list[str] = []
     if config_file:
-        path = Path(config_file)
-        try:
-            doc = yaml.safe_load(path.read_text()) or {}
-        except (OSError, yaml.YAMLError) as e:
-            raise ConfigError(f"{config_file}: cannot read config: {e}") from None
-        if not isinstance(doc, dict):
-            raise ConfigError(f"{config_file}: expected a mapping of service sections")
-        section = doc.get(cls.section) or {}
-        if not isinstance(section, dict):
-            raise ConfigError(f"{config_file}: section '{cls.section}' must be a mapping")
-        for k, v in section.items():
+        for k, v in read_config_section(config_file, cls.section).items():
             values[k] = v
             sources[k] = f"{config_file}: {cls.section}.{k}"
+    texts: dict[str, tuple[str, str]] = {}
     for name in cls.model_fields:
         env = os.environ.get(cls.env_var(name))
         if env:  # an empty variable (common in compose files) means "not set"
-            values[name] = _parse_scalar(env)
-            sources[name] = f"environment variable {cls.env_var(name)}"
-    if args is not None:
-        for name in cls.model_fields:
-            if hasattr(args, f"set_{name}"):
-                values[name] = _parse_scalar(getattr(args, f"set_{name}"))
-                sources[name] = "--" + name.replace("_", "-")
+            texts[name] = (env, f"environment variable {cls.env_var(name)}")
+    for name, text in flags_given(cls, args).items():
+        texts[name] = (text, cls.flag(name, prefix))
+    for name, (text, where) in texts.items():
+        sources[name] = where
+        try:
+            values[name] = parse_text(cls, name, text)
+        except ValueError as e:
+            problems.append(f"{where}: {e} (got {text!r})")
+            values.pop(name, None)
     for k, v in overrides.items():
         values[k] = v
         sources[k] = "argument"
-    try:
-        return cls.model_validate(values)
-    except ValidationError as e:
-        lines = []
-        for err in e.errors():
-            field = str(err["loc"][0]) if err["loc"] else "?"
-            lines.append(f"{sources.get(field, cls.section + '.' + field)}: {err['msg']}"
-                         + (f" (got {err['input']!r})" if "input" in err and not isinstance(err["input"], dict) else ""))
-        raise ConfigError(f"invalid {cls.section} settings:\n  " + "\n  ".join(lines)) from None
+    if not problems:
+        try:
+            return cls.model_validate(values)
+        except ValidationError as e:
+            for err in e.errors():
+                field = str(err["loc"][0]) if err["loc"] else ""
+                where = sources.get(field, f"{cls.section}.{field}" if field else cls.section)
+                got = f" (got {err['input']!r})" if "input" in err and not isinstance(err["input"], dict) else ""
+                problems.append(f"{where}: {err['msg']}{got}")
+    raise ConfigError(f"invalid {cls.section} settings:\n  " + "\n  ".join(problems))

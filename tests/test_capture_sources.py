@@ -305,7 +305,7 @@ def test_camera_unplugged_mid_run_is_reported_retried_with_backoff_and_resumes()
                             "camera R lost, retrying in 0.04 s"]  # doubling up to camera_retry_max_s
     assert set(statuses[3:-1]) == {"camera R lost, retrying in 0.04 s"} and statuses[-1] == "ok"
     assert ctx.extra["reconnects"] == 1 and ctx.extra["lost"] == 0
-    assert src._backoff == src.cfg.retry_s  # reset after recovery
+    assert src._backoff == src.settings.camera_retry_s  # reset after recovery
     assert world.plugged["R"]
 
 

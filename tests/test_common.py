@@ -103,7 +103,10 @@ def test_settings_priority_default_file_env_flag(tmp_path, monkeypatch):
     s = load_settings(SegmenterSettings, str(cfg))
     assert s.max_range_m == 2.5 and s.median_ksize == 3 and s.min_area_fraction == 0.03
     import argparse
-    s = load_settings(SegmenterSettings, str(cfg), argparse.Namespace(set_max_range_m="1.5"))
+    from ballbot_vision.common.settings import add_settings_arguments
+    parser = argparse.ArgumentParser()
+    add_settings_arguments(parser, SegmenterSettings)
+    s = load_settings(SegmenterSettings, str(cfg), parser.parse_args(["--max-range-m", "1.5"]))
     assert s.max_range_m == 1.5
 
 

@@ -8,8 +8,8 @@ runs in tests on video files and fakes.
 Timing: every device is grab()bed before any is retrieve()d (grab only dequeues a buffer; decoding
 happens in retrieve), so the two frames are as close in time as unsynchronised cameras allow. The
 skew of a pair is the difference of the two frames' capture times: the V4L2 buffer timestamps
-(`skew_clock="driver"`, kernel monotonic clock) when the driver gives them, else the instants the two
-grab() calls returned (`"grab"`, a lower bound). Pairs whose skew exceeds `max_skew_ms` are dropped
+(`camera_skew_clock="driver"`, kernel monotonic clock) when the driver gives them, else the instants the two
+grab() calls returned (`"grab"`, a lower bound). Pairs whose skew exceeds `camera_max_skew_ms` are dropped
 and counted. Stats extra: skew_ms_p50, skew_ms_max (last 120 pairs), dropped_skew, lost, reconnects.
 
 A device that stops delivering (unplugged, driver error) is reported in the status ("camera
@@ -25,14 +25,16 @@ import os
 import re
 import sys
 import time
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import cv2
 
 from ...common.errors import SourceError
 from .sources import CapturedPair, RollingStats, SourceContext, natural_key, split_sbs
+
+if TYPE_CHECKING:
+    from .main import CaptureSettings
 
 log = logging.getLogger("ballbot.capture")
 
@@ -41,21 +43,6 @@ SYS_DIR = "/sys/class/video4linux"
 
 Capture = Any  # anything with the cv2.VideoCapture interface
 Opener = Callable[[Any], Capture]
-
-
-@dataclass
-class CameraConfig:
-    width: int = 640  # per camera; for sbs, the full double-width frame
-    height: int = 480
-    fps: float = 30.0
-    fourcc: str = "MJPG"  # "" keeps the driver's default
-    exposure: float | None = None  # None: automatic; else manual, in driver units (uvcvideo: 100 us)
-    buffers: int = 2  # driver buffers; few keep latency low
-    max_skew_ms: float = 20.0
-    skew_clock: str = "driver"  # "driver" (V4L2 timestamps when present) or "grab"
-    retry_s: float = 0.5  # first reconnect delay; doubles up to retry_max_s
-    retry_max_s: float = 8.0
-    timeout_s: float = 2.0  # a grab that waits longer counts as a lost camera (V4L2 select timeout)
 
 
 # --- devices -------------------------------------------------------------------------------------
@@ -115,10 +102,12 @@ def _fourcc_text(v: float) -> str:
     return s if s.isprintable() and s.strip() else "?"
 
 
-def configure(cap: Capture, cfg: CameraConfig, name: str) -> None:
-    """Request format, size, rate, buffers and exposure (in the order V4L2 wants); log what the
-    driver refused or changed. Nothing here is fatal: a camera that cannot do 30 fps still works."""
+def configure(cap: Capture, s: CaptureSettings, name: str) -> None:
+    """Request format, size, rate, buffers and exposure (the camera_* settings, in the order V4L2
+    wants); log what the driver refused or changed. Nothing here is fatal: a camera that cannot do
+    30 fps still works."""
     refused = []
+    fourcc = "" if s.camera_fourcc == "default" else s.camera_fourcc
 
     def ask(prop: int, value: float, what: str) -> None:
         try:
@@ -128,24 +117,24 @@ def configure(cap: Capture, cfg: CameraConfig, name: str) -> None:
         if not ok:
             refused.append(what)
 
-    if cfg.fourcc:
-        ask(cv2.CAP_PROP_FOURCC, cv2.VideoWriter_fourcc(*cfg.fourcc), f"fourcc {cfg.fourcc}")
-    if cfg.width and cfg.height:
-        ask(cv2.CAP_PROP_FRAME_WIDTH, cfg.width, f"width {cfg.width}")
-        ask(cv2.CAP_PROP_FRAME_HEIGHT, cfg.height, f"height {cfg.height}")
-    if cfg.fps:
-        ask(cv2.CAP_PROP_FPS, cfg.fps, f"{cfg.fps:g} fps")
-    if cfg.buffers:
-        ask(cv2.CAP_PROP_BUFFERSIZE, cfg.buffers, f"{cfg.buffers} buffers")
-    if cfg.exposure is not None:
+    if fourcc:
+        ask(cv2.CAP_PROP_FOURCC, cv2.VideoWriter_fourcc(*fourcc), f"fourcc {fourcc}")
+    if s.camera_width and s.camera_height:
+        ask(cv2.CAP_PROP_FRAME_WIDTH, s.camera_width, f"width {s.camera_width}")
+        ask(cv2.CAP_PROP_FRAME_HEIGHT, s.camera_height, f"height {s.camera_height}")
+    if s.camera_fps:
+        ask(cv2.CAP_PROP_FPS, s.camera_fps, f"{s.camera_fps:g} fps")
+    if s.camera_buffers:
+        ask(cv2.CAP_PROP_BUFFERSIZE, s.camera_buffers, f"{s.camera_buffers} buffers")
+    if s.camera_exposure is not None:
         ask(cv2.CAP_PROP_AUTO_EXPOSURE, 1, "manual exposure")  # V4L2_EXPOSURE_MANUAL
-        ask(cv2.CAP_PROP_EXPOSURE, cfg.exposure, f"exposure {cfg.exposure:g}")
+        ask(cv2.CAP_PROP_EXPOSURE, s.camera_exposure, f"exposure {s.camera_exposure:g}")
     w, h = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
     fps, fourcc = cap.get(cv2.CAP_PROP_FPS), _fourcc_text(cap.get(cv2.CAP_PROP_FOURCC))
     if refused:
         log.warning("camera %s: the driver refused %s", name, ", ".join(refused))
-    if cfg.width and cfg.height and (w, h) != (cfg.width, cfg.height):
-        log.warning("camera %s delivers %dx%d, not the requested %dx%d", name, w, h, cfg.width, cfg.height)
+    if s.camera_width and s.camera_height and (w, h) != (s.camera_width, s.camera_height):
+        log.warning("camera %s delivers %dx%d, not the requested %dx%d", name, w, h, s.camera_width, s.camera_height)
     log.info("camera %s: %dx%d %s %.1f fps", name, w, h, fourcc, fps)
 
 
@@ -185,9 +174,15 @@ class CameraSource:
     ended = False
     SKEW_STATUS_AFTER = 10  # consecutive dropped pairs before the status says so
 
-    def __init__(self, devices: list[Any], cfg: CameraConfig | None = None, ctx: SourceContext | None = None,
+    def __init__(self, devices: list[Any], settings: CaptureSettings | None = None, ctx: SourceContext | None = None,
                  opener: Opener | None = None, sbs: bool = False):
-        self.cfg = cfg or CameraConfig()
+        if settings is None:
+            from .main import CaptureSettings
+
+            settings = CaptureSettings(source="sbs" if sbs else "cameras")
+        self.settings = settings
+        # the backoff doubles from camera_retry_s up to camera_retry_max_s (never below the first delay)
+        self._retry_max_s = max(self.settings.camera_retry_max_s, self.settings.camera_retry_s)
         self.ctx = ctx or SourceContext()
         self.sbs = sbs
         self.name = "sbs" if sbs else "cameras"
@@ -197,7 +192,7 @@ class CameraSource:
         if not sbs and os.path.realpath(self.devs[0].name) == os.path.realpath(self.devs[1].name):
             raise SourceError(f"cameras: left and right are the same device {self.devs[0].name}")
         # OpenCV's V4L2 grab waits this long for a frame before failing (default 10 s); read once
-        os.environ.setdefault("OPENCV_VIDEOIO_V4L_SELECT_TIMEOUT", str(max(1, round(self.cfg.timeout_s))))
+        os.environ.setdefault("OPENCV_VIDEOIO_V4L_SELECT_TIMEOUT", str(max(1, round(self.settings.camera_timeout_s))))
         self.opener = opener or open_v4l2
         self.skew = RollingStats()
         self.dropped_skew = 0
@@ -205,7 +200,7 @@ class CameraSource:
         self.reconnects = 0
         self.lost = 0
         self._lost_dev: _Device | None = None
-        self._backoff = self.cfg.retry_s
+        self._backoff = self.settings.camera_retry_s
         self.ctx.extra.update(skew_ms_p50=0.0, skew_ms_max=0.0, dropped_skew=0.0, lost=0.0, reconnects=0.0)
         try:
             self._open_all()
@@ -226,7 +221,7 @@ class CameraSource:
             if not cap.isOpened():
                 raise SourceError(f"camera {d.name}: cannot be opened; {devices_hint()}")
             d.cap = cap
-            configure(cap, self.cfg, d.name)
+            configure(cap, self.settings, d.name)
 
     def _reconnect(self) -> bool:
         """Reopen every device, backing off, until a pair of frames arrives. False when stopped."""
@@ -241,16 +236,16 @@ class CameraSource:
                     if not cap.isOpened():
                         raise SourceError("cannot be opened")
                     d.cap = cap
-                    configure(cap, self.cfg, d.name)
+                    configure(cap, self.settings, d.name)
                     if not cap.grab():  # opens but delivers nothing: not back yet
                         raise _Lost(d, "no frame")
             except Exception as e:
-                self._backoff = min(self._backoff * 2, self.cfg.retry_max_s)
+                self._backoff = min(self._backoff * 2, self._retry_max_s)
                 self.ctx.status(f"camera {name} lost, retrying in {_secs(self._backoff)} s")
                 log.debug("camera %s: reconnect failed: %s", name, e)
                 continue
             self._lost_dev = None
-            self._backoff = self.cfg.retry_s
+            self._backoff = self.settings.camera_retry_s
             self.reconnects += 1
             self.ctx.extra.update(lost=0.0, reconnects=float(self.reconnects))
             self.ctx.status("ok")
@@ -261,7 +256,7 @@ class CameraSource:
     def _lose(self, lost: _Lost) -> None:
         self.lost += 1
         self._lost_dev = lost.dev
-        self._backoff = self.cfg.retry_s
+        self._backoff = self.settings.camera_retry_s
         self.close()
         self.ctx.extra["lost"] = 1.0
         self.ctx.status(f"camera {lost.dev.name} lost, retrying in {_secs(self._backoff)} s")
@@ -276,7 +271,7 @@ class CameraSource:
             grabbed.append(time.monotonic_ns())
         mono, wall = time.monotonic_ns(), time.time_ns()
         times = grabbed
-        if self.cfg.skew_clock == "driver":
+        if self.settings.camera_skew_clock == "driver":
             drv = [d.cap.get(cv2.CAP_PROP_POS_MSEC) for d in self.devs]
             # V4L2 buffer timestamps are kernel monotonic ms; anything else (a file position) is not
             if all(0 < t and abs(mono / 1e6 - t) < 5000 for t in drv):
@@ -313,12 +308,12 @@ class CameraSource:
             skew = pair.extra["skew_ms"]
             self.skew.add(skew)
             self.ctx.extra.update(skew_ms_p50=self.skew.p50(), skew_ms_max=self.skew.max())
-            if not self.sbs and skew > self.cfg.max_skew_ms:
+            if not self.sbs and skew > self.settings.camera_max_skew_ms:
                 self.dropped_skew += 1
                 self._dropping += 1
                 self.ctx.extra["dropped_skew"] = float(self.dropped_skew)
                 if self._dropping == self.SKEW_STATUS_AFTER:
-                    self.ctx.status(f"dropping pairs: left/right skew {skew:.1f} ms > {self.cfg.max_skew_ms:g} ms")
+                    self.ctx.status(f"dropping pairs: left/right skew {skew:.1f} ms > {self.settings.camera_max_skew_ms:g} ms")
                 continue
             if self._dropping >= self.SKEW_STATUS_AFTER:
                 self.ctx.status("ok")

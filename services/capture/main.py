@@ -12,10 +12,10 @@ from __future__ import annotations
 
 import os
 import time
-from typing import Literal
+from typing import Annotated, Any, Literal
 
 import cv2
-from pydantic import Field
+from pydantic import BeforeValidator, Field
 
 from ...common import codec
 from ...common.errors import SourceError
@@ -27,10 +27,22 @@ from .sources import CapturedPair, SourceContext, SyntheticSource
 SUBSCRIBES: list[str] = []
 PUBLISHES = ["frames_raw", "truth"]
 
-Device = int | str
+
+def _device(v: Any) -> Any:
+    """A camera given as text: all digits is an index, in decimal ("010" is 10), else a path."""
+    if isinstance(v, str) and v.strip().isdigit():
+        return int(v.strip(), 10)
+    return v
+
+
+# A V4L2 device: an index (0 -> /dev/video0), a path (/dev/video0, /dev/v4l/by-id/...) or a file.
+Device = Annotated[int | str, BeforeValidator(_device)]
 
 
 class CaptureSettings(ServiceSettings):
+    """capture's settings: the one model that `run capture` (flags, environment, config section) and
+    every source's core read (CameraSource takes it as it is); defaults live here only."""
+
     section = "capture"
     source: Literal["synthetic", "cameras", "sbs", "video", "images"] = Field(
         "synthetic", description="where pairs come from: synthetic, cameras, sbs, video, images")
@@ -84,16 +96,6 @@ class CaptureSettings(ServiceSettings):
     images_right: str = Field("", description="images: right folder or glob pattern")
 
 
-def camera_config(s: CaptureSettings):
-    from .cameras import CameraConfig
-
-    return CameraConfig(width=s.camera_width, height=s.camera_height, fps=s.camera_fps,
-                        fourcc="" if s.camera_fourcc == "default" else s.camera_fourcc,
-                        exposure=s.camera_exposure, buffers=s.camera_buffers, max_skew_ms=s.camera_max_skew_ms,
-                        skew_clock=s.camera_skew_clock, retry_s=s.camera_retry_s,
-                        retry_max_s=max(s.camera_retry_max_s, s.camera_retry_s), timeout_s=s.camera_timeout_s)
-
-
 def open_source(s: CaptureSettings, ctx: SourceContext | None = None, opener=None):
     """The source the settings name. `opener` replaces cv2.VideoCapture for cameras/sbs (tests)."""
     ctx = ctx or SourceContext()
@@ -118,8 +120,8 @@ def open_source(s: CaptureSettings, ctx: SourceContext | None = None, opener=Non
             from .files import VideoSource
 
             return VideoSource(path, "", {"auto": "file"}.get(s.pace, s.pace), s.rate_hz, s.loop, ctx, name="sbs")
-        return CameraSource([s.sbs_device], camera_config(s), ctx, opener, sbs=True)
-    return CameraSource([s.camera_left, s.camera_right], camera_config(s), ctx, opener)
+        return CameraSource([s.sbs_device], s, ctx, opener, sbs=True)
+    return CameraSource([s.camera_left, s.camera_right], s, ctx, opener)
 
 
 def truth_message(robot_id: str, seq: int, stamp_ns: int, scenario: str, truth: list) -> GroundTruth:

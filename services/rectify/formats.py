@@ -11,12 +11,22 @@
   with t_i = K'^-1 P_i[:, 3] (for the right camera t = (-B, 0, 0), i.e. P2[0,3] = -fx' B): a point
   X in the rectified reference frame is R_i X_i = X + t_i in camera i. So R2 X_right - t2 =
   R1 X_left - t1, hence R = R2^T R1 and T = R2^T (t2 - t1).
+* Kalibr's camchain YAML (``camchain.yaml``, ``camchain-imucam.yaml``): per camera ``camN`` with
+  camera_model pinhole, intrinsics [fu fv cu cv], distortion_model radtan with distortion_coeffs
+  [k1 k2 p1 p2], resolution [w h], and for N >= 1 ``T_cn_cnm1``, the pose that maps camera N-1's
+  points into camera N's: X_cn = T_cn_cnm1 X_cnm1 (so for cam1 it is OpenCV's R, T directly). A
+  chain without T_cn_cnm1 but with T_cam_imu per camera gives T_c1_c0 = T_c1_imu inv(T_c0_imu).
+* EuRoC's per-camera ``sensor.yaml`` (cam0_sensor.yaml, cam1_sensor.yaml): the same intrinsics and
+  distortion (distortion_model radial-tangential, distortion_coefficients), ``resolution``, and
+  ``T_BS``, the camera's pose in the body frame: X_B = T_BS X_cam. Hence
+  T_cam1_cam0 = inv(T_BS_cam1) T_BS_cam0.
 
 No CLI and no Zenoh here.
 """
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 from typing import Any
 
@@ -26,6 +36,7 @@ import yaml
 
 from ...common import camera
 from ...common.errors import CalibrationError
+from ...common.files import read_text, read_yaml
 
 # --- OpenCV stereo_calib ------------------------------------------------------------------------
 
@@ -33,10 +44,10 @@ from ...common.errors import CalibrationError
 def _fs_open(path: Path) -> Any:
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    except cv2.error as e:
-        raise CalibrationError(f"{path}: not an OpenCV FileStorage file ({str(e).strip().splitlines()[-1]})") from None
+    except (cv2.error, SystemError):  # OpenCV's parser raises either for text it cannot parse
+        raise CalibrationError(f"{path}: not a calibration format this command knows ({KNOWN_FORMATS})") from None
     if not fs.isOpened():
-        raise CalibrationError(f"{path}: cannot open as an OpenCV FileStorage file")
+        raise CalibrationError(f"{path}: not a calibration format this command knows ({KNOWN_FORMATS})")
     return fs
 
 
@@ -87,8 +98,7 @@ def read_stereo_calib(paths: list[str | Path], units_m: float = 1.0, image_size:
     found: dict[str, tuple[np.ndarray, Path]] = {}
     size = image_size
     for p in map(Path, paths):
-        if not p.exists():
-            raise CalibrationError(f"{p}: no such file")
+        read_text(p)  # missing, empty or binary: one clear line, before OpenCV's parser sees it
         fs = _fs_open(p)
         try:
             for key, shape in (("M1", (3, 3)), ("D1", None), ("M2", (3, 3)), ("D2", None), ("R", (3, 3)), ("T", (3,))):
@@ -100,6 +110,9 @@ def read_stereo_calib(paths: list[str | Path], units_m: float = 1.0, image_size:
         finally:
             fs.release()
     missing = [k for k in ("M1", "D1", "M2", "D2", "R", "T") if k not in found]
+    if len(missing) == 6:
+        raise CalibrationError(f"{', '.join(map(str, paths))}: not a calibration format this command knows "
+                               f"({KNOWN_FORMATS})")
     if missing:
         raise CalibrationError(f"{', '.join(map(str, paths))}: missing field(s) {', '.join(missing)} "
                                "(expected the intrinsics.yml and extrinsics.yml of OpenCV's stereo_calib)")
@@ -157,12 +170,7 @@ def _ros_mat(doc: dict, key: str, rows: int, cols: int | None, where: str) -> np
 
 
 def _read_ros_one(path: Path) -> dict:
-    if not path.exists():
-        raise CalibrationError(f"{path}: no such file")
-    try:
-        doc = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as e:
-        raise CalibrationError(f"{path}: not valid YAML: {e}") from None
+    doc = read_yaml(path)
     if not isinstance(doc, dict):
         raise CalibrationError(f"{path}: expected a ROS camera_info mapping")
     where = str(path)
@@ -230,25 +238,180 @@ def write_ros_pair(rig: camera.RawRig, left: str | Path, right: str | Path, alph
         Path(path).write_text(yaml.safe_dump(doc, sort_keys=False))
 
 
+# --- Kalibr camchain / EuRoC sensor.yaml --------------------------------------------------------
+
+KNOWN_FORMATS = ("OpenCV stereo_calib intrinsics.yml + extrinsics.yml, ROS camera_info left.yaml + right.yaml, "
+                 "Kalibr camchain.yaml, EuRoC cam0/sensor.yaml + cam1/sensor.yaml")
+
+# Kalibr's and EuRoC's names for OpenCV's 4/5-term radial-tangential model.
+_RADTAN = ("radtan", "radial-tangential", "plumb_bob")
+
+
+def _numbers(v: Any, n: int | None, where: str, field: str) -> np.ndarray:
+    data = v.get("data") if isinstance(v, dict) else v
+    try:
+        a = np.asarray(data, dtype=np.float64).ravel()
+    except (TypeError, ValueError):
+        raise CalibrationError(f"{where}: field '{field}' must hold numbers") from None
+    if (n is not None and a.size != n) or not np.all(np.isfinite(a)):
+        raise CalibrationError(f"{where}: field '{field}' must hold {n} finite numbers, got {a.size}")
+    return a
+
+
+def _pose(doc: dict, field: str, where: str) -> np.ndarray:
+    """A 4x4 rigid transform, as a nested list (Kalibr) or {rows, cols, data} (EuRoC)."""
+    T = _numbers(doc[field], 16, where, field).reshape(4, 4)
+    if not np.allclose(T[3], [0, 0, 0, 1]):
+        raise CalibrationError(f"{where}: field '{field}' is not a rigid transform (last row must be 0 0 0 1)")
+    camera._check_rotation(T[:3, :3], f"{where}: field '{field}'")
+    return T
+
+
+def _kalibr_camera(doc: Any, where: str) -> tuple[camera.Intrinsics, tuple[int, int]]:
+    """One camera of a camchain or an EuRoC sensor.yaml -> intrinsics and (width, height)."""
+    if not isinstance(doc, dict):
+        raise CalibrationError(f"{where}: expected a mapping with camera_model, intrinsics, distortion")
+    model = str(doc.get("camera_model", "pinhole"))
+    if model != "pinhole":
+        raise CalibrationError(f"{where}: camera_model '{model}' is not supported (pinhole only; "
+                               "recalibrate the rig with Kalibr's pinhole-radtan model)")
+    for field in ("intrinsics", "resolution"):
+        if field not in doc:
+            raise CalibrationError(f"{where}: missing field '{field}'")
+    fu, fv, cu, cv = _numbers(doc["intrinsics"], 4, where, "intrinsics")
+    if fu <= 0 or fv <= 0:
+        raise CalibrationError(f"{where}: field 'intrinsics' [fu, fv, cu, cv] needs positive focal lengths, "
+                               f"got fu={fu:g} fv={fv:g}")
+    w, h = _numbers(doc["resolution"], 2, where, "resolution")
+    if w <= 0 or h <= 0 or w != round(w) or h != round(h):
+        raise CalibrationError(f"{where}: field 'resolution' must be two positive integers [width, height]")
+    dm = str(doc.get("distortion_model", "radtan"))
+    key = "distortion_coeffs" if "distortion_coeffs" in doc else "distortion_coefficients"
+    if dm == "none":
+        dist = np.zeros(5)
+    elif dm in _RADTAN:
+        if key not in doc:
+            raise CalibrationError(f"{where}: missing field 'distortion_coeffs' (or 'distortion_coefficients')")
+        d = _numbers(doc[key], None, where, key)
+        if d.size not in (4, 5):
+            raise CalibrationError(f"{where}: field '{key}' must hold 4 numbers (k1 k2 p1 p2), got {d.size}")
+        dist = np.zeros(5)
+        dist[:d.size] = d
+    else:
+        raise CalibrationError(f"{where}: distortion_model '{dm}' is not supported (radtan / radial-tangential; "
+                               "equidistant is a fisheye model: recalibrate with pinhole-radtan)")
+    return camera.Intrinsics(float(fu), float(fv), float(cu), float(cv), 0.0,
+                             tuple(float(x) for x in dist)), (int(w), int(h))  # type: ignore[arg-type]
+
+
+def is_kalibr_camchain(doc: Any) -> bool:
+    return isinstance(doc, dict) and isinstance(doc.get("cam0"), dict) and "intrinsics" in doc["cam0"]
+
+
+def is_euroc_sensor(doc: Any) -> bool:
+    return isinstance(doc, dict) and "intrinsics" in doc and "T_BS" in doc
+
+
+def _rig(where: str, left: tuple, right: tuple, T_right_left: np.ndarray, name: str) -> camera.RawRig:
+    (kl, size_l), (kr, size_r) = left, right
+    if size_l != size_r:
+        raise CalibrationError(f"{where}: the cameras' resolutions differ ({size_l[0]}x{size_l[1]} and "
+                               f"{size_r[0]}x{size_r[1]}); a stereo pair needs one image size")
+    try:
+        return camera.RawRig(size_l, kl, kr, T_right_left[:3, :3], T_right_left[:3, 3], name)
+    except CalibrationError as e:
+        raise CalibrationError(f"{where}: {e}") from None
+
+
+def read_kalibr_camchain(path: str | Path, cameras: tuple[str, str] = ("cam0", "cam1"), name: str = "",
+                         doc: Any = None) -> camera.RawRig:
+    """A Kalibr camchain: `cameras` (left, right) of the chain, by default cam0 and cam1."""
+    where = str(path)
+    doc = read_yaml(path) if doc is None else doc
+    if not is_kalibr_camchain(doc):
+        raise CalibrationError(f"{where}: not a Kalibr camchain (no cam0 with intrinsics)")
+    chain = [k for k in sorted(doc, key=lambda k: int(k[3:]) if k[3:].isdigit() else 1 << 30)
+             if re.fullmatch(r"cam\d+", str(k))]
+    for c in cameras:
+        if c not in chain:
+            raise CalibrationError(f"{where}: no camera '{c}' (the chain has {', '.join(chain)})")
+    # every camera's pose relative to cam0: T_cn_c0 = T_cn_cnm1 ... T_c1_c0
+    to_c0: dict[str, np.ndarray] = {chain[0]: np.eye(4)}
+    use_imu = any("T_cn_cnm1" not in doc[c] for c in chain[1:])
+    for prev, cur in zip(chain, chain[1:]):
+        w = f"{where}: {cur}"
+        if not use_imu:
+            to_c0[cur] = _pose(doc[cur], "T_cn_cnm1", w) @ to_c0[prev]
+        elif all("T_cam_imu" in doc[c] for c in (chain[0], cur)):
+            to_c0[cur] = _pose(doc[cur], "T_cam_imu", w) @ np.linalg.inv(_pose(doc[chain[0]], "T_cam_imu", where))
+        else:
+            raise CalibrationError(f"{w}: missing field 'T_cn_cnm1' (the pose relative to the previous camera)")
+    left, right = cameras
+    T = to_c0[right] @ np.linalg.inv(to_c0[left])
+    return _rig(f"{where} ({left}, {right})", _kalibr_camera(doc[left], f"{where}: {left}"),
+                _kalibr_camera(doc[right], f"{where}: {right}"), T, name or Path(where).stem)
+
+
+def read_euroc_pair(left: str | Path, right: str | Path, name: str = "", docs: tuple[Any, Any] | None = None
+                    ) -> camera.RawRig:
+    """Two EuRoC sensor.yaml files, left camera (cam0) first."""
+    a, b = docs if docs is not None else (read_yaml(left), read_yaml(right))
+    for doc, path in ((a, left), (b, right)):
+        if not is_euroc_sensor(doc):
+            raise CalibrationError(f"{path}: not an EuRoC camera sensor.yaml (needs intrinsics and T_BS)")
+    T = np.linalg.inv(_pose(b, "T_BS", str(right))) @ _pose(a, "T_BS", str(left))
+    return _rig(f"{left}, {right}", _kalibr_camera(a, str(left)), _kalibr_camera(b, str(right)), T,
+                name or Path(str(left)).parent.name or "euroc")
+
+
 # --- any of them --------------------------------------------------------------------------------
 
+def _peek_yaml(path: str) -> Any:
+    """The parsed YAML document, or None when the file is not plain YAML (OpenCV FileStorage's
+    !!opencv-matrix tags). Missing, empty and binary files raise FileError here."""
+    import yaml
+
+    text = read_text(path)
+    text = re.sub(r"\A%YAML:\d+\.\d+[^\n]*\n", "", text)
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError:
+        return None
+
+
 def import_files(files: list[str], units_m: float = 1.0, image_size: tuple[int, int] | None = None,
-                 name: str = "") -> camera.RawRig:
-    """Two ROS camera_info files (left first, or named *left* / *right*), or the stereo_calib pair."""
+                 name: str = "", cameras: tuple[str, str] | None = None) -> camera.RawRig:
+    """Another tool's calibration -> a raw rig, validated as the loader validates: two ROS
+    camera_info files (left first, or named *left* / *right*), one Kalibr camchain (`cameras`
+    picks the pair, default cam0 cam1), two EuRoC sensor.yaml files (left first), or the
+    stereo_calib pair."""
     if not files:
-        raise CalibrationError("calibration import: give the files to import")
-    for f in files:
-        if not Path(f).exists():
-            raise CalibrationError(f"{f}: no such file")
-    ros = [f for f in files if is_ros_camera_info(f)]
-    if ros:
-        if len(ros) != 2 or len(files) != 2:
+        raise CalibrationError(f"calibration import: give the files to import ({KNOWN_FORMATS})")
+    docs = [_peek_yaml(f) for f in files]
+    where = ", ".join(files)
+    if any(is_kalibr_camchain(d) for d in docs):
+        if len(files) != 1:
+            raise CalibrationError(f"{where}: a Kalibr camchain holds the whole rig: give that one file")
+        rig = read_kalibr_camchain(files[0], cameras or ("cam0", "cam1"), name, docs[0])
+    elif cameras:
+        raise CalibrationError("--cameras picks two cameras of a Kalibr camchain; "
+                               f"{where} is not one")
+    elif any(is_euroc_sensor(d) for d in docs):
+        if len(files) != 2:
+            raise CalibrationError(f"{where}: EuRoC sensor.yaml: expected two files, left (cam0) then right (cam1), "
+                                   f"got {len(files)}")
+        rig = read_euroc_pair(files[0], files[1], name, (docs[0], docs[1]))
+    elif any(isinstance(d, dict) and "camera_matrix" in d and "projection_matrix" in d for d in docs):
+        if len(files) != 2:
             raise CalibrationError(f"ROS camera_info: expected exactly two files (left and right), got {len(files)}")
         a, b = files
         if "right" in Path(a).name.lower() and "left" in Path(b).name.lower():
             a, b = b, a
-        return read_ros_pair(a, b, name)
-    return read_stereo_calib(files, units_m, image_size, name)
+        rig = read_ros_pair(a, b, name)
+    else:
+        rig = read_stereo_calib(files, units_m, image_size, name)
+    camera.validate_calibration(rig, where)
+    return rig
 
 
 def parse_size(text: str) -> tuple[int, int]:

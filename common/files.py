@@ -1,0 +1,248 @@
+"""The user's files, read the same way by every command: one wording when a file is missing,
+unreadable, empty, binary, truncated, corrupt or of an impossible size (a FileError, which the CLI
+prints on one line and exits 2 for); natural sort (left2 before left10) for every list of files;
+image folders and globs paired left/right by name.
+
+Image decoding goes through OpenCV, but OpenCV's own stderr noise never reaches the user: libjpeg
+and libpng report damage only as warnings on stderr (a truncated JPEG still decodes, grey at the
+bottom), so decoding captures stderr and turns those warnings into a FileError.
+"""
+from __future__ import annotations
+
+import glob
+import os
+import re
+import sys
+import tempfile
+import threading
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any, Iterator, Sequence
+
+import numpy as np
+
+from .errors import FileError
+
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".pnm", ".webp")
+
+# Limits of any image or calibration image size. 8K (7680x4320, 33 MP) fits; a 1x1 image or a
+# calibration that asks for 200000x200000 pixels (remap tables of ~240 GB) does not.
+MIN_IMAGE_SIDE = 16
+MAX_IMAGE_SIDE = 16384
+MAX_IMAGE_PIXELS = 40_000_000
+
+
+def natural_key(text: Any) -> list:
+    """Sort key so that img2 < img10 (digit runs compare as numbers, the rest case-insensitively).
+    re.split with a group alternates text and digit runs, so equal positions hold equal types."""
+    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"([0-9]+)", str(text))]
+
+
+def natural_sorted(items: Sequence[Any]) -> list:
+    return sorted(items, key=natural_key)
+
+
+# --- any file ------------------------------------------------------------------------------------
+
+def check_readable(path: str | Path, what: str = "") -> Path:
+    """The path of an existing, readable regular file, else a FileError in the common wording."""
+    p = Path(os.path.expanduser(str(path)))
+    label = f"{what} {path}" if what else str(path)
+    if not p.exists():
+        raise FileError(f"{label}: no such file")
+    if p.is_dir():
+        raise FileError(f"{label}: is a folder, not a file")
+    if not os.access(p, os.R_OK):
+        raise FileError(f"{label}: cannot read the file (permission denied)")
+    return p
+
+
+def read_bytes(path: str | Path, what: str = "") -> bytes:
+    p = check_readable(path, what)
+    label = f"{what} {path}" if what else str(path)
+    try:
+        data = p.read_bytes()
+    except OSError as e:
+        raise FileError(f"{label}: cannot read the file ({e.strerror or e})") from None
+    if not data:
+        raise FileError(f"{label}: the file is empty")
+    return data
+
+
+def read_text(path: str | Path, what: str = "") -> str:
+    """A text file's content; binary data (an image, a zip) or an empty file is a FileError."""
+    data = read_bytes(path, what)
+    label = f"{what} {path}" if what else str(path)
+    if b"\x00" in data[:8192]:
+        raise FileError(f"{label}: binary data, not a text file")
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise FileError(f"{label}: binary data, not a text file (byte {e.start} is not UTF-8)") from None
+
+
+def read_yaml(path: str | Path, what: str = "") -> Any:
+    """A YAML file parsed (safe_load). OpenCV FileStorage's `%YAML:1.0` first line, which YAML
+    parsers reject, is accepted (EuRoC and OpenCV write it). Errors name the file and line."""
+    import yaml
+
+    text = read_text(path, what)
+    label = f"{what} {path}" if what else str(path)
+    text = re.sub(r"\A%YAML:\d+\.\d+[^\n]*\n", "", text)
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f" (line {mark.line + 1}: {getattr(e, 'problem', '') or 'syntax error'})" if mark else ""
+        raise FileError(f"{label}: not valid YAML{where}") from None
+
+
+# --- images --------------------------------------------------------------------------------------
+
+def check_image_size(width: int, height: int, where: str) -> None:
+    """Refuse sizes no stereo pair can have: below MIN_IMAGE_SIDE, above MAX_IMAGE_SIDE per side or
+    MAX_IMAGE_PIXELS in all."""
+    if width < MIN_IMAGE_SIDE or height < MIN_IMAGE_SIDE:
+        raise FileError(f"{where}: {width}x{height} pixels is too small for a stereo image "
+                        f"(at least {MIN_IMAGE_SIDE}x{MIN_IMAGE_SIDE})")
+    if width > MAX_IMAGE_SIDE or height > MAX_IMAGE_SIDE or width * height > MAX_IMAGE_PIXELS:
+        raise FileError(f"{where}: {width}x{height} pixels is larger than this program handles "
+                        f"(at most {MAX_IMAGE_SIDE} per side and {MAX_IMAGE_PIXELS // 1_000_000} megapixels)")
+
+
+def image_header_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) from a PNG or JPEG header without decoding, so a small file that claims a
+    huge image (a decompression bomb) is refused before any memory is spent; None otherwise."""
+    if data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) >= 24 and data[12:16] == b"IHDR":
+        return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+    if data[:2] == b"\xff\xd8":
+        i = 2
+        while i + 9 <= len(data):
+            if data[i] != 0xFF:
+                return None
+            marker = data[i + 1]
+            if marker == 0xFF:  # fill byte
+                i += 1
+                continue
+            length = int.from_bytes(data[i + 2:i + 4], "big")
+            if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):  # SOFn
+                return int.from_bytes(data[i + 7:i + 9], "big"), int.from_bytes(data[i + 5:i + 7], "big")
+            if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
+                i += 2
+                continue
+            i += 2 + length
+    return None
+
+
+_STDERR_LOCK = threading.Lock()
+
+
+@contextmanager
+def _stderr_captured() -> Iterator[list[str]]:
+    """Collect what C libraries write to file descriptor 2 meanwhile (OpenCV's codecs print their
+    warnings there); the text lands in the yielded list."""
+    out: list[str] = []
+    with _STDERR_LOCK:
+        sys.stderr.flush()
+        saved = os.dup(2)
+        with tempfile.TemporaryFile() as tmp:
+            os.dup2(tmp.fileno(), 2)
+            try:
+                yield out
+            finally:
+                os.dup2(saved, 2)
+                os.close(saved)
+                tmp.seek(0)
+                out.append(tmp.read().decode("utf-8", "replace"))
+
+
+# What libjpeg / libpng / OpenCV's loaders print about a damaged file.
+_DAMAGE = re.compile(r"(corrupt|premature end|libpng|libjpeg|invalid|crc error|truncat|not a jpeg|bogus|"
+                     r"unsupported marker|huffman|extraneous bytes)", re.IGNORECASE)
+
+
+def decode_image(data: bytes, where: str) -> np.ndarray:
+    """Encoded image bytes -> (H, W) uint8 grey or (H, W, 3) uint8 BGR (alpha dropped, 16-bit
+    scaled to 8). A truncated or corrupt file, an unknown format or an impossible size is a
+    FileError naming `where`."""
+    import cv2
+
+    size = image_header_size(data)
+    if size is not None:
+        check_image_size(size[0], size[1], where)
+    with _stderr_captured() as noise:
+        try:
+            img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_ANYCOLOR)
+        except cv2.error as e:
+            img, noise_exc = None, str(e).strip().splitlines()[-1]
+        else:
+            noise_exc = ""
+    said = " ".join(line.strip() for line in (noise[0] if noise else "").splitlines() if line.strip())
+    damage = [line.strip() for line in (noise[0] if noise else "").splitlines() if _DAMAGE.search(line)]
+    if img is None:
+        why = damage[0] if damage else (noise_exc or "")
+        if why:
+            raise FileError(f"{where}: truncated or corrupt image ({why})")
+        raise FileError(f"{where}: not an image file OpenCV can decode ({len(data)} bytes; "
+                        f"known: {', '.join(IMAGE_EXTENSIONS)})")
+    if damage:
+        raise FileError(f"{where}: truncated or corrupt image ({damage[0]})")
+    if said:  # something else the codec said: not ours to hide, not worth failing for
+        print(said, file=sys.stderr)
+    check_image_size(img.shape[1], img.shape[0], where)
+    return img
+
+
+def read_image(path: str | Path, what: str = "") -> np.ndarray:
+    """One image file -> (H, W) uint8 grey or (H, W, 3) uint8 BGR; FileError on any problem."""
+    data = read_bytes(path, what)
+    return decode_image(data, f"{what} {path}" if what else str(path))
+
+
+# --- lists of image files ------------------------------------------------------------------------
+
+def list_images(spec: str, what: str) -> list[Path]:
+    """A folder (every image file in it), a glob pattern ('left/*.png', 'data/**/im0.png') or one
+    file -> image files in natural order (img2 before img10). `what` names the argument in errors
+    (e.g. "LEFT" or "--images-left")."""
+    if not spec:
+        raise FileError(f"{what}: no folder, pattern or file given")
+    path = Path(os.path.expanduser(spec))
+    if path.is_dir():
+        files = [f for f in path.iterdir() if f.suffix.lower() in IMAGE_EXTENSIONS and f.is_file()]
+        if not files:
+            raise FileError(f"{what} {spec}: the folder holds no image files ({', '.join(IMAGE_EXTENSIONS)})")
+    elif path.is_file():
+        files = [path]
+    else:
+        files = [Path(f) for f in glob.glob(os.path.expanduser(spec), recursive=True)
+                 if Path(f).is_file() and Path(f).suffix.lower() in IMAGE_EXTENSIONS]
+        if not files:
+            why = "no file matches the pattern" if glob.has_magic(spec) else "no such file or folder"
+            raise FileError(f"{what} {spec}: {why}")
+    return natural_sorted(files)
+
+
+_SIDE = re.compile(r"(left|right|links|rechts)", re.IGNORECASE)
+
+
+def _pair_key(path: Path) -> str:
+    return _SIDE.sub("#", path.stem).lower()
+
+
+def pair_images(left: Sequence[Path], right: Sequence[Path]) -> list[tuple[Path, Path]]:
+    """Left and right files paired by name (the name with left/right removed: left03.png and
+    right03.png), else, with equal counts, in natural order. Different counts are a FileError that
+    names files without a partner."""
+    lk = {_pair_key(p): p for p in left}
+    rk = {_pair_key(p): p for p in right}
+    if len(lk) == len(left) and len(rk) == len(right) and set(lk) == set(rk):
+        return [(lk[k], rk[k]) for k in natural_sorted(list(lk))]
+    if len(left) != len(right):
+        only_l = natural_sorted(list(set(lk) - set(rk)))
+        only_r = natural_sorted(list(set(rk) - set(lk)))
+        detail = ""
+        if only_l or only_r:
+            detail = "; without a partner: " + ", ".join([str(lk[k]) for k in only_l[:5]] + [str(rk[k]) for k in only_r[:5]])
+        raise FileError(f"{len(left)} left images but {len(right)} right images{detail}")
+    return list(zip(natural_sorted(list(left)), natural_sorted(list(right))))

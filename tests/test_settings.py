@@ -1,0 +1,123 @@
+"""Settings from flags and the environment are parsed by the field's type (pydantic's coercion), not
+guessed as YAML; errors name where a value came from; the commands that containers run first
+(`run router`, `healthcheck`) import neither OpenCV nor any service."""
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+
+import pytest
+
+from ballbot_vision.cli import build_parser
+from ballbot_vision.common.errors import ConfigError
+from ballbot_vision.common.settings import add_settings_arguments, load_settings
+from ballbot_vision.services.capture.main import CaptureSettings
+from ballbot_vision.services.segmenter.main import SegmenterSettings
+
+
+def capture(argv: list[str], config: str | None = None) -> CaptureSettings:
+    args = build_parser(["run", "capture", *argv]).parse_args(["run", "capture", *argv])
+    return load_settings(CaptureSettings, config, args)
+
+
+def test_a_device_number_with_a_leading_zero_is_decimal_not_octal():
+    assert capture(["--camera-left", "010"]).camera_left == 10  # YAML read this as 8
+    assert capture(["--camera-left", "/dev/v4l/by-id/usb-cam-index0"]).camera_left == "/dev/v4l/by-id/usb-cam-index0"
+    assert capture(["--sbs-device", "3"]).sbs_device == 3
+
+
+def test_text_fields_stay_text_whatever_yaml_would_make_of_them():
+    s = capture(["--scenario", "yes", "--calibration", "1.0", "--images-left", "0x10", "--video-left", "null"])
+    assert (s.scenario, s.calibration, s.images_left, s.video_left) == ("yes", "1.0", "0x10", "null")
+
+
+def test_numbers_bools_and_unset_by_type(monkeypatch):
+    s = capture(["--rate-hz", "15", "--loop", "--grayscale", "no", "--camera-exposure", "null"])
+    assert s.rate_hz == 15.0 and s.loop is True and s.grayscale is False and s.camera_exposure is None
+    monkeypatch.setenv("BALLBOT_CAPTURE_CAMERA_EXPOSURE", "250")
+    monkeypatch.setenv("BALLBOT_CAPTURE_CAMERA_RIGHT", "012")
+    s = capture([])
+    assert s.camera_exposure == 250.0 and s.camera_right == 12
+    assert capture(["--camera-exposure", "None"]).camera_exposure is None  # the flag beats the environment
+
+
+def test_numeric_choices_and_optional_numbers():
+    p = argparse.ArgumentParser()
+    add_settings_arguments(p, SegmenterSettings)
+    s = load_settings(SegmenterSettings, None, p.parse_args(["--median-ksize", "3", "--max-range-m", "none",
+                                                              "--mount-height-m", "0.8"]))
+    assert s.median_ksize == 3 and s.max_range_m is None and s.mount_height_m == 0.8
+
+
+@pytest.mark.parametrize("argv,where,what", [
+    (["--rate-hz", "fast"], "--rate-hz", "'fast'"),
+    (["--camera-width", "640px"], "--camera-width", "'640px'"),
+    (["--loop", "maybe"], "--loop", "'maybe'"),
+    (["--source", "webcam"], "--source", "'webcam'"),
+    (["--rate-hz", "-1"], "--rate-hz", "greater than 0"),
+    (["--jpeg-quality", "null"], "--jpeg-quality", "'null'"),  # not optional: null is no number
+])
+def test_a_bad_flag_is_named_with_its_value(argv, where, what):
+    with pytest.raises(ConfigError) as e:
+        capture(argv)
+    assert where in str(e.value) and what in str(e.value), str(e.value)
+
+
+def test_env_and_config_file_are_named_too(tmp_path, monkeypatch):
+    monkeypatch.setenv("BALLBOT_CAPTURE_RATE_HZ", "often")
+    with pytest.raises(ConfigError, match="environment variable BALLBOT_CAPTURE_RATE_HZ: .*'often'"):
+        capture([])
+    monkeypatch.delenv("BALLBOT_CAPTURE_RATE_HZ")
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("capture: {rate_hz: 0}\n")
+    with pytest.raises(ConfigError, match=f"{cfg}: capture.rate_hz: .*greater than 0"):
+        capture([], str(cfg))
+    cfg.write_bytes(b"\x89PNG\r\n\x1a\n\x00\x00\xff\xfe")
+    with pytest.raises(ConfigError, match="cannot read the config file|not valid YAML"):
+        capture([], str(cfg))
+    with pytest.raises(ConfigError, match="no such config file"):
+        capture([], str(tmp_path / "missing.yaml"))
+
+
+def test_several_stages_in_one_command_keep_their_values_apart():
+    """A command that runs two stages names the other stage's settings with its prefix; the
+    values of equal field names never mix."""
+    from ballbot_vision.common.settings import ServiceSettings
+
+    class Other(ServiceSettings):
+        section = "other"
+        method: str = "a"
+        max_range_m: float = 1.0
+
+    p = argparse.ArgumentParser()
+    add_settings_arguments(p, SegmenterSettings)
+    add_settings_arguments(p, Other, prefix="other-")
+    args = p.parse_args(["--method", "seed", "--other-method", "b", "--other-max-range-m", "2.5"])
+    assert load_settings(SegmenterSettings, None, args).method == "seed"
+    assert load_settings(SegmenterSettings, None, args).max_range_m is None
+    o = load_settings(Other, None, args, prefix="other-")
+    assert (o.method, o.max_range_m) == ("b", 2.5)
+    with pytest.raises(ConfigError, match="--other-max-range-m"):
+        load_settings(Other, None, p.parse_args(["--other-max-range-m", "far"]), prefix="other-")
+
+
+@pytest.mark.parametrize("argv", [["run", "router", "--help"], ["healthcheck", "--help"],
+                                  ["--log-level", "DEBUG", "run", "router", "--help"], ["keys"], ["schema"]])
+def test_router_and_healthcheck_import_neither_opencv_nor_any_service(argv):
+    code = ("import sys\nfrom ballbot_vision import cli\n"
+            "try:\n    cli.main(sys.argv[1:])\nexcept SystemExit:\n    pass\n"
+            "heavy = sorted(m for m in sys.modules if m == 'cv2' or m == 'scipy' or m.startswith('ballbot_vision.services')"
+            " or m.startswith('ballbot_vision.bench'))\n"
+            "print('HEAVY', heavy, file=sys.stderr)\n")
+    r = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True, timeout=120)
+    assert "HEAVY []" in r.stderr, r.stderr[-2000:]
+
+
+def test_run_service_help_still_lists_every_setting():
+    r = subprocess.run([sys.executable, "-m", "ballbot_vision.cli", "run", "capture", "--help"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and "--camera-left" in r.stdout and "BALLBOT_CAPTURE_CAMERA_LEFT" in r.stdout
+    r = subprocess.run([sys.executable, "-m", "ballbot_vision.cli", "--help"], capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 0 and "healthcheck" in r.stdout and "calibration" in r.stdout and "obstacles" in r.stdout
