@@ -44,7 +44,7 @@ class Meta:
     """The attachment every Publisher puts beside a payload, so an inbox can order and vet payloads
     without decoding them: the capture stamp of what is published (ns since the epoch, the
     capture host's clock), the publisher's random 64-bit id (new on every start) and its own
-    sequence number (1, 2, ... per publisher: gaps are losses, a repeat is a replay)."""
+    sequence number (1, 2, ... per publisher: gaps are losses)."""
 
     stamp_ns: int
     source: int = 0  # 0: unknown (an 8-byte legacy attachment: the stamp only)
@@ -142,7 +142,7 @@ class FreshnessLimits:
                    f("BALLBOT_RESYNC_S", cls.resync_s))
 
 
-REJECTIONS = ("future", "old", "late", "replayed")
+REJECTIONS = ("future", "old", "late")
 
 
 class FreshnessGate:
@@ -159,8 +159,7 @@ class FreshnessGate:
       nothing but itself.
     - Our own wall clock stepping back leaves the reference in the future: it is dropped at once
       (counted as a clock step), so a local NTP step costs the frames in flight and no more.
-    - A per-publisher sequence number: a repeat of one already seen from that publisher is a
-      replay; a gap counts as lost.
+    - A per-publisher sequence number: gaps count as lost (a replay is refused as late).
     - Resynchronisation: if nothing was accepted for resync_s while stamped payloads kept being
       refused, the gate adopts the time base of the publisher that sent the most of them (the
       offset between its stamps and our clock) and forgets the reference: a capture host whose
@@ -194,30 +193,27 @@ class FreshnessGate:
             self.counts["clock_steps"] += 1
         now_mono = self.clock.mono_ns()
         verdict = "ok"
-        if meta.source and meta.source in self._seq and meta.seq <= self._seq[meta.source]:
-            verdict = "replayed"
-        else:
-            skew = self._skew_ns(meta.stamp_ns)
-            if skew > future_ns:
-                verdict = "future"
-            elif skew < -past_ns:
-                verdict = "old"
-            elif (self.reference is not None and meta.stamp_ns <= self.reference) or \
-                    (waiting is not None and meta.stamp_ns < waiting):
-                verdict = "late"
-        if meta.source:
+        skew = self._skew_ns(meta.stamp_ns)
+        if skew > future_ns:
+            verdict = "future"
+        elif skew < -past_ns:
+            verdict = "old"
+        elif (self.reference is not None and meta.stamp_ns <= self.reference) or \
+                (waiting is not None and meta.stamp_ns < waiting):
+            verdict = "late"  # also a replay of anything already handed on
+        if verdict == "ok" and meta.source:
+            # Losses on the way, per publisher. Only accepted payloads move this, and an implausible
+            # jump counts nothing, so a forged sequence number cannot poison a real publisher's.
             last = self._seq.get(meta.source)
-            if last is not None and meta.seq > last + 1:
+            if last is not None and last < meta.seq <= last + 1000:
                 self.counts["lost"] += meta.seq - last - 1
-            if last is None or meta.seq > last:
-                self._seq[meta.source] = meta.seq
-                if len(self._seq) > self.MAX_SOURCES:  # forged ids cannot grow this without bound
-                    self._seq.pop(next(iter(self._seq)))
+            self._seq[meta.source] = meta.seq
+            if len(self._seq) > self.MAX_SOURCES:  # forged ids cannot grow this without bound
+                self._seq.pop(next(iter(self._seq)))
         if verdict == "ok":
             self._accepted(now_mono)
             return verdict
-        if verdict != "replayed" and self._should_resync(meta, now_mono):
-            skew = self._skew_ns(meta.stamp_ns)
+        if self._should_resync(meta, now_mono):
             if abs(skew) > future_ns:  # a clearly different time base: adopt it (ages stay right)
                 self.offset_ns += skew
             self.reference = None
@@ -282,7 +278,7 @@ class Inbox:
         self._taken_stamp = -1  # without a gate
         self.received = 0
         self.overwritten = 0
-        self.late = 0  # every refusal (future, old, late, replayed) without a gate: late only
+        self.late = 0  # every refusal (future, old, late; without a gate: late only)
         self.oversized = 0
         self.bytes = 0
 
