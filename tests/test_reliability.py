@@ -164,9 +164,15 @@ def test_a_map_replayed_an_hour_ahead_is_refused(pipeline):
     payload = codec.encode(forged)
     t0 = time.monotonic()
     s.put(pipeline.key("disparity"), payload, attachment=struct.pack(">QQQ", forged.stamp_ns, 77, 1))
-    s.put(pipeline.key("disparity"), payload)  # no attachment: vetted after decoding
+    st.wait(lambda: st.extra("segmenter", "in_disparity_future") >= 1, 30, "the segmenter to refuse it")
+    # Without an attachment it is vetted after decoding, if a real map does not overwrite it in the
+    # newest-wins slot first: offer it until the segmenter has looked at it.
+    deadline = time.monotonic() + 60
+    while st.extra("segmenter", "in_disparity_future") < 2 and time.monotonic() < deadline:
+        s.put(pipeline.key("disparity"), payload)
+        st.hold(0.5)
+    assert st.extra("segmenter", "in_disparity_future") >= 2, "the segmenter never refused the unattached replay"
     st.wait_new(15, t0, 90, "new lists after the replayed map")
-    st.wait(lambda: st.extra("segmenter", "in_disparity_future") >= 2, 30, "the segmenter to refuse both")
     assert not [m for _, m in st.lists if m.stamp_ns == forged.stamp_ns], "the replayed map became a list"
 
 
@@ -296,6 +302,9 @@ def test_a_wall_clock_step_costs_no_more_than_the_frames_in_flight(tmp_path):
     try:
         st.wait_new(30, 0.0, 180, "the pipeline to start")
         for step in (-10, +10):
+            t_ref = time.monotonic()
+            st.hold(4.0)  # the reference: gaps this machine makes without a step
+            base_gap = max_gap([t for t, _ in st.new(t_ref)], t_ref, time.monotonic())
             offset.write_text(str(float(offset.read_text()) + step))
             t_step = time.monotonic()
             st.wait_new(30, t_step + 2.0, 60, f"new lists after a {step:+d} s step")
@@ -303,9 +312,9 @@ def test_a_wall_clock_step_costs_no_more_than_the_frames_in_flight(tmp_path):
             gap = max_gap([t for t, _ in fresh], t_step - 1.0, t_step + 3.0)
             speeds = [max(abs(v) for v in o.velocity_mps) for _, m in fresh for o in m.obstacles if o.track_frames > 2]
             ids = {tuple(sorted(o.id for o in m.obstacles)) for t, m in fresh}
-            print(f"clock step {step:+d} s: longest gap {gap:.2f} s, fastest static obstacle "
-                  f"{max(speeds, default=0):.2f} m/s, id sets {ids}")
-            assert gap < 2.0, f"a {step:+d} s clock step stopped the obstacle stream for {gap:.1f} s"
+            print(f"clock step {step:+d} s: longest gap {gap:.2f} s ({base_gap:.2f} s before it), fastest static "
+                  f"obstacle {max(speeds, default=0):.2f} m/s, id sets {ids}")
+            assert gap < max(2.0, 2 * base_gap), f"a {step:+d} s clock step stopped the obstacle stream for {gap:.1f} s"
             assert max(speeds, default=0.0) < 0.5, "velocities of a static scene went wild across the step"
             assert len(ids) == 1, f"track ids changed across the step: {ids}"
         assert st.extra("rectify", "in_frames_raw_clock_steps") >= 1
