@@ -20,6 +20,7 @@ SERVICES = {
     "rectify": ("ballbot_vision.services.rectify.main", "RectifySettings"),
     "disparity": ("ballbot_vision.services.disparity.main", "DisparitySettings"),
     "segmenter": ("ballbot_vision.services.segmenter.main", "SegmenterSettings"),
+    "ros2": ("ballbot_vision.services.ros2.main", "Ros2Settings"),
 }
 PIPELINE = ["capture", "rectify", "disparity", "segmenter"]
 
@@ -29,6 +30,7 @@ COMMAND_MODULES: list[str] = [
     "ballbot_vision.calibration_commands",
     "ballbot_vision.segmenter_commands",
     "ballbot_vision.disparity_commands",
+    "ballbot_vision.mcap_commands",
 ]
 
 
@@ -114,9 +116,10 @@ def cmd_up(args: argparse.Namespace) -> int:
         log.warning("up --nice %d needs root (or CAP_SYS_NICE); the services run at the default priority", args.nice)
     sup = Supervisor(stop_timeout_s=args.stop_timeout, nice=args.nice)
     sup.add("router", ["run", "router"] + [a for e in listen for a in ("--listen", e)] + common)
-    for name in PIPELINE:
+    services = PIPELINE + (["ros2"] if getattr(args, "ros2", False) else [])
+    for name in services:
         sup.add(name, ["run", name, "--connect", endpoint] + common)
-    print(f"ballbot-vision: starting {', '.join(['router'] + PIPELINE)}; router on {', '.join(listen)}", flush=True)
+    print(f"ballbot-vision: starting {', '.join(['router'] + services)}; router on {', '.join(listen)}", flush=True)
     print(f"ballbot-vision: obstacles are published on ballbot/obstacles/{robot_id(args)} "
           f"(watch them with: ballbot-vision watch --connect {endpoint})", flush=True)
     return sup.run(wait_for_endpoint=endpoint)
@@ -283,6 +286,8 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
         up.add_argument("--nice", type=int, default=int(os.environ.get("BALLBOT_NICE", 0)), metavar="N",
                         help="scheduling priority of the services, -20..19 (negative: ahead of other work on the "
                              "robot, e.g. -5; needs root) [BALLBOT_NICE] (default: 0)")
+        up.add_argument("--ros2", action="store_true", help="also start the ROS 2 bridge (`run ros2`: topics on "
+                        "rmw_zenoh; settings in the config's ros2 section)")
         up.set_defaults(func=cmd_up)
     else:
         stub("up")

@@ -2,10 +2,14 @@
 
 Output by extension: .npy float32 px with NaN where invalid; .pfm float32 px with inf where invalid
 (Middlebury's convention); .png a colour picture for people (near = warm, invalid = black).
+`--confidence C.png` also writes the per-pixel confidence (method dense: 0 = no measurement, 255 =
+certain). A warning is printed when many matched pixels sit at the top of the search range (something
+is nearer than it reaches); `--num-disparities auto` derives the range from the calibration.
 """
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from pathlib import Path
 
@@ -66,7 +70,7 @@ def cmd_disparity(args: argparse.Namespace) -> int:
     from .common import camera
     from .common.settings import load_settings
     from .common.disparity import to_float
-    from .services.disparity.matchers import MatcherConfig, StereoMatcher, gate_for_range
+    from .services.disparity.matchers import MatcherConfig, gate_for_range, make_matcher
     from .services.rectify.core import Rectifier
 
     out = Path(args.output)
@@ -79,17 +83,26 @@ def cmd_disparity(args: argparse.Namespace) -> int:
     if left.shape[:2] != right.shape[:2]:
         raise BallbotError(f"{args.left} is {left.shape[1]}x{left.shape[0]}, {args.right} is "
                            f"{right.shape[1]}x{right.shape[0]}")
+    if args.confidence and Path(args.confidence).suffix.lower() != ".png":
+        raise BallbotError(f"--confidence {args.confidence}: a .png file (8-bit confidence)")
     gate = 0.0
     if args.calibration:
         rect = Rectifier(camera.load_calibration(args.calibration))
         left, right = rect.rectify(left, right)
         gate = gate_for_range(cfg.max_range_m, rect.model.focal_px, rect.model.baseline_m)
+        cfg = cfg.resolved(rect.model.focal_px, rect.model.baseline_m, left.shape[1])
     elif cfg.max_range_m:
         raise BallbotError("--max-range-m needs --calibration (focal length and baseline turn metres into px)")
+    elif cfg.num_disparities == "auto":
+        raise BallbotError("--num-disparities auto needs --calibration (focal length and baseline give the "
+                           "disparity of the nearest range of interest)")
+    matcher = make_matcher(cfg)
     t0 = time.perf_counter()
-    raw = StereoMatcher(cfg).compute(left, right, gate)
+    result = matcher.match(left, right, gate)
     ms = (time.perf_counter() - t0) * 1e3
-    d = to_float(raw, 16.0, cfg.invalid_value)
+    d = to_float(result.disparity, 16.0, cfg.invalid_value)
+    if args.confidence and result.confidence is None:
+        raise BallbotError(f"--confidence: method {cfg.method} gives no confidence (method dense does)")
     out.parent.mkdir(parents=True, exist_ok=True)
     suffix = out.suffix.lower()
     if suffix == ".npy":
@@ -99,11 +112,17 @@ def cmd_disparity(args: argparse.Namespace) -> int:
     else:
         if not cv2.imwrite(str(out), colour(d, cfg.min_disparity + cfg.num_disparities)):
             raise BallbotError(f"{out}: cannot write")
+    if args.confidence:
+        Path(args.confidence).parent.mkdir(parents=True, exist_ok=True)
+        if not cv2.imwrite(args.confidence, result.confidence):
+            raise BallbotError(f"{args.confidence}: cannot write")
     valid = np.isfinite(d)
     rng = f"{np.nanmin(d):.1f}..{np.nanmax(d):.1f} px" if valid.any() else "none"
     print(f"{out}: {d.shape[1]}x{d.shape[0]} {cfg.method}{' +LR' if cfg.lr_check else ''}, "
-          f"{valid.mean() * 100:.1f}% valid, disparity {rng}, {ms:.1f} ms"
-          + (f", range gate d >= {gate:.1f} px" if gate else ""))
+          f"{valid.mean() * 100:.1f}% valid, disparity {rng} (searched {cfg.min_disparity}..{cfg.max_disparity} px), "
+          f"{ms:.1f} ms" + (f", range gate d >= {gate:.1f} px" if gate else ""))
+    if result.range_warning:
+        print(f"warning: {result.range_warning}", file=sys.stderr)
     return 0
 
 
@@ -116,6 +135,8 @@ def register(sub, common) -> None:
     p.add_argument("left")
     p.add_argument("right")
     p.add_argument("-o", "--output", required=True, help="OUT.npy, OUT.pfm or OUT.png")
+    p.add_argument("--confidence", default=None, metavar="C.png",
+                   help="also write the per-pixel confidence, 8-bit (method dense)")
     p.add_argument("--calibration", default=None, help="rectify first with this calibration (YAML or profile); "
                    "without it the pair must already be rectified")
     p.add_argument("--config", default=None, metavar="FILE", help="YAML file; its 'disparity' section applies")

@@ -1,6 +1,24 @@
-"""`ballbot-vision bench`: the four services as separate processes over Zenoh, on a preloaded loop
-of synthetic pairs (the renderer is not measured), beside the in-process compute ceiling of the
-same stages (one process, no Zenoh, no encoding)."""
+"""`ballbot-vision bench`: the four services as separate processes over Zenoh, measured against two
+references taken in the same run, on the same frames, so that the figures mean the same thing on a
+quiet workstation and on a busy 2-core laptop:
+
+* OpenCV's matcher alone (StereoBM for `--method bm`, with the pipeline's matcher settings) on the
+  rectified frames, with 2 threads and with 1: what the matcher allows. The pipeline's delivered
+  obstacle lists per second are reported as a ratio of its 2-thread rate.
+* The in-process per-frame compute: rectify + disparity + segmenter (+ tracking) serially in this
+  process, no messaging. The pipeline's capture-to-obstacle latency is reported as a ratio of it.
+Both are measured before and after the pipeline run and averaged, so a load change during the run
+shifts reference and pipeline alike.
+
+The pipeline is `up`'s single-host layout: router, capture, rectify, disparity (dispatcher with its
+onboard matcher, or `--workers N` worker processes), segmenter, each its own process. Capture loops
+`--preload` pre-rendered synthetic pairs (the renderer is not measured). The offered rate is not
+fixed: a short search finds the highest rate the pipeline sustains (see `sustainable`), and the
+final measurement offers that rate. `--rate R` skips the search.
+
+`ballbot-vision bench PART` runs the other benchmarks (sources, renderer, segmenter, scaling,
+accuracy).
+"""
 from __future__ import annotations
 
 import argparse
@@ -10,13 +28,20 @@ import socket
 import sys
 import threading
 import time
+from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 
 STAGES = ["capture", "rectify", "disparity", "segmenter"]
-
-
 PARTS = ["pipeline", "sources", "renderer", "segmenter", "scaling", "accuracy"]
+
+# What "sustainable" means for an offered rate (the search keeps the highest rate that is):
+MAX_DROPPED = 0.03  # at most this fraction of captured pairs never becomes an obstacle list (seq gaps)
+MAX_P95_X_COMPUTE = 4.0  # capture-to-obstacle p95 within this multiple of the in-process compute
+# Targets of issue #14, ratios to the references above.
+TARGET_FPS_X_MATCHER = 0.8  # delivered fps >= 0.8 x OpenCV's matcher alone, 2 threads
+TARGET_P50_X_COMPUTE = 1.5  # latency p50 <= 1.5 x the in-process per-frame compute
 
 
 def add_bench_arguments(p: argparse.ArgumentParser) -> None:
@@ -24,10 +49,18 @@ def add_bench_arguments(p: argparse.ArgumentParser) -> None:
                    help="pipeline: the four services over Zenoh (default); sources: file capture sources; "
                         "renderer: the synthetic world; segmenter: time per method; scaling: disparity "
                         "workers 1-3 (sgbm); accuracy: bad-2px on a Middlebury pair")
-    p.add_argument("--seconds", type=float, default=10.0, help="measured duration of the pipeline run")
-    p.add_argument("--warmup", type=float, default=3.0, help="seconds discarded before measuring")
-    p.add_argument("--rate", type=float, default=60.0, help="capture rate offered to the pipeline, pairs/s")
-    p.add_argument("--method", default="bm", choices=["bm", "sgbm"], help="disparity method")
+    p.add_argument("--seconds", type=float, default=10.0, help="measured duration at the chosen rate")
+    p.add_argument("--probe-seconds", type=float, default=3.0, help="measured duration of each search probe")
+    p.add_argument("--warmup", type=float, default=1.5, help="seconds discarded after capture starts delivering")
+    p.add_argument("--rate", type=float, default=0.0,
+                   help="offer this many pairs/s and skip the search for the highest sustainable rate")
+    p.add_argument("--probes", type=int, default=4, help="search probes after the saturating one")
+    p.add_argument("--repeat", type=int, default=1,
+                   help="measure this many times (same processes) and report medians and spread")
+    p.add_argument("--method", default=None, choices=["bm", "sgbm"],
+                   help="disparity method (default: bm; scaling: sgbm)")
+    p.add_argument("--reference-seconds", type=float, default=2.0,
+                   help="duration of each reference measurement (matcher 2 threads, 1 thread, compute)")
     p.add_argument("--preload", type=int, default=16, help="pre-rendered pairs looped by capture")
     p.add_argument("--workers", type=int, default=0, help="disparity worker processes (one OpenCV thread each) "
                    "behind the dispatcher; 0: the dispatcher's onboard matcher (the single-host default)")
@@ -47,114 +80,499 @@ def percentiles(values: list[float]) -> dict[str, float]:
     return {"p50": float(np.percentile(a, 50)), "p95": float(np.percentile(a, 95)), "p99": float(np.percentile(a, 99))}
 
 
-def compute_ceiling(method: str, preload: int, seconds: float = 3.0) -> dict:
-    """The same cores, serially, in this process: what the hardware allows with no messaging."""
+def cpu_seconds(pid: int) -> float:
+    """CPU time (user + system, s) of a process so far, all its threads, from /proc; 0 when gone."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return 0.0
+
+
+# --- the frames and the references ---------------------------------------------------------------
+
+@dataclass
+class Frames:
+    """The pairs capture loops (same scenario, rig, seed and noise as `run capture --preload N`),
+    raw and rectified. raw/rectified: lists of ((H, W) uint8 left, right)."""
+
+    raw: list[tuple[np.ndarray, np.ndarray]]
+    rectified: list[tuple[np.ndarray, np.ndarray]]
+    rectifier: object
+
+
+def bench_frames(preload: int) -> Frames:
+    from ..common import camera
     from ..services.capture.sources import SyntheticSource
+    from ..services.rectify.core import Rectifier
+
+    src = SyntheticSource("two-boxes", "lifecam-studio", 30.0, preload=preload)
+    rect = Rectifier(camera.load_calibration("lifecam-studio"))
+    raw = [(p.left, p.right) for p in (src.read() for _ in range(preload))]
+    return Frames(raw, [rect.rectify(l, r) for l, r in raw], rect)
+
+
+def opencv_matcher(method: str):
+    """OpenCV's matcher object alone, with the settings the disparity service uses by default."""
+    import cv2
+
+    from ..services.disparity.matchers import MatcherConfig
+
+    c = MatcherConfig(method=method)
+    if method == "bm":
+        m = cv2.StereoBM_create(numDisparities=c.num_disparities, blockSize=c.block)
+        m.setMinDisparity(c.min_disparity)
+        m.setUniquenessRatio(c.uniqueness_ratio)
+        m.setTextureThreshold(c.texture_threshold)
+        m.setSpeckleWindowSize(c.speckle_window)
+        m.setSpeckleRange(c.speckle_range)
+        m.setPreFilterCap(c.prefilter_cap)
+        return m
+    area = c.block * c.block
+    return cv2.StereoSGBM_create(minDisparity=c.min_disparity, numDisparities=c.num_disparities, blockSize=c.block,
+                                 P1=8 * area, P2=32 * area, disp12MaxDiff=c.disp12_max_diff,
+                                 preFilterCap=c.prefilter_cap, uniquenessRatio=c.uniqueness_ratio,
+                                 speckleWindowSize=c.speckle_window, speckleRange=c.speckle_range)
+
+
+def matcher_alone(pairs: list, method: str, threads: int, seconds: float) -> dict:
+    """OpenCV's matcher on the rectified pairs, back to back, with `threads` OpenCV threads.
+    fps = frames / wall time (spikes count, as they do for the pipeline)."""
+    import cv2
+
+    m = opencv_matcher(method)
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(threads)
+    try:
+        m.compute(*pairs[0])  # first call allocates buffers
+        times = []
+        cpu0 = time.process_time()
+        t_start = time.perf_counter()
+        while time.perf_counter() - t_start < seconds or len(times) < 5:
+            l, r = pairs[len(times) % len(pairs)]
+            t0 = time.perf_counter()
+            m.compute(l, r)
+            times.append(time.perf_counter() - t0)
+        wall = time.perf_counter() - t_start
+        cpu = time.process_time() - cpu0
+    finally:
+        cv2.setNumThreads(before)
+    return {"threads": threads, "frames": len(times), "fps": len(times) / wall,
+            "ms_p50": float(np.median(times)) * 1e3, "cpu_ms": cpu * 1e3 / len(times)}
+
+
+def in_process_compute(frames: Frames, method: str, seconds: float) -> dict:
+    """The pipeline's cores serially in this process, no messaging: rectify, disparity (the
+    service's matcher, OpenCV's default threads), segmenter and tracking (the service's defaults).
+    -> per-stage median ms and their sum, the per-frame compute."""
     from ..common.disparity import to_float
     from ..services.disparity.matchers import MatcherConfig, StereoMatcher
-    from ..services.rectify.core import Rectifier
-    from ..services.segmenter.main import Segmenter, SegmenterSettings
-    from ..common import camera
+    from ..services.segmenter.main import ObstacleBuilder, SegmenterSettings
 
-    src = SyntheticSource("two-boxes", "lifecam-studio", 30.0, preload=max(1, min(preload, 8)))
-    rect = Rectifier(camera.load_calibration("lifecam-studio"))
     cfg = MatcherConfig(method=method)
     matcher = StereoMatcher(cfg)
-    segmenter = Segmenter(SegmenterSettings())  # the service's default method
-    times = {"rectify": [], "disparity": [], "segmenter": []}
+    builder = ObstacleBuilder(SegmenterSettings())
+    rect = frames.rectifier
+    stages = ("rectify", "disparity", "segmenter")
+    times: dict[str, list[float]] = {s: [] for s in stages}
+    cpu = dict.fromkeys(stages, 0.0)
     t_end = time.perf_counter() + seconds
     n = 0
     while time.perf_counter() < t_end or n < 5:
-        pair = src.read()
-        t0 = time.perf_counter()
-        l, r = rect.rectify(pair.left, pair.right)
-        t1 = time.perf_counter()
+        left, right = frames.raw[n % len(frames.raw)]
+        marks = [(time.perf_counter(), time.process_time())]
+        l, r = rect.rectify(left, right)
+        marks.append((time.perf_counter(), time.process_time()))
         d = matcher.compute(l, r)
-        t2 = time.perf_counter()
-        segmenter.detect(to_float(d, 16.0, cfg.invalid_value), rect.model)
-        t3 = time.perf_counter()
-        times["rectify"].append((t1 - t0) * 1e3)
-        times["disparity"].append((t2 - t1) * 1e3)
-        times["segmenter"].append((t3 - t2) * 1e3)
+        marks.append((time.perf_counter(), time.process_time()))
+        detections = builder.segmenter.detect(to_float(d, 16.0, cfg.invalid_value), rect.model)
+        builder.obstacles(detections, n / 30.0)
+        marks.append((time.perf_counter(), time.process_time()))
+        for s, (a, b) in zip(stages, zip(marks, marks[1:])):
+            times[s].append((b[0] - a[0]) * 1e3)
+            cpu[s] += (b[1] - a[1]) * 1e3
         n += 1
     per_stage = {k: float(np.median(v)) for k, v in times.items()}
     total = sum(per_stage.values())
-    return {"frames": n, "stage_ms_p50": per_stage, "total_ms_p50": total, "fps": 1000.0 / total}
+    # CPU time of all this process's threads (OpenCV's included), per frame: what each stage's
+    # process needs at least; the pipeline's processes spend the rest on messaging.
+    return {"frames": n, "stage_ms_p50": per_stage, "total_ms_p50": total, "fps": 1000.0 / total,
+            "stage_cpu_ms": {k: v / n for k, v in cpu.items()}}
 
 
-def pipeline_run(rate: float, method: str, preload: int, warmup_s: float, seconds: float,
-                 extra_args: dict[str, list[str]] | None = None, workers: int = 0) -> dict:
-    from ..common import codec
-    from ..common.keys import topic
-    from ..common.messages import ObstacleList
-    from ..common.zenoh_session import ZenohOptions, open_session
-    from ..supervisor import Supervisor
+def references(frames: Frames, method: str, seconds: float = 2.0) -> dict:
+    return {"matcher_2_threads": matcher_alone(frames.rectified, method, 2, seconds),
+            "matcher_1_thread": matcher_alone(frames.rectified, method, 1, seconds),
+            "compute": in_process_compute(frames, method, seconds)}
 
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    rid = "bench"
-    common = ["--robot-id", rid]
-    sup = Supervisor(env=dict(os.environ, BALLBOT_LOG="WARNING"))
-    sup.add("router", ["run", "router", "--listen", endpoint] + common)
-    per_service = {
-        "capture": ["--preload", str(preload), "--rate-hz", str(rate)],
-        "disparity": ["--method", method] + (["--fallback", "none"] if workers else []),
-    }
-    for name, more in (extra_args or {}).items():
-        per_service.setdefault(name, []).extend(more)
-    for name in STAGES:
-        sup.add(name, ["run", name, "--connect", endpoint] + common + per_service.get(name, []))
-    for i in range(workers):
-        sup.add(f"worker{i}", ["run", "disparity", "--role", "worker", "--instance", f"bench-worker{i}",
-                               "--threads", "1", "--method", method, "--connect", endpoint] + common)
-    received: list[tuple[float, ObstacleList]] = []
-    lock = threading.Lock()
-    measuring = threading.Event()
 
-    def on_obstacles(sample) -> None:
-        t = time.time_ns()
-        if measuring.is_set():
-            msg = codec.decode(sample.payload.to_bytes(), ObstacleList)
-            with lock:
-                received.append((t, msg))
+def mean_references(a: dict, b: dict) -> dict:
+    """Before and after the pipeline run -> their mean (fps and ms averaged), both kept."""
+    out = {}
+    for k in ("matcher_2_threads", "matcher_1_thread"):
+        out[k] = dict(a[k], fps=(a[k]["fps"] + b[k]["fps"]) / 2, ms_p50=(a[k]["ms_p50"] + b[k]["ms_p50"]) / 2,
+                      cpu_ms=(a[k]["cpu_ms"] + b[k]["cpu_ms"]) / 2,
+                      before_fps=a[k]["fps"], after_fps=b[k]["fps"])
+    ca, cb = a["compute"], b["compute"]
+    total = (ca["total_ms_p50"] + cb["total_ms_p50"]) / 2
+    out["compute"] = {"stage_ms_p50": {s: (ca["stage_ms_p50"][s] + cb["stage_ms_p50"][s]) / 2 for s in ca["stage_ms_p50"]},
+                      "stage_cpu_ms": {s: (ca["stage_cpu_ms"][s] + cb["stage_cpu_ms"][s]) / 2 for s in ca["stage_cpu_ms"]},
+                      "total_ms_p50": total, "fps": 1000.0 / total,
+                      "before_ms": ca["total_ms_p50"], "after_ms": cb["total_ms_p50"]}
+    return out
 
-    try:
-        sup.start_all(endpoint)
-        opts = ZenohOptions(mode="peer", connect=[endpoint], listen=["tcp/127.0.0.1:0"])
-        with open_session(opts) as session:
-            session.declare_subscriber(topic("obstacles").key(rid), on_obstacles)
-            time.sleep(warmup_s)
-            measuring.set()
-            t0 = time.monotonic()
-            time.sleep(seconds)
-            measuring.clear()
-            elapsed = time.monotonic() - t0
-    finally:
-        sup.stop_all()
-    fresh = [(t, m) for t, m in received if not m.stale]
-    e2e = [(m.publish_ns - m.stamp_ns) / 1e6 for _, m in fresh]
-    delivered = [(t - m.stamp_ns) / 1e6 for t, m in fresh]
+
+# --- one probe's numbers (pure) --------------------------------------------------------------------
+
+@dataclass
+class Received:
+    recv_ns: int
+    seq: int
+    stamp_ns: int
+    publish_ns: int
+    stale: bool
+    stages: dict[str, int] = field(default_factory=dict)
+
+
+def seq_gaps(seqs: list[int]) -> tuple[int, int, int]:
+    """Delivered seqs (any order, repeats allowed) -> (captured, dropped, duplicates): captured is
+    the span first..last, dropped the seqs in that span never delivered."""
+    if not seqs:
+        return 0, 0, 0
+    unique = set(seqs)
+    captured = max(unique) - min(unique) + 1
+    return captured, captured - len(unique), len(seqs) - len(unique)
+
+
+def summarize(lists: list[Received], seconds: float, compute_ms: float) -> dict:
+    """Obstacle lists received in a window of `seconds` -> fps, latency, drops, and whether the
+    offered rate was sustainable (no stale list, few drops, bounded latency)."""
+    fresh = [m for m in lists if not m.stale]
+    captured, dropped, dups = seq_gaps([m.seq for m in fresh])
+    lat = percentiles([(m.publish_ns - m.stamp_ns) / 1e6 for m in fresh])
     stage_lat = {}
     prev = "capture"
     for s in STAGES[1:]:
-        stage_lat[s] = percentiles([(m.stages[s] - m.stages[prev]) / 1e6 for _, m in fresh
+        stage_lat[s] = percentiles([(m.stages[s] - m.stages[prev]) / 1e6 for m in fresh
                                     if s in m.stages and prev in m.stages])
         prev = s
+    stale = len(lists) - len(fresh)
+    dropped_fraction = dropped / captured if captured else 1.0
+    why = []
+    if not fresh:
+        why.append("no obstacle list")
+    if stale:
+        why.append(f"{stale} stale list(s)")
+    if dropped_fraction > MAX_DROPPED:
+        why.append(f"{dropped_fraction:.0%} of pairs dropped")
+    if fresh and lat["p95"] > MAX_P95_X_COMPUTE * compute_ms:
+        why.append(f"p95 {lat['p95']:.0f} ms > {MAX_P95_X_COMPUTE:g} x compute")
+    return {"seconds": seconds, "obstacle_lists": len(fresh), "fps": len(fresh) / seconds if seconds else 0.0,
+            "captured_hz": captured / seconds if seconds else 0.0, "stale_lists": stale,
+            "seq_gaps": {"captured": captured, "dropped": dropped, "dropped_fraction": dropped_fraction,
+                         "duplicates": dups},
+            "latency_ms": lat, "stage_latency_ms": stage_lat, "sustainable": not why, "why_not": why}
+
+
+def search_rate(probe: Callable[[float], dict], start_hz: float, probes: int) -> tuple[float, list[dict]]:
+    """The highest sustainable offered rate, in 1 + `probes` probes. probe(rate) -> summarize()
+    dict. The first probe offers `start_hz` (more than the pipeline can take); its delivered fps is
+    the first guess; then down by 15 % until a rate holds, then bisection. -> (rate, all probes);
+    rate is the lowest probed one when none held."""
+    done = [dict(probe(start_hz), offered_hz=start_hz)]
+    if done[0]["sustainable"]:
+        return start_hz, done
+    hi, lo = start_hz, 0.0
+    rate = max(1.0, min(start_hz, done[0]["fps"]))
+    for _ in range(probes):
+        p = dict(probe(rate), offered_hz=rate)
+        done.append(p)
+        if p["sustainable"]:
+            lo = rate
+        else:
+            hi = rate
+        if lo and hi - lo <= 0.04 * lo:
+            break
+        rate = (lo + hi) / 2 if lo else rate * 0.85
+    return (lo or min(p["offered_hz"] for p in done)), done
+
+
+# --- the pipeline under test ----------------------------------------------------------------------
+
+class LivePipeline:
+    """Router, rectify, disparity (+ workers) and segmenter as processes, capture restarted per
+    offered rate, and a subscriber collecting every obstacle list (msgpack only: the bench stays light)."""
+
+    def __init__(self, method: str, preload: int, workers: int = 0, robot_id: str = "bench"):
+        self.method, self.preload, self.workers, self.rid = method, preload, workers, robot_id
+        self.endpoint = f"tcp/127.0.0.1:{free_port()}"
+        self.received: list[Received] = []
+        self._lock = threading.Lock()
+        self._first = threading.Event()
+        self._want_stamp = 0
+        self._capture = None
+
+    def _env(self) -> dict[str, str]:
+        return dict(os.environ, BALLBOT_LOG="WARNING")
+
+    def __enter__(self) -> "LivePipeline":
+        from ..common.keys import topic
+        from ..common.zenoh_session import ZenohOptions, open_session
+        from ..supervisor import Supervisor
+
+        c = ["--connect", self.endpoint, "--robot-id", self.rid]
+        self.sup = sup = Supervisor(env=self._env())
+        sup.add("router", ["run", "router", "--listen", self.endpoint, "--robot-id", self.rid])
+        sup.add("rectify", ["run", "rectify", *c])
+        sup.add("disparity", ["run", "disparity", *c, "--method", self.method]
+                + (["--fallback", "none"] if self.workers else []))
+        sup.add("segmenter", ["run", "segmenter", *c])
+        for i in range(self.workers):
+            sup.add(f"worker{i}", ["run", "disparity", *c, "--role", "worker", "--instance", f"bench-worker{i}",
+                                   "--threads", "1", "--method", self.method])
+        sup.start_all(self.endpoint)
+        self.session = open_session(ZenohOptions(mode="peer", connect=[self.endpoint], listen=["tcp/127.0.0.1:0"]))
+        self.session.declare_subscriber(topic("obstacles").key(self.rid), self._on_obstacles)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        try:
+            self.session.close()
+        finally:
+            if self._capture is not None:
+                self._capture.stop_all()
+            self.sup.stop_all()
+
+    def _on_obstacles(self, sample) -> None:
+        import msgpack
+
+        t = time.time_ns()
+        try:
+            m = msgpack.unpackb(sample.payload.to_bytes())
+            r = Received(t, int(m["seq"]), int(m["stamp_ns"]), int(m["publish_ns"]), bool(m["stale"]),
+                         dict(m.get("stages") or {}))
+        except Exception:  # not the bench's business to judge a malformed list; it is not counted
+            return
+        with self._lock:
+            self.received.append(r)
+        if r.stamp_ns >= self._want_stamp and not r.stale:
+            self._first.set()
+
+    def processes(self) -> dict[str, int]:
+        sups = [self.sup] + ([self._capture] if self._capture is not None else [])
+        return {c.name: c.proc.pid for s in sups for c in s.children if c.proc is not None}
+
+    def cpu(self) -> dict[str, float]:
+        out = {name: cpu_seconds(pid) for name, pid in self.processes().items()}
+        out["bench"] = time.process_time()
+        return out
+
+    def offer(self, rate: float, timeout_s: float = 90.0) -> None:
+        """(Re)start capture at `rate` pairs/s; returns once its pairs come out as obstacle lists."""
+        from ..supervisor import Supervisor
+
+        if self._capture is not None:
+            self._capture.stop_all()
+        self._want_stamp = time.time_ns()
+        self._first.clear()
+        self._capture = Supervisor(env=self._env())
+        self._capture.add("capture", ["run", "capture", "--connect", self.endpoint, "--robot-id", self.rid,
+                                      "--preload", str(self.preload), "--rate-hz", f"{rate:.3f}"])
+        self._capture.start_all()
+        if not self._first.wait(timeout_s):
+            raise RuntimeError(f"no obstacle list within {timeout_s:g} s of starting capture at {rate:.1f}/s "
+                               "(run `ballbot-vision up` to see which service fails)")
+
+    def measure(self, rate: float, warmup_s: float, seconds: float, compute_ms: float) -> dict:
+        self.offer(rate)
+        time.sleep(warmup_s)  # a benchmark's warm-up, not a synchronisation
+        cpu0, t0 = self.cpu(), time.time_ns()
+        time.sleep(seconds)
+        t1, cpu1 = time.time_ns(), self.cpu()
+        with self._lock:
+            window = [m for m in self.received if t0 <= m.recv_ns < t1 and m.stamp_ns >= self._want_stamp]
+        r = summarize(window, (t1 - t0) / 1e9, compute_ms)
+        n = max(1, r["obstacle_lists"])
+        r["cpu_ms_per_list"] = {k: (cpu1[k] - cpu0.get(k, 0.0)) * 1e3 / n for k in cpu1}
+        r["offered_hz"] = rate
+        return r
+
+
+# --- the benchmark --------------------------------------------------------------------------------
+
+def pipeline_cpu_ms(pipe: dict) -> float:
+    """CPU per delivered list of every pipeline process (the router included, the bench not)."""
+    return sum(v for k, v in pipe["cpu_ms_per_list"].items() if k != "bench")
+
+
+def ratios(ref: dict, pipe: dict) -> dict:
+    m2, m1, comp = ref["matcher_2_threads"]["fps"], ref["matcher_1_thread"]["fps"], ref["compute"]["total_ms_p50"]
+    lat = pipe["latency_ms"]
+    cpu = pipeline_cpu_ms(pipe)
+    cores = os.cpu_count() or 1
     return {
-        "offered_rate_hz": rate, "seconds": elapsed, "obstacle_lists": len(fresh),
-        "fps": len(fresh) / elapsed if elapsed else 0.0,
-        "latency_ms": percentiles(e2e), "delivered_latency_ms": percentiles(delivered),
-        "stage_latency_ms": stage_lat,
-        "seq_gaps": int(sum(1 for a, b in zip(fresh, fresh[1:]) if b[1].seq != a[1].seq + 1)),
-    }
+        # CPU time is what a busy machine distorts least: the pipeline's CPU per list against the
+        # matcher's own CPU per frame, and the rate that CPU allows on an otherwise idle machine.
+        "cpu_x_matcher_1_thread": cpu / ref["matcher_1_thread"]["cpu_ms"],
+        "idle_machine_fps_bound_x_matcher_2_threads":
+            (cores * 1000.0 / cpu) / (min(cores, 2) * 1000.0 / ref["matcher_2_threads"]["cpu_ms"]),"fps_x_matcher_2_threads": pipe["fps"] / m2 if m2 else 0.0,
+            "fps_x_matcher_1_thread": pipe["fps"] / m1 if m1 else 0.0,
+            "fps_x_compute": pipe["fps"] / ref["compute"]["fps"],
+            "latency_p50_x_compute": lat["p50"] / comp, "latency_p95_x_compute": lat["p95"] / comp,
+            "latency_p99_x_compute": lat["p99"] / comp}
 
 
-def bench_part(part: str, as_json: bool) -> int:
-    flags = ["--json"] if as_json else []
+def measure_once(live: LivePipeline, frames: Frames, args: argparse.Namespace, log: Callable[[str], None]) -> dict:
+    """Search the rate (unless --rate), then references, the measured run, references again."""
+    method = live.method
+    probes: list[dict] = []
+    if args.rate > 0:
+        rate = args.rate
+    else:
+        log("a first look at the references, for the search ...")
+        quick = references(frames, method, min(1.0, args.reference_seconds))
+        compute_ms = quick["compute"]["total_ms_p50"]
+
+        def probe(rate: float) -> dict:
+            r = live.measure(rate, args.warmup, args.probe_seconds, compute_ms)
+            log(f"  offered {rate:6.1f}/s -> {r['fps']:5.1f} lists/s, dropped {r['seq_gaps']['dropped_fraction']:4.0%}, "
+                f"p95 {r['latency_ms']['p95']:5.1f} ms: "
+                + ("sustainable" if r["sustainable"] else "; ".join(r["why_not"])))
+            return r
+
+        # Start above what the matcher alone can do: the pipeline cannot deliver more.
+        start = min(1000.0, 1.3 * quick["matcher_2_threads"]["fps"])
+        log(f"searching the highest sustainable offered rate (from {start:.0f}/s) ...")
+        rate, probes = search_rate(probe, start, args.probes)
+    log("references: OpenCV's matcher alone (2 threads, 1 thread) and the in-process compute ...")
+    before = references(frames, method, args.reference_seconds)
+    log(f"measuring the pipeline at {rate:.1f} pairs/s offered for {args.seconds:g} s ...")
+    final = live.measure(rate, args.warmup, args.seconds, before["compute"]["total_ms_p50"])
+    log("references again ...")
+    after = references(frames, method, args.reference_seconds)
+    ref = mean_references(before, after)
+    return {"references": ref, "search": probes, "pipeline": final, "ratios": ratios(ref, final),
+            "load_avg_1min": os.getloadavg()[0]}
+
+
+def targets(r: dict) -> list[tuple[str, float, str, float, bool]]:
+    x = r["ratios"]
+    return [("delivered fps / OpenCV matcher alone (2 threads)", x["fps_x_matcher_2_threads"], ">=",
+             TARGET_FPS_X_MATCHER, x["fps_x_matcher_2_threads"] >= TARGET_FPS_X_MATCHER),
+            ("latency p50 / in-process per-frame compute", x["latency_p50_x_compute"], "<=",
+             TARGET_P50_X_COMPUTE, x["latency_p50_x_compute"] <= TARGET_P50_X_COMPUTE)]
+
+
+def format_run(r: dict, header: dict) -> str:
+    ref, p = r["references"], r["pipeline"]
+    m2, m1, comp = ref["matcher_2_threads"], ref["matcher_1_thread"], ref["compute"]
+    name = "StereoBM" if header["method"] == "bm" else "StereoSGBM"
+    lines = [
+        f"references, same run, same {header['frames']} frames (mean of before and after the pipeline):",
+        f"  OpenCV {name} alone: 2 threads {m2['fps']:.1f} fps ({m2['before_fps']:.1f} / {m2['after_fps']:.1f}), "
+        f"1 thread {m1['fps']:.1f} fps ({m1['before_fps']:.1f} / {m1['after_fps']:.1f})",
+        f"  in-process per-frame compute {comp['total_ms_p50']:.1f} ms ("
+        + ", ".join(f"{k} {v:.1f}" for k, v in comp["stage_ms_p50"].items()) + f") = {comp['fps']:.1f} fps",
+    ]
+    if r["search"]:
+        best = max((q["offered_hz"] for q in r["search"] if q["sustainable"]), default=None)
+        lines.append(f"offered-rate search: {len(r['search'])} probes, highest sustainable "
+                     + (f"{best:.1f}/s" if best else "none (measured at the lowest probed rate)")
+                     + f"; saturated (offered {r['search'][0]['offered_hz']:.0f}/s): {r['search'][0]['fps']:.1f} lists/s")
+    g = p["seq_gaps"]
+    lines += [
+        f"pipeline, {header['processes']}, offered {p['offered_hz']:.1f}/s (captured {p['captured_hz']:.1f}/s) "
+        f"for {p['seconds']:.1f} s: {p['fps']:.1f} lists/s, {p['stale_lists']} stale, "
+        f"{g['dropped']} of {g['captured']} pairs dropped ({g['dropped_fraction']:.1%}), "
+        + ("sustainable" if p["sustainable"] else "NOT sustainable: " + "; ".join(p["why_not"])),
+        f"  capture -> obstacles published: p50 {p['latency_ms']['p50']:.1f} ms  p95 {p['latency_ms']['p95']:.1f}"
+        f"  p99 {p['latency_ms']['p99']:.1f} ms",
+    ]
+    for s, v in p["stage_latency_ms"].items():
+        lines.append(f"    {s:10} (since previous stage published): p50 {v['p50']:.2f}  p95 {v['p95']:.2f}"
+                     f"  p99 {v['p99']:.2f} ms")
+    cpu = p["cpu_ms_per_list"]
+    lines.append(f"  CPU per delivered list: {pipeline_cpu_ms(p):.1f} ms in all ("
+                 + ", ".join(f"{k} {v:.1f}" for k, v in cpu.items() if k != "bench")
+                 + f"; the bench's subscriber {cpu.get('bench', 0.0):.1f}); OpenCV {name} alone: "
+                 f"{m1['cpu_ms']:.1f} ms (1 thread), {m2['cpu_ms']:.1f} ms (2 threads) per frame")
+    own = comp["stage_cpu_ms"]
+    lines.append("  CPU per list beyond the same stage in-process (messaging, copies, scheduling): "
+                 + ", ".join(f"{k} {cpu[k] - own[k]:+.1f} ms" for k in own if k in cpu))
+    x = r["ratios"]
+    lines.append(f"ratios: fps {x['fps_x_matcher_2_threads']:.2f} x {name} 2 threads "
+                 f"({x['fps_x_matcher_1_thread']:.2f} x 1 thread, {x['fps_x_compute']:.2f} x the in-process compute); "
+                 f"latency p50 {x['latency_p50_x_compute']:.2f}, p95 {x['latency_p95_x_compute']:.2f}, "
+                 f"p99 {x['latency_p99_x_compute']:.2f} x the in-process compute (load avg {r['load_avg_1min']:.1f})")
+    lines.append(f"  CPU: {x['cpu_x_matcher_1_thread']:.2f} x the matcher's own (1 thread) per list; on an idle machine "
+                 f"that CPU allows {x['idle_machine_fps_bound_x_matcher_2_threads']:.2f} x {name} alone (2 threads)")
+    return "\n".join(lines)
+
+
+def spread(values: list[float]) -> dict:
+    a = np.asarray(values, float)
+    return {"median": float(np.median(a)), "min": float(a.min()), "max": float(a.max()), "n": len(values)}
+
+
+def bench_pipeline(args: argparse.Namespace) -> int:
+    import logging
+
+    logging.getLogger("ballbot.up").setLevel(logging.WARNING)  # process starts are not results
+    method = args.method or "bm"
+    say = (lambda text: None) if args.json else (lambda text: print(text, file=sys.stderr, flush=True))
+    say(f"rendering {args.preload} synthetic pairs ...")
+    frames = bench_frames(args.preload)
+    procs = ("router + capture, rectify, disparity, segmenter" if not args.workers else
+             f"router + capture, rectify, dispatcher + {args.workers} worker(s), segmenter")
+    header = {"image": "640x480", "method": method, "num_disparities": 64, "frames": args.preload,
+              "workers": args.workers, "processes": procs, "cores": os.cpu_count(),
+              "load_avg_1min_start": os.getloadavg()[0],
+              "sustainable": {"max_dropped_fraction": MAX_DROPPED, "max_p95_x_compute": MAX_P95_X_COMPUTE,
+                              "stale_lists": 0},
+              "targets": {"fps_x_matcher_2_threads": TARGET_FPS_X_MATCHER, "latency_p50_x_compute": TARGET_P50_X_COMPUTE}}
+    runs = []
+    say(f"starting {procs} ...")
+    with LivePipeline(method, args.preload, args.workers) as live:
+        for i in range(max(1, args.repeat)):
+            if args.repeat > 1:
+                say(f"run {i + 1} of {args.repeat}")
+            r = measure_once(live, frames, args, say)
+            runs.append(r)
+            if not args.json:
+                print(format_run(r, header), flush=True)
+    keys = ["fps_x_matcher_2_threads", "fps_x_matcher_1_thread", "latency_p50_x_compute",
+            "latency_p95_x_compute", "latency_p99_x_compute", "cpu_x_matcher_1_thread",
+            "idle_machine_fps_bound_x_matcher_2_threads"]
+    summary = {k: spread([r["ratios"][k] for r in runs]) for k in keys}
+    summary["fps"] = spread([r["pipeline"]["fps"] for r in runs])
+    report = dict(header, runs=runs, summary=summary)
+    if args.json:
+        print(json.dumps(report, indent=2))
+        return 0
+    print(f"\nballbot-vision bench: {method}, 640x480, 64 disparities, {header['cores']} cores, "
+          f"{len(runs)} run(s); load avg at start {header['load_avg_1min_start']:.1f}")
+    fake = {"ratios": {k: v["median"] for k, v in summary.items() if k != "fps"}}
+    for (label, value, op, target, ok), k in zip(targets(fake), ["fps_x_matcher_2_threads", "latency_p50_x_compute"]):
+        s = summary[k]
+        rng = f" (min {s['min']:.2f}, max {s['max']:.2f})" if len(runs) > 1 else ""
+        print(f"  {label:52} {value:5.2f}{rng}   target {op} {target:.2f}   {'met' if ok else 'MISSED'}")
+    return 0
+
+
+def bench_part(part: str, args: argparse.Namespace) -> int:
+    flags = ["--json"] if args.json else []
     if part == "sources":
         from .sources import main
         return main(flags)
     if part == "scaling":
         from .scaling import main
+        if args.method:
+            flags += ["--method", args.method]
+        if args.workers:
+            flags += ["--workers", *[str(n) for n in range(1, args.workers + 1)]]
+        if args.repeat > 1:
+            flags += ["--repeat", str(args.repeat)]
         return main(flags)
     if part == "accuracy":
         from .accuracy import main
@@ -165,35 +583,11 @@ def bench_part(part: str, as_json: bool) -> int:
     else:
         from .renderer import bench_renderer, format_renderer
         r = bench_renderer()
-    print(json.dumps(r, indent=2) if as_json else (format_bench(r) if part == "segmenter" else format_renderer(r)))
+    print(json.dumps(r, indent=2) if args.json else (format_bench(r) if part == "segmenter" else format_renderer(r)))
     return 0
 
 
 def bench_main(args: argparse.Namespace) -> int:
     if args.part != "pipeline":
-        return bench_part(args.part, args.json)
-    if not args.json:
-        print("measuring the in-process compute ceiling ...", file=sys.stderr, flush=True)
-    ceiling = compute_ceiling(args.method, args.preload)
-    if not args.json:
-        print(f"running the pipeline over Zenoh for {args.seconds:g} s at {args.rate:g} pairs/s offered ...",
-              file=sys.stderr, flush=True)
-    pipe = pipeline_run(args.rate, args.method, args.preload, args.warmup, args.seconds,
-                        workers=getattr(args, "workers", 0))
-    report = {"image": "640x480", "method": args.method, "workers": getattr(args, "workers", 0), "num_disparities": 64, "ceiling": ceiling,
-              "pipeline": pipe, "ratio_fps": pipe["fps"] / ceiling["fps"] if ceiling["fps"] else 0.0,
-              "targets": {"fps": 60.0, "latency_p50_ms": 25.0}}
-    if args.json:
-        print(json.dumps(report, indent=2))
-        return 0
-    c, p = ceiling, pipe
-    print(f"in-process ceiling ({args.method}, 640x480, 64 disparities): {c['fps']:.1f} fps, "
-          + ", ".join(f"{k} {v:.2f} ms" for k, v in c["stage_ms_p50"].items()))
-    print(f"pipeline over Zenoh, offered {p['offered_rate_hz']:g}/s: {p['fps']:.1f} fps "
-          f"({report['ratio_fps']:.2f} of the ceiling), {p['obstacle_lists']} lists in {p['seconds']:.1f} s")
-    lat = p["latency_ms"]
-    print(f"capture -> obstacles published: p50 {lat['p50']:.1f} ms  p95 {lat['p95']:.1f} ms  p99 {lat['p99']:.1f} ms")
-    for s, v in p["stage_latency_ms"].items():
-        print(f"  {s:10} (since previous stage published): p50 {v['p50']:.2f}  p95 {v['p95']:.2f}  p99 {v['p99']:.2f} ms")
-    print("targets: >= 60 fps, p50 <= 25 ms")
-    return 0
+        return bench_part(args.part, args)
+    return bench_pipeline(args)

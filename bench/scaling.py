@@ -8,7 +8,11 @@ pipeline runs capture and rectify processes instead (on 2 cores they compete wit
 The offered rate is rate_factor x what min(N, cores) single-thread workers can do (from the
 in-process single-thread time); the dispatcher drops what no worker is free for.
 
-    python -m ballbot_vision.bench.scaling --method sgbm --workers 1 2 3
+    ballbot-vision bench scaling                 # or: python -m ballbot_vision.bench.scaling --workers 1 2 3
+
+Targets (issue #14): one worker delivers >= 0.9 x its own in-process one-thread ceiling, two
+workers >= 1.8 x that ceiling (not x one worker, which a slow single worker would flatter). The
+ceiling is measured in the same run, before and after the pool runs, and averaged.
 """
 from __future__ import annotations
 
@@ -89,18 +93,10 @@ def _feed(session, rid: str, frames: list, rate: float, stop: threading.Event) -
         stop.wait(max(0.0, t_next - time.monotonic()))
 
 
-def _cpu_s(pid: int) -> float:
-    """CPU time (user + system, s) of a process so far, from /proc; 0 when gone."""
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            fields = f.read().rsplit(")", 1)[1].split()
-        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-    except (OSError, IndexError, ValueError):
-        return 0.0
-
-
 def _cpu_all(sup) -> dict[str, float]:
-    out = {c.name: _cpu_s(c.proc.pid) for c in sup.children if c.proc is not None}
+    from .pipeline import cpu_seconds
+
+    out = {c.name: cpu_seconds(c.proc.pid) for c in sup.children if c.proc is not None}
     out["bench"] = time.process_time()
     return out
 
@@ -187,50 +183,81 @@ def projected(workers: int, cores: int, work_ms: float, rest_ms: float) -> float
     return min(min(workers, cores) * 1e3 / work_ms, cores * 1e3 / (work_ms + rest_ms))
 
 
+TARGETS = {1: 0.9, 2: 1.8}  # maps/s of N workers as a multiple of the in-process one-thread ceiling (issue #14)
+
+
+def mean_ceiling(a: dict, b: dict) -> dict:
+    fps = (a["fps"] + b["fps"]) / 2
+    return dict(a, fps=fps, ms_p50=1000.0 / fps, before_fps=a["fps"], after_fps=b["fps"])
+
+
+def spread(values: list[float]) -> dict:
+    v = np.asarray(values, float)
+    return {"median": float(np.median(v)), "min": float(v.min()), "max": float(v.max()), "n": len(values)}
+
+
 def main(argv: list[str] | None = None) -> int:
+    from ..services.disparity.main import DisparitySettings
+
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--method", default="sgbm", choices=["bm", "sgbm"])
     p.add_argument("--workers", type=int, nargs="+", default=[1, 2, 3])
     p.add_argument("--seconds", type=float, default=10.0)
     p.add_argument("--warmup", type=float, default=5.0)
-    p.add_argument("--max-in-flight", type=int, default=1, help="frames in flight per worker")
+    p.add_argument("--max-in-flight", type=int, default=DisparitySettings().max_in_flight,
+                   help="frames in flight per worker (default: the dispatcher's)")
     p.add_argument("--rate-factor", type=float, default=1.25,
                    help="offered rate = factor x min(N, cores) x the single-thread in-process rate")
     p.add_argument("--source", choices=["feeder", "pipeline"], default="feeder",
                    help="feeder: this bench publishes rectified pairs; pipeline: capture + rectify processes")
+    p.add_argument("--repeat", type=int, default=1, help="measure every N this many times; medians and spread")
     p.add_argument("--json", action="store_true")
     a = p.parse_args(argv)
     cores = os.cpu_count() or 1
-    one, ceil = ceiling(a.method, 1), ceiling(a.method, 0)
+    say = (lambda text: None) if a.json else (lambda text: print(text, file=sys.stderr, flush=True))
+    say("in-process ceilings (1 thread, all threads) ...")
+    before = (ceiling(a.method, 1), ceiling(a.method, 0))
     runs = []
-    for n in a.workers:
-        rate = min(120.0, a.rate_factor * min(n, cores) * one["fps"])
-        if not a.json:
-            print(f"{n} worker(s), offering {rate:.1f} pairs/s ...", file=sys.stderr, flush=True)
-        runs.append(pool_run(a.method, n, rate, a.warmup, a.seconds, a.max_in_flight, a.source))
-    base = runs[0]["fps"] if runs and runs[0]["workers"] == 1 else None
+    for _ in range(max(1, a.repeat)):
+        for n in a.workers:
+            rate = min(120.0, a.rate_factor * min(n, cores) * before[0]["fps"])
+            say(f"{n} worker(s), offering {rate:.1f} pairs/s ...")
+            runs.append(pool_run(a.method, n, rate, a.warmup, a.seconds, a.max_in_flight, a.source))
+    say("in-process ceilings again ...")
+    after = (ceiling(a.method, 1), ceiling(a.method, 0))
+    one, ceil = mean_ceiling(before[0], after[0]), mean_ceiling(before[1], after[1])
+    for r in runs:
+        r["x_one_thread_ceiling"] = r["fps"] / one["fps"]
+    by_n = {n: spread([r["x_one_thread_ceiling"] for r in runs if r["workers"] == n]) for n in a.workers}
+    targets = {n: {"x_one_thread_ceiling": by_n[n]["median"], "target": t, "met": by_n[n]["median"] >= t}
+               for n, t in TARGETS.items() if n in by_n and n <= cores}
     report = {"method": a.method, "image": "640x480", "cores": cores, "max_in_flight": a.max_in_flight,
-              "source": a.source,
-              "rate_factor": a.rate_factor, "ceiling_one_thread": one,
-              "ceiling_all_threads": ceil, "runs": runs}
+              "source": a.source, "rate_factor": a.rate_factor, "ceiling_one_thread": one,
+              "ceiling_all_threads": ceil, "runs": runs, "x_one_thread_ceiling": by_n, "targets": targets}
     if a.json:
         print(json.dumps(report, indent=2))
         return 0
     print(f"{a.method}, 640x480, 64 disparities, {cores} cores, max_in_flight {a.max_in_flight}, "
           f"offered {a.rate_factor:g} x min(N, cores) x the 1-thread rate by the {a.source}")
-    print(f"in-process ceiling: 1 thread {one['fps']:.1f} fps ({one['ms_p50']:.1f} ms), "
-          f"{ceil['threads']} threads {ceil['fps']:.1f} fps ({ceil['ms_p50']:.1f} ms)")
+    print(f"in-process ceiling, same run (mean of before and after): 1 thread {one['fps']:.1f} fps "
+          f"({one['before_fps']:.1f} / {one['after_fps']:.1f}), {ceil['threads']} threads {ceil['fps']:.1f} fps")
     for r in runs:
-        speedup = f"{r['fps'] / base:.2f}x" if base else "-"
-        print(f"{r['workers']} worker(s): {r['fps']:6.1f} maps/s ({speedup} of 1 worker), offered {r['offered_hz']:.1f}/s, "
-              f"latency p50 {r['latency_ms']['p50']:.0f} ms, per worker {r['per_worker']}, duplicates {r['duplicates']}, "
-              f"load avg {r['load_avg_1min']:.1f}")
+        print(f"{r['workers']} worker(s): {r['fps']:6.1f} maps/s = {r['x_one_thread_ceiling']:.2f} x the 1-thread ceiling, "
+              f"offered {r['offered_hz']:.1f}/s, latency p50 {r['latency_ms']['p50']:.0f} ms, per worker {r['per_worker']}, "
+              f"duplicates {r['duplicates']}, load avg {r['load_avg_1min']:.1f}")
         cpu = r["cpu_ms_per_map"]
         work = sum(v for k, v in cpu.items() if k.startswith("worker"))
         rest = sum(v for k, v in cpu.items() if not k.startswith("worker"))
         print(f"    CPU per map: workers {work:.1f} ms, everything else {rest:.1f} ms ("
               + ", ".join(f"{k} {v:.1f}" for k, v in cpu.items() if not k.startswith("worker")) + ")"
               + f" -> a quiet {cores}-core machine allows {projected(r['workers'], cores, work, rest):.1f} maps/s")
+    print("targets (maps/s as a multiple of one worker's own in-process 1-thread ceiling"
+          + (f", median of {a.repeat} runs" if a.repeat > 1 else "") + "):")
+    for n, t in targets.items():
+        s = by_n[n]
+        rng = f" (min {s['min']:.2f}, max {s['max']:.2f})" if s["n"] > 1 else ""
+        print(f"  {n} worker(s): {t['x_one_thread_ceiling']:.2f}{rng}   target >= {t['target']:.2f}   "
+              + ("met" if t["met"] else "MISSED"))
     return 0
 
 

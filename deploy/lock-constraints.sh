@@ -22,11 +22,13 @@ trap 'rm -rf "$TMP"' EXIT
 "$PY" -c 'import sys; assert sys.version_info >= (3, 11), "need Python >= 3.11 (tomllib)"'
 PYVER=$("$PY" -c 'import sys; print("%d.%d" % sys.version_info[:2])')
 
-# [project].dependencies of pyproject.toml, one per line.
+# [project].dependencies of pyproject.toml, and the extras the image carries (ros2: the ROS 2
+# bridge), one per line.
 "$PY" - "$ROOT/pyproject.toml" >"$TMP/requirements.in" <<'EOF'
 import sys, tomllib
 with open(sys.argv[1], "rb") as f:
-    print("\n".join(tomllib.load(f)["project"]["dependencies"]))
+    project = tomllib.load(f)["project"]
+print("\n".join(project["dependencies"] + project["optional-dependencies"]["ros2"]))
 EOF
 # The build backend, as [build-system].requires says.
 "$PY" - "$ROOT/pyproject.toml" >"$TMP/build-requirements.in" <<'EOF'

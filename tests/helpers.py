@@ -62,14 +62,14 @@ class Collector:
 class Up:
     """`ballbot-vision up` on a free loopback port, as a user would start it."""
 
-    def __init__(self, robot_id: str = "test", extra_env: dict | None = None):
+    def __init__(self, robot_id: str = "test", extra_env: dict | None = None, extra_args: list[str] | None = None):
         self.port = free_port()
         self.endpoint = f"tcp/127.0.0.1:{self.port}"
         self.robot_id = robot_id
         env = dict(os.environ, **(extra_env or {}))
         self.log_path = Path(f"/tmp/ballbot-up-{self.port}.log")
         self.log = open(self.log_path, "w")
-        self.proc = subprocess.Popen(cli("up", "--connect", self.endpoint, "--robot-id", robot_id),
+        self.proc = subprocess.Popen(cli("up", "--connect", self.endpoint, "--robot-id", robot_id, *(extra_args or [])),
                                      stdout=self.log, stderr=subprocess.STDOUT, env=env, cwd=REPO)
 
     def session(self):

@@ -1,12 +1,12 @@
 """capture: a stereo source -> frames_raw (+ truth for the synthetic world).
 
-Sources (`--source`): synthetic (default), cameras, sbs, video, images; see sources.py, cameras.py
-and files.py. Problems found at start (a missing camera, an unreadable first image, left/right
-count or size mismatch) raise SourceError: `run capture` prints it and exits 2. A pair that cannot
-be read later is logged, counted in `errors` and skipped. When a file source ends (without
---loop) the service reports status "end of stream" and stays up, idle, until stopped (exit 0),
-so the supervisor never restarts it in a loop. A lost camera is reported in the status and
-reconnected with backoff while the other services keep running.
+Sources (`--source`): synthetic (default), cameras, sbs, video, images, ros2, mcap (a recording); see
+sources.py, cameras.py, files.py, ros2.py and mcap_source.py. Problems found at start (a missing
+camera, an unreadable first image, left/right count or size mismatch) raise SourceError: `run
+capture` prints it and exits 2. A pair that cannot be read later is logged, counted in `errors` and
+skipped. When a file source ends (without --loop) the service reports status "end of stream" and
+stays up, idle, until stopped (exit 0), so the supervisor never restarts it in a loop. A lost
+camera is reported in the status and reconnected with backoff while the other services keep running.
 """
 from __future__ import annotations
 
@@ -44,13 +44,15 @@ class CaptureSettings(ServiceSettings):
     every source's core read (CameraSource takes it as it is); defaults live here only."""
 
     section = "capture"
-    source: Literal["synthetic", "cameras", "sbs", "video", "images"] = Field(
-        "synthetic", description="where pairs come from: synthetic, cameras, sbs, video, images")
+    source: Literal["synthetic", "cameras", "sbs", "video", "images", "ros2", "mcap"] = Field(
+        "synthetic", description="where pairs come from: synthetic, cameras, sbs, video, images, ros2, "
+                                 "mcap (a recording)")
     # --- every source
     rate_hz: float = Field(30.0, gt=0, le=1000, description="pairs per second (synthetic, images; video with "
                                                             "--pace rate or when the file states no rate)")
     pace: Literal["auto", "rate", "max"] = Field(
-        "auto", description="file sources: auto (video: the file's fps; images: rate-hz), rate (rate-hz), "
+        "auto", description="file sources: auto (video: the file's fps; images: rate-hz; mcap: as recorded, "
+                            "times mcap-speed), rate (rate-hz), "
                             "max (as fast as they decode); cameras are always paced by the devices")
     loop: bool = Field(False, description="video, images: start again at the end instead of ending the stream")
     grayscale: bool = Field(False, description="cameras, sbs, video, images: publish 8-bit grey instead of BGR")
@@ -94,11 +96,36 @@ class CaptureSettings(ServiceSettings):
     # --- images
     images_left: str = Field("", description="images: left folder or glob pattern (paired with right by sorted name)")
     images_right: str = Field("", description="images: right folder or glob pattern")
+    # --- ros2 (a ROS 2 camera driver on rmw_zenoh, same Zenoh network)
+    ros2_left: str = Field("", description="ros2: left image topic (sensor_msgs/Image, or .../compressed)")
+    ros2_right: str = Field("", description="ros2: right image topic")
+    ros2_left_info: str = Field("", description="ros2: left CameraInfo topic (empty: camera_info beside the image)")
+    ros2_right_info: str = Field("", description="ros2: right CameraInfo topic (empty: camera_info beside the image)")
+    ros2_domain_id: int = Field(0, ge=0, le=232, description="ros2: ROS_DOMAIN_ID")
+    ros2_distro: Literal["humble", "jazzy"] = Field("jazzy", description="ros2: the driver's ROS distro (graph tokens)")
+    ros2_namespace: str = Field("/", description="ros2: namespace of this subscriber node (relative topics too)")
+    ros2_node_name: str = Field("ballbot_vision_capture", description="ros2: node name in the ROS graph")
+    ros2_max_skew_ms: float = Field(5.0, ge=0, le=1000, description="ros2: left/right header stamps differ by "
+                                                                    "at most this to pair")
+    ros2_calibration: Literal["camera_info", "none"] = Field(
+        "camera_info", description="ros2: camera_info: send rectify the calibration the CameraInfo pair gives; "
+                                   "none: rectify keeps its own --calibration")
+    ros2_rectified: bool = Field(False, description="ros2: the topics carry rectified images (image_rect): "
+                                                    "only the projection matrices count")
+    # --- mcap (replay a recording; see mcap_source.py)
+    mcap: str = Field("", description="mcap: the recording to replay (ballbot-vision record, mcap from-images)")
+    mcap_speed: float = Field(1.0, gt=0, le=1000, description="mcap: playback speed with --pace auto (2: twice as fast)")
+    mcap_step: bool = Field(False, description="mcap: start paused; one pair per `ballbot-vision replay step`")
+
 
 
 def open_source(s: CaptureSettings, ctx: SourceContext | None = None, opener=None):
     """The source the settings name. `opener` replaces cv2.VideoCapture for cameras/sbs (tests)."""
     ctx = ctx or SourceContext()
+    if s.source == "ros2":
+        from .ros2 import Ros2Source
+
+        return Ros2Source(s, ctx)
     if s.source == "synthetic":
         src = SyntheticSource(s.scenario, s.calibration, s.rate_hz, s.seed, s.noise_sigma, s.preload)
         if s.pace == "max":
@@ -108,6 +135,10 @@ def open_source(s: CaptureSettings, ctx: SourceContext | None = None, opener=Non
         from .files import ImageSource
 
         return ImageSource(s.images_left, s.images_right, s.rate_hz, s.loop, max_rate=s.pace == "max", ctx=ctx)
+    if s.source == "mcap":
+        from .mcap_source import McapSource
+
+        return McapSource(s.mcap, s.mcap_speed, s.pace, s.rate_hz, s.loop, s.mcap_step, ctx)
     if s.source == "video":
         from .files import VideoSource
 
@@ -146,8 +177,12 @@ def run(node: Node, settings: CaptureSettings, source=None) -> None:
     def set_status(text: str) -> None:
         node.status = text
 
-    ctx = SourceContext(stop=node.stop_event, status=set_status, extra=node.extra)
+    ctx = SourceContext(stop=node.stop_event, status=set_status, extra=node.extra, node=node)
     source = source or open_source(settings, ctx)
+    if source.name == "mcap":
+        from .mcap_source import connect_replay
+
+        connect_replay(node, source)
     frames = node.publisher("frames_raw")
     truth = node.publisher("truth")
     grey = settings.grayscale and source.name != "synthetic"

@@ -50,6 +50,7 @@ class SourceContext:
     stop: threading.Event = field(default_factory=threading.Event)
     status: Callable[[str], None] = lambda text: None
     extra: dict[str, float] = field(default_factory=dict)
+    node: Any = None  # the service's Node (its Zenoh session), for sources that talk Zenoh (ros2)
 
 
 class RollingStats:

@@ -1,27 +1,62 @@
-"""Disparity cores: OpenCV block matching (SAD, the thesis's method) and semi-global matching, with
-an optional left-right consistency check, subpixel output and a vision-range gate. No Zenoh here:
-the service (main.py, pool.py), the offline `disparity` command and the benchmarks share this.
+"""Disparity cores: OpenCV block matching (SAD, the thesis's method), semi-global matching, and
+`dense` (dense.py: semi-global + edge-aware fill, a confidence for every pixel), with an optional
+left-right check, subpixel output, a vision-range gate and a search-range saturation measure. No
+Zenoh here: the service (main.py, pool.py), the offline `disparity` command and the benchmarks
+share this.
 
 Output convention everywhere: int16 fixed point, disparity_px = value / 16 (OpenCV's 4 fractional
 bits), and INVALID (= (min_disparity - 1) * 16) where no match was accepted
-(common.disparity.to_float turns it into float px with NaN where invalid).
+(common.disparity.to_float turns it into float px with NaN where invalid). Confidence, where a
+method gives one: uint8, 0 = no measurement, 255 = certain.
 
 The settings are config.MatcherConfig (the disparity service's settings extend it); the cores take
-either directly.
+either directly, with num_disparities resolved to px (config.resolved for `auto`).
 """
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
 from ...common.errors import BallbotError
-from .config import DEFAULT_BLOCK, SCALE, MatcherConfig, gate_for_range  # noqa: F401 (the cores' API)
+from .config import (DEFAULT_BLOCK, SATURATION_WARN, SCALE, TOP_BAND_PX, MatcherConfig,  # noqa: F401
+                     auto_num_disparities, gate_for_range)
 
 _SGBM_MODES = {"sgbm": cv2.STEREO_SGBM_MODE_SGBM, "hh": cv2.STEREO_SGBM_MODE_HH,
                "3way": cv2.STEREO_SGBM_MODE_SGBM_3WAY, "hh4": cv2.STEREO_SGBM_MODE_HH4}
 
 
-def _gray(image: np.ndarray) -> np.ndarray:
+@dataclass
+class Match:
+    """One pair's result. disparity: (H, W) int16, px * 16, config.invalid_value where invalid;
+    confidence: (H, W) uint8 (0 = no measurement, 255 = certain) or None if the method gives none;
+    saturated: share of the measured pixels within TOP_BAND_PX of the largest disparity searched
+    (above SATURATION_WARN: nearer things exist than the range covers)."""
+
+    disparity: np.ndarray
+    confidence: np.ndarray | None
+    saturated: float
+
+    @property
+    def range_warning(self) -> str:
+        if self.saturated <= SATURATION_WARN:
+            return ""
+        return (f"{self.saturated:.1%} of the matched pixels sit at the top of the disparity search range: "
+                "something is nearer than the range reaches; raise num_disparities (or num_disparities auto "
+                "with a smaller min_range_m)")
+
+
+def saturated_share(raw: np.ndarray, valid: np.ndarray, max_disparity: float) -> float:
+    """Share of `valid` pixels of raw (int16 px * 16) within TOP_BAND_PX of max_disparity (px)."""
+    n = int(np.count_nonzero(valid))
+    if not n:
+        return 0.0
+    return float(np.count_nonzero(valid & (raw >= (max_disparity - TOP_BAND_PX) * SCALE)) / n)
+
+
+def gray(image: np.ndarray) -> np.ndarray:
+    """(H, W) or (H, W, 3) BGR uint8 -> (H, W) uint8."""
     if image.dtype != np.uint8:
         raise BallbotError(f"matching needs 8-bit images, got {image.dtype}")
     if image.ndim == 3:
@@ -29,58 +64,73 @@ def _gray(image: np.ndarray) -> np.ndarray:
     return image
 
 
-def _create(c: MatcherConfig, min_disparity: int):
+def create_sgbm(c: MatcherConfig):
+    """OpenCV's StereoSGBM with these settings (penalties default to the recommended 8 and 32 x block^2)."""
     b = c.block
-    if c.method == "bm":
-        m = cv2.StereoBM_create(numDisparities=c.num_disparities, blockSize=b)
-        m.setMinDisparity(min_disparity)
-        m.setUniquenessRatio(c.uniqueness_ratio)
-        m.setTextureThreshold(c.texture_threshold)
-        m.setSpeckleWindowSize(c.speckle_window)
-        m.setSpeckleRange(c.speckle_range)
-        m.setPreFilterType(cv2.StereoBM_PREFILTER_XSOBEL if c.prefilter == "xsobel"
-                           else cv2.StereoBM_PREFILTER_NORMALIZED_RESPONSE)
-        m.setPreFilterSize(c.prefilter_size)
-        m.setPreFilterCap(c.prefilter_cap)
-        m.setDisp12MaxDiff(-1)
-        return m
     area = b * b
-    return cv2.StereoSGBM_create(minDisparity=min_disparity, numDisparities=c.num_disparities, blockSize=b,
+    return cv2.StereoSGBM_create(minDisparity=c.min_disparity, numDisparities=c.fixed_num_disparities, blockSize=b,
                                  P1=c.p1 or 8 * area, P2=c.p2 or 32 * area, disp12MaxDiff=c.disp12_max_diff,
                                  preFilterCap=c.prefilter_cap, uniquenessRatio=c.uniqueness_ratio,
                                  speckleWindowSize=c.speckle_window, speckleRange=c.speckle_range,
-                                 mode=_SGBM_MODES[c.sgbm_mode])
+                                 mode=_SGBM_MODES[c.mode])
+
+
+def _create(c: MatcherConfig):
+    if c.method != "bm":
+        return create_sgbm(c)
+    m = cv2.StereoBM_create(numDisparities=c.fixed_num_disparities, blockSize=c.block)
+    m.setMinDisparity(c.min_disparity)
+    m.setUniquenessRatio(c.uniqueness_ratio)
+    m.setTextureThreshold(c.texture_threshold)
+    m.setSpeckleWindowSize(c.speckle_window)
+    m.setSpeckleRange(c.speckle_range)
+    m.setPreFilterType(cv2.StereoBM_PREFILTER_XSOBEL if c.prefilter == "xsobel"
+                       else cv2.StereoBM_PREFILTER_NORMALIZED_RESPONSE)
+    m.setPreFilterSize(c.prefilter_size)
+    m.setPreFilterCap(c.prefilter_cap)
+    m.setDisp12MaxDiff(-1)
+    return m
+
+
+def _check_pair(left: np.ndarray, right: np.ndarray) -> None:
+    if left.shape != right.shape:
+        raise BallbotError(f"left {left.shape} and right {right.shape} images differ in size")
 
 
 class StereoMatcher:
-    """Computes disparity of the left image. Images: (H, W) uint8 or (H, W, 3) BGR, rectified
+    """bm or sgbm: disparity of the left image. Images: (H, W) uint8 or (H, W, 3) BGR, rectified
     (epipolar lines are rows), the same size."""
 
     def __init__(self, config: MatcherConfig):
+        if config.method == "dense":
+            raise BallbotError("StereoMatcher is bm or sgbm; make_matcher builds dense")
         self.config = c = config
-        self._m = _create(c, c.min_disparity)
+        self._m = _create(c)
         # The right view's disparity: the same matcher on mirrored images (right becomes "left").
         # Its search starts at -(min + num - 1) mirrored, i.e. the same disparities seen from the right.
-        self._mr = _create(c, c.min_disparity) if c.lr_check else None
+        self._mr = _create(c) if c.lr_check else None
 
     def compute(self, left: np.ndarray, right: np.ndarray, min_valid_disparity: float = 0.0) -> np.ndarray:
         """-> (H, W) int16, disparity * 16; invalid pixels hold config.invalid_value.
         min_valid_disparity: the range gate for this pair, px (gate_for_range(config.max_range_m, f, B)
         for its camera); smaller disparities are invalid. 0: no gate."""
-        if left.shape != right.shape:
-            raise BallbotError(f"left {left.shape} and right {right.shape} images differ in size")
+        return self.match(left, right, min_valid_disparity).disparity
+
+    def match(self, left: np.ndarray, right: np.ndarray, min_valid_disparity: float = 0.0) -> Match:
+        _check_pair(left, right)
         c = self.config
-        gl, gr = _gray(left), _gray(right)
+        gl, gr = gray(left), gray(right)
         d = self._m.compute(gl, gr)
         invalid = d < c.min_disparity * SCALE  # OpenCV marks failures below min_disparity*16
         if self._mr is not None:
             invalid |= ~self._consistent(d, gl, gr)
+        saturated = saturated_share(d, ~invalid, c.max_disparity)
         if min_valid_disparity > 0:
             invalid |= d < min_valid_disparity * SCALE
         if not c.subpixel:
             d = ((d.astype(np.int32) + 8) // 16 * 16).astype(np.int16)
         d[invalid] = c.invalid_value
-        return d
+        return Match(d, None, saturated)
 
     def _consistent(self, d: np.ndarray, gl: np.ndarray, gr: np.ndarray) -> np.ndarray:
         """True where the left disparity at x agrees with the right disparity at x - d."""
@@ -99,7 +149,7 @@ class StereoMatcher:
 
 def half_resolution(config: MatcherConfig) -> MatcherConfig:
     """The same settings for images of half the width and height (the cheap onboard fallback)."""
-    nd = max(16, -(-config.num_disparities // 2 // 16) * 16)
+    nd = max(16, -(-config.fixed_num_disparities // 2 // 16) * 16)
     block = config.block // 2 | 1
     if config.method == "bm":
         block = max(5, block)
@@ -113,24 +163,32 @@ class HalfResolutionMatcher:
 
     def __init__(self, config: MatcherConfig):
         self.config = config
-        self._inner = StereoMatcher(half_resolution(config))
+        self._inner = make_matcher(half_resolution(config))
 
     def compute(self, left: np.ndarray, right: np.ndarray, min_valid_disparity: float = 0.0) -> np.ndarray:
-        if left.shape != right.shape:
-            raise BallbotError(f"left {left.shape} and right {right.shape} images differ in size")
+        return self.match(left, right, min_valid_disparity).disparity
+
+    def match(self, left: np.ndarray, right: np.ndarray, min_valid_disparity: float = 0.0) -> Match:
+        _check_pair(left, right)
         h, w = left.shape[:2]
-        small = [cv2.resize(_gray(x), (w // 2, h // 2), interpolation=cv2.INTER_AREA) for x in (left, right)]
-        d = self._inner.compute(small[0], small[1], min_valid_disparity / 2)
-        invalid = d == self._inner.config.invalid_value
-        out = (d.astype(np.int32) * 2).clip(-32768, 32767).astype(np.int16)
+        small = [cv2.resize(x, (w // 2, h // 2), interpolation=cv2.INTER_AREA) for x in (left, right)]
+        m = self._inner.match(small[0], small[1], min_valid_disparity / 2)
+        invalid = m.disparity == self._inner.config.invalid_value
+        out = (m.disparity.astype(np.int32) * 2).clip(-32768, 32767).astype(np.int16)
         out[invalid] = self.config.invalid_value
-        return cv2.resize(out, (w, h), interpolation=cv2.INTER_NEAREST)
+        up = lambda a: cv2.resize(a, (w, h), interpolation=cv2.INTER_NEAREST)  # noqa: E731
+        return Match(up(out), None if m.confidence is None else up(m.confidence), m.saturated)
 
 
 def make_matcher(config: MatcherConfig, scale: float = 1.0):
-    """scale 1: full resolution; 0.5: HalfResolutionMatcher."""
-    if scale == 1.0:
-        return StereoMatcher(config)
+    """The matcher for these settings (num_disparities resolved). scale 1: full resolution;
+    0.5: HalfResolutionMatcher. Every matcher has compute() -> int16 map and match() -> Match."""
     if scale == 0.5:
         return HalfResolutionMatcher(config)
-    raise BallbotError(f"scale: 1.0 or 0.5, got {scale}")
+    if scale != 1.0:
+        raise BallbotError(f"scale: 1.0 or 0.5, got {scale}")
+    if config.method == "dense":
+        from .dense import DenseMatcher
+
+        return DenseMatcher(config)
+    return StereoMatcher(config)

@@ -60,7 +60,9 @@ log = logging.getLogger("ballbot.pool")
 class FrameComputer:
     """StereoFrame -> DisparityMap with one matcher. result_encoding 'raw': int16, invalid
     (min_disparity-1)*16; 'png': lossless uint16 for narrow links, invalid 0 (a disparity of exactly
-    0, a point at infinity, is then invalid too; needs min_disparity >= 0)."""
+    0, a point at infinity, is then invalid too; needs min_disparity >= 0). A method with a confidence
+    (dense) sends it along, uint8, in the same encoding. num_disparities auto is resolved per camera
+    model; `saturated` / `range_warning` tell about the last frame's search range (see report)."""
 
     def __init__(self, config: MatcherConfig, scale: float = 1.0, result_encoding: str = "raw", label: str = ""):
         if result_encoding not in ("raw", "png"):
@@ -68,9 +70,24 @@ class FrameComputer:
         if result_encoding == "png" and config.min_disparity < 0:
             raise BallbotError("result_encoding png needs min_disparity >= 0")
         self.config = config
-        self.matcher = make_matcher(config, scale)
+        self.scale = scale
+        self._matchers: dict[tuple, Any] = {}
+        if config.num_disparities != "auto":  # bad settings fail now, not on the first frame
+            self._matchers[()] = make_matcher(config, scale)
         self.result_encoding = result_encoding
         self.method = config.method + ("" if scale == 1.0 else f"@{scale:g}") + (label and f"/{label}")
+        self.saturated = 0.0
+        self.range_warning = ""
+
+    def _matcher(self, cam) -> Any:
+        if () in self._matchers:
+            return self._matchers[()]
+        key = (cam.focal_px, cam.baseline_m, cam.width)
+        if key not in self._matchers:
+            if len(self._matchers) >= 4:  # calibrations come and go; keep a few, never grow without bound
+                self._matchers.clear()
+            self._matchers[key] = make_matcher(self.config.resolved(*key), self.scale)
+        return self._matchers[key]
 
     def compute(self, msg: StereoFrame, worker: str) -> DisparityMap:
         if msg.camera is None:
@@ -80,9 +97,12 @@ class FrameComputer:
                               f"{msg.camera.width}x{msg.camera.height}")
         left = codec.array_from_image(msg.left, "left")
         right = codec.array_from_image(msg.right, "right")
+        matcher = self._matcher(msg.camera)
         gate = gate_for_range(self.config.max_range_m, msg.camera.focal_px, msg.camera.baseline_m)
-        disp = self.matcher.compute(left, right, gate)
-        c = self.config
+        result = matcher.match(left, right, gate)
+        self.saturated, self.range_warning = result.saturated, result.range_warning
+        c = matcher.config
+        disp = result.disparity
         if self.result_encoding == "png":
             invalid = 0.0
             disp = np.where(disp > 0, disp, 0).astype(np.uint16)
@@ -90,10 +110,20 @@ class FrameComputer:
         else:
             invalid = float(c.invalid_value)
             image = codec.image_from_array(disp)
+        confidence = None
+        if result.confidence is not None:
+            confidence = codec.image_from_array(result.confidence, self.result_encoding)
         return DisparityMap(robot_id=msg.robot_id, seq=msg.seq, stamp_ns=msg.stamp_ns, stages=msg.stages,
                             image=image, scale=SCALE, invalid_value=invalid, min_disparity=c.min_disparity,
                             num_disparities=c.num_disparities, camera=msg.camera, method=self.method,
-                            worker=worker)
+                            worker=worker, confidence=confidence)
+
+    def report(self, node: Node) -> None:
+        """The last frame's search-range saturation into node's stats, and a (rate-limited) warning
+        when a large share of the matched pixels sits at the top of the range."""
+        node.extra["range_saturated_pct"] = round(self.saturated * 100.0, 2)
+        if self.range_warning:
+            node.warn("range", self.range_warning)
 
 
 def reencode_frame(msg: StereoFrame, encoding: str, jpeg_quality: int = 90) -> StereoFrame:
@@ -417,6 +447,7 @@ class Dispatcher:
         self.rid = node.robot_id
         self._work = topic("work")
         self._subs: list[Any] = []
+        self.methods: dict[str, str] = {}  # worker -> the method its last map was made with
 
     # callbacks (Zenoh threads: bookkeeping only)
     def _on_token(self, sample) -> None:
@@ -429,6 +460,7 @@ class Dispatcher:
                          self.state.alive())
         else:
             lost = self.state.remove_worker(name)
+            self.methods.pop(name, None)
             self.rates.forget(f"out_work_{name}")
             log.warning("worker %s left (%d alive, %d trusted); %d in-flight frame(s) lost", name, self.state.alive(),
                         self.state.trusted(), lost)
@@ -440,6 +472,10 @@ class Dispatcher:
         if msg is None:
             return
         verdict = self.state.done(msg.worker, msg.seq, msg.ok)
+        if verdict == "ok" and msg.method:  # which matcher produced each map, per method
+            key = f"maps_{msg.method}"
+            self.node.extra[key] = self.node.extra.get(key, 0) + 1
+            self.methods[msg.worker] = msg.method
         if verdict not in ("ok", "failed"):
             self.node.warn(f"receipt-{verdict}", f"dropped receipt from {msg.worker} for seq {msg.seq}: {verdict}")
         elif verdict == "failed":
@@ -479,10 +515,14 @@ class Dispatcher:
                 ([f"on probation: {', '.join(probation)}"] if probation else [])
         note = f"; {'; '.join(notes)}" if notes else ""
         if trusted:
-            self.node.status = f"ok: {trusted} worker{'s' if trusted > 1 else ''}{note}"
+            methods = sorted({m for w, m in list(self.methods.items())
+                              if w in snap["workers"] and snap["workers"][w]["trust"] == "trusted"})
+            self.node.status = (f"ok: {trusted} worker{'s' if trusted > 1 else ''}"
+                                + (f" ({', '.join(methods)})" if methods else "") + note)
         elif self.fallback is not None:
             # One host with no offboard worker is the normal single-machine setup, not a fault.
-            self.node.status = f"ok: computing onboard{note}" if not alive else f"fallback: computing onboard{note}"
+            what = f"computing onboard ({self.fallback.method}){note}"
+            self.node.status = f"ok: {what}" if not alive else f"fallback: {what}"
         else:
             self.node.status = f"no worker reachable{note}"
         self.rates.tick()
@@ -522,6 +562,7 @@ class Dispatcher:
                 elif self.fallback is not None:
                     with node.processing(msg):
                         out.put(self.fallback.compute(msg, node.instance))
+                        self.fallback.report(node)
                         self.node.extra["fallback_frames"] = self.node.extra.get("fallback_frames", 0) + 1
                 continue
             if not self.state.wait_free(0.1):
@@ -610,12 +651,12 @@ def run_worker(node: Node, settings: Any) -> None:
     receipts = node.publisher("work_done", instance=me)
     # Announce only once the work key is subscribed: the dispatcher sends as soon as it sees this.
     token = node.session.liveliness().declare_token(topic("worker").key(rid, instance=me))
-    node.status = "ok: waiting for work"
+    node.status = f"ok: {computer.method}, waiting for work"
     log.info("disparity worker %s ready on %s", me, topic("work").key(rid, instance=me))
 
     def receipt(msg: Any, ok: bool, reason: str = "", proc_ms: float = 0.0) -> None:
         receipts.put(WorkDone(robot_id=rid, seq=msg.seq, stamp_ns=msg.stamp_ns, worker=me, ok=ok,
-                              reason=reason, proc_ms=proc_ms), count=False)
+                              reason=reason, proc_ms=proc_ms, method=computer.method if ok else ""), count=False)
 
     try:
         while node.running:
@@ -642,8 +683,9 @@ def run_worker(node: Node, settings: Any) -> None:
                 result = computer.compute(msg, me)
                 out.put(result)
                 rates.add("out_disparity", len(result.image.data))
+                computer.report(node)
                 ok = True
-                node.status = "ok"
+                node.status = f"ok: {computer.method}"
             receipt(msg, ok, "" if ok else "failed (see worker log)", (time.monotonic() - received) * 1e3)
     finally:
         try:

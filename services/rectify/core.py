@@ -132,7 +132,7 @@ class CalibrationHolder:
                     self._rectifier.calibration.name or self.spec, why)
         return False
 
-    def offer(self, cal: camera.Calibration, origin: str) -> bool:
+    def offer(self, cal: camera.Calibration, origin: str, check_change: bool = True) -> bool:
         """Build a Rectifier for `cal` and swap it in; False (and logged) if refused."""
         with self._lock:
             if self.stream_size is not None and tuple(cal.image_size) != self.stream_size:
@@ -144,7 +144,7 @@ class CalibrationHolder:
                 return self._refuse(origin, str(e))
             except cv2.error as e:
                 return self._refuse(origin, f"OpenCV cannot rectify with it: {str(e).strip().splitlines()[-1]}")
-            jump = implausible_change(self._rectifier.model, new.model, self.max_change)
+            jump = implausible_change(self._rectifier.model, new.model, self.max_change) if check_change else ""
             if jump:
                 return self._refuse(origin, f"{jump}; a change this large is not applied at run time "
                                             f"(restart rectify with the new calibration if it is right)")
@@ -155,7 +155,7 @@ class CalibrationHolder:
                      cal.name or "?", origin, m.focal_px, m.baseline_m * 1000)
             return True
 
-    def offer_yaml(self, text: str, origin: str) -> bool:
+    def offer_yaml(self, text: str, origin: str, check_change: bool = True) -> bool:
         import yaml
 
         try:
@@ -166,7 +166,7 @@ class CalibrationHolder:
             cal = camera.calibration_from_dict(doc, where=origin)
         except CalibrationError as e:
             return self._refuse(origin, str(e))
-        return self.offer(cal, origin)
+        return self.offer(cal, origin, check_change)
 
     def _stat(self) -> tuple[float, int] | None:
         if self._path is None:

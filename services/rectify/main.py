@@ -1,16 +1,23 @@
 """rectify: frames_raw -> frames_rect (with the rectified camera model).
 
 A new calibration is taken at run time, without a restart and without a torn frame: the
-calibration file changed on disk (checked once a second), or, only with `calibration_updates: on`,
-published on the `calibration` key (a CalibrationUpdate with the YAML text). Anyone who can put on
-the robot's Zenoh network could otherwise rescale every distance, so that key is off by default
-(turn it on where only trusted peers can publish it: the secured deployment's gateway lets no
-offboard user put it). Either way a calibration whose baseline or focal length differs from the one
-in use by more than `calibration_max_change` is refused (a restart takes it), as is one that does
-not load or fits another image size; the old one stays in use.
+calibration file changed on disk (checked once a second), or one published on the `calibration`
+key (a CalibrationUpdate with the YAML text). Anyone who can put on the robot's Zenoh network could
+publish one, so the key is trusted only where it must be (`calibration_updates`):
+  auto (default)  only while rectify has no calibration of its own (rectify.calibration unset):
+                  then the stream's source provides it (capture --source ros2 from CameraInfo,
+                  --source mcap from the recording); a configured rig ignores the key;
+  on              always (only where untrusted peers cannot publish it, e.g. behind the TLS
+                  gateway, whose ACL lets no offboard user put it);
+  off             never.
+Every run-time calibration after the first (key or file) whose baseline or focal length differs
+from the one in use by more than `calibration_max_change` is refused (a restart takes it): half
+the baseline would silently halve every distance. One that does not load or fits another image
+size is refused too; the old one stays in use.
 """
 from __future__ import annotations
 
+import logging
 import queue
 import threading
 import time
@@ -19,11 +26,14 @@ from typing import Literal
 from pydantic import Field
 
 from ...common import codec
+from ...common.errors import CalibrationError
 from ...common.keys import topic
 from ...common.messages import CalibrationUpdate, StereoFrame
 from ...common.node import Node
 from ...common.settings import ServiceSettings
 from .core import CalibrationHolder
+
+log = logging.getLogger("ballbot")
 
 SUBSCRIBES = ["frames_raw", "calibration"]
 PUBLISHES = ["frames_rect"]
@@ -31,18 +41,22 @@ PUBLISHES = ["frames_rect"]
 
 class RectifySettings(ServiceSettings):
     section = "rectify"
-    calibration: str = Field("lifecam-studio", description="calibration YAML or built-in profile")
+    calibration: str | None = Field(None, description="calibration YAML or built-in profile; required for camera, "
+                                    "video and image sources (unset: the thesis rig 'lifecam-studio', which the "
+                                    "synthetic scene renders, for the synthetic source only)")
     alpha: float = Field(0.0, ge=0.0, le=1.0, description="0: crop to valid pixels, 1: keep all source pixels")
     watch_s: float = Field(1.0, ge=0.0, le=3600.0, description="check the calibration file for changes this often (0: never)")
-    calibration_updates: Literal["off", "on"] = Field(
-        "off", description="accept calibrations published on the calibration key (on: only where untrusted "
-                           "peers cannot publish it, e.g. behind the TLS gateway)")
+    calibration_updates: Literal["auto", "on", "off"] = Field(
+        "auto", description="accept calibrations published on the calibration key: auto: only while no "
+                            "calibration is set (the source provides it); on: always (only where untrusted peers "
+                            "cannot publish it); off: never")
     calibration_max_change: float = Field(0.05, ge=0.0, le=10.0, description="refuse a run-time calibration whose "
                                           "baseline or focal length differs from the one in use by more than this "
                                           "fraction (0: no limit); a restart takes any calibration")
 
 
-def reloader(node: Node, holder: CalibrationHolder, updates: "queue.Queue[CalibrationUpdate]", watch_s: float) -> None:
+def reloader(node: Node, holder: CalibrationHolder, updates: "queue.Queue[CalibrationUpdate]", watch_s: float,
+             configured: bool = True) -> None:
     """Off the frame loop: applies calibration messages and watches the calibration file."""
     next_poll = time.monotonic() + watch_s
     while node.running:
@@ -52,7 +66,9 @@ def reloader(node: Node, holder: CalibrationHolder, updates: "queue.Queue[Calibr
         except queue.Empty:
             upd = None
         if upd is not None:
-            holder.offer_yaml(upd.yaml, f"the calibration key ({upd.source or 'message'})")
+            # the first one replaces only the assumed synthetic rig: no jump check against that
+            holder.offer_yaml(upd.yaml, f"the calibration key ({upd.source or 'message'})",
+                              check_change=configured or holder.generation > 0)
         if watch_s > 0 and time.monotonic() >= next_poll:
             holder.poll_file()
             next_poll = time.monotonic() + watch_s
@@ -60,19 +76,40 @@ def reloader(node: Node, holder: CalibrationHolder, updates: "queue.Queue[Calibr
         node.extra["calibration_refused"] = float(holder.refused)
 
 
+# The rig the synthetic scene renders; assumed only for frames from that source.
+SYNTHETIC_RIG = "lifecam-studio"
+
+
+def check_assumed_calibration(source: str, holder: CalibrationHolder, configured: bool) -> None:
+    """A real source (cameras, video, images, ...) with no calibration configured or received must
+    not be rectified with the thesis rig's calibration: raise, naming what to set."""
+    if configured or holder.generation > 0 or source == "synthetic":
+        return
+    raise CalibrationError(f"frames from a '{source or 'unknown'}' source need this rig's calibration: set "
+                           f"rectify.calibration (--calibration FILE, BALLBOT_RECTIFY_CALIBRATION or the config "
+                           f"file) or publish one on the calibration key; the built-in '{SYNTHETIC_RIG}' profile "
+                           f"is assumed only for the synthetic scene")
+
+
 def run(node: Node, settings: RectifySettings) -> None:
-    holder = CalibrationHolder(settings.calibration, settings.alpha, settings.calibration_max_change)
-    # the size cap of frames_raw follows from the calibrated image size (two colour images, any dtype)
+    configured = settings.calibration is not None
+    holder = CalibrationHolder(settings.calibration or SYNTHETIC_RIG, settings.alpha, settings.calibration_max_change)
+    accept_key = settings.calibration_updates == "on" or (settings.calibration_updates == "auto" and not configured)
+    # the size cap of frames_raw follows from the calibrated image size (two colour images, any dtype);
+    # without a calibration of its own the source's may be any size: the key table's cap stands
     w, h = holder.current().size
-    frame_cap = 2 * w * h * 3 * 4 + (1 << 20)
+    frame_cap = 2 * w * h * 3 * 4 + (1 << 20) if configured else None
+    if not configured:
+        log.info("rectify: no calibration set: '%s' is assumed for the synthetic scene only; frames from any "
+                 "other source are refused until one is set", SYNTHETIC_RIG)
     updates: queue.Queue[CalibrationUpdate] = queue.Queue(maxsize=8)
 
     def on_calibration(sample) -> None:  # Zenoh's thread: decode and hand over, nothing heavy
-        if settings.calibration_updates != "on":
+        if not accept_key:
             holder.refused += 1
             node.extra["calibration_refused"] = float(holder.refused)
-            node.warn("calibration", "refused a calibration published on the calibration key: calibration updates "
-                                     "over Zenoh are off (rectify setting calibration_updates)")
+            node.warn("calibration", "refused a calibration published on the calibration key: rectify has its own "
+                                     f"and calibration_updates is {settings.calibration_updates} (on: accept it)")
             return
         msg = node.decode_or_drop(sample.payload.to_bytes(), CalibrationUpdate, "calibration message", "calibration")
         if msg is None:
@@ -83,12 +120,19 @@ def run(node: Node, settings: RectifySettings) -> None:
             node.warn("calibration", "calibration messages arrive faster than they can be applied; dropped one")
 
     node.subscribe(topic("calibration").key(node.robot_id), on_calibration)
-    threading.Thread(target=reloader, args=(node, holder, updates, settings.watch_s), name="calibration",
+    threading.Thread(target=reloader, args=(node, holder, updates, settings.watch_s, configured), name="calibration",
                      daemon=True).start()
     inbox = node.latest("frames_raw", max_bytes=frame_cap)
     out = node.publisher("frames_rect")
     for msg in node.receive(inbox):
         with node.processing(msg):
+            try:
+                check_assumed_calibration(msg.source, holder, configured)
+            except CalibrationError:
+                node.status = f"error: no calibration for the '{msg.source}' source (set rectify.calibration)"
+                raise
+            if node.status.startswith("error: no calibration"):
+                node.status = "ok"
             rectifier = holder.current()  # one calibration for the whole pair
             holder.note_frame(msg.left.width, msg.left.height)
             left = codec.array_from_image(msg.left, "left")

@@ -1,0 +1,229 @@
+"""record: the pipeline's messages -> an MCAP file that Foxglove opens (`ballbot-vision record OUT.mcap`).
+
+Zenoh's callbacks only append the payload to a queue (bounded in bytes: past `queue_mb` a message
+is dropped and counted, never the robot slowed); `threads` encoder threads decode, compress and
+hand the messages to the writer. Ctrl-C, SIGTERM and SIGHUP stop the subscriptions, drain the
+queue and close the file with its index, so a stopped recording is a complete file.
+"""
+from __future__ import annotations
+
+import logging
+import queue
+import signal
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field
+
+from ...common.keys import topic
+from ...common.messages import (CalibrationUpdate, DisparityMap, FreeSpace, GroundTruth, ObstacleList, ServiceStats,
+                                StereoFrame)
+from ...common.node import Node
+from ...common.settings import ServiceSettings
+from .recording import Converter, Recorded, RecordingWriter, RecordOptions
+
+log = logging.getLogger("ballbot.record")
+
+SUBSCRIBES = ["frames_raw", "frames_rect", "disparity", "obstacles", "freespace", "truth", "stats", "calibration"]
+PUBLISHES: list[str] = []
+
+
+class RecordSettings(ServiceSettings):
+    section = "record"
+    image_format: Literal["jpeg", "png", "keep"] = Field(
+        "jpeg", description="frames in the file: jpeg (small, fast), png (lossless, ~10x the CPU), keep (as "
+                            "they travel: compressed payloads pass through, raw ones become jpeg)")
+    jpeg_quality: int = Field(90, ge=1, le=100, description="jpeg quality of frames and the disparity picture")
+    raw: bool = Field(True, description="record the raw pairs (what replay publishes)")
+    rectified: bool = Field(True, description="record the rectified pairs")
+    disparity: bool = Field(True, description="record the disparity as a colour picture")
+    stats: bool = Field(True, description="record every service's stats")
+    calibration: str | None = Field(None, description="calibration YAML or profile stored for replay (default: "
+                                    "the rectify section's calibration of --config, else lifecam-studio)")
+    compression: Literal["zstd", "lz4", "none"] = Field("zstd", description="MCAP chunk compression")
+    threads: int = Field(2, ge=1, le=16, description="encoder threads")
+    queue_mb: int = Field(1024, ge=16, le=65536, description="memory for messages waiting to be written; "
+                          "beyond it messages are dropped and counted")
+    duration_s: float = Field(0.0, ge=0, description="stop after this many seconds (0: until Ctrl-C)")
+    pairs: int = Field(0, ge=0, description="stop after this many raw pairs (0: until Ctrl-C)")
+
+
+@dataclass
+class RecordResult:
+    path: str
+    seconds: float = 0.0
+    counts: dict[str, int] = field(default_factory=dict)  # topic -> messages written
+    received: dict[str, int] = field(default_factory=dict)  # key kind -> payloads received
+    dropped_queue_full: int = 0
+    decode_errors: int = 0
+    raw_seqs: list[int] = field(default_factory=list)
+    bytes: int = 0
+
+    @property
+    def missing_raw(self) -> int:
+        """Raw pairs capture published that never reached the file: gaps in the capture seq (a
+        restart of capture, which starts seq at 0 again, opens a new run)."""
+        missing, last = 0, None
+        for s in sorted(set(self.raw_seqs)):
+            if last is not None and s > last + 1:
+                missing += s - last - 1
+            last = s
+        return missing
+
+    def summary(self) -> str:
+        parts = ", ".join(f"{t} {n}" for t, n in sorted(self.counts.items()))
+        return (f"wrote {self.path}: {parts or 'nothing'}; {self.bytes / 1e6:.1f} MB in {self.seconds:.1f} s; "
+                f"dropped {self.dropped_queue_full} (queue full), {self.missing_raw} raw pair(s) missing "
+                f"(seq gaps), {self.decode_errors} undecodable")
+
+
+MODELS = {"frames_raw": StereoFrame, "frames_rect": StereoFrame, "disparity": DisparityMap,
+          "obstacles": ObstacleList, "freespace": FreeSpace, "truth": GroundTruth, "stats": ServiceStats,
+          "calibration": CalibrationUpdate}
+
+
+def calibration_text(spec: str) -> str:
+    """A calibration file's text, or a built-in profile written out as YAML."""
+    import yaml
+
+    from ...common import camera
+
+    cal = camera.load_calibration(spec)  # raises a CalibrationError naming the file
+    if spec in camera.PROFILES:
+        return yaml.safe_dump(camera.calibration_to_dict(cal), sort_keys=False)
+    return Path(spec).read_text()
+
+
+class Recorder:
+    """The Zenoh side of a recording: subscriptions, the byte-bounded queue, encoder threads."""
+
+    def __init__(self, node: Node, settings: RecordSettings, writer: RecordingWriter):
+        self.node, self.settings, self.writer = node, settings, writer
+        self.converter = Converter(RecordOptions(image_format=settings.image_format, jpeg_quality=settings.jpeg_quality,
+                                                 raw=settings.raw, rectified=settings.rectified,
+                                                 disparity=settings.disparity))
+        self.queue: queue.Queue[tuple[str, bytes] | None] = queue.Queue()
+        self.queued_bytes = 0
+        self.max_bytes = settings.queue_mb << 20
+        self.accepting = True
+        self._lock = threading.Lock()
+        self.result = RecordResult(str(writer.path))
+        self.raw_written = threading.Event()
+        self._threads: list[threading.Thread] = []
+
+    def offer(self, kind: str, payload: bytes) -> None:
+        """Zenoh's callback thread: count, bound, enqueue; nothing else."""
+        with self._lock:
+            if not self.accepting:
+                return
+            self.result.received[kind] = self.result.received.get(kind, 0) + 1
+            if self.queued_bytes + len(payload) > self.max_bytes:
+                self.result.dropped_queue_full += 1
+                return
+            self.queued_bytes += len(payload)
+        self.queue.put((kind, payload))
+
+    def subscribe(self) -> None:
+        s = self.settings
+        kinds = ["frames_raw", "frames_rect", "disparity", "obstacles", "freespace", "truth", "calibration"]
+        kinds += ["stats"] if s.stats else []
+        skip = {"frames_raw": not s.raw, "frames_rect": not s.rectified, "disparity": not s.disparity}
+        for kind in kinds:
+            if skip.get(kind):
+                continue
+            t = topic(kind)
+            key = t.pattern(self.node.robot_id) if kind == "stats" else t.key(self.node.robot_id)
+            self.node.subscribe(key, lambda sample, k=kind: self.offer(k, sample.payload.to_bytes()))
+
+    def start(self) -> None:
+        for i in range(self.settings.threads):
+            t = threading.Thread(target=self._work, name=f"record-{i}", daemon=True)
+            t.start()
+            self._threads.append(t)
+
+    def _convert(self, kind: str, msg) -> list[Recorded]:
+        c = self.converter
+        if kind in ("frames_raw", "frames_rect"):
+            return c.frame(msg)
+        if kind == "calibration":
+            return c.calibration(msg.yaml, msg.source or "calibration key", msg.stamp_ns)
+        return {"disparity": c.disparity, "obstacles": c.obstacles, "freespace": c.freespace, "truth": c.truth,
+                "stats": c.stats}[kind](msg)
+
+    def _work(self) -> None:
+        while True:
+            item = self.queue.get()
+            if item is None:
+                return
+            kind, payload = item
+            try:
+                msg = self.node.decode_or_drop(payload, MODELS[kind], f"{kind} message")
+                if msg is None:
+                    continue
+                with self.node.processing(msg):
+                    for r in self._convert(kind, msg):
+                        self.writer.write(r.topic, r.doc, r.log_time_ns, r.sequence)
+                    if kind == "frames_raw":
+                        with self._lock:
+                            self.result.raw_seqs.append(msg.seq)
+                            n = len(self.result.raw_seqs)
+                        self.node.extra["raw_pairs_written"] = float(n)
+                        if self.settings.pairs and n >= self.settings.pairs:
+                            self.raw_written.set()
+            finally:
+                with self._lock:
+                    self.queued_bytes -= len(payload)
+                self.node.extra["queue_mb"] = self.queued_bytes / 1e6
+                self.node.extra["dropped_queue_full"] = float(self.result.dropped_queue_full)
+
+    def drain(self, timeout_s: float = 30.0) -> None:
+        """Stop accepting, let the encoder threads finish what is queued, then stop them."""
+        with self._lock:
+            self.accepting = False
+        for _ in self._threads:
+            self.queue.put(None)
+        deadline = time.monotonic() + timeout_s
+        for t in self._threads:
+            t.join(max(0.0, deadline - time.monotonic()))
+        if any(t.is_alive() for t in self._threads):
+            log.warning("record: %d message(s) still queued after %.0f s; closing without them",
+                        self.queue.qsize(), timeout_s)
+
+
+def record(node: Node, settings: RecordSettings, path: str | Path, calibration_spec: str,
+           started: threading.Event | None = None) -> RecordResult:
+    """Record until stopped (node.stop_event: Ctrl-C, SIGTERM, SIGHUP), `duration_s` or `pairs`."""
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGHUP, lambda *_: node.stop_event.set())
+    text = calibration_text(calibration_spec)  # before the file exists: a bad calibration costs nothing
+    writer = RecordingWriter(path, compression=settings.compression,
+                             metadata={"robot_id": node.robot_id, "calibration": calibration_spec,
+                                       "image_format": settings.image_format})
+    t0 = time.monotonic()
+    rec = Recorder(node, settings, writer)
+    try:
+        for r in Converter.calibration(text, calibration_spec):
+            writer.write(r.topic, r.doc, r.log_time_ns)
+        rec.start()
+        rec.subscribe()
+        node.status = "recording"
+        if started is not None:
+            started.set()
+        deadline = t0 + settings.duration_s if settings.duration_s else None
+        while node.running and not rec.raw_written.is_set():
+            if deadline is not None and time.monotonic() >= deadline:
+                break
+            node.stop_event.wait(0.1)
+        node.status = "closing"
+        rec.drain()
+    finally:
+        writer.close()
+    res = rec.result
+    res.seconds = time.monotonic() - t0
+    res.counts = dict(writer.counts)
+    res.bytes = writer.path.stat().st_size
+    res.decode_errors = node.decode_errors
+    return res
