@@ -198,6 +198,30 @@ def test_a_ghost_worker_token_is_quarantined_and_the_onboard_fallback_carries_on
         token.undeclare()
 
 
+def test_a_calibration_with_half_the_baseline_published_on_the_key_is_refused(pipeline):
+    """The local calibration key accepted any well-formed rig from anyone: half the baseline halved
+    every distance, silently. Now a jump like that is refused and the distances stay."""
+    import yaml
+
+    from ballbot_vision.common import camera
+    from ballbot_vision.common.messages import CalibrationUpdate
+
+    st = pipeline.stream
+    t0 = time.monotonic()
+    st.wait_new(5, t0, 60)
+    before = [o.distance_m for _, m in st.new(t0)[-3:] for o in m.obstacles]
+    doc = camera.calibration_to_dict(camera.load_calibration("lifecam-studio"))
+    doc["T"] = [t / 2 for t in doc["T"]]
+    pipeline.session.put(pipeline.key("calibration"), codec.encode(CalibrationUpdate(
+        robot_id=pipeline.rid, seq=0, stamp_ns=time.time_ns(), yaml=yaml.safe_dump(doc), source="an attacker")))
+    st.wait(lambda: st.extra("rectify", "calibration_refused") >= 1, 30, "rectify to refuse the calibration")
+    t1 = time.monotonic()
+    st.wait_new(10, t1, 60)
+    after = [o.distance_m for _, m in st.new(t1)[-3:] for o in m.obstacles]
+    assert st.extra("rectify", "calibration_generation") == 0
+    assert after and abs(sum(after) / len(after) - sum(before) / len(before)) < 0.1 * sum(before) / len(before)
+
+
 SLOW_PEER = r"""
 import sys, time
 from ballbot_vision.common.keys import topic

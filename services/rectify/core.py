@@ -114,6 +114,7 @@ class CalibrationHolder:
         self._path = Path(spec) if spec not in camera.PROFILES and Path(spec).exists() else None
         self._mtime = self._stat()
         self.stream_size: tuple[int, int] | None = None
+        self.stream_source: str | None = None  # StereoFrame.source of the frames seen lately
         self.generation = 0
         self.refused = 0
         self.last_error = ""

@@ -10,9 +10,10 @@ publish one, so the key is trusted only where it must be (`calibration_updates`)
   on              always (only where untrusted peers cannot publish it, e.g. behind the TLS
                   gateway, whose ACL lets no offboard user put it);
   off             never.
-Every run-time calibration after the first (key or file) whose baseline or focal length differs
-from the one in use by more than `calibration_max_change` is refused (a restart takes it): half
-the baseline would silently halve every distance. One that does not load or fits another image
+Every run-time calibration (key or file) whose baseline or focal length differs from the one in
+use by more than `calibration_max_change` is refused (a restart takes it): half the baseline would
+silently halve every distance. The one exception is the first calibration for a real source that
+rectify had none for (its frames were refused until then). One that does not load or fits another image
 size is refused too; the old one stays in use.
 """
 from __future__ import annotations
@@ -66,9 +67,12 @@ def reloader(node: Node, holder: CalibrationHolder, updates: "queue.Queue[Calibr
         except queue.Empty:
             upd = None
         if upd is not None:
-            # the first one replaces only the assumed synthetic rig: no jump check against that
+            # The first one for a real source replaces a rig that was only assumed (its frames are
+            # refused until then): no jump check against that. The synthetic scene's rig is right.
+            first_for_real_source = (not configured and holder.generation == 0
+                                     and holder.stream_source not in (None, "synthetic"))
             holder.offer_yaml(upd.yaml, f"the calibration key ({upd.source or 'message'})",
-                              check_change=configured or holder.generation > 0)
+                              check_change=not first_for_real_source)
         if watch_s > 0 and time.monotonic() >= next_poll:
             holder.poll_file()
             next_poll = time.monotonic() + watch_s
@@ -125,6 +129,7 @@ def run(node: Node, settings: RectifySettings) -> None:
     inbox = node.latest("frames_raw", max_bytes=frame_cap)
     out = node.publisher("frames_rect")
     for msg in node.receive(inbox):
+        holder.stream_source = msg.source
         with node.processing(msg):
             try:
                 check_assumed_calibration(msg.source, holder, configured)
