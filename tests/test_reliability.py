@@ -391,3 +391,93 @@ def test_thesis_rate_on_two_cores_with_a_cpu_hog_no_stale_lists_no_id_changes(tm
             h.kill()
             h.wait()
         p.close()
+
+
+# --- health is about progress ------------------------------------------------------------------------
+
+def test_health_and_healthcheck_report_a_stage_that_makes_no_progress(tmp_path):
+    """A dispatcher with no worker and no fallback (input arrives, nothing is published) is degraded,
+    and a rectify whose calibration fits no frame (every input fails) is failed; `healthcheck` fails
+    for both, naming why, and passes for a healthy capture."""
+    from helpers import cli, free_port, wait_port
+
+    rid = "health"
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    cal = tmp_path / "small.yaml"
+    cal.write_text("rectified: true\nimage_size: [320, 240]\nfocal_px: 300\nprincipal_point: [160, 120]\n"
+                   "baseline_m: 0.1\n")
+    env = dict(os.environ, BALLBOT_LOG="WARNING")
+    procs = []
+
+    def start(*argv: str) -> None:
+        procs.append(subprocess.Popen(cli("run", *argv, "--robot-id", rid), env=env, stdout=subprocess.DEVNULL,
+                                      stderr=subprocess.DEVNULL))
+
+    try:
+        start("router", "--listen", endpoint)
+        wait_port(port, procs[0])
+        start("capture", "--connect", endpoint, "--rate-hz", "10", "--preload", "4")
+        start("rectify", "--connect", endpoint, "--calibration", str(cal))
+        stats = Stream()
+        from ballbot_vision.common.zenoh_session import ZenohOptions, open_session
+
+        with open_session(ZenohOptions(mode="peer", connect=[endpoint], listen=["tcp/127.0.0.1:0"])) as s:
+            s.declare_subscriber(topic("stats").pattern(rid), stats.on_stats)
+            stats.wait(lambda: stats.stats.get("rectify") is not None and stats.stats["rectify"].health == "failed",
+                       120, "rectify to report failed")
+            assert "every input fails" in stats.stats["rectify"].status
+            hc = subprocess.run(cli("healthcheck", "--service", "rectify", "--connect", endpoint, "--robot-id", rid,
+                                    "--timeout", "30"), capture_output=True, text=True, timeout=120)
+            assert hc.returncode == 1 and "every input fails" in hc.stderr, hc.stderr
+            hc = subprocess.run(cli("healthcheck", "--service", "capture", "--connect", endpoint, "--robot-id", rid,
+                                    "--timeout", "30"), capture_output=True, text=True, timeout=120)
+            assert hc.returncode == 0, hc.stderr
+            # the dispatcher: frames arrive (rectify publishes nothing, so feed it rectified frames directly)
+            start("disparity", "--connect", endpoint, "--fallback", "none")
+            frame = None
+            raw = threading.Event()
+
+            def keep(sample) -> None:
+                nonlocal frame
+                frame = sample.payload.to_bytes()
+                raw.set()
+
+            sub = s.declare_subscriber(topic("frames_raw").key(rid), keep)
+            assert raw.wait(60)
+            sub.undeclare()
+            from ballbot_vision.common.messages import CameraModel, StereoFrame
+
+            msg = codec.decode(frame, StereoFrame)
+            msg.camera = CameraModel(width=msg.left.width, height=msg.left.height, focal_px=600, cx=320, cy=240,
+                                     baseline_m=0.1, Q=[0.0] * 16)
+            pub = s.declare_publisher(topic("frames_rect").key(rid))
+            feeding = threading.Event()
+
+            def feed() -> None:  # rectified frames at 10 Hz for as long as the check lasts
+                while not feeding.wait(0.1):
+                    msg.stamp_ns = time.time_ns()
+                    msg.seq += 1
+                    pub.put(codec.encode(msg))
+
+            feeder = threading.Thread(target=feed, daemon=True)
+            feeder.start()
+            try:
+                stats.wait(lambda: stats.stats.get("dispatcher") is not None
+                           and stats.stats["dispatcher"].health != "ok", 120, "the dispatcher to report degraded")
+                d = stats.stats["dispatcher"]
+                assert d.health == "degraded" and "nothing published" in d.status, d.status
+                hc = subprocess.run(cli("healthcheck", "--service", "disparity", "--connect", endpoint, "--robot-id",
+                                        rid, "--timeout", "30"), capture_output=True, text=True, timeout=120)
+                assert hc.returncode == 1 and "nothing published" in hc.stderr, hc.stderr
+            finally:
+                feeding.set()
+                feeder.join(10)
+    finally:
+        for p in procs:
+            p.terminate()
+        for p in procs:
+            try:
+                p.wait(30)
+            except subprocess.TimeoutExpired:
+                p.kill()
