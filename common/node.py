@@ -656,7 +656,8 @@ class Node:
         inputs = self.inputs
         refused: dict[str, int] = {}
         for inbox in self._inboxes:
-            inputs += inbox.received
+            # repeats of what was already handed on (a heartbeat's stale copy) are not new input
+            inputs += inbox.received - inbox.refusals().get("late", 0)
             name = inbox.topic.name
             self._rate(extra, f"in_{name}", inbox.bytes, window)
             extra[f"in_{name}_oversized"] = float(inbox.oversized)
