@@ -499,3 +499,15 @@ def test_workers_in_another_network_namespace_survive_a_kill():
         procs_o.stop_all()
         for ns in created:
             subprocess.run(["ip", "netns", "del", ns], capture_output=True)
+
+
+def test_a_workers_queue_is_bounded_in_items_and_bytes():
+    from ballbot_vision.services.disparity.pool import WorkQueue
+
+    q = WorkQueue(capacity=3, max_bytes=10 << 20)
+    for i in range(5):
+        q.offer(bytes([i]) * 100, None)
+    assert [q.take(0)[0][0] for _ in range(3)] == [2, 3, 4] and q.overflowed == 2
+    for i in range(4):
+        q.offer(bytes([i]) * (4 << 20), None)  # a misbehaving sender's large items
+    assert q.overflowed == 4 and q.take(0)[0][0] == 2 and q.take(0)[0][0] == 3 and q.take(0) is None

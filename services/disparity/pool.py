@@ -606,19 +606,24 @@ def run_dispatcher(node: Node, settings: Any) -> None:
 # --- the worker (any host) ------------------------------------------------------------------------
 
 class WorkQueue:
-    """Work items in arrival order, at most `capacity` (the oldest is dropped beyond that: the
-    dispatcher bounds what is in flight, so this only guards against a misbehaving sender)."""
+    """Work items in arrival order, at most `capacity` of them and `max_bytes` in all (the oldest
+    are dropped beyond that: the dispatcher bounds what is in flight, so this only guards against a
+    misbehaving sender, whose items could otherwise hold 8 x 80 MB)."""
 
-    def __init__(self, capacity: int = 8):
-        self._items: deque[tuple[bytes, bytes | None, float]] = deque(maxlen=capacity)
+    def __init__(self, capacity: int = 8, max_bytes: int = 128 << 20):
+        self._items: deque[tuple[bytes, bytes | None, float]] = deque()
+        self.capacity, self.max_bytes = capacity, max_bytes
+        self._held = 0
         self._cond = threading.Condition()
         self.received = self.overflowed = self.bytes = 0
 
     def offer(self, payload: bytes, attachment: bytes | None) -> None:
         with self._cond:
-            if len(self._items) == self._items.maxlen:
-                self.overflowed += 1
             self._items.append((payload, attachment, time.monotonic()))
+            self._held += len(payload)
+            while len(self._items) > 1 and (len(self._items) > self.capacity or self._held > self.max_bytes):
+                self._held -= len(self._items.popleft()[0])
+                self.overflowed += 1
             self.received += 1
             self.bytes += len(payload)
             self._cond.notify()
@@ -627,7 +632,11 @@ class WorkQueue:
         with self._cond:
             if not self._items:
                 self._cond.wait(timeout)
-            return self._items.popleft() if self._items else None
+            if not self._items:
+                return None
+            item = self._items.popleft()
+            self._held -= len(item[0])
+            return item
 
 
 def run_worker(node: Node, settings: Any) -> None:
