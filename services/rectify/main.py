@@ -67,10 +67,11 @@ def reloader(node: Node, holder: CalibrationHolder, updates: "queue.Queue[Calibr
         except queue.Empty:
             upd = None
         if upd is not None:
-            # The first one for a real source replaces a rig that was only assumed (its frames are
-            # refused until then): no jump check against that. The synthetic scene's rig is right.
+            # The first one replaces a rig that was only assumed (a real source's frames are refused
+            # until then; a replay or a ROS camera sends its calibration before its first frame): no
+            # jump check against that. Once synthetic frames flow, their rig is the right one.
             first_for_real_source = (not configured and holder.generation == 0
-                                     and holder.stream_source not in (None, "synthetic"))
+                                     and holder.stream_source != "synthetic")
             holder.offer_yaml(upd.yaml, f"the calibration key ({upd.source or 'message'})",
                               check_change=not first_for_real_source)
         if watch_s > 0 and time.monotonic() >= next_poll:
