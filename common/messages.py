@@ -221,6 +221,8 @@ class CalibrationUpdate(Message):
 
     yaml: str = Field(min_length=1, max_length=1_000_000, description="calibration file text (YAML)")
     source: str = Field("", description="where it came from (a path, `calibrate`, a user)")
+    signature: str = Field("", max_length=128, description="hex HMAC-SHA256 of robot_id, stamp_ns, source and yaml "
+                           "with the robot's calibration key (BALLBOT_CALIBRATION_KEY); empty: unsigned")
 
 
 class ReplayControl(Message):
