@@ -114,7 +114,15 @@ def cmd_up(args: argparse.Namespace) -> int:
         common += ["--config", config_file(args)]
     if args.nice < 0 and os.geteuid() != 0:
         log.warning("up --nice %d needs root (or CAP_SYS_NICE); the services run at the default priority", args.nice)
-    sup = Supervisor(stop_timeout_s=args.stop_timeout, nice=args.nice)
+    import secrets
+
+    from .common.signing import KEY_ENV
+
+    # The services of this run share a calibration key: rectify takes calibrations signed by capture
+    # (a ROS camera's CameraInfo, a recording's) and refuses anyone else's jumps.
+    env = dict(os.environ)
+    env.setdefault(KEY_ENV, secrets.token_hex(32))
+    sup = Supervisor(stop_timeout_s=args.stop_timeout, nice=args.nice, env=env)
     sup.add("router", ["run", "router"] + [a for e in listen for a in ("--listen", e)] + common)
     services = PIPELINE + (["ros2"] if getattr(args, "ros2", False) else [])
     for name in services:

@@ -210,3 +210,15 @@ def test_node_frame_time_is_monotonic_across_a_wall_clock_step():
         times.append(node.frame_time_s(msg))
     steps = [b - a for a, b in zip(times, times[1:])]
     assert len(times) >= 19 and all(abs(s - 0.033) < 1e-6 for s in steps), steps
+
+
+def test_calibrations_are_signed_with_the_robots_key_and_a_forgery_does_not_verify():
+    from ballbot_vision.common.messages import CalibrationUpdate
+    from ballbot_vision.common.signing import sign, signed
+
+    key = b"robot-secret"
+    msg = sign(CalibrationUpdate(robot_id="r", seq=0, stamp_ns=5, yaml="rectified: true\n", source="capture"), key)
+    assert signed(msg, key) and not signed(msg, b"another key") and not signed(msg, b"")
+    forged = msg.model_copy(update={"yaml": "rectified: true\nbaseline_m: 0.05\n"})
+    assert not signed(forged, key)
+    assert not signed(msg.model_copy(update={"signature": ""}), key)

@@ -3,17 +3,18 @@
 A new calibration is taken at run time, without a restart and without a torn frame: the
 calibration file changed on disk (checked once a second), or one published on the `calibration`
 key (a CalibrationUpdate with the YAML text). Anyone who can put on the robot's Zenoh network could
-publish one, so the key is trusted only where it must be (`calibration_updates`):
-  auto (default)  only while rectify has no calibration of its own (rectify.calibration unset):
-                  then the stream's source provides it (capture --source ros2 from CameraInfo,
-                  --source mcap from the recording); a configured rig ignores the key;
+publish one, so the key is trusted only where it must be. Calibrations signed with the robot's
+calibration key (common/signing.py: capture --source ros2 from CameraInfo, --source mcap from a
+recording; `up` makes a key per run) are the robot's own and always taken. Unsigned ones
+(`calibration_updates`):
+  auto (default)  only while rectify has no calibration of its own (rectify.calibration unset);
   on              always (only where untrusted peers cannot publish it, e.g. behind the TLS
                   gateway, whose ACL lets no offboard user put it);
-  off             never.
+  off             never (signed ones neither).
 Every run-time calibration (key or file) whose baseline or focal length differs from the one in
 use by more than `calibration_max_change` is refused (a restart takes it): half the baseline would
-silently halve every distance. The one exception is the first calibration for a real source that
-rectify had none for (its frames were refused until then). One that does not load or fits another image
+silently halve every distance. The exceptions: the first calibration for a real source that rectify
+had none for (its frames were refused until then), and the first signed one. One that does not load or fits another image
 size is refused too; the old one stays in use.
 """
 from __future__ import annotations
@@ -32,6 +33,7 @@ from ...common.keys import topic
 from ...common.messages import CalibrationUpdate, StereoFrame
 from ...common.node import Node
 from ...common.settings import ServiceSettings
+from ...common.signing import calibration_key, signed
 from .core import CalibrationHolder
 
 log = logging.getLogger("ballbot")
@@ -56,9 +58,11 @@ class RectifySettings(ServiceSettings):
                                           "fraction (0: no limit); a restart takes any calibration")
 
 
-def reloader(node: Node, holder: CalibrationHolder, updates: "queue.Queue[CalibrationUpdate]", watch_s: float,
-             configured: bool = True) -> None:
-    """Off the frame loop: applies calibration messages and watches the calibration file."""
+def reloader(node: Node, holder: CalibrationHolder, updates: "queue.Queue[tuple[CalibrationUpdate, bool]]",
+             watch_s: float, configured: bool = True) -> None:
+    """Off the frame loop: applies calibration messages (with whether they are signed) and watches
+    the calibration file."""
+    state = {"signed_taken": False}
     next_poll = time.monotonic() + watch_s
     while node.running:
         timeout = max(0.0, next_poll - time.monotonic()) if watch_s > 0 else 0.5
@@ -67,13 +71,18 @@ def reloader(node: Node, holder: CalibrationHolder, updates: "queue.Queue[Calibr
         except queue.Empty:
             upd = None
         if upd is not None:
+            upd, is_signed = upd
             # The first one replaces a rig that was only assumed (a real source's frames are refused
-            # until then; a replay or a ROS camera sends its calibration before its first frame): no
-            # jump check against that. Once synthetic frames flow, their rig is the right one.
+            # until then; a replay or a ROS camera sends its calibration before its first frame), and
+            # the first signed one (the robot's own source: a ROS camera's CameraInfo, a recording)
+            # replaces a configured one: no jump check against those. Once synthetic frames flow,
+            # their rig is the right one.
             first_for_real_source = (not configured and holder.generation == 0
                                      and holder.stream_source != "synthetic")
-            holder.offer_yaml(upd.yaml, f"the calibration key ({upd.source or 'message'})",
-                              check_change=not first_for_real_source)
+            first_signed = is_signed and not state["signed_taken"]
+            origin = f"the calibration key ({upd.source or 'message'}{', signed' if is_signed else ''})"
+            if holder.offer_yaml(upd.yaml, origin, check_change=not (first_for_real_source or first_signed)):
+                state["signed_taken"] = state["signed_taken"] or is_signed
         if watch_s > 0 and time.monotonic() >= next_poll:
             holder.poll_file()
             next_poll = time.monotonic() + watch_s
@@ -107,20 +116,31 @@ def run(node: Node, settings: RectifySettings) -> None:
     if not configured:
         log.info("rectify: no calibration set: '%s' is assumed for the synthetic scene only; frames from any "
                  "other source are refused until one is set", SYNTHETIC_RIG)
-    updates: queue.Queue[CalibrationUpdate] = queue.Queue(maxsize=8)
+    updates: queue.Queue[tuple[CalibrationUpdate, bool]] = queue.Queue(maxsize=8)
 
-    def on_calibration(sample) -> None:  # Zenoh's thread: decode and hand over, nothing heavy
-        if not accept_key:
-            holder.refused += 1
-            node.extra["calibration_refused"] = float(holder.refused)
-            node.warn("calibration", "refused a calibration published on the calibration key: rectify has its own "
-                                     f"and calibration_updates is {settings.calibration_updates} (on: accept it)")
-            return
+    key = calibration_key()
+    last_signed = {"stamp_ns": -1}
+
+    def refuse(why: str) -> None:
+        holder.refused += 1
+        node.extra["calibration_refused"] = float(holder.refused)
+        node.warn("calibration", f"refused a calibration published on the calibration key: {why}")
+
+    def on_calibration(sample) -> None:  # Zenoh's thread: decode, vet and hand over, nothing heavy
         msg = node.decode_or_drop(sample.payload.to_bytes(), CalibrationUpdate, "calibration message", "calibration")
         if msg is None:
             return
+        is_signed = settings.calibration_updates != "off" and signed(msg, key)
+        if is_signed:
+            if msg.stamp_ns <= last_signed["stamp_ns"]:
+                return refuse("a replay of an older signed one")
+            last_signed["stamp_ns"] = msg.stamp_ns
+        elif not accept_key:
+            return refuse(f"unsigned, rectify has a calibration of its own and calibration_updates is "
+                          f"{settings.calibration_updates} (on: accept unsigned ones)"
+                          if settings.calibration_updates != "off" else "calibration_updates is off")
         try:
-            updates.put_nowait(msg)
+            updates.put_nowait((msg, is_signed))
         except queue.Full:
             node.warn("calibration", "calibration messages arrive faster than they can be applied; dropped one")
 
