@@ -21,6 +21,7 @@ SERVICES = {
     "disparity": ("ballbot_vision.services.disparity.main", "DisparitySettings"),
     "segmenter": ("ballbot_vision.services.segmenter.main", "SegmenterSettings"),
     "ros2": ("ballbot_vision.services.ros2.main", "Ros2Settings"),
+    "viewer": ("ballbot_vision.services.viewer.main", "ViewerSettings"),
 }
 PIPELINE = ["capture", "rectify", "disparity", "segmenter"]
 
@@ -94,6 +95,7 @@ def cmd_up(args: argparse.Namespace) -> int:
     sup = Supervisor()
     sup.add("router", ["run", "router", "--listen", endpoint] + common)
     services = PIPELINE + (["ros2"] if getattr(args, "ros2", False) else [])
+    services += ["viewer"] if getattr(args, "viewer", False) else []
     for name in services:
         sup.add(name, ["run", name, "--connect", endpoint] + common)
     print(f"ballbot-vision: starting {', '.join(['router'] + services)}; router on {endpoint}", flush=True)
@@ -235,6 +237,8 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
         up = common(sub.add_parser("up", help="start every service as a separate process; Ctrl-C stops all"))
         up.add_argument("--ros2", action="store_true", help="also start the ROS 2 bridge (`run ros2`: topics on "
                         "rmw_zenoh; settings in the config's ros2 section)")
+        up.add_argument("--viewer", action="store_true", help="also start the web viewer (default "
+                        "http://127.0.0.1:8080; settings in the config's viewer section or BALLBOT_VIEWER_*)")
         up.set_defaults(func=cmd_up)
     else:
         stub("up")
