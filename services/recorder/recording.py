@@ -172,15 +172,26 @@ def encode_array(a: np.ndarray, fmt: str, jpeg_quality: int = 90) -> bytes:
     return buf.tobytes()
 
 
+def _disparity_colours() -> np.ndarray:
+    """(256, 1, 3) uint8 BGR: black, then TURBO over 1..255."""
+    table = cv2.applyColorMap(np.arange(256, dtype=np.uint8).reshape(256, 1), cv2.COLORMAP_TURBO)
+    table[0] = 0
+    return table
+
+
+_DISPARITY_COLOURS = _disparity_colours()
+
+
 def colorize_disparity(msg: DisparityMap) -> np.ndarray:
     """A disparity message -> (H, W, 3) uint8 BGR: TURBO over the searched range (near = warm),
     pixels without a measurement black."""
     raw = codec.array_from_image(msg.image, "disparity")
-    valid = raw != msg.invalid_value
-    d = raw.astype(np.float32) / msg.scale - msg.min_disparity
-    scaled = np.clip(d * (255.0 / max(msg.num_disparities, 1)), 0, 255).astype(np.uint8)
-    out = cv2.applyColorMap(scaled, cv2.COLORMAP_TURBO)
-    out[~valid] = 0
+    # OpenCV passes on one channel instead of float numpy arithmetic: valid disparities -> 1..255,
+    # no measurement -> 0, which the colour table maps to black
+    alpha = 254.0 / (max(msg.num_disparities, 1) * msg.scale)
+    scaled = cv2.convertScaleAbs(raw, alpha=alpha, beta=1.0 - msg.min_disparity * msg.scale * alpha)
+    scaled[raw == msg.invalid_value] = 0
+    out = cv2.applyColorMap(scaled, _DISPARITY_COLOURS)
     return out
 
 
