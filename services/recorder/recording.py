@@ -21,6 +21,7 @@ up in Foxglove; MCAP `sequence` = the capture seq):
 """
 from __future__ import annotations
 
+import itertools
 import json
 import logging
 import threading
@@ -474,3 +475,31 @@ class RecordingReader:
             yield finish(*pending)
         self.unpaired += len(halves)
 
+
+
+def offline_pairs(path: str | Path, calibration: str | None = None):
+    """A recording for the offline commands (`obstacles rec.mcap`): (pairs, calibration), where
+    pairs yields (left label, right label, left, right, t_s) in capture order, t_s from the
+    recording's stamps, and calibration is `calibration` (a file or profile) or else the
+    recording's own, as a Calibration."""
+    import yaml
+
+    from ...common import camera
+
+    reader = RecordingReader(path)
+    pairs = reader.pairs("raw")
+    first = next(pairs, None)
+    if first is None:
+        raise RecordingError(f"{path}: no stereo pair could be read")
+    if calibration:
+        cal = camera.load_calibration(calibration)
+    elif first.calibration_yaml:
+        cal = camera.calibration_from_dict(yaml.safe_load(first.calibration_yaml), where=f"{path}: /calibration")
+    else:
+        raise RecordingError(f"{path}: the recording holds no calibration; give one with --calibration")
+
+    def labelled():
+        for p in itertools.chain([first], pairs):
+            yield (f"{path}#{p.seq}:left", f"{path}#{p.seq}:right", p.left, p.right,
+                   (p.stamp_ns - first.stamp_ns) / 1e9)
+    return labelled(), cal
