@@ -10,7 +10,8 @@ from ballbot_vision.services.capture.sources import SyntheticSource
 from ballbot_vision.common.disparity import to_float
 from ballbot_vision.services.disparity.matchers import MatcherConfig, StereoMatcher
 from ballbot_vision.services.rectify.core import Rectifier
-from ballbot_vision.services.segmenter.seed import SeedConfig, segment
+from ballbot_vision.services.segmenter.seed import segment
+from ballbot_vision.services.segmenter.settings import SegmenterSettings
 
 
 @pytest.fixture(scope="module")
@@ -52,7 +53,7 @@ def test_block_matching_agrees_with_true_depth(chain):
 
 def test_seed_segmentation_finds_both_boxes_within_5_percent(chain):
     pair, rect, _, _, disparity = chain
-    dets = segment(disparity, rect.model, SeedConfig())
+    dets = segment(disparity, rect.model, SegmenterSettings(method="seed"))
     assert len(dets) == len(pair.truth) == 2
     for t in pair.truth:
         c = np.asarray(t.visible_centroid_m)
@@ -66,7 +67,7 @@ def test_without_floor_removal_the_floor_swallows_the_boxes(chain):
     """The thesis's pipeline alone: the textured floor in range joins both boxes into one region.
     This is why the camera mount is a setting."""
     pair, rect, _, _, disparity = chain
-    dets = segment(disparity, rect.model, SeedConfig(mount_height_m=None))
+    dets = segment(disparity, rect.model, SegmenterSettings(method="seed", mount_height_m=None))
     assert len(dets) < len(pair.truth)
 
 

@@ -2,7 +2,8 @@
 
 1. Semi-global matching (OpenCV's StereoSGBM, 3-way by default, the recommended penalties
    P1 = 8 w^2, P2 = 32 w^2 on grey images) with its own checks: left-right consistency
-   (disp12_max_diff), uniqueness, speckles. The pair is padded on the left by the search range
+   (disp12_max_diff), uniqueness, speckles, and a texture floor (a window without horizontal
+   gradient holds nothing to match, whatever SGBM says). The pair is padded on the left by the search range
    first, so the band x < max disparity that OpenCV leaves invalid is matched wherever its partner
    is in view.
 2. Edge-aware filling: the fast global smoother (Min et al., "Fast global image smoothing based on
@@ -10,9 +11,10 @@
    the measured disparities along the left image, weighted by validity, so fills stop at intensity
    edges: filled = FGS(c * d) / FGS(c). Each pass is one tridiagonal solve per row or column
    (LAPACK via scipy), at half resolution: holes are filled from far away, and measured pixels keep
-   their own sub-pixel value.
+   their own sub-pixel value. Regions walled in by strong edges without any measurement inside take
+   the background (farther) neighbour's value along their row (background_fill).
 3. Confidence (uint8): measured pixels 128..255 by how well they agree with the measured pixels
-   around them (local_agreement); filled pixels 1..127 by the share of measured support reaching
+   around them (local_agreement) and their texture; filled pixels 1..127 by the share of measured support reaching
    them; 0 (and an invalid disparity) only where no measurement reaches at all.
 """
 from __future__ import annotations
@@ -26,6 +28,9 @@ from .config import SCALE, MatcherConfig
 from .matchers import Match, create_sgbm, gray, saturated_share
 
 FILL_SCALE = 0.5  # the smoother runs at this fraction of the image size
+# One row+column pass of the smoother (lambda_1 = lambda / 2 in Min et al.'s schedule): on the
+# Middlebury pairs as good as their three (bad-2 8.8 vs 9.0 %, 8.2 vs 8.3 %) at half the time.
+FILL_ITERATIONS = 1
 FLAT = 0.5  # mean |horizontal gradient| (grey levels / px) below which a window holds nothing to match
 TEXTURE = 1.0  # ... at which a match keeps ~63 % of its confidence above 128 (a faint texture)
 AGREE_WINDOW = 5  # px: the neighbourhood a measured pixel's confidence is judged in
@@ -124,7 +129,7 @@ def fill_and_confidence(disparity: np.ndarray, valid: np.ndarray, guide: np.ndar
     hs, ws = max(1, round(h * FILL_SCALE)), max(1, round(w * FILL_SCALE))
     small = cv2.resize(f, (ws, hs), interpolation=cv2.INTER_AREA)  # channel 0 is now mean(c * d)
     small_guide = cv2.resize(guide, (ws, hs), interpolation=cv2.INTER_AREA)
-    u = fast_global_smoother(small, small_guide, lam * FILL_SCALE ** 2, sigma_color)
+    u = fast_global_smoother(small, small_guide, lam * FILL_SCALE ** 2, sigma_color, FILL_ITERATIONS)
     support = np.clip(u[..., 1], 0.0, 1.0).astype(np.float32)
     smoothed = np.where(support > 1e-6, u[..., 0] / np.maximum(u[..., 1], 1e-12), np.nan).astype(np.float32)
     if np.isnan(smoothed).any():

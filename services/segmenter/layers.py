@@ -40,27 +40,7 @@ import numpy as np
 from ...common import camera
 from .mount import FloorPlane, Mount
 from .seed import Detection
-
-
-@dataclass(frozen=True)
-class LayersConfig:
-    max_range_m: float = 4.5
-    min_range_m: float = 0.3
-    downsample: int = 2
-    median_ksize: int = 5
-    step_px: float = 0.6
-    step_rel: float = 0.03
-    min_size_m: float = 0.08
-    min_area_m2: float = 0.006
-    min_pixels: int = 12  # at the working resolution
-    floor_removal: bool = True
-    fit_floor: bool = True
-    floor_margin_m: float = 0.08
-    max_tilt_deg: float = 10.0
-    mount: Mount | None = Mount()
-    merge_gap_m: float = 0.12
-    fill_to_floor: bool = True
-    edge_refine: bool = False
+from .settings import SegmenterSettings
 
 
 def _coords(h: int, w: int, step: int) -> tuple[np.ndarray, np.ndarray]:
@@ -107,11 +87,12 @@ def _lstsq_plane(u: np.ndarray, v: np.ndarray, d: np.ndarray) -> np.ndarray:
     return np.array([a, b, md - a * mu - b * mv])
 
 
-def fit_floor(d: np.ndarray, model: camera.RectifiedModel, cfg: LayersConfig, step: int) -> FloorPlane | None:
+def fit_floor(d: np.ndarray, model: camera.RectifiedModel, cfg: SegmenterSettings, step: int) -> FloorPlane | None:
     """The floor plane in disparity space from a (median-filtered) working-resolution disparity map
     d (0 = invalid); the mount's plane when the fit fails or disagrees with it; None when there is
     neither a mount nor a plausible fit."""
-    prior = _plane_from_mount(cfg.mount, model) if cfg.mount is not None else None
+    mount = cfg.mount()
+    prior = _plane_from_mount(mount, model) if mount is not None else None
     if not cfg.fit_floor:
         return prior
     h, w = d.shape
@@ -165,7 +146,7 @@ class _Region:
     filled: int = 0  # points added by _fill_to_floor (included in pts)
 
 
-def _fill_to_floor(mask: np.ndarray, d_box: np.ndarray, x0: int, y0: int, floor: FloorPlane, cfg: LayersConfig,
+def _fill_to_floor(mask: np.ndarray, d_box: np.ndarray, x0: int, y0: int, floor: FloorPlane, cfg: SegmenterSettings,
                    model: camera.RectifiedModel, step: int) -> np.ndarray | None:
     """The strip of an object that floor removal cut off: where a column of the region ends less
     than floor_margin_m (+4 cm) above the floor, the object is taken to stand on it, and points
@@ -248,11 +229,12 @@ _CROSS = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
 _GRIDS: dict[tuple[int, int, int], tuple[np.ndarray, np.ndarray]] = {}
 
 
-def segment(disparity: np.ndarray, model: camera.RectifiedModel, cfg: LayersConfig = LayersConfig(),
+def segment(disparity: np.ndarray, model: camera.RectifiedModel, cfg: SegmenterSettings | None = None,
             image: np.ndarray | None = None, floor_out: list | None = None) -> list[Detection]:
     """disparity: (H, W) float32 px, NaN = invalid, rectified left camera `model`.
     image: the rectified left image (H, W) uint8, only for edge_refine. floor_out: if a list, the
     floor plane used (or None) is appended to it. -> detections, camera frame."""
+    cfg = cfg or SegmenterSettings()
     if disparity.shape != (model.height, model.width):
         raise ValueError(f"disparity is {disparity.shape[1]}x{disparity.shape[0]}, camera model is "
                          f"{model.width}x{model.height}")
@@ -262,7 +244,7 @@ def segment(disparity: np.ndarray, model: camera.RectifiedModel, cfg: LayersConf
     np.maximum(d0, 0, out=d0)
     dm = cv2.medianBlur(d0, cfg.median_ksize) if cfg.median_ksize > 1 else d0
     fB = model.focal_px * model.baseline_m
-    keep = cv2.inRange(dm, fB / cfg.max_range_m, fB / cfg.min_range_m)  # uint8 0/255
+    keep = cv2.inRange(dm, fB / cfg.range_m, fB / cfg.min_range_m)  # uint8 0/255
     floor = None
     if cfg.floor_removal and keep.any():
         floor = fit_floor(np.where(keep > 0, dm, np.float32(0)), model, cfg, step)

@@ -3,87 +3,22 @@ from __future__ import annotations
 
 import threading
 import time
-from typing import Literal
 
 import numpy as np
-from pydantic import Field
 
 from ...common import camera, codec
 from ...common.errors import DecodeError
 from ...common.messages import DisparityMap, Obstacle, ObstacleList
 from ...common.node import Node
-from ...common.settings import ServiceSettings
 from ...common.disparity import to_float
 from . import layers, seed
 from .mount import Mount
 from .seed import Detection
+from .settings import METHODS, SegmenterSettings  # noqa: F401  (SegmenterSettings: cli's service table)
 from .tracking import Tracker
 
 SUBSCRIBES = ["disparity"]
 PUBLISHES = ["obstacles"]
-
-METHODS = ("layers", "seed")
-DEFAULT_RANGE_M = {"seed": 3.0, "layers": 4.5}
-
-
-class SegmenterSettings(ServiceSettings):
-    section = "segmenter"
-    method: Literal["layers", "seed"] = Field(
-        "layers", description="layers: depth-aware regions, floor plane, border objects kept; "
-                              "seed: the thesis's Otsu pipeline")
-    max_range_m: float | None = Field(None, gt=0, le=100, description="vision range; farther pixels are ignored "
-                                      "(null: the method's own, seed 3 m as in the thesis, layers 4.5 m)")
-    median_ksize: Literal[1, 3, 5] = Field(5, description="median filter size, px")
-    floor_removal: bool = Field(True, description="remove the floor (false reproduces the thesis with seed)")
-    floor_margin_m: float = Field(0.08, ge=0, le=1, description="points this close to the floor are floor")
-    mount_height_m: float | None = Field(1.0, gt=0, le=10, description="camera height above the floor "
-                                         "(null: unknown mount: no base frame; layers fits the floor without a prior)")
-    mount_pitch_deg: float = Field(15.0, ge=-90, le=90, description="camera pitch, positive looking down")
-    mount_yaw_deg: float = Field(0.0, ge=-180, le=180, description="camera yaw on the robot, positive to the left")
-    mount_roll_deg: float = Field(0.0, ge=-90, le=90, description="camera roll, positive right side down")
-    mount_x_m: float = Field(0.0, ge=-10, le=10, description="camera position ahead of the base origin")
-    mount_y_m: float = Field(0.0, ge=-10, le=10, description="camera position left of the base origin")
-    # seed
-    min_area_fraction: float = Field(0.03, ge=0, le=1, description="seed: area opening, fraction of the image")
-    close_radius_px: int = Field(3, ge=0, le=50, description="seed: morphological closing radius, px")
-    clear_border: bool = Field(True, description="seed: drop regions touching the image border (the thesis)")
-    # layers
-    fit_floor: bool = Field(True, description="layers: fit the floor plane to the disparity (mount as prior/fallback)")
-    step_px: float = Field(0.6, ge=0, le=50, description="layers: neighbours differing by more than "
-                           "step_px + step_rel * d belong to different objects")
-    step_rel: float = Field(0.03, ge=0, le=1, description="layers: relative part of the similarity tolerance")
-    min_size_m: float = Field(0.08, ge=0, le=10, description="layers: smallest obstacle extent, m")
-    min_area_m2: float = Field(0.006, ge=0, le=100, description="layers: smallest frontal area, m^2")
-    downsample: Literal[1, 2, 4] = Field(2, description="layers: work on every n-th pixel")
-    edge_refine: bool = Field(False, description="layers: snap boxes to intensity edges (needs the image; off in the service)")
-    # tracking
-    track_gate_m: float = Field(0.6, gt=0, description="max distance between a track and its next detection")
-    track_timeout_s: float = Field(1.0, gt=0, description="a track unseen this long is dropped")
-    stale_after_s: float = Field(0.5, gt=0, description="input older than this (or none for this long) is stale")
-
-    @property
-    def range_m(self) -> float:
-        return self.max_range_m if self.max_range_m is not None else DEFAULT_RANGE_M[self.method]
-
-    def mount(self) -> Mount | None:
-        if self.mount_height_m is None:
-            return None
-        return Mount(self.mount_height_m, self.mount_pitch_deg, self.mount_yaw_deg, self.mount_roll_deg,
-                     self.mount_x_m, self.mount_y_m)
-
-    def seed_config(self) -> seed.SeedConfig:
-        floor = self.floor_removal and self.mount_height_m is not None
-        return seed.SeedConfig(max_range_m=self.range_m, median_ksize=max(3, self.median_ksize),
-                               min_area_fraction=self.min_area_fraction, close_radius_px=self.close_radius_px,
-                               clear_border=self.clear_border, mount_height_m=self.mount_height_m if floor else None,
-                               mount_pitch_deg=self.mount_pitch_deg, floor_margin_m=self.floor_margin_m)
-
-    def layers_config(self) -> layers.LayersConfig:
-        return layers.LayersConfig(max_range_m=self.range_m, downsample=self.downsample, median_ksize=self.median_ksize,
-                                   step_px=self.step_px, step_rel=self.step_rel, min_size_m=self.min_size_m,
-                                   min_area_m2=self.min_area_m2, floor_removal=self.floor_removal,
-                                   fit_floor=self.fit_floor, floor_margin_m=self.floor_margin_m,
-                                   mount=self.mount(), edge_refine=self.edge_refine)
 
 
 def camera_to_base(p: np.ndarray, height_m: float, pitch_deg: float) -> tuple[float, float, float]:
@@ -104,8 +39,6 @@ class Segmenter:
     def __init__(self, settings: SegmenterSettings):
         self.settings = settings
         self.method = settings.method
-        self._seed = settings.seed_config()
-        self._layers = settings.layers_config()
 
     def detect(self, disparity: np.ndarray, model: camera.RectifiedModel,
                image: np.ndarray | None = None) -> list[Detection]:
@@ -113,8 +46,8 @@ class Segmenter:
         if disparity.size == 0:
             return []
         if self.method == "seed":
-            return seed.segment(disparity, model, self._seed)
-        return layers.segment(disparity, model, self._layers, image=image)
+            return seed.segment(disparity, model, self.settings)
+        return layers.segment(disparity, model, self.settings, image=image)
 
 
 class ObstacleBuilder:

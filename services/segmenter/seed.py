@@ -4,7 +4,7 @@ camera mount so that a textured floor in range does not swallow the objects stan
 disparity (H, W) float32 px, NaN = invalid  ->  list of Detection (camera frame, metres)
 
  1. vision-range gate: pixels with d < f*B / max_range_m are removed (3 m -> d >= ~20 px)
- 2. floor removal (if the mount is known): pixels whose 3D point lies within floor_margin_m of
+ 2. floor removal (if floor_removal and the mount is known): pixels whose 3D point lies within floor_margin_m of
     the floor plane are removed
  3. 2-D median filter
  4. normalise to grey (0..255)
@@ -22,19 +22,9 @@ import cv2
 import numpy as np
 
 from ...common import camera
+from .settings import SegmenterSettings
 
-
-@dataclass(frozen=True)
-class SeedConfig:
-    max_range_m: float = 3.0
-    median_ksize: int = 5
-    min_area_fraction: float = 0.03
-    close_radius_px: int = 3
-    clear_border: bool = True
-    mount_height_m: float | None = 1.0
-    mount_pitch_deg: float = 15.0
-    floor_margin_m: float = 0.08
-    mode_bin_px: float = 0.25
+MODE_BIN_PX = 0.25  # histogram bin of the region's disparity mode
 
 
 @dataclass
@@ -83,21 +73,26 @@ def _mode(values: np.ndarray, bin_px: float) -> float:
     return float(np.median(values[idx == b]))
 
 
-def segment(disparity: np.ndarray, model: camera.RectifiedModel, cfg: SeedConfig = SeedConfig()) -> list[Detection]:
+def segment(disparity: np.ndarray, model: camera.RectifiedModel,
+            cfg: SegmenterSettings | None = None) -> list[Detection]:
+    """disparity: (H, W) float32 px, NaN = invalid, rectified left camera `model` -> detections,
+    camera frame. Reads range_m, median_ksize (at least 3), floor_removal, mount_height_m,
+    mount_pitch_deg, floor_margin_m, min_area_fraction, close_radius_px and clear_border."""
+    cfg = cfg or SegmenterSettings(method="seed")
     if disparity.shape != (model.height, model.width):
         raise ValueError(f"disparity is {disparity.shape[1]}x{disparity.shape[0]}, camera model is "
                          f"{model.width}x{model.height}")
     h, w = disparity.shape
-    d_min = model.disparity_for_depth(cfg.max_range_m)
+    d_min = model.disparity_for_depth(cfg.range_m)
     d = np.asarray(disparity, dtype=np.float32)
     with np.errstate(invalid="ignore"):
         keep = np.isfinite(d) & (d >= d_min)
-    if cfg.mount_height_m is not None:
+    if cfg.floor_removal and cfg.mount_height_m is not None:
         keep &= ~floor_mask(d, model, cfg.mount_height_m, cfg.mount_pitch_deg, cfg.floor_margin_m)
     if not keep.any():
         return []
     gated = np.where(keep, d, 0.0).astype(np.float32)
-    filtered = cv2.medianBlur(gated, cfg.median_ksize)
+    filtered = cv2.medianBlur(gated, max(3, cfg.median_ksize))
     top = float(filtered.max())
     if top <= 0:
         return []
@@ -127,7 +122,7 @@ def segment(disparity: np.ndarray, model: camera.RectifiedModel, cfg: SeedConfig
         valid = dv[np.isfinite(dv) & (dv >= d_min)]
         if valid.size == 0:
             continue
-        disp = _mode(valid, cfg.mode_bin_px)
+        disp = _mode(valid, MODE_BIN_PX)
         z = fB / disp
         cx_px, cy_px = centroids[i]
         x = (cx_px - model.cx) * z / model.focal_px

@@ -1,0 +1,72 @@
+"""The segmenter's settings: one pydantic model, the only place its defaults live. The service, the
+offline commands and the cores (seed.py, layers.py) all read this model directly.
+
+Light on purpose (pydantic and the mount only), so that importing the settings does not import
+OpenCV or the cores.
+"""
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field
+
+from ...common.settings import ServiceSettings
+from .mount import Mount
+
+METHODS = ("layers", "seed")
+# The thesis's 3 m vision range for seed; the default method's own range.
+DEFAULT_RANGE_M = {"seed": 3.0, "layers": 4.5}
+
+
+class SegmenterSettings(ServiceSettings):
+    section = "segmenter"
+    method: Literal["layers", "seed"] = Field(
+        "layers", description="layers: depth-aware regions, floor plane, border objects kept; "
+                              "seed: the thesis's Otsu pipeline")
+    max_range_m: float | None = Field(None, gt=0, le=100, description="vision range; farther pixels are ignored "
+                                      "(null: the method's own, seed 3 m as in the thesis, layers 4.5 m)")
+    min_range_m: float = Field(0.3, ge=0, le=10, description="nearer pixels are ignored, m")
+    median_ksize: Literal[1, 3, 5] = Field(5, description="median filter size, px (seed: at least 3)")
+    floor_removal: bool = Field(True, description="remove the floor (false reproduces the thesis with seed)")
+    floor_margin_m: float = Field(0.08, ge=0, le=1, description="points this close to the floor are floor")
+    mount_height_m: float | None = Field(1.0, gt=0, le=10, description="camera height above the floor "
+                                         "(null: unknown mount: no base frame; layers fits the floor without a prior)")
+    mount_pitch_deg: float = Field(15.0, ge=-90, le=90, description="camera pitch, positive looking down")
+    mount_yaw_deg: float = Field(0.0, ge=-180, le=180, description="camera yaw on the robot, positive to the left")
+    mount_roll_deg: float = Field(0.0, ge=-90, le=90, description="camera roll, positive right side down")
+    mount_x_m: float = Field(0.0, ge=-10, le=10, description="camera position ahead of the base origin")
+    mount_y_m: float = Field(0.0, ge=-10, le=10, description="camera position left of the base origin")
+    # seed
+    min_area_fraction: float = Field(0.03, ge=0, le=1, description="seed: area opening, fraction of the image")
+    close_radius_px: int = Field(3, ge=0, le=50, description="seed: morphological closing radius, px")
+    clear_border: bool = Field(True, description="seed: drop regions touching the image border (the thesis)")
+    # layers
+    fit_floor: bool = Field(True, description="layers: fit the floor plane to the disparity (mount as prior/fallback)")
+    max_tilt_deg: float = Field(10.0, ge=0, le=90, description="layers: a fitted floor tilted more than this "
+                                "from the mount's is refused")
+    step_px: float = Field(0.6, ge=0, le=50, description="layers: neighbours differing by more than "
+                           "step_px + step_rel * d belong to different objects")
+    step_rel: float = Field(0.03, ge=0, le=1, description="layers: relative part of the similarity tolerance")
+    min_size_m: float = Field(0.08, ge=0, le=10, description="layers: smallest obstacle extent, m")
+    min_area_m2: float = Field(0.006, ge=0, le=100, description="layers: smallest frontal area, m^2")
+    min_pixels: int = Field(12, ge=1, description="layers: smallest region, pixels at the working resolution")
+    merge_gap_m: float = Field(0.12, ge=0, le=10, description="layers: regions whose 3D extents come this close "
+                               "are one object")
+    fill_to_floor: bool = Field(True, description="layers: extend objects standing on the floor down to it")
+    downsample: Literal[1, 2, 4] = Field(2, description="layers: work on every n-th pixel")
+    edge_refine: bool = Field(False, description="layers: snap boxes to intensity edges (needs the image; off in the service)")
+    # tracking
+    track_gate_m: float = Field(0.6, gt=0, description="max distance between a track and its next detection")
+    track_timeout_s: float = Field(1.0, gt=0, description="a track unseen this long is dropped")
+    stale_after_s: float = Field(0.5, gt=0, description="input older than this (or none for this long) is stale")
+
+    @property
+    def range_m(self) -> float:
+        return self.max_range_m if self.max_range_m is not None else DEFAULT_RANGE_M[self.method]
+
+    def mount(self) -> Mount | None:
+        """The configured camera mount, or None when its height is unknown."""
+        if self.mount_height_m is None:
+            return None
+        return Mount(self.mount_height_m, self.mount_pitch_deg, self.mount_yaw_deg, self.mount_roll_deg,
+                     self.mount_x_m, self.mount_y_m)
