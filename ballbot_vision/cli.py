@@ -31,6 +31,7 @@ COMMAND_MODULES: list[str] = [
     "ballbot_vision.calibration_commands",
     "ballbot_vision.segmenter_commands",
     "ballbot_vision.disparity_commands",
+    "ballbot_vision.sample_commands",
     "ballbot_vision.mcap_commands",
 ]
 
@@ -321,6 +322,9 @@ def main(argv: list[str] | None = None) -> int:
     from .common.node import setup_logging
 
     argv = sys.argv[1:] if argv is None else list(argv)
+    # OpenCV's own log lines ("[ WARN:0@0.1] global loadsave.cpp ...") repeat what our errors say
+    # better; errors that matter reach the user as ours. OPENCV_LOG_LEVEL set by the user wins.
+    os.environ.setdefault("OPENCV_LOG_LEVEL", "ERROR")
     args = build_parser(argv).parse_args(argv)
     setup_logging(args.log_level.upper())
     try:
