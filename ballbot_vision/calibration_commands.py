@@ -24,17 +24,18 @@ def _depth_range(v: list[float] | None) -> tuple[float, float] | None:
 
 
 def _pairs_from(left: str, right: str) -> list[tuple[Path, Path]]:
-    from .services.rectify.calibrate import expand_images, pair_files
+    from .common.files import list_images, pair_images
 
-    return pair_files(expand_images(left, "LEFT"), expand_images(right, "RIGHT"))
+    return pair_images(list_images(left, "LEFT"), list_images(right, "RIGHT"))
 
 
-def _read(path: Path):
-    import cv2
+def _read(path: Path, rectifier=None):
+    """One image file; with a rectifier, also checked against the calibrated size, naming the file."""
+    from .common.files import read_image
 
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise BallbotError(f"{path}: cannot read the image")
+    img = read_image(path)
+    if rectifier is not None:
+        rectifier.check_size(img, str(path))
     return img
 
 
@@ -71,7 +72,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     v = result.views[0]
     try:
         r = Rectifier(result.rig, args.alpha)
-        rl, rr = r.rectify(_read(v.left_path), _read(v.right_path))
+        rl, rr = r.rectify(_read(v.left_path, r), _read(v.right_path, r))
         _out(f"{v.name}: " + row_alignment(rl, rr).format())
     except BallbotError as e:
         _out(f"{v.name}: rectification check not possible: {e}")
@@ -237,7 +238,7 @@ def cmd_check(args: argparse.Namespace) -> int:
     r = Rectifier(camera.load_calibration(args.calibration), args.alpha)
     medians = []
     for lp, rp in _pairs_from(args.left, args.right):
-        rl, rr = r.rectify(_read(lp), _read(rp))
+        rl, rr = r.rectify(_read(lp, r), _read(rp, r))
         try:
             c = row_alignment(rl, rr)
         except BallbotError as e:
@@ -271,7 +272,7 @@ def cmd_rectify(args: argparse.Namespace) -> int:
         (out / "left").mkdir(exist_ok=True)
         (out / "right").mkdir(exist_ok=True)
     for lp, rp in pairs:
-        rl, rr = r.rectify(_read(lp), _read(rp))
+        rl, rr = r.rectify(_read(lp, r), _read(rp, r))
         for src, img, side in ((lp, rl, "left"), (rp, rr, "right")):
             dst = (out / side / f"{src.stem}.png") if split else (out / f"{src.stem}.png")
             if not cv2.imwrite(str(dst), img):

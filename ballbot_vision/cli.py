@@ -21,6 +21,7 @@ SERVICES = {
     "disparity": ("ballbot_vision.services.disparity.main", "DisparitySettings"),
     "segmenter": ("ballbot_vision.services.segmenter.main", "SegmenterSettings"),
     "ros2": ("ballbot_vision.services.ros2.main", "Ros2Settings"),
+    "viewer": ("ballbot_vision.services.viewer.main", "ViewerSettings"),
 }
 PIPELINE = ["capture", "rectify", "disparity", "segmenter"]
 
@@ -30,6 +31,7 @@ COMMAND_MODULES: list[str] = [
     "ballbot_vision.calibration_commands",
     "ballbot_vision.segmenter_commands",
     "ballbot_vision.disparity_commands",
+    "ballbot_vision.sample_commands",
     "ballbot_vision.mcap_commands",
 ]
 
@@ -125,6 +127,7 @@ def cmd_up(args: argparse.Namespace) -> int:
     sup = Supervisor(stop_timeout_s=args.stop_timeout, nice=args.nice, env=env)
     sup.add("router", ["run", "router"] + [a for e in listen for a in ("--listen", e)] + common)
     services = PIPELINE + (["ros2"] if getattr(args, "ros2", False) else [])
+    services += ["viewer"] if getattr(args, "viewer", False) else []
     for name in services:
         sup.add(name, ["run", name, "--connect", endpoint] + common)
     print(f"ballbot-vision: starting {', '.join(['router'] + services)}; router on {', '.join(listen)}", flush=True)
@@ -296,6 +299,8 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
                              "robot, e.g. -5; needs root) [BALLBOT_NICE] (default: 0)")
         up.add_argument("--ros2", action="store_true", help="also start the ROS 2 bridge (`run ros2`: topics on "
                         "rmw_zenoh; settings in the config's ros2 section)")
+        up.add_argument("--viewer", action="store_true", help="also start the web viewer (default "
+                        "http://127.0.0.1:8080; settings in the config's viewer section or BALLBOT_VIEWER_*)")
         up.set_defaults(func=cmd_up)
     else:
         stub("up")
@@ -379,6 +384,9 @@ def main(argv: list[str] | None = None) -> int:
     from .common.node import setup_logging
 
     argv = sys.argv[1:] if argv is None else list(argv)
+    # OpenCV's own log lines ("[ WARN:0@0.1] global loadsave.cpp ...") repeat what our errors say
+    # better; errors that matter reach the user as ours. OPENCV_LOG_LEVEL set by the user wins.
+    os.environ.setdefault("OPENCV_LOG_LEVEL", "ERROR")
     args = build_parser(argv).parse_args(argv)
     setup_logging(args.log_level.upper())
     try:

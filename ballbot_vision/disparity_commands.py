@@ -20,19 +20,6 @@ from .common.errors import BallbotError
 FORMATS = (".npy", ".pfm", ".png")
 
 
-def read_image(path: str) -> np.ndarray:
-    import cv2
-
-    img = cv2.imread(path, cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise BallbotError(f"{path}: cannot read an image from this file")
-    if img.ndim == 3 and img.shape[2] == 4:
-        img = cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)
-    if img.dtype != np.uint8:
-        raise BallbotError(f"{path}: 8-bit images only, got {img.dtype}")
-    return img
-
-
 def write_pfm(path: str, d: np.ndarray) -> None:
     """Grey PFM: little-endian float32, rows stored bottom to top; NaN becomes inf."""
     a = np.where(np.isfinite(d), d, np.inf).astype("<f4")
@@ -70,6 +57,7 @@ def cmd_disparity(args: argparse.Namespace) -> int:
     from .common import camera
     from .common.settings import load_settings
     from .common.disparity import to_float
+    from .common.files import read_image
     from .services.disparity.matchers import MatcherConfig, gate_for_range, make_matcher
     from .services.rectify.core import Rectifier
 
@@ -79,7 +67,7 @@ def cmd_disparity(args: argparse.Namespace) -> int:
     cfg = load_settings(MatcherConfig, args.config, args)
     if cfg.threads:
         cv2.setNumThreads(cfg.threads)
-    left, right = read_image(args.left), read_image(args.right)
+    left, right = read_image(args.left, "LEFT"), read_image(args.right, "RIGHT")
     if left.shape[:2] != right.shape[:2]:
         raise BallbotError(f"{args.left} is {left.shape[1]}x{left.shape[0]}, {args.right} is "
                            f"{right.shape[1]}x{right.shape[0]}")
@@ -88,6 +76,8 @@ def cmd_disparity(args: argparse.Namespace) -> int:
     gate = 0.0
     if args.calibration:
         rect = Rectifier(camera.load_calibration(args.calibration))
+        rect.check_size(left, args.left)
+        rect.check_size(right, args.right)
         left, right = rect.rectify(left, right)
         gate = gate_for_range(cfg.max_range_m, rect.model.focal_px, rect.model.baseline_m)
         cfg = cfg.resolved(rect.model.focal_px, rect.model.baseline_m, left.shape[1])

@@ -15,16 +15,13 @@ def _out(text: str = "") -> None:
     print(text, flush=True)
 
 
-def _read(path: Path):
-    import cv2
+def _read(path: Path, rectifier=None):
+    """One image file; with a rectifier, also checked against the calibrated size, naming the file."""
+    from .common.files import read_image
 
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise BallbotError(f"{path}: cannot read the image")
-    if img.ndim == 3 and img.shape[2] == 4:
-        img = cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)
-    if img.dtype != "uint8":
-        raise BallbotError(f"{path}: 8-bit images only, got {img.dtype}")
+    img = read_image(path)
+    if rectifier is not None:
+        rectifier.check_size(img, str(path))
     return img
 
 
@@ -60,24 +57,32 @@ def cmd_obstacles(args: argparse.Namespace) -> int:
     from .common import camera
     from .common.messages import ObstacleList
     from .common.disparity import to_float
-    from .services.disparity.matchers import SCALE, MatcherConfig, StereoMatcher
-    from .services.rectify.calibrate import expand_images, pair_files
+    from .common.files import list_images, pair_images
+    from .services.disparity.matchers import SCALE, StereoMatcher
     from .services.rectify.core import Rectifier
     from .services.segmenter.main import ObstacleBuilder
 
     settings = _segmenter_settings(args)
-    rect = Rectifier(camera.load_calibration(args.calibration), args.alpha)
-    mcfg = MatcherConfig(method=args.matcher, num_disparities=args.num_disparities, block_size=args.block_size)
+    if args.left.lower().endswith(".mcap"):  # a recording: its pairs, times and (by default) calibration
+        from .services.recorder.recording import offline_pairs
+
+        pairs, cal = offline_pairs(args.left, args.calibration)
+    elif args.right is None or args.calibration is None:
+        raise BallbotError("obstacles: image pairs need LEFT, RIGHT and --calibration (a recording: FILE.mcap)")
+    else:
+        cal = camera.load_calibration(args.calibration)
+        pairs = ((lp, rp, _read(lp, rect), _read(rp, rect), k / args.fps) for k, (lp, rp) in
+                 enumerate(pair_images(list_images(args.left, "LEFT"), list_images(args.right, "RIGHT"))))
+    rect = Rectifier(cal, args.alpha)
+    mcfg = _matcher_settings(args)
     stereo = StereoMatcher(mcfg)
     builder = ObstacleBuilder(settings)
-    pairs = pair_files(expand_images(args.left, "LEFT"), expand_images(args.right, "RIGHT"))
-    for k, (lp, rp) in enumerate(pairs):
-        left, right = rect.rectify(_read(lp), _read(rp))
+    for k, (lp, rp, left, right, stamp_s) in enumerate(pairs):
+        left, right = rect.rectify(left, right)
         d = to_float(stereo.compute(left, right), SCALE, mcfg.invalid_value)
         t0 = time.perf_counter()
         dets = builder.segmenter.detect(d, rect.model, left)
         ms = (time.perf_counter() - t0) * 1e3
-        stamp_s = k / args.fps
         obstacles = builder.obstacles(dets, stamp_s)
         if args.json:
             msg = ObstacleList(robot_id="offline", seq=k, stamp_ns=int(stamp_s * 1e9), publish_ns=time.time_ns(),
@@ -95,7 +100,6 @@ def cmd_obstacles(args: argparse.Namespace) -> int:
 
 def cmd_eval(args: argparse.Namespace) -> int:
     from .services.capture.synthetic import list_builtin_scenarios
-    from .services.disparity.matchers import MatcherConfig
     from .services.segmenter import eval as E
 
     scenarios = args.scenarios or list_builtin_scenarios()
@@ -103,9 +107,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
     for m in methods:
         if m not in E.METHODS:
             raise BallbotError(f"--method {m}: unknown (known: {', '.join(E.METHODS)})")
-    matcher = MatcherConfig(method=args.matcher, num_disparities=args.num_disparities, block_size=args.block_size)
+    matcher = _matcher_settings(args)
     if not args.json:
-        _out(f"eval: {', '.join(scenarios)}; methods {', '.join(methods)}; matcher {args.matcher}")
+        _out(f"eval: {', '.join(scenarios)}; methods {', '.join(methods)}; disparity {matcher.method}")
     error = {"pitch_deg": args.mount_pitch_error, "roll_deg": args.mount_roll_error,
              "height_m": args.mount_height_error}
     result = E.evaluate(scenarios, methods, frames=args.frames, fps=args.fps, seed=args.seed, matcher=matcher,
@@ -132,10 +136,21 @@ def cmd_bench_segmenter(args: argparse.Namespace) -> int:
 # --- parser ------------------------------------------------------------------------------------
 
 def _matcher_args(p: argparse.ArgumentParser) -> None:
-    g = p.add_argument_group("disparity")
-    g.add_argument("--matcher", choices=["bm", "sgbm"], default="bm", help="disparity method (default: bm)")
-    g.add_argument("--num-disparities", type=int, default=64, help="search range, px (default: 64)")
-    g.add_argument("--block-size", type=int, default=0, help="matching window, odd px (0: bm 15, sgbm 5)")
+    """The disparity stage's settings, named as everywhere else with the stage in front
+    (`--disparity-method sgbm`: `disparity --method`, BALLBOT_DISPARITY_METHOD, `disparity: {method}`)."""
+    from .common.settings import add_settings_arguments
+    from .services.disparity.config import MatcherConfig
+
+    add_settings_arguments(p, MatcherConfig, prefix="disparity-",
+                           title="disparity settings (the 'disparity' section of --config FILE, or the "
+                                 "environment variable shown)")
+
+
+def _matcher_settings(args: argparse.Namespace):
+    from .common.settings import load_settings
+    from .services.disparity.config import MatcherConfig
+
+    return load_settings(MatcherConfig, getattr(args, "config", None), args, prefix="disparity-")
 
 
 def register(sub: argparse._SubParsersAction, common) -> None:
@@ -145,13 +160,13 @@ def register(sub: argparse._SubParsersAction, common) -> None:
     o = sub.add_parser("obstacles", help="offline: image pairs -> rectify, disparity, obstacles",
                        description="Rectify, match and segment one image pair or two folders (a sequence, "
                                    "tracked as frames FPS apart) in-process, and print the obstacles.")
-    o.add_argument("left", metavar="LEFT", help="left image, glob or folder")
-    o.add_argument("right", metavar="RIGHT", help="right image, glob or folder")
-    o.add_argument("--calibration", required=True, metavar="CAL", help="calibration YAML or profile")
+    o.add_argument("left", metavar="LEFT", help="left image, glob or folder; or a recording FILE.mcap")
+    o.add_argument("right", metavar="RIGHT", nargs="?", help="right image, glob or folder")
+    o.add_argument("--calibration", metavar="CAL", help="calibration YAML or profile (a recording: its own)")
     o.add_argument("--alpha", type=float, default=0.0, help="rectification alpha (default: 0)")
     o.add_argument("--json", action="store_true", help="one ObstacleList JSON object per pair")
     o.add_argument("--fps", type=float, default=15.0, help="frame rate of a sequence, for velocities")
-    o.add_argument("--config", default=None, metavar="FILE", help="YAML with a 'segmenter' section")
+    o.add_argument("--config", default=None, metavar="FILE", help="YAML with 'segmenter' and 'disparity' sections")
     _matcher_args(o)
     add_settings_arguments(o, SegmenterSettings)
     o.set_defaults(func=cmd_obstacles)

@@ -179,14 +179,17 @@ def decode_image(data: bytes, where: str) -> np.ndarray:
             noise_exc = ""
     said = " ".join(line.strip() for line in (noise[0] if noise else "").splitlines() if line.strip())
     damage = [line.strip() for line in (noise[0] if noise else "").splitlines() if _DAMAGE.search(line)]
+    kind = "PNG" if data[:8] == b"\x89PNG\r\n\x1a\n" else "JPEG" if data[:2] == b"\xff\xd8" else ""
+    if kind == "JPEG" and not damage and b"\xff\xd9" not in data[-64:]:
+        damage = ["no end-of-image marker: the file was cut short"]
     if img is None:
-        why = damage[0] if damage else (noise_exc or "")
-        if why:
-            raise FileError(f"{where}: truncated or corrupt image ({why})")
+        why = damage[0] if damage else noise_exc
+        if why or kind:
+            raise FileError(f"{where}: truncated or corrupt {kind or 'image'}" + (f" ({why})" if why else ""))
         raise FileError(f"{where}: not an image file OpenCV can decode ({len(data)} bytes; "
                         f"known: {', '.join(IMAGE_EXTENSIONS)})")
     if damage:
-        raise FileError(f"{where}: truncated or corrupt image ({damage[0]})")
+        raise FileError(f"{where}: truncated or corrupt {kind or 'image'} ({damage[0]})")
     if said:  # something else the codec said: not ours to hide, not worth failing for
         print(said, file=sys.stderr)
     check_image_size(img.shape[1], img.shape[0], where)

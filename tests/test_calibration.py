@@ -159,7 +159,7 @@ def test_errors_are_clear(synthetic_views, tmp_path, capsys):
     rc = main(["calibrate", "--left", str(tmp_path / "nothing*.png"), "--right", str(synthetic_views),
                "--square-size", "0.03"])
     err = capsys.readouterr().err
-    assert rc == 2 and "matches no image" in err and "Traceback" not in err
+    assert rc == 2 and "nothing*.png: no file matches the pattern" in err and "Traceback" not in err
 
     for f in ("left00.png", "right00.png", "left01.png", "right01.png", "left02.png", "right02.png"):
         shutil.copy(synthetic_views / f, tmp_path / f)

@@ -144,7 +144,7 @@ def test_images_unreadable_file_mid_stream_is_named_and_skipped(image_dirs):
         if p is not None:
             got.append(index_of(p.left, 0))
     assert got == [0, 1, 2, 4, 6, 8, 9, 10]
-    assert "right/f3.png: not an image OpenCV can decode" in errors[0]
+    assert "right/f3.png: not an image file OpenCV can decode" in errors[0]
     assert "left/f5.png and" in errors[1] and f"are {W}x{H // 2} grey, the earlier pairs {W}x{H} grey" in errors[1]
     assert f"left/f7.png is {W + 4}x{H} grey but its partner" in errors[2]
 

@@ -69,6 +69,16 @@ def test_image_payload_that_does_not_match_its_size_is_named():
         codec.array_from_image(bad_png)
 
 
+def test_image_dtype_names_and_byte_order():
+    for dt in ("uint8", "uint16", "int16", "float32"):
+        a = np.arange(12, dtype=dt).reshape(3, 4)
+        img = codec.image_from_array(a)
+        assert img.dtype == dt and np.array_equal(codec.array_from_image(img), a)
+    # Big-endian pixels are not what the message says (native little-endian): refused, not mislabelled.
+    with pytest.raises(Exception, match="dtype"):
+        codec.image_from_array(np.arange(12, dtype=">u2").reshape(3, 4))
+
+
 def test_key_table_is_the_only_place_keys_are_spelled():
     assert keys.topic("obstacles").key("robo") == "ballbot/obstacles/robo"
     assert keys.topic("stats").pattern("r") == "ballbot/r/stats/*/*"

@@ -75,6 +75,24 @@ def test_smoother_keeps_a_constant_and_smooths_noise_within_regions():
     assert dense.fast_global_smoother(noisy, guide, 500.0, 1.5).std() < 0.2 * noisy.std()
 
 
+def test_the_left_band_is_matched_where_the_partner_is_in_view():
+    """OpenCV leaves x < max disparity invalid; dense matches there, but never against its padding:
+    a pixel whose partner is out of view is filled (confidence < 128), not measured."""
+    import cv2
+
+    rng = np.random.default_rng(1)
+    left = cv2.GaussianBlur(rng.integers(0, 256, (120, 200), dtype=np.uint8), (3, 3), 0)
+    right = np.zeros_like(left)
+    right[:, :-20] = left[:, 20:]  # disparity 20 everywhere
+    right[:, -20:] = left[:, -20:]
+    m = make_matcher(MatcherConfig(method="dense", num_disparities=64)).match(left, right)
+    d = m.disparity / 16.0
+    assert (m.confidence[:, :20] < 128).all()  # partner at x - 20 < 0: no measurement there
+    assert (m.confidence[5:-5, 24:64] >= 128).mean() > 0.95  # in OpenCV's empty band, yet measured
+    assert np.abs(d[5:-5, 24:180] - 20).max() <= 0.5
+    assert np.abs(d[5:-5, :20] - 20).max() <= 0.5  # filled from the measured neighbours
+
+
 def test_nothing_matched_means_no_disparity_and_zero_confidence():
     blank = np.full((120, 160), 128, np.uint8)
     m = make_matcher(MatcherConfig(method="dense", num_disparities=32)).match(blank, blank)

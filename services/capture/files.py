@@ -8,7 +8,6 @@ services see the stream end (their inputs go stale) rather than a crash.
 """
 from __future__ import annotations
 
-import glob
 import logging
 import os
 import time
@@ -17,12 +16,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ...common.errors import SourceError
-from .sources import CapturedPair, SourceContext, natural_key, split_sbs
+from ...common import files
+from ...common.errors import FileError, SourceError
+from .sources import CapturedPair, SourceContext, split_sbs
 
 log = logging.getLogger("ballbot.capture")
-
-IMAGE_EXTENSIONS = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".pnm", ".webp"}
 
 
 # --- images ----------------------------------------------------------------------------------------
@@ -30,32 +28,19 @@ IMAGE_EXTENSIONS = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".
 def list_images(spec: str, side: str) -> list[Path]:
     """A folder (every image file in it) or a glob pattern ('left/*.png', 'data/**/im0.png') ->
     files in natural sort order (img2 before img10)."""
-    path = Path(os.path.expanduser(spec))
-    if not spec:
-        raise SourceError(f"images: no {side} folder or pattern given (--images-{side})")
-    if path.is_dir():
-        files = [f for f in path.iterdir() if f.suffix.lower() in IMAGE_EXTENSIONS and f.is_file()]
-        if not files:
-            raise SourceError(f"images: {side} folder {spec} holds no image files "
-                              f"({', '.join(sorted(IMAGE_EXTENSIONS))})")
-    else:
-        files = [Path(f) for f in glob.glob(os.path.expanduser(spec), recursive=True) if Path(f).is_file()]
-        if not files:
-            why = "no such file or folder" if not glob.has_magic(spec) else "no file matches the pattern"
-            raise SourceError(f"images: {side} images {spec!r}: {why}")
-    return sorted(files, key=lambda f: natural_key(str(f)))
+    try:
+        return files.list_images(spec, f"images: --images-{side}")
+    except FileError as e:
+        raise SourceError(str(e)) from None
 
 
 def read_image(path: Path) -> np.ndarray:
-    """One image file -> (H, W) uint8 grey or (H, W, 3) uint8 BGR (alpha dropped, 16 bit scaled)."""
+    """One image file -> (H, W) uint8 grey or (H, W, 3) uint8 BGR (alpha dropped, 16 bit scaled);
+    a missing, truncated, corrupt or impossibly sized file is a SourceError naming it."""
     try:
-        data = np.fromfile(path, np.uint8)
-    except OSError as e:
-        raise SourceError(f"image {path}: cannot read: {e.strerror or e}") from None
-    img = cv2.imdecode(data, cv2.IMREAD_ANYCOLOR) if data.size else None
-    if img is None:
-        raise SourceError(f"image {path}: not an image OpenCV can decode ({data.size} bytes)")
-    return img
+        return files.read_image(path, "image")
+    except FileError as e:
+        raise SourceError(str(e)) from None
 
 
 class ImageSource:

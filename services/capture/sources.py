@@ -21,7 +21,6 @@ Sources that wait (a camera being reconnected) or report (skew, drops) do it thr
 """
 from __future__ import annotations
 
-import re
 import threading
 from collections import deque
 from dataclasses import dataclass, field
@@ -31,6 +30,7 @@ import numpy as np
 
 from ...common import camera
 from ...common.errors import SourceError
+from ...common.files import natural_key  # noqa: F401  (the sources' sort order; re-exported)
 
 
 @dataclass
@@ -67,11 +67,6 @@ class RollingStats:
 
     def max(self) -> float:
         return max(self.values) if self.values else 0.0
-
-
-def natural_key(text: str) -> list:
-    """Sort key so that img2 < img10 (digits compare as numbers)."""
-    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", str(text))]
 
 
 def split_sbs(frame: np.ndarray, where: str) -> tuple[np.ndarray, np.ndarray]:

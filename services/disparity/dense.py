@@ -5,7 +5,7 @@
    (disp12_max_diff), uniqueness, speckles, and a texture floor (a window without horizontal
    gradient holds nothing to match, whatever SGBM says). The pair is padded on the left by the search range
    first, so the band x < max disparity that OpenCV leaves invalid is matched wherever its partner
-   is in view.
+   is in view (matches whose partner would lie in the padding are discarded).
 2. Edge-aware filling: the fast global smoother (Min et al., "Fast global image smoothing based on
    weighted least squares", TIP 2014; the filter behind OpenCV-contrib's DisparityWLSFilter) spreads
    the measured disparities along the left image, weighted by validity, so fills stop at intensity
@@ -181,6 +181,10 @@ class DenseMatcher:
         raw = self.measure(gl, gray(right))
         tex = texture(gl, c.block + 2)
         valid = (raw >= c.min_disparity * SCALE) & (tex >= FLAT)  # no texture: SGBM's answer is a guess
+        # In the left band a match must keep its partner's window in view: d <= x - block // 2 (beyond,
+        # it compared against the padding).
+        x = np.arange(raw.shape[1], dtype=np.int32)[None, :]
+        valid &= raw.astype(np.int32) <= (x - c.block // 2) * int(SCALE)
         saturated = saturated_share(raw, valid, c.max_disparity)
         filled, confidence = fill_and_confidence(raw.astype(np.float32) / np.float32(SCALE), valid, left,
                                                  c.fill_lambda, c.fill_sigma_color, tex)

@@ -25,7 +25,8 @@ class DisparitySettings(MatcherConfig):
     role: Literal["dispatch", "worker"] = Field("dispatch", description="dispatch: robot side, hands frames to "
                                                 "workers; worker: computes frames from its own work key")
     # pool (dispatch side)
-    max_in_flight: int = Field(1, ge=1, le=16, description="frames in flight per worker")
+    max_in_flight: int = Field(2, ge=1, le=16, description="frames in flight per worker (2: the next frame "
+                               "waits at the worker while it computes, so it never idles while frames travel)")
     max_age_ms: float = Field(500.0, gt=0, description="a frame older than this is never started")
     result_timeout_s: float = Field(1.0, gt=0, description="a worker slot without receipt is freed "
                                     "after this at the least; longer for a worker measured to need longer")

@@ -14,7 +14,6 @@ Jacobian of our own refinement (skew free), scaled by the residual variance.
 """
 from __future__ import annotations
 
-import glob
 import math
 import re
 from dataclasses import dataclass, field
@@ -26,8 +25,8 @@ import numpy as np
 
 from ...common import camera
 from ...common.errors import CalibrationError
+from ...common.files import IMAGE_EXTENSIONS, list_images, natural_sorted, pair_images, read_image
 
-IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm")
 SIGMAS = 3.0  # uncertainties are printed as +/- 3 sigma (Bouguet's convention)
 
 Progress = Callable[[str], None]
@@ -47,44 +46,6 @@ def parse_pattern(text: str) -> tuple[int, int]:
     return int(m.group(1)), int(m.group(2))
 
 
-def expand_images(spec: str, what: str) -> list[Path]:
-    """A folder (every image in it), a glob, or one file -> sorted image paths."""
-    p = Path(spec)
-    if p.is_dir():
-        files = [f for f in sorted(p.iterdir()) if f.suffix.lower() in IMAGE_EXTS]
-    elif p.is_file():
-        files = [p]
-    else:
-        files = [Path(f) for f in sorted(glob.glob(spec)) if Path(f).suffix.lower() in IMAGE_EXTS]
-    if not files:
-        raise CalibrationError(f"{what} {spec!r}: matches no image file")
-    return files
-
-
-_SIDE = re.compile(r"(left|right|links|rechts)", re.IGNORECASE)
-
-
-def _pair_key(path: Path) -> str:
-    return _SIDE.sub("#", path.stem).lower()
-
-
-def pair_files(left: Sequence[Path], right: Sequence[Path]) -> list[tuple[Path, Path]]:
-    """Pair left and right files by name (the name with left/right removed), else by sorted order."""
-    lk = {_pair_key(p): p for p in left}
-    rk = {_pair_key(p): p for p in right}
-    if len(lk) == len(left) and len(rk) == len(right) and set(lk) == set(rk):
-        return [(lk[k], rk[k]) for k in sorted(lk)]
-    if len(left) != len(right):
-        only_l = sorted(set(lk) - set(rk))
-        only_r = sorted(set(rk) - set(lk))
-        detail = ""
-        if only_l or only_r:
-            detail = (f"; without a partner: {', '.join(str(lk[k]) for k in only_l[:5])}"
-                      f"{', '.join(str(rk[k]) for k in only_r[:5])}")
-        raise CalibrationError(f"{len(left)} left images but {len(right)} right images{detail}")
-    return list(zip(sorted(left), sorted(right)))
-
-
 def find_pairs(left: str | None = None, right: str | None = None, pairs_dir: str | None = None
                ) -> list[tuple[Path, Path]]:
     """--left GLOB --right GLOB, or --pairs DIR (files with 'left' / 'right' in their names, or
@@ -94,27 +55,25 @@ def find_pairs(left: str | None = None, right: str | None = None, pairs_dir: str
         if not d.is_dir():
             raise CalibrationError(f"--pairs {pairs_dir!r}: not a folder")
         if (d / "left").is_dir() and (d / "right").is_dir():
-            return pair_files(expand_images(str(d / "left"), "--pairs"), expand_images(str(d / "right"), "--pairs"))
-        imgs = [f for f in sorted(d.iterdir()) if f.suffix.lower() in IMAGE_EXTS]
+            return pair_images(list_images(str(d / "left"), "--pairs"), list_images(str(d / "right"), "--pairs"))
+        imgs = natural_sorted([f for f in d.iterdir() if f.suffix.lower() in IMAGE_EXTENSIONS])
         ls = [f for f in imgs if re.search(r"left|links", f.name, re.I)]
         rs = [f for f in imgs if re.search(r"right|rechts", f.name, re.I)]
         if not ls or not rs:
             raise CalibrationError(f"--pairs {pairs_dir!r}: no image names containing 'left' and 'right' "
                                    f"(found {len(imgs)} images), and no left/ and right/ subfolders")
-        return pair_files(ls, rs)
+        return pair_images(ls, rs)
     if left is None or right is None:
         raise CalibrationError("give --left and --right (globs or folders), or --pairs DIR, "
                                "or --live (views from a running capture)")
-    return pair_files(expand_images(left, "--left"), expand_images(right, "--right"))
+    return pair_images(list_images(left, "--left"), list_images(right, "--right"))
 
 
 # --- corners -------------------------------------------------------------------------------------
 
 def read_gray(path: Path) -> np.ndarray:
-    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-    if img is None:
-        raise CalibrationError(f"{path}: cannot read the image")
-    return img
+    img = read_image(path)
+    return cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) if img.ndim == 3 else img
 
 
 def detect_corners(gray: np.ndarray, pattern: tuple[int, int]) -> np.ndarray | None:

@@ -1,0 +1,197 @@
+"""Every offline command turns a bad file into one line on stderr and exit status 2, names the file
+and writes nothing: 1x1 or huge images, empty, binary, truncated or corrupt JPEG/PNG, missing
+files, binary or empty calibration files and calibrations of impossible size. OpenCV's own warnings
+(libjpeg's "Corrupt JPEG data", libpng's "IDAT: CRC error") never reach the terminal by themselves.
+Plus natural sort of offline file lists and one flag name per concept across commands."""
+from __future__ import annotations
+
+import json
+import zlib
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from ballbot_vision.cli import main
+
+W, H = 320, 240
+
+
+def _scene() -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(1)
+    left = cv2.GaussianBlur(rng.integers(0, 255, (H, W), np.uint8), (3, 3), 0)
+    right = np.roll(left, -8, axis=1)
+    return left, right
+
+
+def _png_header_only(w: int, h: int) -> bytes:
+    """A PNG whose header claims w x h (a decompression bomb in miniature): signature + IHDR."""
+    ihdr = w.to_bytes(4, "big") + h.to_bytes(4, "big") + bytes([8, 0, 0, 0, 0])
+    chunk = b"IHDR" + ihdr
+    return b"\x89PNG\r\n\x1a\n" + len(ihdr).to_bytes(4, "big") + chunk + zlib.crc32(chunk).to_bytes(4, "big")
+
+
+def _jpeg(img: np.ndarray) -> bytes:
+    return cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 95])[1].tobytes()
+
+
+def _bad_images() -> dict[str, tuple[str, bytes, str]]:
+    """name -> (file suffix, content, expected phrase)."""
+    left, _ = _scene()
+    jpg, png = _jpeg(left), cv2.imencode(".png", left)[1].tobytes()
+    corrupt = bytearray(jpg)
+    corrupt[len(jpg) // 2:len(jpg) // 2 + 64] = b"\x00" * 64
+    crc = bytearray(png)
+    crc[len(png) // 2] ^= 0xFF
+    return {
+        "1x1": (".png", cv2.imencode(".png", np.zeros((1, 1), np.uint8))[1].tobytes(), "1x1 pixels is too small"),
+        "huge-header": (".png", _png_header_only(100000, 100000), "100000x100000 pixels is larger than"),
+        "empty": (".png", b"", "the file is empty"),
+        "binary": (".png", bytes(range(256)) * 8, "not an image file OpenCV can decode"),
+        "truncated-jpeg": (".jpg", jpg[:len(jpg) // 2], "truncated or corrupt JPEG"),
+        "corrupt-jpeg": (".jpg", bytes(corrupt), "truncated or corrupt JPEG"),
+        "truncated-png": (".png", png[:len(png) // 2], "truncated or corrupt PNG"),
+        "crc-png": (".png", bytes(crc), "truncated or corrupt PNG"),
+    }
+
+
+BAD_IMAGES = _bad_images()
+
+
+def _commands(left: Path, right: Path, out: Path) -> dict[str, list[str]]:
+    return {
+        "rectify": ["rectify", str(left), str(right), "--calibration", "lifecam-studio", "-o", str(out)],
+        "disparity": ["disparity", str(left), str(right), "-o", str(out / "d.npy")],
+        "obstacles": ["obstacles", str(left), str(right), "--calibration", "lifecam-studio"],
+        "calibration check": ["calibration", "check", str(left), str(right), "--calibration", "lifecam-studio"],
+        "calibrate": ["calibrate", "--left", str(left), "--right", str(right), "--square-size", "0.03",
+                      "-o", str(out / "rig.yaml")],
+    }
+
+
+def _one_line_error(capfd, rc: int, *needles: str) -> str:
+    captured = capfd.readouterr()
+    err = captured.err
+    assert rc == 2, (rc, err)
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("ballbot-vision: error: "), err
+    for n in needles:
+        assert n in err, (n, err)
+    assert "Traceback" not in err and "Corrupt JPEG" not in captured.out
+    return err
+
+
+@pytest.mark.parametrize("command", ["rectify", "disparity", "obstacles", "calibration check", "calibrate"])
+@pytest.mark.parametrize("bad", list(BAD_IMAGES))
+def test_bad_image_files_are_one_line_errors(tmp_path, capfd, command, bad):
+    suffix, content, phrase = BAD_IMAGES[bad]
+    left, right = _scene()
+    good = tmp_path / f"right{suffix}"
+    cv2.imwrite(str(good), right)
+    bad_file = tmp_path / f"left{suffix}"
+    bad_file.write_bytes(content)
+    out = tmp_path / "out"
+    rc = main(_commands(bad_file, good, out)[command])
+    _one_line_error(capfd, rc, str(bad_file), phrase)
+    assert not (out / "d.npy").exists() and not (out / "rig.yaml").exists()
+    assert not out.exists() or not any(out.rglob("*.png"))
+
+
+@pytest.mark.parametrize("command", ["rectify", "disparity", "obstacles", "calibration check"])
+def test_missing_image_file(tmp_path, capfd, command):
+    left, right = _scene()
+    cv2.imwrite(str(tmp_path / "right.png"), right)
+    rc = main(_commands(tmp_path / "nope.png", tmp_path / "right.png", tmp_path / "out")[command])
+    err = _one_line_error(capfd, rc, "nope.png")
+    assert "no such file" in err
+
+
+def test_a_real_image_above_the_pixel_limit_is_refused(tmp_path, capfd):
+    big = np.zeros((6000, 8000), np.uint8)  # 48 MP: over the 40 MP limit, a small PNG on disk
+    cv2.imwrite(str(tmp_path / "l.png"), big)
+    cv2.imwrite(str(tmp_path / "r.png"), big)
+    rc = main(["disparity", str(tmp_path / "l.png"), str(tmp_path / "r.png"), "-o", str(tmp_path / "d.npy")])
+    _one_line_error(capfd, rc, "8000x6000 pixels is larger than", "l.png")
+    assert not (tmp_path / "d.npy").exists()
+
+
+@pytest.mark.parametrize("content,phrase", [
+    (b"", "the file is empty"),
+    (bytes(range(256)) * 4, "binary data, not a text file"),
+    (b"rectified: true\nimage_size: [200000, 200000]\nfocal_px: 700\nprincipal_point: [1, 1]\nbaseline_m: 0.1\n",
+     "200000x200000 pixels is larger than"),
+    (b"name: x\nrectified: false\nimage_size: [320, 240]\nleft: {K: [.nan, 0, 160, 0, 500, 120, 0, 0, 1], "
+     b"distortion: [0, 0, 0, 0, 0]}\n", "finite numbers"),
+])
+@pytest.mark.parametrize("command", ["rectify", "disparity", "obstacles", "calibration check", "calibration show"])
+def test_bad_calibration_files_are_one_line_errors(tmp_path, capfd, command, content, phrase):
+    left, right = _scene()
+    cv2.imwrite(str(tmp_path / "left.png"), left)
+    cv2.imwrite(str(tmp_path / "right.png"), right)
+    cal = tmp_path / "cal.yaml"
+    cal.write_bytes(content)
+    argv = _commands(tmp_path / "left.png", tmp_path / "right.png", tmp_path / "out").get(command)
+    if command == "calibration show":
+        argv = ["calibration", "show", str(cal)]
+    elif command == "disparity":
+        argv = argv + ["--calibration", str(cal)]
+    else:
+        argv = [a if a != "lifecam-studio" else str(cal) for a in argv]
+    rc = main(argv)
+    _one_line_error(capfd, rc, str(cal), phrase)
+    assert not (tmp_path / "out" / "d.npy").exists()
+
+
+def test_offline_file_lists_sort_naturally(tmp_path, capfd):
+    """left2 before left10: a sequence is tracked in the order it was recorded."""
+    left, right = (cv2.resize(i, (640, 480)) for i in _scene())
+    (tmp_path / "L").mkdir(), (tmp_path / "R").mkdir()
+    for i in (1, 2, 10, 11):
+        cv2.imwrite(str(tmp_path / "L" / f"left{i}.png"), left)
+        cv2.imwrite(str(tmp_path / "R" / f"right{i}.png"), right)
+    out = tmp_path / "out"
+    assert main(["rectify", str(tmp_path / "L"), str(tmp_path / "R"), "--calibration", "lifecam-studio",
+                 "-o", str(out)]) == 0
+    lines = [ln for ln in capfd.readouterr().out.splitlines() if " -> " in ln]
+    assert [Path(ln.split()[0]).name for ln in lines] == ["left1.png", "left2.png", "left10.png", "left11.png"]
+    assert main(["obstacles", str(tmp_path / "L"), str(tmp_path / "R"), "--calibration", "lifecam-studio",
+                 "--json"]) == 0
+    docs = [json.loads(ln) for ln in capfd.readouterr().out.splitlines()]
+    assert [Path(d["left"]).name for d in docs] == ["left1.png", "left2.png", "left10.png", "left11.png"]
+    assert [d["seq"] for d in docs] == [0, 1, 2, 3]
+
+
+def test_one_flag_name_per_concept(capfd):
+    """The disparity method is --method in `disparity`, --disparity-method where a command also has
+    the segmenter's --method; offline `disparity` shows no worker-pool flags."""
+    import argparse
+
+    from ballbot_vision.cli import build_parser
+
+    def help_of(*argv: str) -> str:
+        p = build_parser(list(argv))
+        sub = next(a for a in p._actions if isinstance(a, argparse._SubParsersAction))
+        sp = sub.choices[argv[0]]
+        if len(argv) > 1:
+            sp = next(a for a in sp._actions if isinstance(a, argparse._SubParsersAction)).choices[argv[1]]
+        return sp.format_help()
+
+    disparity, obstacles, evaluation = help_of("disparity"), help_of("obstacles"), help_of("eval")
+    run_disparity = help_of("run", "disparity")
+    assert "--method" in disparity and "--matcher" not in disparity
+    for text in (obstacles, evaluation):
+        assert "--disparity-method" in text and "--disparity-num-disparities" in text and "--matcher" not in text
+    for flag in ("--max-in-flight", "--result-timeout-s", "--role", "--fallback"):
+        assert flag in run_disparity and flag not in disparity and flag not in obstacles
+
+
+def test_an_image_of_another_size_than_the_calibration_names_the_file(tmp_path, capfd):
+    left, right = _scene()
+    cv2.imwrite(str(tmp_path / "l.png"), left)
+    cv2.imwrite(str(tmp_path / "r.png"), right)
+    for argv in (["rectify", "-o", str(tmp_path / "out")], ["obstacles"], ["calibration", "check"],
+                 ["disparity", "-o", str(tmp_path / "d.npy")]):
+        rc = main(argv[:2 if argv[0] == "calibration" else 1] + [str(tmp_path / "l.png"), str(tmp_path / "r.png"),
+                  "--calibration", "lifecam-studio"] + argv[2 if argv[0] == "calibration" else 1:])
+        _one_line_error(capfd, rc, f"{tmp_path / 'l.png'}: image is 320x240", "640x480")
