@@ -92,9 +92,12 @@ class Project:
     def __init__(self, image: str):
         self.name = f"bvtest{uuid.uuid4().hex[:8]}"
         self.port = free_port()
+        self.viewer_port = free_port()
+        # The optional services too (compose profiles): the image must carry their extras.
         self.env = dict(os.environ, ROUTER_PORT=str(self.port), ROUTER_BIND="127.0.0.1", BALLBOT_IMAGE=image,
                         BASE_IMAGE=BASE_IMAGE, BALLBOT_ROBOT_ID=RID, CAPTURE_RATE_HZ="15",
-                        BALLBOT_LEASE_MS="2000", BALLBOT_LOG="INFO")
+                        BALLBOT_LEASE_MS="2000", BALLBOT_LOG="INFO", COMPOSE_PROFILES="viewer,ros2",
+                        VIEWER_BIND="127.0.0.1", VIEWER_PORT=str(self.viewer_port))
         self.endpoint = f"tcp/127.0.0.1:{self.port}"
 
     def compose(self, *args: str, timeout: float = 300, check: bool = True) -> subprocess.CompletedProcess:
@@ -180,6 +183,25 @@ def test_compose_up_scale_stop_and_offboard_network_drop(project):
     lists = [ObstacleList.model_validate(json.loads(line)) for line in w.stdout.splitlines()]
     assert len(lists) == 5 and all(m.robot_id == RID for m in lists)
     print(f"first obstacles on the host {time.monotonic() - t_up:.1f} s after `up`")
+
+    # The optional services of the compose profiles run from the same image: the web view answers
+    # on the host's loopback, the ROS 2 bridge stays up.
+    import urllib.request
+
+    deadline = time.monotonic() + 120
+    while True:
+        try:
+            with urllib.request.urlopen(f"http://127.0.0.1:{project.viewer_port}/", timeout=5) as page:
+                assert page.status == 200 and b"<html" in page.read(4096).lower()
+            break
+        except OSError as e:
+            assert time.monotonic() < deadline, f"the viewer container does not answer: {e}"
+            time.sleep(1)  # polling a port: there is no event to wait on
+    for service in ("viewer", "ros2"):
+        names = project.containers(service)
+        assert len(names) == 1, (service, names)
+        state = run(["docker", "inspect", "-f", "{{.State.Status}} {{.RestartCount}}", names[0]]).stdout.split()
+        assert state == ["running", "0"], (service, state)
 
     s = Stream(project.endpoint)
     try:
