@@ -63,18 +63,26 @@ def cmd_obstacles(args: argparse.Namespace) -> int:
     from .services.segmenter.main import ObstacleBuilder
 
     settings = _segmenter_settings(args)
-    rect = Rectifier(camera.load_calibration(args.calibration), args.alpha)
+    if args.left.lower().endswith(".mcap"):  # a recording: its pairs, times and (by default) calibration
+        from .services.recorder.recording import offline_pairs
+
+        pairs, cal = offline_pairs(args.left, args.calibration)
+    elif args.right is None or args.calibration is None:
+        raise BallbotError("obstacles: image pairs need LEFT, RIGHT and --calibration (a recording: FILE.mcap)")
+    else:
+        cal = camera.load_calibration(args.calibration)
+        pairs = ((lp, rp, _read(lp, rect), _read(rp, rect), k / args.fps) for k, (lp, rp) in
+                 enumerate(pair_images(list_images(args.left, "LEFT"), list_images(args.right, "RIGHT"))))
+    rect = Rectifier(cal, args.alpha)
     mcfg = _matcher_settings(args)
     stereo = StereoMatcher(mcfg)
     builder = ObstacleBuilder(settings)
-    pairs = pair_images(list_images(args.left, "LEFT"), list_images(args.right, "RIGHT"))
-    for k, (lp, rp) in enumerate(pairs):
-        left, right = rect.rectify(_read(lp, rect), _read(rp, rect))
+    for k, (lp, rp, left, right, stamp_s) in enumerate(pairs):
+        left, right = rect.rectify(left, right)
         d = to_float(stereo.compute(left, right), SCALE, mcfg.invalid_value)
         t0 = time.perf_counter()
         dets = builder.segmenter.detect(d, rect.model, left)
         ms = (time.perf_counter() - t0) * 1e3
-        stamp_s = k / args.fps
         obstacles = builder.obstacles(dets, stamp_s)
         if args.json:
             msg = ObstacleList(robot_id="offline", seq=k, stamp_ns=int(stamp_s * 1e9), publish_ns=time.time_ns(),
@@ -152,9 +160,9 @@ def register(sub: argparse._SubParsersAction, common) -> None:
     o = sub.add_parser("obstacles", help="offline: image pairs -> rectify, disparity, obstacles",
                        description="Rectify, match and segment one image pair or two folders (a sequence, "
                                    "tracked as frames FPS apart) in-process, and print the obstacles.")
-    o.add_argument("left", metavar="LEFT", help="left image, glob or folder")
-    o.add_argument("right", metavar="RIGHT", help="right image, glob or folder")
-    o.add_argument("--calibration", required=True, metavar="CAL", help="calibration YAML or profile")
+    o.add_argument("left", metavar="LEFT", help="left image, glob or folder; or a recording FILE.mcap")
+    o.add_argument("right", metavar="RIGHT", nargs="?", help="right image, glob or folder")
+    o.add_argument("--calibration", metavar="CAL", help="calibration YAML or profile (a recording: its own)")
     o.add_argument("--alpha", type=float, default=0.0, help="rectification alpha (default: 0)")
     o.add_argument("--json", action="store_true", help="one ObstacleList JSON object per pair")
     o.add_argument("--fps", type=float, default=15.0, help="frame rate of a sequence, for velocities")

@@ -23,12 +23,13 @@ trap 'rm -rf "$TMP"' EXIT
 PYVER=$("$PY" -c 'import sys; print("%d.%d" % sys.version_info[:2])')
 
 # [project].dependencies of pyproject.toml, and the extras the image carries (ros2: the ROS 2
-# bridge), one per line.
+# bridge; viewer: the web view; record: MCAP recordings), one per line.
 "$PY" - "$ROOT/pyproject.toml" >"$TMP/requirements.in" <<'EOF'
 import sys, tomllib
 with open(sys.argv[1], "rb") as f:
     project = tomllib.load(f)["project"]
-print("\n".join(project["dependencies"] + project["optional-dependencies"]["ros2"]))
+extras = project["optional-dependencies"]
+print("\n".join(project["dependencies"] + extras["ros2"] + extras["viewer"] + extras["record"]))
 EOF
 # The build backend, as [build-system].requires says.
 "$PY" - "$ROOT/pyproject.toml" >"$TMP/build-requirements.in" <<'EOF'

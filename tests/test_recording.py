@@ -325,3 +325,30 @@ def test_karlsruhe_folders_round_trip_with_their_calibration(tmp_path):
     for a, b in zip(originals[::7], copies[::7]):
         assert np.array_equal(cv2.imread(str(a), cv2.IMREAD_UNCHANGED), cv2.imread(str(b), cv2.IMREAD_UNCHANGED))
     assert (back / "calibration.yaml").read_text() == (KARLSRUHE / "calibration.yaml").read_text()
+
+
+def test_obstacles_reads_a_recording_like_the_image_folders_it_came_from(tmp_path):
+    from ballbot_vision.services.capture.sources import SyntheticSource
+
+    src = SyntheticSource("two-boxes", "lifecam-studio", 15.0)
+    left_dir, right_dir = tmp_path / "L", tmp_path / "R"
+    left_dir.mkdir()
+    right_dir.mkdir()
+    for i in range(3):
+        p = src.read()
+        cv2.imwrite(str(left_dir / f"{i}.png"), p.left)
+        cv2.imwrite(str(right_dir / f"{i}.png"), p.right)
+    rec = tmp_path / "rec.mcap"
+    r = subprocess.run(cli("mcap", "from-images", str(left_dir), str(right_dir), "-o", str(rec), "--fps", "15",
+                           "--calibration", "lifecam-studio"), capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    from_files = subprocess.run(cli("obstacles", str(left_dir), str(right_dir), "--calibration", "lifecam-studio",
+                                    "--json"), capture_output=True, text=True, timeout=300)
+    from_mcap = subprocess.run(cli("obstacles", str(rec), "--json"), capture_output=True, text=True, timeout=300)
+    assert from_files.returncode == 0 and from_mcap.returncode == 0, from_mcap.stderr
+    a = [json.loads(line)["obstacles"] for line in from_files.stdout.splitlines()]
+    b = [json.loads(line)["obstacles"] for line in from_mcap.stdout.splitlines()]
+    assert len(a) == len(b) == 3 and len(b[0]) == 2
+    assert [[o["position_m"] for o in lst] for lst in a] == [[o["position_m"] for o in lst] for lst in b]
+    r = subprocess.run(cli("obstacles", str(left_dir)), capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "need LEFT, RIGHT and --calibration" in r.stderr

@@ -42,7 +42,8 @@ class RecordSettings(ServiceSettings):
     disparity: bool = Field(True, description="record the disparity as a colour picture")
     stats: bool = Field(True, description="record every service's stats")
     calibration: str | None = Field(None, description="calibration YAML or profile stored for replay (default: "
-                                    "the rectify section's calibration of --config, else lifecam-studio)")
+                                    "the rectify section's calibration of --config; unset: what the calibration "
+                                    "key carries, and lifecam-studio for the synthetic scene, as rectify does)")
     compression: Literal["zstd", "lz4", "none"] = Field("zstd", description="MCAP chunk compression")
     threads: int = Field(2, ge=1, le=16, description="encoder threads")
     queue_mb: int = Field(1024, ge=16, le=65536, description="memory for messages waiting to be written; "
@@ -80,6 +81,8 @@ class RecordResult:
                 f"(seq gaps), {self.decode_errors} undecodable")
 
 
+SYNTHETIC_RIG, SYNTHETIC_RIG_SOURCE = "lifecam-studio", "synthetic"  # what rectify assumes, for which source
+
 MODELS = {"frames_raw": StereoFrame, "frames_rect": StereoFrame, "disparity": DisparityMap,
           "obstacles": ObstacleList, "freespace": FreeSpace, "truth": GroundTruth, "stats": ServiceStats,
           "calibration": CalibrationUpdate}
@@ -113,6 +116,7 @@ class Recorder:
         self.result = RecordResult(str(writer.path))
         self.raw_written = threading.Event()
         self._threads: list[threading.Thread] = []
+        self.has_calibration = False  # set once a calibration is in the file
 
     def offer(self, kind: str, payload: bytes) -> None:
         """Zenoh's callback thread: count, bound, enqueue; nothing else."""
@@ -164,6 +168,10 @@ class Recorder:
                 if msg is None:
                     continue
                 with self.node.processing(msg):
+                    if kind == "calibration":
+                        self.has_calibration = True
+                    elif kind == "frames_raw" and not self.has_calibration:
+                        self._assume_calibration(msg)
                     for r in self._convert(kind, msg):
                         self.writer.write(r.topic, r.doc, r.log_time_ns, r.sequence)
                     if kind == "frames_raw":
@@ -179,6 +187,22 @@ class Recorder:
                 self.node.extra["queue_mb"] = self.queued_bytes / 1e6
                 self.node.extra["dropped_queue_full"] = float(self.result.dropped_queue_full)
 
+    def _assume_calibration(self, msg: StereoFrame) -> None:
+        """No calibration configured or received: rectify assumes the thesis rig for the synthetic
+        scene only, and so does the recording (just before that pair); other sources are recorded
+        without one (replay then needs rectify.calibration)."""
+        with self._lock:
+            if self.has_calibration:
+                return
+            self.has_calibration = True
+        if msg.source == SYNTHETIC_RIG_SOURCE:
+            text = calibration_text(SYNTHETIC_RIG)
+            for r in Converter.calibration(text, f"{SYNTHETIC_RIG} (assumed for the synthetic scene)", msg.stamp_ns - 1):
+                self.writer.write(r.topic, r.doc, r.log_time_ns)
+        else:
+            log.warning("record: no calibration configured (--calibration, rectify.calibration) or published; "
+                        "replaying these %s pairs will need rectify.calibration", msg.source or "unknown")
+
     def drain(self, timeout_s: float = 30.0) -> None:
         """Stop accepting, let the encoder threads finish what is queued, then stop them."""
         with self._lock:
@@ -193,20 +217,23 @@ class Recorder:
                         self.queue.qsize(), timeout_s)
 
 
-def record(node: Node, settings: RecordSettings, path: str | Path, calibration_spec: str,
+def record(node: Node, settings: RecordSettings, path: str | Path, calibration_spec: str | None,
            started: threading.Event | None = None) -> RecordResult:
     """Record until stopped (node.stop_event: Ctrl-C, SIGTERM, SIGHUP), `duration_s` or `pairs`."""
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGHUP, lambda *_: node.stop_event.set())
-    text = calibration_text(calibration_spec)  # before the file exists: a bad calibration costs nothing
+    # before the file exists: a bad calibration costs nothing
+    text = calibration_text(calibration_spec) if calibration_spec else None
     writer = RecordingWriter(path, compression=settings.compression,
-                             metadata={"robot_id": node.robot_id, "calibration": calibration_spec,
+                             metadata={"robot_id": node.robot_id, "calibration": calibration_spec or "",
                                        "image_format": settings.image_format})
     t0 = time.monotonic()
     rec = Recorder(node, settings, writer)
     try:
-        for r in Converter.calibration(text, calibration_spec):
-            writer.write(r.topic, r.doc, r.log_time_ns)
+        if text is not None:
+            for r in Converter.calibration(text, calibration_spec):
+                writer.write(r.topic, r.doc, r.log_time_ns)
+            rec.has_calibration = True
         rec.start()
         rec.subscribe()
         node.status = "recording"

@@ -21,6 +21,7 @@ up in Foxglove; MCAP `sequence` = the capture seq):
 """
 from __future__ import annotations
 
+import itertools
 import json
 import logging
 import threading
@@ -172,15 +173,26 @@ def encode_array(a: np.ndarray, fmt: str, jpeg_quality: int = 90) -> bytes:
     return buf.tobytes()
 
 
+def _disparity_colours() -> np.ndarray:
+    """(256, 1, 3) uint8 BGR: black, then TURBO over 1..255."""
+    table = cv2.applyColorMap(np.arange(256, dtype=np.uint8).reshape(256, 1), cv2.COLORMAP_TURBO)
+    table[0] = 0
+    return table
+
+
+_DISPARITY_COLOURS = _disparity_colours()
+
+
 def colorize_disparity(msg: DisparityMap) -> np.ndarray:
     """A disparity message -> (H, W, 3) uint8 BGR: TURBO over the searched range (near = warm),
     pixels without a measurement black."""
     raw = codec.array_from_image(msg.image, "disparity")
-    valid = raw != msg.invalid_value
-    d = raw.astype(np.float32) / msg.scale - msg.min_disparity
-    scaled = np.clip(d * (255.0 / max(msg.num_disparities, 1)), 0, 255).astype(np.uint8)
-    out = cv2.applyColorMap(scaled, cv2.COLORMAP_TURBO)
-    out[~valid] = 0
+    # OpenCV passes on one channel instead of float numpy arithmetic: valid disparities -> 1..255,
+    # no measurement -> 0, which the colour table maps to black
+    alpha = 254.0 / (max(msg.num_disparities, 1) * msg.scale)
+    scaled = cv2.convertScaleAbs(raw, alpha=alpha, beta=1.0 - msg.min_disparity * msg.scale * alpha)
+    scaled[raw == msg.invalid_value] = 0
+    out = cv2.applyColorMap(scaled, _DISPARITY_COLOURS)
     return out
 
 
@@ -463,3 +475,31 @@ class RecordingReader:
             yield finish(*pending)
         self.unpaired += len(halves)
 
+
+
+def offline_pairs(path: str | Path, calibration: str | None = None):
+    """A recording for the offline commands (`obstacles rec.mcap`): (pairs, calibration), where
+    pairs yields (left label, right label, left, right, t_s) in capture order, t_s from the
+    recording's stamps, and calibration is `calibration` (a file or profile) or else the
+    recording's own, as a Calibration."""
+    import yaml
+
+    from ...common import camera
+
+    reader = RecordingReader(path)
+    pairs = reader.pairs("raw")
+    first = next(pairs, None)
+    if first is None:
+        raise RecordingError(f"{path}: no stereo pair could be read")
+    if calibration:
+        cal = camera.load_calibration(calibration)
+    elif first.calibration_yaml:
+        cal = camera.calibration_from_dict(yaml.safe_load(first.calibration_yaml), where=f"{path}: /calibration")
+    else:
+        raise RecordingError(f"{path}: the recording holds no calibration; give one with --calibration")
+
+    def labelled():
+        for p in itertools.chain([first], pairs):
+            yield (f"{path}#{p.seq}:left", f"{path}#{p.seq}:right", p.left, p.right,
+                   (p.stamp_ns - first.stamp_ns) / 1e9)
+    return labelled(), cal

@@ -1,0 +1,321 @@
+"""viewer: a live web page of what the robot sees (`ballbot-vision run viewer`, `up --viewer`).
+
+One port (default 127.0.0.1:8080) serves the page and one WebSocket per client. A viewer can
+never slow the robot:
+- Zenoh callbacks only keep payloads (newest few, by capture stamp); nothing is decoded there;
+- the image streams are subscribed to only while a page is open (no watcher, no traffic);
+- one composer thread builds at most `max_fps` updates a second (decode, JPEG, JSON), only when
+  something new arrived and someone is watching;
+- each client gets the newest update once it has drawn the previous one (it acks every frame);
+  a slow client skips frames, it never queues them, and never holds anything up.
+From a laptop: `ballbot-vision run viewer --mode client --connect tcp/ROBOT:7447`.
+
+aiohttp serves both HTTP and WebSocket from one asyncio loop in one dependency (see pyproject's
+`viewer` extra).
+"""
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import threading
+import time
+from pathlib import Path
+
+from pydantic import Field
+
+from ...common import codec
+from ...common.keys import topic
+from ...common.messages import FreeSpace, ObstacleList, ReplayControl, ServiceStats
+from ...common.errors import BallbotError, DecodeError
+from ...common.node import Node, stamp_of
+from ...common.settings import ServiceSettings
+from .core import Composer, ViewInputs
+
+log = logging.getLogger("ballbot.viewer")
+
+SUBSCRIBES = ["frames_rect", "disparity", "obstacles", "freespace", "truth", "stats"]
+PUBLISHES = ["replay_control"]
+STATIC = Path(__file__).resolve().parent / "static"
+
+
+class ViewerSettings(ServiceSettings):
+    section = "viewer"
+    host: str = Field("127.0.0.1", description="address to bind (0.0.0.0: every interface; the page has "
+                                                "no login, so only on networks you trust)")
+    port: int = Field(8080, ge=0, le=65535, description="HTTP and WebSocket port (0: any free port)")
+    max_fps: float = Field(15.0, gt=0, le=60, description="page updates per second at most")
+    jpeg_quality: int = Field(80, ge=10, le=100, description="JPEG quality of the pictures sent")
+    controls: bool = Field(True, description="let pages play/pause/step a replay (capture --source mcap)")
+    idle_unsubscribe_s: float = Field(5.0, ge=0, le=3600, description="drop the image subscriptions this long "
+                                      "after the last page closed")
+
+
+class Hub:
+    """The newest packed update and who is waiting for it (thread-safe publish, asyncio wait)."""
+
+    def __init__(self) -> None:
+        self.version = 0
+        self.latest: bytes | None = None
+        self.clients = 0
+        self.sent = 0
+        self.skipped = 0
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._changed: asyncio.Condition | None = None
+
+    def bind(self, loop: asyncio.AbstractEventLoop) -> None:
+        self._loop = loop
+        self._changed = asyncio.Condition()
+
+    def publish(self, message: bytes) -> None:
+        """Any thread."""
+        loop = self._loop
+        if loop is None or loop.is_closed():
+            return
+        loop.call_soon_threadsafe(self._set, message)
+
+    def _set(self, message: bytes) -> None:
+        self.version += 1
+        self.latest = message
+        asyncio.ensure_future(self._notify())
+
+    async def _notify(self) -> None:
+        async with self._changed:
+            self._changed.notify_all()
+
+    async def newer_than(self, version: int) -> tuple[int, bytes]:
+        async with self._changed:
+            await self._changed.wait_for(lambda: self.version > version and self.latest is not None)
+            return self.version, self.latest
+
+
+class Viewer:
+    """The Zenoh side: inputs, lazy image subscriptions, the composer thread."""
+
+    IMAGE_KINDS = ("frames_rect", "disparity", "truth")
+
+    def __init__(self, node: Node, settings: ViewerSettings, hub: Hub):
+        self.node, self.settings, self.hub = node, settings, hub
+        self.inputs = ViewInputs()
+        self.composer = Composer(node.robot_id, settings.jpeg_quality)
+        self._lock = threading.Lock()
+        self._new = threading.Event()
+        self._image_subs: list = []
+        self._last_client = time.monotonic()
+        self._control = None
+        self.composed = 0
+
+    # Zenoh callback threads: keep the payload, nothing else
+    def _keep(self, ring_name: str):
+        ring = getattr(self.inputs, ring_name)
+
+        def on_sample(sample) -> None:
+            stamp = stamp_of(sample.attachment)
+            with self._lock:
+                ring.append((stamp, sample.payload.to_bytes()))
+            if ring_name == "frames" and self.inputs.obstacles is None:
+                self._new.set()  # no segmenter: frames alone drive the page
+        return on_sample
+
+    def _on_obstacles(self, sample) -> None:
+        msg = self.node.decode_or_drop(sample.payload.to_bytes(), ObstacleList, "obstacle list")
+        if msg is None:
+            return
+        with self._lock:
+            old = self.inputs.obstacles
+            if old is None or msg.stamp_ns >= old.stamp_ns or msg.stamp_ns < old.stamp_ns - 60e9:
+                self.inputs.obstacles = msg  # (a capture restart starts a new timeline)
+        self._new.set()
+
+    def _on_freespace(self, sample) -> None:
+        msg = self.node.decode_or_drop(sample.payload.to_bytes(), FreeSpace, "free space")
+        if msg is not None:
+            with self._lock:
+                self.inputs.freespace = msg
+
+    def _on_stats(self, sample) -> None:
+        st = self.node.decode_or_drop(sample.payload.to_bytes(), ServiceStats, "stats", "stats")
+        if st is not None:
+            with self._lock:
+                self.inputs.add_stats(st)
+
+    def subscribe_small(self) -> None:
+        rid = self.node.robot_id
+        self.node.subscribe(topic("obstacles").key(rid), self._on_obstacles)
+        self.node.subscribe(topic("freespace").key(rid), self._on_freespace)
+        self.node.subscribe(topic("stats").pattern(rid), self._on_stats)
+        if self.settings.controls:
+            self._control = self.node.session.declare_publisher(topic("replay_control").key(rid))
+
+    def _manage_image_subscriptions(self) -> None:
+        now = time.monotonic()
+        if self.hub.clients > 0:
+            self._last_client = now
+            if not self._image_subs:
+                rid = self.node.robot_id
+                s = self.node.session
+                self._image_subs = [s.declare_subscriber(topic("frames_rect").key(rid), self._keep("frames")),
+                                    s.declare_subscriber(topic("disparity").key(rid), self._keep("disparities")),
+                                    s.declare_subscriber(topic("truth").key(rid), self._keep("truths"))]
+                log.info("viewer: a page is open; subscribed to the image streams")
+        elif self._image_subs and now - self._last_client > self.settings.idle_unsubscribe_s:
+            for sub in self._image_subs:
+                sub.undeclare()
+            self._image_subs = []
+            with self._lock:
+                self.inputs.frames.clear()
+                self.inputs.disparities.clear()
+                self.inputs.truths.clear()
+            log.info("viewer: no page open; image streams unsubscribed")
+
+    def compose_loop(self) -> None:
+        period = 1.0 / self.settings.max_fps
+        next_t = time.monotonic()
+        while self.node.running:
+            self._manage_image_subscriptions()
+            if self.hub.clients == 0:
+                self.node.stop_event.wait(0.2)
+                continue
+            # new obstacles or frames, or at least a refresh of the stats twice a second
+            self._new.wait(0.5)
+            self._new.clear()
+            delay = next_t - time.monotonic()
+            if delay > 0:
+                self.node.stop_event.wait(delay)
+            next_t = max(next_t + period, time.monotonic())
+            with self._lock:  # a consistent snapshot; the rings are small
+                snapshot = ViewInputs(frames=self.inputs.frames.copy(), disparities=self.inputs.disparities.copy(),
+                                      truths=self.inputs.truths.copy(), obstacles=self.inputs.obstacles,
+                                      freespace=self.inputs.freespace, stats=dict(self.inputs.stats))
+                Composer.drop_old_stats(self.inputs, time.monotonic())
+            with self.node.processing():
+                extra = {"viewer": {"clients": self.hub.clients, "sent": self.hub.sent, "skipped": self.hub.skipped,
+                                    "controls": self.settings.controls, "max_fps": self.settings.max_fps}}
+                message = self.composer.compose(snapshot, extra)
+                self.hub.publish(message)
+                self.composed += 1
+                self.node.extra.update({"clients": float(self.hub.clients), "composed": float(self.composed),
+                                        "sent": float(self.hub.sent), "skipped": float(self.hub.skipped)})
+
+    def replay(self, action: str, frames: int = 1, speed: float | None = None) -> str | None:
+        """A page's replay command -> ReplayControl; returns an error text or None."""
+        if self._control is None:
+            return "replay controls are off (viewer --controls false)"
+        try:
+            msg = ReplayControl(robot_id=self.node.robot_id, seq=0, stamp_ns=time.time_ns(), action=action,
+                                frames=frames, speed=speed)
+        except Exception as e:
+            return f"bad replay command: {e}"
+        self._control.put(codec.encode(msg))
+        return None
+
+
+# -- web ------------------------------------------------------------------------------------------
+
+def make_app(viewer: Viewer, hub: Hub):
+    from aiohttp import WSMsgType, web
+
+    async def index(_request):
+        return web.FileResponse(STATIC / "index.html", headers={"Cache-Control": "no-cache"})
+
+    async def health(_request):
+        return web.json_response({"ok": True, "clients": hub.clients, "version": hub.version})
+
+    async def websocket(request):
+        ws = web.WebSocketResponse(heartbeat=10.0, max_msg_size=64 * 1024)
+        await ws.prepare(request)
+        hub.clients += 1
+        acked = asyncio.Event()
+        acked.set()
+
+        async def sender() -> None:
+            version = 0
+            while not ws.closed:
+                # latest-frame-only: wait until the page has drawn the last update (or 3 s), then
+                # send the newest; whatever came in between is skipped for this client
+                try:
+                    await asyncio.wait_for(acked.wait(), 3.0)
+                except asyncio.TimeoutError:
+                    pass
+                new_version, message = await hub.newer_than(version)
+                hub.skipped += max(0, new_version - version - 1) if version else 0
+                version = new_version
+                acked.clear()
+                try:
+                    await ws.send_bytes(message)
+                except (ConnectionError, RuntimeError):  # the page went away mid-send
+                    return
+                hub.sent += 1
+
+        task = asyncio.ensure_future(sender())
+        try:
+            async for msg in ws:
+                if msg.type != WSMsgType.TEXT:
+                    continue
+                try:
+                    cmd = json.loads(msg.data)
+                except ValueError:
+                    continue
+                if not isinstance(cmd, dict):
+                    continue
+                if cmd.get("ack"):
+                    acked.set()
+                elif "replay" in cmd:
+                    frames = cmd.get("frames", 1)
+                    speed = cmd.get("speed")
+                    error = viewer.replay(str(cmd["replay"]), frames if isinstance(frames, int) else 1,
+                                          speed if isinstance(speed, (int, float)) else None)
+                    if error:
+                        await ws.send_str(json.dumps({"error": error}))
+        finally:
+            task.cancel()
+            hub.clients -= 1
+        return ws
+
+    app = web.Application()
+    app.router.add_get("/", index)
+    app.router.add_get("/healthz", health)
+    app.router.add_get("/favicon.ico", lambda _request: web.Response(status=204))
+    app.router.add_get("/ws", websocket)
+    app.router.add_static("/static/", STATIC)
+    return app
+
+
+async def serve(node: Node, settings: ViewerSettings, viewer: Viewer, hub: Hub,
+                started: threading.Event | None = None) -> None:
+    from aiohttp import web
+
+    hub.bind(asyncio.get_running_loop())
+    runner = web.AppRunner(make_app(viewer, hub), access_log=None)
+    await runner.setup()
+    site = web.TCPSite(runner, settings.host, settings.port)
+    try:
+        await site.start()
+    except OSError as e:
+        await runner.cleanup()
+        raise BallbotError(f"viewer: cannot listen on {settings.host}:{settings.port}: {e.strerror or e} "
+                           f"(another viewer? choose one with --port)") from None
+    sockets = [s.getsockname() for s in site._server.sockets] if site._server else []
+    port = sockets[0][1] if sockets else settings.port
+    node.extra["port"] = float(port)
+    url = f"http://{'127.0.0.1' if settings.host in ('0.0.0.0', '') else settings.host}:{port}/"
+    print(f"viewer: open {url}", flush=True)
+    log.info("viewer listening on %s:%d", settings.host, port)
+    if started is not None:
+        started.set()
+    try:
+        await asyncio.get_running_loop().run_in_executor(None, node.stop_event.wait)
+    finally:
+        await runner.cleanup()
+
+
+def run(node: Node, settings: ViewerSettings) -> None:
+    try:
+        import aiohttp  # noqa: F401
+    except ImportError:
+        raise BallbotError("the viewer needs aiohttp: pip install 'ballbot-vision[viewer]'") from None
+    hub = Hub()
+    viewer = Viewer(node, settings, hub)
+    viewer.subscribe_small()
+    threading.Thread(target=viewer.compose_loop, name="compose", daemon=True).start()
+    asyncio.run(serve(node, settings, viewer, hub))

@@ -1,0 +1,249 @@
+"""The live web view: its core (pure), its server (real Zenoh, real WebSocket clients), and the page in
+a real browser (Debian's chromium, headless, driven by playwright): the page loads, the pictures
+update, and the boxes it draws are the obstacle list of the picture shown."""
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import shutil
+import statistics
+import subprocess
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from ballbot_vision.common import codec
+from ballbot_vision.common.keys import topic
+from ballbot_vision.common.messages import (CameraModel, DisparityMap, FreeSpace, Obstacle, ObstacleList,
+                                            ReplayControl, StereoFrame)
+from ballbot_vision.services.viewer import core
+
+from helpers import REPO, Collector, Up, cli, free_port, wait_port
+
+CAMERA = CameraModel(width=64, height=48, focal_px=60.0, cx=32.0, cy=24.0, baseline_m=0.1, Q=[0.0] * 16)
+CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
+
+
+# --- core -----------------------------------------------------------------------------------------
+
+def test_pack_unpack_round_trip_and_damage():
+    blobs = [core.Blob("left", "image/jpeg", b"\xff\xd8abc"), core.Blob("x", "image/png", b"")]
+    doc, out = core.unpack(core.pack({"seq": 3}, blobs))
+    assert doc["seq"] == 3 and out == {"left": b"\xff\xd8abc", "x": b""}
+    assert [b["size"] for b in doc["blobs"]] == [5, 0]
+    with pytest.raises(ValueError, match="blobs end at"):
+        core.unpack(core.pack({"seq": 3}, blobs) + b"extra")
+
+
+def test_freespace_picture_puts_forward_up_and_left_left():
+    # 4 cells along x (forward), 3 along y (left); one occupied cell: 2nd forward, leftmost
+    cells = np.zeros((3, 4), np.int8)
+    cells[2, 1] = 100
+    cells[0, 3] = -1
+    fs = FreeSpace(robot_id="r", seq=0, stamp_ns=0, publish_ns=0, resolution_m=0.5, width=4, height=3,
+                   origin_m=(1.0, -0.75), cells=cells.tobytes())
+    pic = core.freespace_picture(fs)
+    assert pic.shape == (4, 3, 4)  # screen rows: forward (4 cells), columns: lateral (3 cells)
+    # row 2 (most left) -> screen column 0; column 1 (second nearest) -> screen row 4-1-1 = 2
+    assert tuple(pic[2, 0]) == (235, 60, 50, 200)
+    assert pic[0, 2, 3] == 0  # unknown: transparent (farthest x, rightmost y)
+    assert (pic[..., 3] > 0).sum() == 11
+
+
+def frame(seq: int, stamp: int, value: int) -> bytes:
+    img = np.full((48, 64), value, np.uint8)
+    return codec.encode(StereoFrame(robot_id="r", seq=seq, stamp_ns=stamp, left=codec.image_from_array(img),
+                                    right=codec.image_from_array(img), camera=CAMERA))
+
+
+def test_compose_pairs_the_obstacles_with_their_own_picture():
+    inputs = core.ViewInputs()
+    for seq, value in ((1, 40), (2, 120), (3, 220)):
+        inputs.frames.append((1000 + seq, frame(seq, 1000 + seq, value)))
+        d = DisparityMap(robot_id="r", seq=seq, stamp_ns=1000 + seq, scale=16, invalid_value=-16, min_disparity=0,
+                         num_disparities=64, camera=CAMERA, method="bm",
+                         image=codec.image_from_array(np.full((48, 64), 16 * seq, np.int16)))
+        inputs.disparities.append((1000 + seq, codec.encode(d)))
+    inputs.obstacles = ObstacleList(
+        robot_id="r", seq=2, stamp_ns=1002, publish_ns=1002 + 25_000_000, stale=False,
+        stages={"capture": 1002 + 1_000_000, "rectify": 1002 + 4_000_000, "disparity": 1002 + 20_000_000,
+                "segmenter": 1002 + 24_000_000},
+        obstacles=[Obstacle(id=7, position_m=(0, 0, 2), size_m=(0.3, 0.3, 0.3), distance_m=1.9,
+                            bbox_px=(3, 4, 20, 30), area_px=10, disparity_px=3, confidence=1)])
+    doc, blobs = core.unpack(core.Composer("r").compose(inputs))
+    assert doc["image"]["seq"] == 2 and doc["image"]["matched"] and doc["disparity"]["seq"] == 2
+    left = cv2.imdecode(np.frombuffer(blobs["left"], np.uint8), cv2.IMREAD_UNCHANGED)
+    assert abs(int(left.mean()) - 120) <= 2  # the picture of seq 2, not the newest
+    assert doc["obstacles"]["list"][0]["bbox_px"] == [3, 4, 20, 30]
+    lat = doc["obstacles"]["latency"]
+    assert lat["step_ms"] == {"capture": 1.0, "rectify": 3.0, "disparity": 16.0, "segmenter": 4.0}
+    assert lat["capture_to_obstacles_ms"] == 25.0
+    # the list's picture is gone: the newest picture, flagged unmatched (the page draws no boxes on it)
+    inputs.frames.popleft()
+    inputs.frames.popleft()
+    doc, _ = core.unpack(core.Composer("r").compose(inputs))
+    assert doc["image"]["seq"] == 3 and not doc["image"]["matched"]
+
+
+# --- the service ----------------------------------------------------------------------------------
+
+aiohttp = pytest.importorskip("aiohttp", reason="the viewer needs aiohttp (the `viewer` extra)")
+
+
+def start_viewer(up: Up, port: int, *args: str) -> subprocess.Popen:
+    log = open(f"/tmp/ballbot-viewer-{port}.log", "w")
+    proc = subprocess.Popen(cli("run", "viewer", "--connect", up.endpoint, "--robot-id", up.robot_id, "--port",
+                                str(port), *args), stdout=log, stderr=subprocess.STDOUT, cwd=REPO)
+    wait_port(port, proc, 60)
+    return proc
+
+
+async def _clients(port: int, seconds: float) -> dict:
+    """One page that acks every update, one that never does, one that sends garbage."""
+    out = {"acking": [], "silent": 0, "garbage_ok": False}
+    async with aiohttp.ClientSession() as http:
+        async with http.get(f"http://127.0.0.1:{port}/") as r:
+            assert r.status == 200 and "viewer.js" in await r.text()
+        async with http.ws_connect(f"http://127.0.0.1:{port}/ws") as good, \
+                http.ws_connect(f"http://127.0.0.1:{port}/ws") as silent, \
+                http.ws_connect(f"http://127.0.0.1:{port}/ws") as bad:
+            await bad.send_str("{not json")
+            await bad.send_str(json.dumps([1, 2]))
+            await bad.send_str(json.dumps({"replay": "explode"}))
+            reply = await bad.receive(timeout=30)
+            out["garbage_reply"] = json.loads(reply.data)
+            await bad.send_str(json.dumps({"replay": "step", "frames": 2}))
+            # (this page then stops reading: the server's heartbeat closes it after 10 s without a pong)
+
+            async def read_silent():
+                async for _ in silent:
+                    out["silent"] += 1
+
+            task = asyncio.ensure_future(read_silent())
+            t0 = time.monotonic()
+            pictures = 0
+            while time.monotonic() - t0 < seconds or pictures < 10:
+                assert time.monotonic() - t0 < 120, "no pictures within 120 s"
+                msg = await good.receive(timeout=30)
+                if msg.type == aiohttp.WSMsgType.BINARY:
+                    doc, blobs = core.unpack(msg.data)
+                    out["acking"].append((doc, set(blobs)))
+                    pictures += {"left", "disparity"} <= set(blobs)
+                    await good.send_str('{"ack":1}')
+            out["seconds"] = time.monotonic() - t0
+            task.cancel()
+    return out
+
+
+@pytest.mark.system
+def test_the_server_sends_latest_frames_only_and_survives_bad_clients():
+    port = free_port()
+    up = Up(robot_id="viewsrv")
+    viewer = None
+    try:
+        viewer = start_viewer(up, port)
+        controls = Collector(ReplayControl)
+        with up.session() as s:
+            s.declare_subscriber(topic("replay_control").key(up.robot_id), controls)
+            result = asyncio.run(_clients(port, 12.0))
+            assert controls.wait_for(lambda items: any(c.action == "step" and c.frames == 2 for c in items), 30)
+        updates = result["acking"]
+        with_pictures = [d for d, blobs in updates if {"left", "disparity"} <= blobs]
+        assert len(with_pictures) >= 5, len(updates)
+        assert len({d["image"]["seq"] for d in with_pictures}) >= 3  # the pictures move on
+        # a client that never acks gets one update plus one per 3 s, not a queue of them
+        assert result["silent"] <= 1 + result["seconds"] / 3 + 1 < len(updates)
+        assert "bad replay command" in result["garbage_reply"]["error"]
+        assert any(row["service"] == "segmenter" for row in updates[-1][0]["services"])
+        assert viewer.poll() is None
+    finally:
+        if viewer is not None:
+            viewer.terminate()
+            viewer.wait(30)
+        up.stop()
+
+
+def test_a_taken_port_is_a_clear_error():
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        port = s.getsockname()[1]
+        r = subprocess.run(cli("run", "viewer", "--port", str(port), "--connect", f"tcp/127.0.0.1:{free_port()}",
+                               "--mode", "peer"), capture_output=True, text=True, timeout=120, cwd=REPO)
+    assert r.returncode == 2
+    assert f"cannot listen on 127.0.0.1:{port}" in r.stderr and "--port" in r.stderr
+
+
+# --- the page in a real browser ----------------------------------------------------------------------
+
+def _browser():
+    sync_api = pytest.importorskip("playwright.sync_api", reason="browser tests need playwright (the `test` extra)")
+    if not Path(CHROMIUM).exists():
+        pytest.skip("browser tests need Debian's chromium (apt-get install chromium; .ci/run installs it)")
+    return sync_api
+
+
+@pytest.mark.system
+def test_the_page_shows_the_pictures_and_draws_the_boxes_of_the_obstacle_list(tmp_path):
+    sync_api = _browser()
+    port = free_port()
+    up = Up(robot_id="page", extra_args=["--viewer"], extra_env={"BALLBOT_VIEWER_PORT": str(port)})
+    lists = Collector(ObstacleList)
+    try:
+        wait_port(port, up.proc, 120)
+        with up.session() as s, sync_api.sync_playwright() as pw:
+            s.declare_subscriber(topic("obstacles").key(up.robot_id), lists)
+            browser = pw.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox"])
+            page = browser.new_page(viewport={"width": 1400, "height": 1050})
+            page.goto(f"http://127.0.0.1:{port}/")
+            page.wait_for_function("window.viewer.drawn && window.viewer.drawn.boxes.length === 2 "
+                                   "&& !window.viewer.doc.obstacles.stale", timeout=120_000)
+            checked, seqs, ages = 0, set(), []
+            deadline = time.monotonic() + 120
+            while checked < 5 and time.monotonic() < deadline:
+                seen = page.evaluate("window.viewer.imageUpdates")
+                page.wait_for_function(f"window.viewer.imageUpdates > {seen}", timeout=60_000)
+                state = page.evaluate("({drawn: window.viewer.drawn, age: window.viewer.lastAgeMs, "
+                                      "pipeline: window.viewer.doc.obstacles.latency.capture_to_obstacles_ms})")
+                drawn = state["drawn"]
+                if drawn["seq"] is None:
+                    continue
+                ages.append((state["age"], state["pipeline"]))
+                # (by seq: JavaScript numbers cannot hold a ns stamp exactly)
+                assert lists.wait_for(lambda items: any(m.seq == drawn["seq"] for m in items), 30)
+                msg = next(m for m in lists.items if m.seq == drawn["seq"])
+                assert sorted((b["id"], tuple(b["bbox_px"])) for b in drawn["boxes"]) == \
+                    sorted((o.id, tuple(o.bbox_px)) for o in msg.obstacles), (drawn, msg.obstacles)
+                for b in drawn["boxes"]:
+                    assert b["text"] == next(f"#{o.id} {o.distance_m:.2f} m" for o in msg.obstacles if o.id == b["id"])
+                seqs.add(drawn["seq"])
+                checked += 1
+            assert checked == 5 and len(seqs) >= 3, (checked, seqs)
+            # the boxes are on the canvas, not only in the page's state: orange pixels on each box's top edge
+            for b in page.evaluate("window.viewer.drawn.boxes"):
+                x0, y0, x1, y1 = b["bbox_px"]
+                xm = (x0 + x1) // 2
+                rgba = page.evaluate(f"Array.from(document.getElementById('image').getContext('2d')"
+                                     f".getImageData({xm}, {y0}, 1, 1).data)")
+                assert rgba[0] > 200 and 100 < rgba[1] < 180 and rgba[2] < 60, rgba
+            assert page.evaluate("window.viewer.errors") == []
+            assert page.locator("#services tbody tr").count() >= 5
+            assert page.locator("#obstacles tbody tr").count() == 2
+            shot = tmp_path / "viewer.png"
+            page.screenshot(path=str(shot), full_page=True)
+            browser.close()
+        screen = [a for a, _ in ages]
+        extra = [a - p for a, p in ages]
+        print(f"\ncapture-to-screen over {len(ages)} updates: median {statistics.median(screen):.0f} ms "
+              f"(max {max(screen):.0f}); of it after the obstacle list was published (viewer + browser): "
+              f"median {statistics.median(extra):.0f} ms")
+        if os.environ.get("BALLBOT_UPDATE_SCREENSHOT"):
+            shutil.copy(shot, REPO / "docs" / "viewer.png")
+    finally:
+        up.stop()
