@@ -314,17 +314,6 @@ def search_rate(probe: Callable[[float], dict], start_hz: float, probes: int) ->
 
 # --- the pipeline under test ----------------------------------------------------------------------
 
-def renice(sup, nice: int) -> None:
-    """Set a supervisor's children to priority `nice`, right after they started (before they
-    create threads, which inherit it)."""
-    for c in sup.children:
-        if nice and c.proc is not None:
-            try:
-                os.setpriority(os.PRIO_PROCESS, c.proc.pid, nice)
-            except OSError:  # gone already, or not allowed: it runs at the default priority
-                pass
-
-
 class LivePipeline:
     """Router, rectify, disparity (+ workers) and segmenter as processes, capture restarted per
     offered rate, and a subscriber collecting every obstacle list (msgpack only: the bench stays light)."""
@@ -342,22 +331,22 @@ class LivePipeline:
         return dict(os.environ, BALLBOT_LOG="WARNING")
 
     def __enter__(self) -> "LivePipeline":
+        from ..cli import stage_nice
         from ..common.keys import topic
         from ..common.zenoh_session import ZenohOptions, open_session
         from ..supervisor import Supervisor
 
         c = ["--connect", self.endpoint, "--robot-id", self.rid]
-        self.sup = sup = Supervisor(env=self._env())
+        self.sup = sup = Supervisor(env=self._env(), nice=self.nice)  # as `up` runs them
         sup.add("router", ["run", "router", "--listen", self.endpoint, "--robot-id", self.rid])
-        sup.add("rectify", ["run", "rectify", *c])
+        sup.add("rectify", ["run", "rectify", *c], nice_offset=stage_nice("rectify"))
         sup.add("disparity", ["run", "disparity", *c, "--method", self.method]
-                + (["--fallback", "none"] if self.workers else []))
-        sup.add("segmenter", ["run", "segmenter", *c])
+                + (["--fallback", "none"] if self.workers else []), nice_offset=stage_nice("disparity"))
+        sup.add("segmenter", ["run", "segmenter", *c], nice_offset=stage_nice("segmenter"))
         for i in range(self.workers):
             sup.add(f"worker{i}", ["run", "disparity", *c, "--role", "worker", "--instance", f"bench-worker{i}",
-                                   "--threads", "1", "--method", self.method])
+                                   "--threads", "1", "--method", self.method], nice_offset=stage_nice("disparity"))
         sup.start_all(self.endpoint)
-        renice(sup, self.nice)
         self.session = open_session(ZenohOptions(mode="peer", connect=[self.endpoint], listen=["tcp/127.0.0.1:0"]))
         self.session.declare_subscriber(topic("obstacles").key(self.rid), self._on_obstacles)
         return self
@@ -400,17 +389,18 @@ class LivePipeline:
 
     def offer(self, rate: float, timeout_s: float = 90.0) -> None:
         """(Re)start capture at `rate` pairs/s; returns once its pairs come out as obstacle lists."""
+        from ..cli import stage_nice
         from ..supervisor import Supervisor
 
         if self._capture is not None:
             self._capture.stop_all()
         self._want_stamp = time.time_ns()
         self._first.clear()
-        self._capture = Supervisor(env=self._env())
+        self._capture = Supervisor(env=self._env(), nice=self.nice)
         self._capture.add("capture", ["run", "capture", "--connect", self.endpoint, "--robot-id", self.rid,
-                                      "--preload", str(self.preload), "--rate-hz", f"{rate:.3f}"])
+                                      "--preload", str(self.preload), "--rate-hz", f"{rate:.3f}"],
+                          nice_offset=stage_nice("capture"))
         self._capture.start_all()
-        renice(self._capture, self.nice)
         if not self._first.wait(timeout_s):
             raise RuntimeError(f"no obstacle list within {timeout_s:g} s of starting capture at {rate:.1f}/s "
                                "(run `ballbot-vision up` to see which service fails)")
