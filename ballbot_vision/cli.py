@@ -85,21 +85,52 @@ def run_router(o: ZenohOptions, rid: str) -> int:
     return 0
 
 
+def up_endpoints(args: argparse.Namespace) -> tuple[list[str], str]:
+    """-> (where `up`'s router listens, where its services connect). --listen sets the router's
+    endpoints (e.g. tcp/0.0.0.0:7447 so offboard workers can reach it) and the services connect to
+    the first of them on loopback; --connect alone is both, as before."""
+    o = zenoh_options(args)
+    explicit_listen = getattr(args, "listen", None) or [e for e in os.environ.get("BALLBOT_LISTEN", "").split(",") if e]
+    explicit_connect = getattr(args, "connect", None) or [e for e in os.environ.get("BALLBOT_CONNECT", "").split(",") if e]
+    if not explicit_listen:
+        endpoint = o.connect[0] if o.connect else DEFAULT_ROUTER
+        return [endpoint], endpoint
+    for e in explicit_listen:
+        if "/" not in e or e.split("/", 1)[1].rsplit(":", 1)[-1] in ("", "0"):
+            raise BallbotError(f"--listen {e}: `up` needs a fixed port for its router (e.g. tcp/0.0.0.0:7447)")
+    if explicit_connect:
+        return list(explicit_listen), explicit_connect[0]
+    proto, addr = explicit_listen[0].split("/", 1)
+    host, _, port = addr.rpartition(":")
+    if host.strip("[]") in ("0.0.0.0", "::", ""):
+        host = "127.0.0.1"
+    return list(explicit_listen), f"{proto}/{host}:{port}"
+
+
 def cmd_up(args: argparse.Namespace) -> int:
     from .supervisor import Supervisor
 
-    o = zenoh_options(args)
-    endpoint = o.connect[0] if o.connect else DEFAULT_ROUTER
+    listen, endpoint = up_endpoints(args)
     common = ["--robot-id", robot_id(args)]
     if config_file(args):
         common += ["--config", config_file(args)]
-    sup = Supervisor()
-    sup.add("router", ["run", "router", "--listen", endpoint] + common)
+    if args.nice < 0 and os.geteuid() != 0:
+        log.warning("up --nice %d needs root (or CAP_SYS_NICE); the services run at the default priority", args.nice)
+    import secrets
+
+    from .common.signing import KEY_ENV
+
+    # The services of this run share a calibration key: rectify takes calibrations signed by capture
+    # (a ROS camera's CameraInfo, a recording's) and refuses anyone else's jumps.
+    env = dict(os.environ)
+    env.setdefault(KEY_ENV, secrets.token_hex(32))
+    sup = Supervisor(stop_timeout_s=args.stop_timeout, nice=args.nice, env=env)
+    sup.add("router", ["run", "router"] + [a for e in listen for a in ("--listen", e)] + common)
     services = PIPELINE + (["ros2"] if getattr(args, "ros2", False) else [])
     services += ["viewer"] if getattr(args, "viewer", False) else []
     for name in services:
         sup.add(name, ["run", name, "--connect", endpoint] + common)
-    print(f"ballbot-vision: starting {', '.join(['router'] + services)}; router on {endpoint}", flush=True)
+    print(f"ballbot-vision: starting {', '.join(['router'] + services)}; router on {', '.join(listen)}", flush=True)
     print(f"ballbot-vision: obstacles are published on ballbot/obstacles/{robot_id(args)} "
           f"(watch them with: ballbot-vision watch --connect {endpoint})", flush=True)
     return sup.run(wait_for_endpoint=endpoint)
@@ -120,9 +151,12 @@ def cmd_status(args: argparse.Namespace) -> int:
 
 
 def cmd_healthcheck(args: argparse.Namespace) -> int:
-    """Exit 0 once a service on this host (a container's own) publishes its stats."""
+    """Exit 0 once every service on this host (a container's own) reports healthy stats: published
+    stats whose health is ok. A service that is up but makes no progress (input arrives and nothing
+    is published, or every input fails) fails the check, with its reason on stderr."""
     import socket
     import threading
+    import time
 
     from .common import codec
     from .common.errors import DecodeError
@@ -130,8 +164,9 @@ def cmd_healthcheck(args: argparse.Namespace) -> int:
     from .common.messages import ServiceStats
     from .common.zenoh_session import open_session
 
-    healthy = threading.Event()
     host = socket.gethostname()
+    seen: dict[str, ServiceStats] = {}
+    changed = threading.Condition()
 
     def on_stats(sample) -> None:
         try:
@@ -139,17 +174,34 @@ def cmd_healthcheck(args: argparse.Namespace) -> int:
         except DecodeError:
             return
         if st.host == host and (args.service is None or st.service == args.service):
-            healthy.set()
+            with changed:
+                seen[st.instance] = st
+                changed.notify_all()
+
+    def verdict() -> tuple[bool, list[str]]:
+        bad = [f"{s.service} {s.instance}: {s.status}" for s in seen.values() if s.health in ("degraded", "failed")]
+        return bool(seen) and not bad and all(s.health == "ok" for s in seen.values()), bad
 
     o = zenoh_options(args)
     if args.mode is None and not os.environ.get("BALLBOT_MODE"):
         o.mode = "client"
         o.listen = []
+    deadline = time.monotonic() + args.timeout
     with open_session(o) as session:
         session.declare_subscriber(topic("stats").pattern(robot_id(args)), on_stats)
-        ok = healthy.wait(args.timeout)
-    if not ok:
-        print(f"no stats from {args.service or 'any service'} on host {host} within {args.timeout:g} s", file=sys.stderr)
+        with changed:
+            while True:
+                ok, bad = verdict()
+                left = deadline - time.monotonic()
+                if ok or bad or left <= 0:
+                    break
+                changed.wait(left)
+    if bad:
+        print("unhealthy: " + "; ".join(bad), file=sys.stderr)
+    elif not ok:
+        what = args.service or "any service"
+        print(f"no healthy stats from {what} on host {host} within {args.timeout:g} s"
+              + (f" (last: {', '.join(s.status for s in seen.values())})" if seen else ""), file=sys.stderr)
     return 0 if ok else 1
 
 
@@ -235,7 +287,16 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
         sub.add_parser(name, add_help=False)
 
     if needed("up"):
-        up = common(sub.add_parser("up", help="start every service as a separate process; Ctrl-C stops all"))
+        up = common(sub.add_parser("up", help="start every service as a separate process; Ctrl-C stops all",
+                                   description="--listen: where the router listens (e.g. tcp/0.0.0.0:7447 for "
+                                               "offboard workers; the services connect to it on loopback); --connect: "
+                                               "where the router listens and the services connect (default "
+                                               "tcp/127.0.0.1:7447)"))
+        up.add_argument("--stop-timeout", type=float, default=10.0, metavar="S",
+                        help="seconds the services get to stop after SIGTERM before they are killed (default: 10)")
+        up.add_argument("--nice", type=int, default=int(os.environ.get("BALLBOT_NICE", 0)), metavar="N",
+                        help="scheduling priority of the services, -20..19 (negative: ahead of other work on the "
+                             "robot, e.g. -5; needs root) [BALLBOT_NICE] (default: 0)")
         up.add_argument("--ros2", action="store_true", help="also start the ROS 2 bridge (`run ros2`: topics on "
                         "rmw_zenoh; settings in the config's ros2 section)")
         up.add_argument("--viewer", action="store_true", help="also start the web viewer (default "
@@ -289,7 +350,8 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
         stub("schema")
 
     if needed("healthcheck"):
-        hc = common(sub.add_parser("healthcheck", help="exit 0 if a service on this host publishes stats (containers)"))
+        hc = common(sub.add_parser("healthcheck", help="exit 0 if the services on this host report progress "
+                                                                "(containers)"))
         hc.add_argument("--service", default=None, help="only this service")
         hc.add_argument("--timeout", type=float, default=3.0)
         hc.set_defaults(func=cmd_healthcheck)

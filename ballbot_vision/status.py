@@ -1,4 +1,8 @@
-"""`ballbot-vision status`: every live service instance, from its stats and liveliness token."""
+"""`ballbot-vision status`: every live service instance, from its stats and liveliness token, read at
+a glance: one verdict line for the pipeline, then one row per instance with its health, rates (per
+second, over the last stats period) and latency. `--json` gives the same for scripts.
+
+Exit status: 0 healthy, 3 something degraded, failed or gone, 1 nothing found."""
 from __future__ import annotations
 
 import json
@@ -11,16 +15,63 @@ from .common.keys import topic
 from .common.messages import ServiceStats
 from .common.zenoh_session import ZenohOptions, open_session
 
+ORDER = {"router": 0, "capture": 1, "rectify": 2, "disparity": 3, "segmenter": 4}
 
-def _fmt_bytes(b: float) -> str:
-    for unit in ("B", "kB", "MB", "GB"):
-        if b < 1000:
-            return f"{b:.0f}{unit}"
-        b /= 1000
-    return f"{b:.0f}TB"
+
+def _fmt_rate(bps: float) -> str:
+    for unit in ("B/s", "kB/s", "MB/s", "GB/s"):
+        if bps < 1000:
+            return f"{bps:.0f}{unit}"
+        bps /= 1000
+    return f"{bps:.0f}TB/s"
+
+
+def name_of(s: ServiceStats) -> str:
+    """What a person calls it: the disparity service is a dispatcher or a worker."""
+    return s.role if s.service == "disparity" and s.role else s.service
+
+
+def link_rates(s: ServiceStats) -> tuple[float, float]:
+    """Bytes per second in and out, summed over the instance's links."""
+    inb = sum(v for k, v in s.extra.items() if k.startswith("rate_in_") and k.endswith("_Bps"))
+    outb = sum(v for k, v in s.extra.items() if k.startswith("rate_out_") and k.endswith("_Bps"))
+    return inb, outb
+
+
+def per_second(first: ServiceStats | None, last: ServiceStats, field: str) -> float | None:
+    if first is None or last.uptime_s <= first.uptime_s:
+        return None
+    return (getattr(last, field) - getattr(first, field)) / (last.uptime_s - first.uptime_s)
+
+
+def verdict(rows: list[dict], warnings: list[str]) -> tuple[str, str]:
+    """-> (ok | degraded | failed, one line a person reads first)."""
+    bad = [r for r in rows if r["health"] in ("degraded", "failed")]
+    seg = [r for r in rows if r["service"] == "segmenter"]
+    if any(r["health"] == "failed" for r in bad):
+        level = "failed"
+    elif bad or warnings:
+        level = "degraded"
+    else:
+        level = "ok"
+    parts = []
+    if seg:
+        s = seg[0]
+        if s["status"].startswith("stale"):
+            level = "degraded" if level == "ok" else level
+            parts.append(f"obstacles {s['status']}")
+        else:
+            parts.append(f"obstacles at {s['rate_hz']:.1f} Hz, {s['age_ms_p50']:.0f} ms after capture")
+    else:
+        parts.append("no segmenter: no obstacles")
+        level = "degraded" if level == "ok" else level
+    parts += [f"{r['name']} {r['status']}" for r in bad]
+    parts += warnings
+    return level, "; ".join(parts)
 
 
 def status(opts: ZenohOptions, robot: str, wait_s: float, as_json: bool) -> int:
+    first: dict[str, ServiceStats] = {}
     latest: dict[str, ServiceStats] = {}
     seen_at: dict[str, float] = {}
     lock = threading.Lock()
@@ -30,9 +81,11 @@ def status(opts: ZenohOptions, robot: str, wait_s: float, as_json: bool) -> int:
             s = codec.decode(sample.payload.to_bytes(), ServiceStats)
         except DecodeError:
             return
+        key = f"{s.robot_id}/{s.service}/{s.instance}"
         with lock:
-            latest[f"{s.robot_id}/{s.service}/{s.instance}"] = s
-            seen_at[f"{s.robot_id}/{s.service}/{s.instance}"] = time.monotonic()
+            first.setdefault(key, s)
+            latest[key] = s
+            seen_at[key] = time.monotonic()
 
     alive_prefix = topic("alive").pattern(robot)
     with open_session(opts) as session:
@@ -46,31 +99,46 @@ def status(opts: ZenohOptions, robot: str, wait_s: float, as_json: bool) -> int:
     now = time.monotonic()
     with lock:
         names = sorted(set(latest) | alive)
-        rows = []
-        warnings = []
-        for name in names:
-            s = latest.get(name)
+        rows: list[dict] = []
+        warnings: list[str] = []
+        for key in names:
+            s = latest.get(key)
             if s is None:
-                warnings.append(f"{name}: alive but not reporting stats")
+                warnings.append(f"{key}: alive but not reporting stats")
                 continue
-            if name not in alive:
-                warnings.append(f"{name}: stopped (liveliness token gone)")
-            elif now - seen_at[name] > 2.5:
-                warnings.append(f"{name}: stopped reporting {now - seen_at[name]:.1f} s ago")
-            rows.append(s)
+            if key not in alive:
+                warnings.append(f"{key}: stopped (liveliness token gone)")
+            elif now - seen_at[key] > 2.5:
+                warnings.append(f"{key}: stopped reporting {now - seen_at[key]:.1f} s ago")
+            inb, outb = link_rates(s)
+            f = first.get(key)
+            f = f if f is not s else None
+            rows.append({**s.model_dump(), "name": name_of(s), "in_Bps": inb, "out_Bps": outb,
+                         "drops_per_s": per_second(f, s, "drops"),
+                         "errors_per_s": (None if f is None else
+                                          ((s.errors + s.decode_errors) - (f.errors + f.decode_errors))
+                                          / max(1e-3, s.uptime_s - f.uptime_s))})
+    rows.sort(key=lambda r: (r["robot_id"], ORDER.get(r["service"], 9), r["role"] != "dispatcher", r["instance"]))
+    level, line = verdict(rows, warnings)
     if as_json:
-        print(json.dumps({"instances": [r.model_dump() for r in rows], "warnings": warnings}))
+        print(json.dumps({"pipeline": {"health": level, "summary": line}, "instances": rows, "warnings": warnings}))
+    elif not names:
+        print("no service instance found (is the pipeline up, and --connect right?)")
     else:
-        print(f"{'service':10} {'instance':28} {'rate':>7} {'proc':>8} {'age':>8} {'drops':>6} {'dec.err':>7} "
-              f"{'errors':>6} {'in':>8} {'out':>8}  status")
-        for s in rows:
-            inb = sum(v for k, v in s.extra.items() if k.startswith("in_"))
-            outb = sum(v for k, v in s.extra.items() if k.startswith("out_"))
-            print(f"{s.service:10} {s.instance[:28]:28} {s.rate_hz:5.1f}Hz {s.proc_ms_p50:6.1f}ms "
-                  f"{s.age_ms_p50:6.1f}ms {s.drops:6d} {s.decode_errors:7d} {s.errors:6d} {_fmt_bytes(inb):>8} "
-                  f"{_fmt_bytes(outb):>8}  {s.status}")
+        print(f"pipeline {level.upper()}: {line}")
+        print(f"{'':2}{'name':10} {'instance':26} {'rate':>7} {'proc':>7} {'age':>7} {'drops':>7} {'errors':>7} "
+              f"{'in':>9} {'out':>9}  status")
+        for r in rows:
+            mark = {"ok": " ", "starting": " ", "degraded": "!", "failed": "X"}[r["health"]]
+
+            def ps(v: float | None) -> str:
+                return "-" if v is None else f"{v:.1f}/s"
+
+            print(f"{mark:2}{r['name']:10} {r['instance'][:26]:26} {r['rate_hz']:5.1f}Hz {r['proc_ms_p50']:5.1f}ms "
+                  f"{r['age_ms_p50']:5.0f}ms {ps(r['drops_per_s']):>7} {ps(r['errors_per_s']):>7} "
+                  f"{_fmt_rate(r['in_Bps']):>9} {_fmt_rate(r['out_Bps']):>9}  {r['status']}")
         for w in warnings:
             print(f"WARNING: {w}")
-        if not names:
-            print("no service instance found (is the pipeline up, and --connect right?)")
-    return 0 if names else 1
+    if not names:
+        return 1
+    return 0 if level == "ok" else 3

@@ -23,6 +23,10 @@ class Topic:
     description: str
     image_stream: bool = False  # large payloads: newest wins, DROP under congestion
     public: bool = False  # a contract with users: ballbot/<what>/<robot_id>, outside the internal tree
+    # Largest payload accepted on this key, checked before anything is copied or decoded (a
+    # subscriber may tighten it, e.g. rectify from its calibrated image size). Images: a 4096x3000
+    # colour stereo pair; small messages: far above any honest one.
+    max_bytes: int = 1 << 20
 
     def key(self, robot_id: str, **fields: str) -> str:
         return self.template.format(robot_id=robot_id, **fields)
@@ -38,33 +42,35 @@ class Topic:
 
 TOPICS: dict[str, Topic] = {t.name: t for t in [
     Topic("frames_raw", "ballbot/{robot_id}/frames/raw", StereoFrame, "capture", 30.0, ("rectify",),
-          "raw stereo pair, left and right share seq and stamp", image_stream=True),
+          "raw stereo pair, left and right share seq and stamp", image_stream=True, max_bytes=80 << 20),
     Topic("truth", "ballbot/{robot_id}/truth", GroundTruth, "capture", 30.0, ("eval", "tests"),
-          "ground truth of the synthetic scene for the pair with the same seq"),
+          "ground truth of the synthetic scene for the pair with the same seq", max_bytes=4 << 20),
     Topic("frames_rect", "ballbot/{robot_id}/frames/rectified", StereoFrame, "rectify", 30.0, ("disparity",),
-          "rectified pair with its camera model", image_stream=True),
+          "rectified pair with its camera model", image_stream=True, max_bytes=80 << 20),
     Topic("disparity", "ballbot/{robot_id}/disparity", DisparityMap, "disparity", 30.0, ("segmenter",),
-          "disparity map of the rectified left image, fixed point", image_stream=True),
+          "disparity map of the rectified left image, fixed point", image_stream=True, max_bytes=40 << 20),
     Topic("worker", "ballbot/{robot_id}/workers/{instance}", None, "disparity", 0.0, ("disparity",),
           "liveliness token of a disparity worker ready for work on its own work key"),
     Topic("work", "ballbot/{robot_id}/work/{instance}", StereoFrame, "disparity", 30.0, ("disparity",),
-          "rectified pair for one worker (dispatcher -> worker; raw, png or jpeg)", image_stream=True),
+          "rectified pair for one worker (dispatcher -> worker; raw, png or jpeg)", image_stream=True,
+          max_bytes=80 << 20),
     Topic("work_done", "ballbot/{robot_id}/work_done/{instance}", WorkDone, "disparity", 30.0, ("disparity",),
-          "a worker's receipt for one work item (worker -> dispatcher)"),
+          "a worker's receipt for one work item (worker -> dispatcher)", max_bytes=64 << 10),
     Topic("obstacles", "ballbot/obstacles/{robot_id}", ObstacleList, "segmenter", 30.0, ("anyone",),
-          "PUBLIC: obstacle list with 3D positions in metres", public=True),
+          "PUBLIC: obstacle list with 3D positions in metres", public=True, max_bytes=4 << 20),
     Topic("freespace", "ballbot/freespace/{robot_id}", FreeSpace, "segmenter", 30.0, ("anyone",),
-          "PUBLIC: occupancy grid of the ground around the robot, base frame", public=True),
+          "PUBLIC: occupancy grid of the ground around the robot, base frame", public=True, max_bytes=17 << 20),
     Topic("odometry", "ballbot/{robot_id}/odometry", Odometry, "robot", 0.0, ("segmenter",),
-          "the robot's own velocity over the ground (optional input: ground-referenced obstacle velocities)"),
+          "the robot's own velocity over the ground (optional input: ground-referenced obstacle velocities)",
+          max_bytes=64 << 10),
     Topic("stats", "ballbot/{robot_id}/stats/{service}/{instance}", ServiceStats, "every service", 1.0,
-          ("status",), "per-instance rate, latency, drops and errors, once a second"),
+          ("status",), "per-instance rate, latency, drops and errors, once a second", max_bytes=256 << 10),
     Topic("alive", "ballbot/{robot_id}/alive/{service}/{instance}", None, "every service", 0.0,
           ("status",), "liveliness token of a running instance"),
     Topic("calibration", "ballbot/{robot_id}/calibration", CalibrationUpdate, "calibrate, capture", 0.0, ("rectify",),
-          "a new calibration (YAML text) for rectify, applied between frames without a restart"),
+          "a new calibration (YAML text) for rectify, applied between frames without a restart", max_bytes=2 << 20),
     Topic("replay_control", "ballbot/{robot_id}/replay/control", ReplayControl, "viewer, replay", 0.0, ("capture",),
-          "play / pause / step a replayed recording (capture --source mcap)"),
+          "play / pause / step a replayed recording (capture --source mcap)", max_bytes=64 << 10),
 ]}
 
 OBSTACLES_ALL = "ballbot/obstacles/**"

@@ -193,6 +193,7 @@ class ServiceStats(BaseModel):
     schema_version: int = SCHEMA_VERSION
     robot_id: str
     service: str
+    role: str = Field("", description="what this instance does within its service (disparity: dispatcher or worker)")
     instance: str
     host: str
     pid: int
@@ -207,6 +208,9 @@ class ServiceStats(BaseModel):
     decode_errors: int
     errors: int
     status: str = "ok"
+    health: Literal["starting", "ok", "degraded", "failed"] = Field(
+        "ok", description="progress, not liveness: degraded/failed when input arrives but nothing is "
+                          "published, or every input fails (the reason is in status)")
     extra: dict[str, float] = Field(default_factory=dict)
 
 
@@ -217,6 +221,8 @@ class CalibrationUpdate(Message):
 
     yaml: str = Field(min_length=1, max_length=1_000_000, description="calibration file text (YAML)")
     source: str = Field("", description="where it came from (a path, `calibrate`, a user)")
+    signature: str = Field("", max_length=128, description="hex HMAC-SHA256 of robot_id, stamp_ns, source and yaml "
+                           "with the robot's calibration key (BALLBOT_CALIBRATION_KEY); empty: unsigned")
 
 
 class ReplayControl(Message):

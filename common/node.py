@@ -12,6 +12,7 @@ A service's main() reads like this (its cores know nothing of Zenoh):
 """
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import signal
@@ -22,6 +23,7 @@ import time
 import uuid
 from collections import deque
 from contextlib import contextmanager
+from dataclasses import dataclass
 from typing import Any, Callable, Iterator, TypeVar
 
 import numpy as np
@@ -35,62 +37,312 @@ log = logging.getLogger("ballbot")
 M = TypeVar("M", bound=Message)
 
 
-# Publishers attach the capture stamp of what they publish, so an inbox can order payloads
-# without decoding them.
+# --- what travels beside every payload ------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Meta:
+    """The attachment every Publisher puts beside a payload, so an inbox can order and vet payloads
+    without decoding them: the capture stamp of what is published (ns since the epoch, the
+    capture host's clock), the publisher's random 64-bit id (new on every start) and its own
+    sequence number (1, 2, ... per publisher: gaps are losses)."""
+
+    stamp_ns: int
+    source: int = 0  # 0: unknown (an 8-byte legacy attachment: the stamp only)
+    seq: int = 0
+
+
+_META = struct.Struct(">QQQ")
 _STAMP = struct.Struct(">Q")
 
 
-def stamp_of(attachment: Any) -> int | None:
+def meta_of(attachment: Any) -> Meta | None:
+    """The Meta of a sample's attachment; None for none or a foreign one (then only the message's
+    own stamp, after decoding, is checked)."""
     try:
         raw = attachment.to_bytes() if attachment is not None else None
-        return _STAMP.unpack(raw)[0] if raw is not None and len(raw) == _STAMP.size else None
     except Exception:  # a foreign publisher's attachment: no ordering information
         return None
+    if raw is None:
+        return None
+    if len(raw) == _META.size:
+        return Meta(*_META.unpack(raw))
+    if len(raw) == _STAMP.size:
+        return Meta(_STAMP.unpack(raw)[0])
+    return None
+
+
+def stamp_of(attachment: Any) -> int | None:
+    m = meta_of(attachment)
+    return None if m is None else m.stamp_ns
+
+
+class Clock:
+    """Wall and monotonic time in ns. One object so tests can inject a stepping wall clock; the
+    monotonic clock is what every age and every time base uses, so a wall-clock step (NTP on a
+    robot without an RTC) moves no age and no velocity."""
+
+    def wall_ns(self) -> int:
+        return time.time_ns()
+
+    def mono_ns(self) -> int:
+        return time.monotonic_ns()
+
+
+SYSTEM_CLOCK = Clock()
+
+
+class OffsetFileClock(Clock):
+    """Fault injection: the wall clock plus the offset (seconds, may be negative) written in a file,
+    re-read every 50 ms. With BALLBOT_FAULT_CLOCK_OFFSET_FILE set, every service of a test run
+    sees one simulated NTP step when the test writes the file, without touching the machine's
+    clock; the monotonic clock is untouched, as with a real step."""
+
+    def __init__(self, path: str):
+        self.path = path
+        self._offset_ns = 0
+        self._read_at = -1.0
+        self._lock = threading.Lock()
+
+    def wall_ns(self) -> int:
+        now = time.monotonic()
+        with self._lock:
+            if now - self._read_at >= 0.05:
+                self._read_at = now
+                try:
+                    with open(self.path) as f:
+                        self._offset_ns = int(float(f.read().strip() or 0) * 1e9)
+                except (OSError, ValueError):
+                    pass  # keep the last offset
+            return time.time_ns() + self._offset_ns
+
+
+def clock_from_env() -> Clock:
+    path = os.environ.get("BALLBOT_FAULT_CLOCK_OFFSET_FILE")
+    return OffsetFileClock(path) if path else SYSTEM_CLOCK
+
+
+@dataclass
+class FreshnessLimits:
+    """max_future_s: a stamp this far ahead of our clock (plus the learned offset) is refused: no
+    honest sender is ahead of the capture that stamped it. max_past_s: one this far behind is
+    refused (a replay, or garbage). resync_s: after this long without accepting anything while
+    stamped input keeps being refused, the gate adopts the time base of the input that arrives
+    most (a clock step on the capture host, a source on another time base)."""
+
+    max_future_s: float = 0.25
+    max_past_s: float = 10.0
+    resync_s: float = 1.0
+
+    @classmethod
+    def from_env(cls) -> "FreshnessLimits":
+        def f(name: str, default: float) -> float:
+            v = os.environ.get(name)
+            return float(v) if v else default
+        return cls(f("BALLBOT_MAX_FUTURE_S", cls.max_future_s), f("BALLBOT_MAX_PAST_S", cls.max_past_s),
+                   f("BALLBOT_RESYNC_S", cls.resync_s))
+
+
+REJECTIONS = ("future", "old", "late")
+
+
+class FreshnessGate:
+    """Decides, before decoding, whether a stamped payload is plausible and newer than what was
+    already handed on. Pure bookkeeping (no Zenoh); not thread-safe on its own (Inbox locks it).
+
+    - A stamp more than max_future_s ahead of this host's wall clock (corrected by the learned
+      offset) is refused as "future", more than max_past_s behind as "old": one forged stamp
+      (2^64-1, an hour ahead) can no longer become the reference that every later frame is
+      compared with.
+    - Order: nothing at or before the stamp last handed on passes ("late"), so results of several
+      workers never go backwards. That reference is committed only once the payload decoded and
+      its own stamp matched the attachment (commit()), so garbage with a plausible stamp costs
+      nothing but itself.
+    - Our own wall clock stepping back leaves the reference in the future: it is dropped at once
+      (counted as a clock step), so a local NTP step costs the frames in flight and no more.
+    - A per-publisher sequence number: gaps count as lost (a replay is refused as late).
+    - Resynchronisation: if nothing was accepted for resync_s while stamped payloads kept being
+      refused, the gate adopts the time base of the publisher that sent the most of them (the
+      offset between its stamps and our clock) and forgets the reference: a capture host whose
+      clock stepped, or a source on another time base, costs at most resync_s.
+    """
+
+    MAX_SOURCES = 64
+
+    def __init__(self, clock: Clock = SYSTEM_CLOCK, limits: FreshnessLimits | None = None):
+        self.clock = clock
+        self.limits = limits or FreshnessLimits()
+        self.offset_ns = 0  # the senders' capture clock minus our wall clock, learned on resync
+        self.reference: int | None = None  # stamp of the last payload handed on
+        self.counts: dict[str, int] = {k: 0 for k in (*REJECTIONS, "lost", "resyncs", "clock_steps")}
+        self._last_accept_mono = clock.mono_ns()
+        self._refused_by_source: dict[int, int] = {}
+        self._refused_since_accept = 0
+        self._seq: dict[int, int] = {}  # source -> last seq seen
+
+    def _skew_ns(self, stamp_ns: int) -> int:
+        """How far the stamp is ahead (+) or behind (-) our clock, in the senders' time base."""
+        return stamp_ns - self.offset_ns - self.clock.wall_ns()
+
+    def check(self, meta: Meta, waiting: int | None = None) -> str:
+        """-> "ok" or the reason it is refused (one of REJECTIONS). waiting: the stamp of the
+        payload already waiting in the inbox, which an older one must not displace."""
+        lim = self.limits
+        future_ns, past_ns = int(lim.max_future_s * 1e9), int(lim.max_past_s * 1e9)
+        if self.reference is not None and self._skew_ns(self.reference) > future_ns:
+            self.reference = None  # our clock stepped back under the reference: forget it
+            self.counts["clock_steps"] += 1
+        now_mono = self.clock.mono_ns()
+        verdict = "ok"
+        skew = self._skew_ns(meta.stamp_ns)
+        if skew > future_ns:
+            verdict = "future"
+        elif skew < -past_ns:
+            verdict = "old"
+        elif (self.reference is not None and meta.stamp_ns <= self.reference) or \
+                (waiting is not None and meta.stamp_ns < waiting):
+            verdict = "late"  # also a replay of anything already handed on
+        if verdict == "ok" and meta.source:
+            # Losses on the way, per publisher. Only accepted payloads move this, and an implausible
+            # jump counts nothing, so a forged sequence number cannot poison a real publisher's.
+            last = self._seq.get(meta.source)
+            if last is not None and last < meta.seq <= last + 1000:
+                self.counts["lost"] += meta.seq - last - 1
+            self._seq[meta.source] = meta.seq
+            if len(self._seq) > self.MAX_SOURCES:  # forged ids cannot grow this without bound
+                self._seq.pop(next(iter(self._seq)))
+        if verdict == "ok":
+            self._accepted(now_mono)
+            return verdict
+        if self._should_resync(meta, now_mono):
+            if abs(skew) > future_ns:  # a clearly different time base: adopt it (ages stay right)
+                self.offset_ns += skew
+            self.reference = None
+            self.counts["resyncs"] += 1
+            self._accepted(now_mono)
+            return "ok"
+        self.counts[verdict] += 1
+        return verdict
+
+    def _accepted(self, now_mono: int) -> None:
+        self._last_accept_mono = now_mono
+        self._refused_since_accept = 0
+        self._refused_by_source.clear()
+
+    def _should_resync(self, meta: Meta, now_mono: int) -> bool:
+        self._refused_since_accept += 1
+        n = self._refused_by_source.get(meta.source, 0) + 1
+        self._refused_by_source[meta.source] = n
+        if len(self._refused_by_source) > self.MAX_SOURCES:
+            self._refused_by_source.pop(next(iter(self._refused_by_source)))
+        quiet = now_mono - self._last_accept_mono >= self.limits.resync_s * 1e9
+        return quiet and self._refused_since_accept >= 3 and n == max(self._refused_by_source.values())
+
+    def commit(self, stamp_ns: int) -> None:
+        """The payload with this stamp decoded and is handed on: it is the new reference."""
+        if self.reference is None or stamp_ns > self.reference:
+            self.reference = stamp_ns
+        self._accepted(self.clock.mono_ns())
+
+    def age_ns(self, stamp_ns: int, wall_ns: int) -> int:
+        """Age of a capture stamp at wall time wall_ns (ours), in the learned time base; >= 0."""
+        return max(0, wall_ns + self.offset_ns - stamp_ns)
+
+
+@dataclass
+class Delivery:
+    """One payload taken from an inbox, with what was known when it arrived."""
+
+    payload: bytes
+    meta: Meta | None
+    wall_ns: int  # our wall clock at arrival
+    mono_ns: int  # our monotonic clock at arrival
 
 
 class Inbox:
     """A slot that holds only the newest payload (a ring channel of one). Zenoh's callback thread
     only swaps a reference here, so a slow service never backs up the network.
 
-    "Newest" is by capture stamp when the publisher attached one: results that arrive out of order
-    (several disparity workers) never replace a newer waiting payload, and nothing older than what
-    was already taken gets through. Ordering by capture time rather than seq survives a capture
-    restart, which starts seq again at 0."""
+    With a FreshnessGate (every Node inbox has one) a stamped payload is vetted before it may wait
+    here: see FreshnessGate for what is refused. Without one (a tool's plain inbox) "newest" is by
+    capture stamp alone. A payload larger than max_bytes is dropped before it is copied out of
+    Zenoh (counted as oversized)."""
 
-    def __init__(self, topic: Topic):
+    def __init__(self, topic: Topic, gate: FreshnessGate | None = None, max_bytes: int | None = None,
+                 clock: Clock = SYSTEM_CLOCK):
         self.topic = topic
+        self.gate = gate
+        self.clock = clock
+        self.max_bytes = max_bytes if max_bytes is not None else topic.max_bytes
         self._cond = threading.Condition()
-        self._payload: bytes | None = None
-        self._stamp: int | None = None
-        self._taken_stamp = -1
+        self._waiting: Delivery | None = None
+        self._taken_stamp = -1  # without a gate
         self.received = 0
         self.overwritten = 0
-        self.late = 0
+        self.late = 0  # every refusal (future, old, late; without a gate: late only)
+        self.oversized = 0
         self.bytes = 0
 
-    def offer(self, payload: bytes, stamp_ns: int | None = None) -> None:
+    def offer_sample(self, sample: Any) -> None:
+        """The Zenoh callback: size cap first (nothing copied), then offer()."""
+        n = len(sample.payload)
+        if n > self.max_bytes:
+            with self._cond:
+                self.received += 1
+                self.oversized += 1
+                self.bytes += n
+            return
+        self.offer(sample.payload.to_bytes(), meta_of(sample.attachment))
+
+    def offer(self, payload: bytes, meta: Meta | int | None = None) -> None:
+        if isinstance(meta, int):
+            meta = Meta(meta)
         with self._cond:
             self.received += 1
             self.bytes += len(payload)
-            if stamp_ns is not None and (stamp_ns <= self._taken_stamp
-                                         or (self._stamp is not None and stamp_ns < self._stamp)):
-                self.late += 1
-                return
-            if self._payload is not None:
+            waiting = self._waiting.meta.stamp_ns if self._waiting is not None and self._waiting.meta else None
+            if meta is not None:
+                if self.gate is not None:
+                    if self.gate.check(meta, waiting) != "ok":
+                        self.late += 1
+                        return
+                elif meta.stamp_ns <= self._taken_stamp or (waiting is not None and meta.stamp_ns < waiting):
+                    self.late += 1
+                    return
+            if self._waiting is not None:
                 self.overwritten += 1
-            self._payload = payload
-            self._stamp = stamp_ns
+            self._waiting = Delivery(payload, meta, self.clock.wall_ns(), self.clock.mono_ns())
             self._cond.notify()
 
-    def take(self, timeout: float) -> bytes | None:
+    def take_delivery(self, timeout: float) -> Delivery | None:
         with self._cond:
-            if self._payload is None:
+            if self._waiting is None and timeout > 0:
                 self._cond.wait(timeout)
-            p, self._payload = self._payload, None
-            if p is not None and self._stamp is not None:
-                self._taken_stamp = self._stamp
-            self._stamp = None
-            return p
+            d, self._waiting = self._waiting, None
+            if d is not None and d.meta is not None and self.gate is None:
+                self._taken_stamp = d.meta.stamp_ns
+            return d
+
+    def take(self, timeout: float) -> bytes | None:
+        d = self.take_delivery(timeout)
+        return None if d is None else d.payload
+
+    def vet(self, stamp_ns: int) -> str:
+        """For a payload that came without an attachment: check its decoded stamp. -> 'ok' | reason."""
+        if self.gate is None:
+            return "ok"
+        with self._cond:
+            verdict = self.gate.check(Meta(stamp_ns))
+            if verdict != "ok":
+                self.late += 1
+            return verdict
+
+    def commit(self, stamp_ns: int) -> None:
+        if self.gate is not None:
+            with self._cond:
+                self.gate.commit(stamp_ns)
+
+    def refusals(self) -> dict[str, int]:
+        return dict(self.gate.counts) if self.gate is not None else {"late": self.late}
 
 
 class _Window:
@@ -110,51 +362,115 @@ class _Window:
         return m
 
 
+def qos(t: Topic) -> dict[str, Any]:
+    """Congestion control, priority and express for a topic's publisher.
+
+    Every stream is DROP: a subscriber that cannot keep up (a stuck peer, a slow Wi-Fi client) loses
+    messages on its own link instead of blocking the put, and so the producer and every other
+    subscriber (with BLOCK, one peer whose callback takes 1 s stalled the obstacle stream for
+    everyone). Each priority has its own transmission queue, so small messages never wait behind
+    image fragments: the public streams go first (REAL_TIME, express: no batching delay), then
+    receipts that free worker slots, then images, then stats."""
+    import zenoh
+
+    P = zenoh.Priority
+    if t.public:
+        prio, express = P.REAL_TIME, True
+    elif t.name == "work_done":
+        prio, express = P.INTERACTIVE_HIGH, True
+    elif t.name == "stats":
+        prio, express = P.DATA_LOW, False
+    elif t.image_stream:
+        prio, express = P.DATA, False
+    else:
+        prio, express = P.DATA_HIGH, False
+    return {"congestion_control": zenoh.CongestionControl.DROP, "priority": prio, "express": express}
+
+
 class Publisher:
     def __init__(self, node: "Node", topic: Topic, key: str):
-        import zenoh
-
         self.node, self.topic, self.key = node, topic, key
-        # Images: newest wins, so a congested link drops frames instead of delaying every later one.
-        cc = zenoh.CongestionControl.DROP if topic.image_stream else zenoh.CongestionControl.BLOCK
-        self._pub = node.session.declare_publisher(key, congestion_control=cc,
-                                                   priority=zenoh.Priority.DATA if topic.image_stream
-                                                   else zenoh.Priority.DATA_HIGH)
+        self._pub = node.session.declare_publisher(key, **qos(topic))
+        self.source = int.from_bytes(os.urandom(8), "big") or 1  # this publisher's id in every attachment
+        self.seq = 0
         self.bytes = 0
+        self._lock = threading.Lock()
 
     def put(self, msg: Message, count: bool = True) -> None:
         """Publish; stamps this service's publish time into msg.stages and, if count, records the
         output in the service's rate and age (side outputs such as ground truth pass count=False)."""
-        now = time.time_ns()
-        msg.stages[self.node.service] = now
+        msg.stages[self.node.service] = self.node.clock.wall_ns()
         payload = codec.encode(msg)
-        self._pub.put(payload, attachment=_STAMP.pack(msg.stamp_ns))
+        with self._lock:  # a heartbeat thread and the main loop may share a publisher
+            self.seq += 1
+            self._pub.put(payload, attachment=_META.pack(msg.stamp_ns, self.source, self.seq))
         self.bytes += len(payload)
         if count:
-            self.node._published(now - msg.stamp_ns)
+            self.node._published(self.node.age_ns(msg))
+
+
+class _Progress:
+    """Input, output and failure counts of the last few stats periods: the service's health is
+    about progress, not about being alive. A stage whose input arrives but that published nothing
+    for stall_s is degraded (failed after fail_s); one whose every input fails is failed."""
+
+    def __init__(self, stall_s: float, fail_s: float):
+        self.stall_s, self.fail_s = stall_s, fail_s
+        self.history: deque[tuple[float, int, int, int, int]] = deque()  # (t, inputs, published, ok, failed)
+        self.quiet_since: float | None = None  # input arriving but nothing published, since
+
+    def update(self, t: float, inputs: int, published: int, ok: int, failed: int) -> tuple[str, str]:
+        self.history.append((t, inputs, published, ok, failed))
+        while len(self.history) > 2 and t - self.history[1][0] >= self.stall_s:
+            self.history.popleft()
+        t0, i0, p0, ok0, f0 = self.history[0]
+        span = t - t0
+        d_in, d_pub, d_ok, d_fail = inputs - i0, published - p0, ok - ok0, failed - f0
+        if span < self.stall_s or d_in == 0 or d_pub > 0:
+            self.quiet_since = None
+            return "ok", ""
+        if d_fail > 0 and d_ok == 0:
+            return "failed", f"every input fails ({d_fail} failed in the last {span:.0f} s)"
+        if self.quiet_since is None:
+            self.quiet_since = t0
+        quiet = t - self.quiet_since
+        return ("failed" if quiet >= self.fail_s else "degraded",
+                f"input arrives ({d_in} in the last {span:.0f} s) but nothing published for {quiet:.0f} s")
 
 
 class Node:
     def __init__(self, service: str, options: ZenohOptions, robot_id: str, instance: str | None = None,
-                 install_signal_handlers: bool = True):
+                 install_signal_handlers: bool = True, clock: Clock | None = None,
+                 limits: FreshnessLimits | None = None):
         self.service = service
         self.robot_id = robot_id
         self.instance = instance or f"{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:4]}"
         self.options = options
+        self.clock = clock or clock_from_env()
+        self.limits = limits or FreshnessLimits.from_env()
         self.stop_event = threading.Event()
         self.status = "starting"
+        self.role = ""  # shown by `status`: e.g. disparity's dispatcher or worker
+        self.health = "starting"
         self.extra: dict[str, float] = {}
         self._lock = threading.Lock()
         self._proc = _Window()
         self._age = _Window()
         self._published_in_window = 0
         self.processed = self.published = self.decode_errors = self.errors = 0
+        self.inputs = 0  # inputs that arrive outside an inbox (count_input())
         self._inboxes: list[Inbox] = []
         self._publishers: list[Publisher] = []
         self._subscribers: list[Any] = []
         self._started = time.monotonic()
         self._last_log: dict[str, float] = {}
         self._install_signals = install_signal_handlers
+        # capture stamp -> the capture moment on our monotonic clock (ns), for what was received lately
+        self._capture_mono: dict[int, int] = {}
+        self._time_base_ns = 0  # last frame time handed out: frame times never go backwards
+        self._progress = _Progress(float(os.environ.get("BALLBOT_STALL_S", 3.0)),
+                                   float(os.environ.get("BALLBOT_FAIL_S", 10.0)))
+        self._bytes_last: dict[str, float] = {}
         self.session = None
 
     # -- lifecycle ------------------------------------------------------------------------------
@@ -162,11 +478,12 @@ class Node:
         if self._install_signals and threading.current_thread() is threading.main_thread():
             for sig in (signal.SIGINT, signal.SIGTERM):
                 signal.signal(sig, lambda *_: self.stop_event.set())
+        release_memory_eagerly()
         self.session = open_session(self.options)
         self._token = self.session.liveliness().declare_token(
             topic("alive").key(self.robot_id, service=self.service, instance=self.instance))
         self._stats_pub = self.session.declare_publisher(
-            topic("stats").key(self.robot_id, service=self.service, instance=self.instance))
+            topic("stats").key(self.robot_id, service=self.service, instance=self.instance), **qos(topic("stats")))
         self._stats_thread = threading.Thread(target=self._stats_loop, name="stats", daemon=True)
         self._stats_thread.start()
         self.status = "ok"
@@ -185,11 +502,12 @@ class Node:
         return not self.stop_event.is_set()
 
     # -- inputs ---------------------------------------------------------------------------------
-    def latest(self, name: str, key: str | None = None) -> Inbox:
+    def latest(self, name: str, key: str | None = None, max_bytes: int | None = None) -> Inbox:
+        """A newest-wins inbox on a topic, with a freshness gate and a size cap (the topic's
+        max_bytes unless a tighter one is known, e.g. from the calibrated image size)."""
         t = topic(name)
-        inbox = Inbox(t)
-        sub = self.session.declare_subscriber(key or t.key(self.robot_id),
-                                              lambda s: inbox.offer(s.payload.to_bytes(), stamp_of(s.attachment)))
+        inbox = Inbox(t, FreshnessGate(self.clock, self.limits), max_bytes, self.clock)
+        sub = self.session.declare_subscriber(key or t.key(self.robot_id), inbox.offer_sample)
         self._subscribers.append(sub)
         self._inboxes.append(inbox)
         return inbox
@@ -199,17 +517,71 @@ class Node:
         self._subscribers.append(sub)
         return sub
 
-    def receive(self, inbox: Inbox, poll_s: float = 0.2) -> Iterator[Any]:
-        """Yield decoded messages until stopped. A payload that does not decode is logged, counted
-        and dropped; so is one for another robot."""
+    def count_input(self) -> None:
+        """An input that arrived outside an inbox (health: input arrives, is anything published?)."""
+        with self._lock:
+            self.inputs += 1
+
+    def take(self, inbox: Inbox, timeout: float) -> tuple[Any, bytes] | None:
+        """The newest waiting input, decoded and vetted -> (message, payload), or None (nothing
+        within timeout, or it was dropped: undecodable, another robot's, or its stamp refused)."""
+        d = inbox.take_delivery(timeout)
+        if d is None:
+            return None
         model = inbox.topic.model
+        msg = self.decode_or_drop(d.payload, model, f"input on {inbox.topic.name}")
+        if msg is None:
+            return None
+        if d.meta is not None and d.meta.stamp_ns != msg.stamp_ns:
+            self.decode_errors += 1
+            self.warn("decode", f"dropped input on {inbox.topic.name}: attachment stamp {d.meta.stamp_ns} "
+                                f"!= message stamp {msg.stamp_ns}")
+            return None
+        if d.meta is None:
+            verdict = inbox.vet(msg.stamp_ns)
+            if verdict != "ok":
+                self.warn(f"refused-{verdict}", f"refused input on {inbox.topic.name}: stamp {verdict}")
+                return None
+        inbox.commit(msg.stamp_ns)
+        age = inbox.gate.age_ns(msg.stamp_ns, d.wall_ns) if inbox.gate is not None else 0
+        with self._lock:
+            self._capture_mono[msg.stamp_ns] = d.mono_ns - age
+            while len(self._capture_mono) > 256:
+                self._capture_mono.pop(next(iter(self._capture_mono)))
+        return msg, d.payload
+
+    def receive(self, inbox: Inbox, poll_s: float = 0.2) -> Iterator[Any]:
+        """Yield decoded, vetted messages until stopped. A payload that does not decode is logged,
+        counted and dropped; so is one for another robot, and one whose stamp is refused."""
         while self.running:
-            payload = inbox.take(poll_s)
-            if payload is None:
-                continue
-            msg = self.decode_or_drop(payload, model, f"input on {inbox.topic.name}")
-            if msg is not None:
-                yield msg
+            got = self.take(inbox, poll_s)
+            if got is not None:
+                yield got[0]
+
+    # -- time -----------------------------------------------------------------------------------
+    def age_ns(self, msg: Message) -> int:
+        """Age of a received message (or of one derived from it: same stamp) on our monotonic
+        clock: the wall clock is read once, at arrival. For a stamp we never received (capture's
+        own frames) the wall clock says."""
+        with self._lock:
+            t = self._capture_mono.get(msg.stamp_ns)
+        if t is None:
+            return max(0, self.clock.wall_ns() - msg.stamp_ns)
+        return max(0, self.clock.mono_ns() - t)
+
+    def age_s(self, msg: Message) -> float:
+        return self.age_ns(msg) / 1e9
+
+    def frame_time_s(self, msg: Message) -> float:
+        """The capture moment of a received message on our monotonic clock, in s, never earlier
+        than the one handed out before: the time base for velocities, immune to wall-clock steps."""
+        with self._lock:
+            t = self._capture_mono.get(msg.stamp_ns)
+            if t is None:
+                t = self.clock.mono_ns() - max(0, self.clock.wall_ns() - msg.stamp_ns)
+            t = max(t, self._time_base_ns)
+            self._time_base_ns = t
+        return t / 1e9
 
     def decode(self, payload: bytes, model: type[M]) -> M:
         """Decode a message that must be this robot's; raises DecodeError otherwise."""
@@ -281,26 +653,78 @@ class Node:
         with self._lock:
             published, self._published_in_window = self._published_in_window, 0
         extra = dict(self.extra)
+        inputs = self.inputs
+        refused: dict[str, int] = {}
         for inbox in self._inboxes:
-            extra[f"in_{inbox.topic.name}_bytes"] = float(inbox.bytes)
-            extra[f"in_{inbox.topic.name}_late"] = float(inbox.late)
+            # repeats of what was already handed on (a heartbeat's stale copy) are not new input
+            inputs += inbox.received - inbox.refusals().get("late", 0)
+            name = inbox.topic.name
+            self._rate(extra, f"in_{name}", inbox.bytes, window)
+            extra[f"in_{name}_oversized"] = float(inbox.oversized)
+            for k, v in inbox.refusals().items():
+                extra[f"in_{name}_{k}"] = float(v)
+                refused[k] = refused.get(k, 0) + v
         for p in self._publishers:
-            extra[f"out_{p.topic.name}_bytes"] = float(p.bytes)
+            self._rate(extra, f"out_{p.topic.name}", p.bytes, window)
+        health, why = self._progress.update(now, inputs, self.published, self.processed,
+                                            self.errors + self.decode_errors)
+        if why and sum(refused.get(k, 0) for k in REJECTIONS):
+            why += " (refused so far: " + ", ".join(f"{refused[k]} {k}" for k in REJECTIONS if refused.get(k)) + ")"
+        self.health = health
+        status = self.status if health == "ok" else f"{health}: {why}"
         return ServiceStats(
-            robot_id=self.robot_id, service=self.service, instance=self.instance, host=socket.gethostname(),
-            pid=os.getpid(), stamp_ns=time.time_ns(), uptime_s=now - self._started,
+            robot_id=self.robot_id, service=self.service, role=self.role, instance=self.instance,
+            host=socket.gethostname(),
+            pid=os.getpid(), stamp_ns=self.clock.wall_ns(), uptime_s=now - self._started,
             rate_hz=published / window, proc_ms_p50=self._proc.median_and_clear(),
             age_ms_p50=self._age.median_and_clear(), processed=self.processed, published=self.published,
-            drops=sum(i.overwritten + i.late for i in self._inboxes), decode_errors=self.decode_errors,
-            errors=self.errors, status=self.status, extra=extra)
+            drops=sum(i.overwritten + i.late + i.oversized for i in self._inboxes),
+            decode_errors=self.decode_errors, errors=self.errors, status=status, health=health, extra=extra)
+
+    def _rate(self, extra: dict[str, float], name: str, total: float, window: float) -> None:
+        """Byte total and per-second rate of one link: '<name>_bytes', 'rate_<name>_Bps'."""
+        extra[f"{name}_bytes"] = float(total)
+        extra[f"rate_{name}_Bps"] = (total - self._bytes_last.get(name, 0.0)) / window
+        self._bytes_last[name] = float(total)
 
     def _stats_loop(self) -> None:
         while not self.stop_event.wait(1.0):
             try:
                 self._stats_pub.put(codec.encode(self.stats()))
+                trim_memory()
             except Exception:  # a closing session; the loop ends with the stop event
                 if self.running and self._should_log("stats"):
                     log.exception("stats publish failed")
+
+
+# --- memory ----------------------------------------------------------------------------------------
+
+@functools.lru_cache(maxsize=1)
+def _libc():
+    import ctypes
+
+    try:
+        return ctypes.CDLL("libc.so.6")
+    except OSError:  # not glibc: nothing to tune
+        return None
+
+
+def release_memory_eagerly() -> None:
+    """Large buffers (payloads, images) straight from and back to the OS. glibc otherwise raises its
+    mmap threshold after the first large free and serves later large buffers from the heap, which it
+    rarely returns: under a flood of big garbage a service grew by hundreds of MB and kept them."""
+    libc = _libc()
+    if libc is not None:
+        M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3
+        libc.mallopt(M_MMAP_THRESHOLD, 256 * 1024)
+        libc.mallopt(M_TRIM_THRESHOLD, 1024 * 1024)
+
+
+def trim_memory() -> None:
+    """Give freed heap pages back to the OS (once a second, from the stats thread)."""
+    libc = _libc()
+    if libc is not None:
+        libc.malloc_trim(0)
 
 
 def setup_logging(level: str = "INFO") -> None:

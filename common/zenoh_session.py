@@ -14,6 +14,7 @@ import os
 from dataclasses import dataclass, field
 
 DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
+MAX_MESSAGE_BYTES = 128 << 20
 
 
 @dataclass
@@ -77,6 +78,9 @@ def make_config(o: ZenohOptions):
         conf.insert_json5("listen/endpoints", json.dumps(o.listen))
     if o.lease_ms:
         conf.insert_json5("transport/link/tx/lease", str(int(o.lease_ms)))
+    # Zenoh reassembles a fragmented message of up to 1 GB by default before anyone can look at
+    # it; no message of ours comes near 128 MB (the per-key caps in keys.py are tighter still).
+    conf.insert_json5("transport/link/rx/max_message_size", str(MAX_MESSAGE_BYTES))
     return conf
 
 

@@ -85,7 +85,7 @@ class Up:
         if self.proc.poll() is None:
             self.proc.send_signal(signal.SIGTERM)
             try:
-                self.proc.wait(10)
+                self.proc.wait(30)  # up gives its services 10 s before it kills them
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait()

@@ -45,6 +45,8 @@ def test_receipts_unknown_duplicate_late_are_counted_and_never_free_a_slot():
     clock = FakeClock()
     st = DispatchState(max_in_flight=2, result_timeout_s=1.0, clock=clock)
     st.add_worker("a")
+    assert st.claim(9) == "a" and st.claim(10) is None  # on probation: one probe at a time
+    assert st.done("a", 9) == "ok"                        # proven: two slots from now on
     assert st.claim(10) == "a" and st.claim(11) == "a"
     assert st.done("a", 10) == "ok"
     assert st.done("a", 10) == "duplicate"          # a worker that answers twice
@@ -57,7 +59,7 @@ def test_receipts_unknown_duplicate_late_are_counted_and_never_free_a_slot():
     assert st.has_free()
     c = st.counters
     assert (c["completed"], c["duplicate"], c["unknown_frame"], c["unknown_worker"], c["timeouts"], c["late"]) \
-        == (1, 1, 1, 1, 1, 1)
+        == (2, 1, 1, 1, 1, 1)
 
 
 def test_a_removed_worker_costs_only_its_in_flight_frames():
@@ -70,6 +72,75 @@ def test_a_removed_worker_costs_only_its_in_flight_frames():
     assert st.done("b", owners["b"]) == "unknown_worker"
     assert st.done("a", owners["a"]) == "ok"
     assert st.claim(4) == "a"
+
+
+def test_a_token_alone_is_not_a_worker_a_ghost_is_quarantined_and_probed_with_backoff():
+    clock = FakeClock()
+    st = DispatchState(max_in_flight=2, result_timeout_s=1.0, clock=clock)
+    st.add_worker("ghost")
+    assert st.trusted() == 0 and st.alive() == 1  # the fallback keeps computing
+    assert st.claim(1) == "ghost"                  # one probe frame
+    assert st.claim(2) is None
+    clock.t += 1.1
+    assert st.expire() == [("ghost", 1)]
+    assert st.workers["ghost"].trust == "quarantined" and st.counters["quarantined"] == 1
+    assert st.claim(3) is None                     # no work during the backoff
+    backoffs = []
+    for seq in range(4, 9):                        # each unanswered probe doubles the wait
+        t0 = clock.t
+        while st.claim(seq) is None:
+            clock.t += 0.25
+        backoffs.append(clock.t - t0)
+        clock.t += 1.1
+        st.expire()
+    assert backoffs[0] < backoffs[1] < backoffs[2], backoffs
+    assert st.trusted() == 0
+
+
+def test_a_quarantined_worker_that_answers_a_probe_is_trusted_again():
+    clock = FakeClock()
+    st = DispatchState(max_in_flight=1, result_timeout_s=1.0, clock=clock, strikes_to_quarantine=2)
+    st.add_worker("w")
+    assert st.claim(1) == "w" and st.done("w", 1) == "ok" and st.trusted() == 1
+    for seq in (2, 3):                             # takes work, returns nothing
+        while st.claim(seq) is None:
+            clock.t += 0.1
+        clock.t += 1.1
+        st.expire()
+    assert st.trusted() == 0 and st.workers["w"].trust == "quarantined"
+    while st.claim(4) is None:
+        clock.t += 0.1
+    assert st.done("w", 4) == "ok" and st.trusted() == 1
+
+
+def test_failed_receipts_quarantine_a_worker_that_fails_every_frame():
+    st = DispatchState(max_in_flight=1, clock=FakeClock(), strikes_to_quarantine=3)
+    st.add_worker("w")
+    assert st.claim(1) == "w" and st.done("w", 1) == "ok"
+    for seq in (2, 3, 4):
+        assert st.claim(seq) == "w" and st.done("w", seq, ok=False) == "failed"
+    assert st.workers["w"].trust == "quarantined" and st.trusted() == 0
+
+
+def test_receipt_timeouts_adapt_to_a_slow_worker():
+    """A worker that needs 2.5 s per frame on a loaded machine: its late receipts teach the
+    dispatcher to wait longer instead of quarantining it."""
+    clock = FakeClock()
+    st = DispatchState(max_in_flight=1, result_timeout_s=1.0, clock=clock)
+    st.add_worker("slow")
+    assert st.claim(1) == "slow"
+    clock.t += 2.5
+    assert st.expire() == [("slow", 1)]
+    assert st.done("slow", 1) == "late"           # it did answer, 2.5 s after the send
+    assert st.timeout_for(st.workers["slow"]) >= 2.5 * 3 - 1e-9
+    timeouts = st.counters["timeouts"]
+    for seq in range(2, 12):
+        while st.claim(seq) is None:
+            clock.t += 0.1
+        clock.t += 2.5
+        assert st.expire() == []
+        assert st.done("slow", seq) == "ok"
+    assert st.counters["timeouts"] == timeouts and st.trusted() == 1
 
 
 def test_frames_to_workers_png_is_lossless_jpeg_is_smaller():
@@ -428,3 +499,15 @@ def test_workers_in_another_network_namespace_survive_a_kill():
         procs_o.stop_all()
         for ns in created:
             subprocess.run(["ip", "netns", "del", ns], capture_output=True)
+
+
+def test_a_workers_queue_is_bounded_in_items_and_bytes():
+    from ballbot_vision.services.disparity.pool import WorkQueue
+
+    q = WorkQueue(capacity=3, max_bytes=10 << 20)
+    for i in range(5):
+        q.offer(bytes([i]) * 100, None)
+    assert [q.take(0)[0][0] for _ in range(3)] == [2, 3, 4] and q.overflowed == 2
+    for i in range(4):
+        q.offer(bytes([i]) * (4 << 20), None)  # a misbehaving sender's large items
+    assert q.overflowed == 4 and q.take(0)[0][0] == 2 and q.take(0)[0][0] == 3 and q.take(0) is None

@@ -66,7 +66,7 @@ def test_hot_reload_by_message_and_by_file(tmp_path):
     path = tmp_path / "cal.yaml"
     d = _doc()
     _write(path, d)
-    h = CalibrationHolder(str(path))
+    h = CalibrationHolder(str(path), max_change=0)  # any baseline: this test is about the mechanics
     first = h.current()
     h.note_frame(640, 480)
 
@@ -103,12 +103,33 @@ def test_hot_reload_by_message_and_by_file(tmp_path):
     assert h.poll_file() is False and h.current().model.baseline_m == pytest.approx(0.08)
 
 
+def test_a_run_time_calibration_that_rescales_every_distance_is_refused():
+    """Half the baseline halves every distance: a jump like that is refused at run time (by
+    message or file), a small recalibration of the same rig is taken."""
+    h = CalibrationHolder("lifecam-studio")  # default max_change 5 %
+    h.note_frame(640, 480)
+    before = h.current()
+    half = _doc()
+    half["T"] = [t / 2 for t in half["T"]]
+    assert h.offer_yaml(yaml.safe_dump(half), "the calibration key") is False
+    assert "baseline" in h.last_error and "50%" in h.last_error and "restart" in h.last_error
+    focal = _doc()
+    for cam in ("left", "right"):
+        focal[cam]["K"] = [v * 1.2 if i in (0, 4) else v for i, v in enumerate(focal[cam]["K"])]
+    assert h.offer_yaml(yaml.safe_dump(focal), "the calibration key") is False and "focal length" in h.last_error
+    assert h.current() is before
+    tweak = _doc()
+    tweak["T"] = [t * 1.01 for t in tweak["T"]]
+    assert h.offer_yaml(yaml.safe_dump(tweak), "the calibration key") is True
+    assert h.current().model.baseline_m == pytest.approx(before.model.baseline_m * 1.01, rel=1e-3)
+
+
 def test_swap_never_tears_a_frame():
     """The frame loop takes one Rectifier per pair; swaps from another thread land between pairs."""
     d_a, d_b = _doc(), _doc()
     d_b["T"] = [-0.12, 0.001, 0.0]
     text = {0: yaml.safe_dump(d_a), 1: yaml.safe_dump(d_b)}
-    h = CalibrationHolder("lifecam-studio")
+    h = CalibrationHolder("lifecam-studio", max_change=0)
     left, right = _pair()
     expect = {}
     for k in (0, 1):

@@ -67,17 +67,23 @@ def test_up_publishes_obstacles_matching_ground_truth_and_stops_cleanly(up):
 
         status = subprocess.run(cli("status", "--connect", up.endpoint, "--json", "--wait", "2.5"),
                                 capture_output=True, text=True, timeout=60)
-        assert status.returncode == 0, status.stderr
         doc = json.loads(status.stdout)
-        services = {i["service"] for i in doc["instances"]}
-        assert {"capture", "rectify", "disparity", "segmenter"} <= services
+        # 0: healthy; 3: something degraded (a loaded machine may make a list stale): named in the summary
+        assert status.returncode == (0 if doc["pipeline"]["health"] == "ok" else 3), status.stderr
+        names = {i["name"] for i in doc["instances"]}
+        assert {"capture", "rectify", "dispatcher", "segmenter"} <= names
         assert all(i["rate_hz"] > 0 for i in doc["instances"] if i["service"] != "router")
+        assert all(i["health"] in ("ok", "starting") for i in doc["instances"]), doc
+        dispatcher = next(i for i in doc["instances"] if i["name"] == "dispatcher")
+        assert dispatcher["status"].startswith("ok"), "one host computing onboard is the normal case"
+        assert all(i["in_Bps"] > 0 for i in doc["instances"] if i["name"] in ("rectify", "dispatcher", "segmenter"))
 
     pids = up.child_pids()
     assert set(pids) == {"router", "capture", "rectify", "disparity", "segmenter"}
     took = up.stop()
     assert up.proc.returncode == 0
-    assert took < 2.5, f"up took {took:.2f} s to stop"
+    print(f"up stopped in {took:.2f} s")
+    assert "killing it" not in up.log_path.read_text(), "a service had to be killed: it did not stop on SIGTERM"
     deadline = time.monotonic() + 5
     while any(pid_alive(p) for p in pids.values()) and time.monotonic() < deadline:
         time.sleep(0.05)

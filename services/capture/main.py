@@ -206,7 +206,7 @@ def run(node: Node, settings: CaptureSettings, source=None) -> None:
                     break
             if pair is not None:
                 with node.processing():
-                    stamp = pair.stamp_ns or time.time_ns()
+                    stamp = pair.stamp_ns or node.clock.wall_ns()
                     left, right = (_grey(pair.left), _grey(pair.right)) if grey else (pair.left, pair.right)
                     msg = StereoFrame(robot_id=node.robot_id, seq=seq, stamp_ns=stamp,
                                       left=codec.image_from_array(left, settings.encoding, settings.jpeg_quality),

@@ -190,6 +190,7 @@ def connect_replay(node, source: McapSource) -> None:
     from ...common import codec
     from ...common.keys import topic
     from ...common.messages import CalibrationUpdate
+    from ...common.signing import sign
 
     def on_control(sample) -> None:
         cmd = node.decode_or_drop(sample.payload.to_bytes(), ReplayControl, "replay command", "control")
@@ -214,7 +215,7 @@ def connect_replay(node, source: McapSource) -> None:
             n = sum(sent.values())
         msg = CalibrationUpdate(robot_id=node.robot_id, seq=n, stamp_ns=time.time_ns(),
                                 yaml=yaml_text or source.calibration_yaml, source=f"recording {source.path}")
-        calibration.put(codec.encode(msg))
+        calibration.put(codec.encode(sign(msg)))
 
     def on_rectify_alive(sample) -> None:
         if sample.kind == zenoh.SampleKind.PUT:

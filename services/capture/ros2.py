@@ -187,6 +187,7 @@ class Ros2Source:
         import yaml
 
         from ...common.messages import CalibrationUpdate
+        from ...common.signing import sign
 
         with self._cond:
             left, right = self._infos.get("left"), self._infos.get("right")
@@ -208,8 +209,8 @@ class Ros2Source:
         if text == self._calibration_sent and time.monotonic() - self._calibration_at < CALIBRATION_REPEAT_S:
             return
         node = self.ctx.node
-        self._calibration.put(CalibrationUpdate(robot_id=node.robot_id, seq=0, stamp_ns=time.time_ns(), yaml=text,
-                                                source="capture --source ros2 (CameraInfo)"), count=False)
+        self._calibration.put(sign(CalibrationUpdate(robot_id=node.robot_id, seq=0, stamp_ns=time.time_ns(), yaml=text,
+                                                     source="capture --source ros2 (CameraInfo)")), count=False)
         self._calibration_sent = text
         self._calibration_at = time.monotonic()
 

@@ -28,7 +28,8 @@ class DisparitySettings(MatcherConfig):
     max_in_flight: int = Field(2, ge=1, le=16, description="frames in flight per worker (2: the next frame "
                                "waits at the worker while it computes, so it never idles while frames travel)")
     max_age_ms: float = Field(500.0, gt=0, description="a frame older than this is never started")
-    result_timeout_s: float = Field(1.0, gt=0, description="a worker slot without receipt is freed after this")
+    result_timeout_s: float = Field(1.0, gt=0, description="a worker slot without receipt is freed "
+                                    "after this at the least; longer for a worker measured to need longer")
     transport: Literal["raw", "png", "jpeg"] = Field("raw", description="image encoding of frames sent to workers")
     jpeg_quality: int = Field(90, ge=1, le=100, description="for transport jpeg")
     fallback: Literal["none", "full", "half"] = Field("full", description="onboard matcher used only while no "
@@ -46,6 +47,8 @@ def run(node: Node, settings: DisparitySettings) -> None:
     if settings.threads:
         cv2.setNumThreads(settings.threads)
     if settings.role == "worker":
+        node.role = "worker"
         run_worker(node, settings)
     else:
+        node.role = "dispatcher"
         run_dispatcher(node, settings)

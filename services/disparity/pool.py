@@ -16,10 +16,16 @@ One mechanism, push with receipts:
   worker, is never retried, and a slow worker simply gets fewer frames.
 * The worker publishes the DisparityMap straight on `disparity` (no relay hop) and then its receipt.
   Results may arrive out of order; the segmenter never publishes an older seq after a newer one.
-* A slot without a receipt after result_timeout_s is freed (counted as a timeout), so a lost work
-  item or a frozen worker costs its in-flight frames and nothing stalls. Receipts from unknown
-  workers, for frames not in flight, or twice for one frame are logged, counted and dropped.
-* While no worker is alive the dispatcher computes in-process with the onboard fallback matcher
+* A slot without a receipt in time is freed (counted as a timeout), so a lost work item or a frozen
+  worker costs its in-flight frames and nothing stalls. "In time" adapts to each worker's measured
+  send-to-receipt times (3x their 90th percentile, at least result_timeout_s), so a slow machine
+  or a loaded robot is not taken for a dead one. Receipts from unknown workers, for frames not in
+  flight, or twice for one frame are logged, counted and dropped.
+* A token alone is not a worker: a new one is on probation (one probe frame at a time) until its
+  first good receipt. One that takes work and returns nothing good (timeouts, failed receipts) is
+  quarantined: no work but a single probe after a backoff (1 s, doubling to 30 s), until it
+  answers again.
+* While no worker is trusted the dispatcher computes in-process with the onboard fallback matcher
   (full or half resolution), or, with fallback none, says "no worker reachable" in its status while
   the segmenter's heartbeat marks the obstacle stream stale. The fallback is also what makes
   `ballbot-vision up` a single process per stage: no extra hop when everything runs on one host.
@@ -181,31 +187,55 @@ class WorkerSlot:
     last_assigned: float = 0.0
     paused_until: float = 0.0  # after a timeout: no new work for a while unless it answers
     recent: deque = field(default_factory=lambda: deque(maxlen=512))  # (seq, outcome) finished lately
+    # trust: a liveliness token alone is not a worker
+    trust: str = "probation"  # probation (not proven yet) | trusted | quarantined
+    strikes: int = 0  # consecutive work items without a good receipt
+    next_probe: float = 0.0  # probation/quarantine: when it may get its next (single) probe frame
+    probe_backoff_s: float = 1.0
+    why: str = ""  # why it is quarantined
+    rtt: deque = field(default_factory=lambda: deque(maxlen=32))  # s from send to receipt, recent items
 
 
 class DispatchState:
-    """Which worker is alive, what each has in flight, and the verdict on every receipt.
-    Thread-safe; `cond` is notified on every change that can free a slot."""
+    """Which worker is alive and trusted, what each has in flight, and the verdict on every receipt.
+    Thread-safe; `cond` is notified on every change that can free a slot.
+
+    Trust: a worker whose token appears is on probation: it gets one probe frame at a time, and
+    its first good receipt makes it trusted. A worker that takes work and returns nothing good
+    (timeouts, failed receipts: `strikes_to_quarantine` in a row, or one while on probation) is
+    quarantined: no work but a single probe after a backoff (1 s doubling to max_probe_backoff_s);
+    a good receipt brings it back. Only trusted workers count as alive for the onboard fallback, so
+    a ghost token, a hung or a broken worker cannot starve the pool.
+
+    Receipt timeouts adapt to each worker's measured send-to-receipt times (timeout_factor x their
+    90th percentile, at least result_timeout_s, at most max_result_timeout_s), so a slow machine
+    or a loaded robot is not mistaken for a dead worker.
+    """
 
     def __init__(self, max_in_flight: int = 1, result_timeout_s: float = 1.0,
-                 clock: Callable[[], float] = time.monotonic):
+                 clock: Callable[[], float] = time.monotonic, strikes_to_quarantine: int = 3,
+                 max_probe_backoff_s: float = 30.0, timeout_factor: float = 3.0, max_result_timeout_s: float = 30.0):
         if max_in_flight < 1:
             raise BallbotError(f"max_in_flight: must be >= 1, got {max_in_flight}")
         self.max_in_flight = max_in_flight
         self.result_timeout_s = result_timeout_s
         self.clock = clock
+        self.strikes_to_quarantine = strikes_to_quarantine
+        self.max_probe_backoff_s = max_probe_backoff_s
+        self.timeout_factor = timeout_factor
+        self.max_result_timeout_s = max(max_result_timeout_s, result_timeout_s)
         self.cond = threading.Condition()
         self.workers: dict[str, WorkerSlot] = {}
         self.counters: dict[str, int] = {k: 0 for k in (
             "dispatched", "completed", "failed", "timeouts", "lost_in_flight", "unknown_worker",
-            "unknown_frame", "duplicate", "late", "workers_joined", "workers_left")}
+            "unknown_frame", "duplicate", "late", "workers_joined", "workers_left", "quarantined", "probes")}
 
     # membership
     def add_worker(self, name: str) -> bool:
         with self.cond:
             if name in self.workers:
                 return False
-            self.workers[name] = WorkerSlot(name)
+            self.workers[name] = WorkerSlot(name, next_probe=self.clock())
             self.counters["workers_joined"] += 1
             self.cond.notify_all()
             return True
@@ -222,18 +252,39 @@ class DispatchState:
             return len(w.in_flight)
 
     def alive(self) -> int:
+        """Workers with a liveliness token (trusted or not)."""
         with self.cond:
             return len(self.workers)
 
+    def trusted(self) -> int:
+        """Workers that proved themselves and are not quarantined: only these replace the fallback."""
+        with self.cond:
+            return sum(1 for w in self.workers.values() if w.trust == "trusted")
+
+    def timeout_for(self, w: WorkerSlot) -> float:
+        if not w.rtt:
+            return self.result_timeout_s
+        p90 = float(np.percentile(np.fromiter(w.rtt, float), 90))
+        return min(self.max_result_timeout_s, max(self.result_timeout_s, self.timeout_factor * p90))
+
     # assignment
+    def _due_probe(self, now: float) -> list[WorkerSlot]:
+        return [w for w in self.workers.values() if w.trust != "trusted" and not w.in_flight and w.next_probe <= now]
+
     def _free(self, now: float) -> list[WorkerSlot]:
-        free = [w for w in self.workers.values() if len(w.in_flight) < self.max_in_flight]
-        ready = [w for w in free if w.paused_until <= now]
-        return ready
+        probes = self._due_probe(now)
+        if probes:  # a probe first: a new worker is tried on the next frame, whoever else is free
+            return probes
+        return [w for w in self.workers.values()
+                if w.trust == "trusted" and len(w.in_flight) < self.max_in_flight and w.paused_until <= now]
 
     def has_free(self) -> bool:
         with self.cond:
             return bool(self._free(self.clock()))
+
+    def probe_due(self) -> bool:
+        with self.cond:
+            return bool(self._due_probe(self.clock()))
 
     def wait_free(self, timeout: float) -> bool:
         with self.cond:
@@ -243,14 +294,16 @@ class DispatchState:
             return bool(self._free(self.clock()))
 
     def claim(self, seq: int) -> str | None:
-        """Assign frame `seq` to the free worker with the fewest items in flight (then the one
-        idle longest). -> its name, or None if no worker is free."""
+        """Assign frame `seq` to a worker due for a probe, else to the free trusted worker with the
+        fewest items in flight (then the one idle longest). -> its name, or None if none is free."""
         with self.cond:
             now = self.clock()
             free = self._free(now)
             if not free:
                 return None
             w = min(free, key=lambda s: (len(s.in_flight), s.last_assigned))
+            if w.trust != "trusted":
+                self.counters["probes"] += 1
             w.in_flight[seq] = now
             w.assigned += 1
             w.last_assigned = now
@@ -266,54 +319,84 @@ class DispatchState:
                 self.counters["dispatched"] -= 1
                 self.cond.notify_all()
 
+    # trust
+    def _good(self, w: WorkerSlot) -> None:
+        w.strikes = 0
+        w.paused_until = 0.0
+        if w.trust != "trusted":
+            log.info("worker %s %s", w.name, "proved itself: trusted" if w.trust == "probation"
+                     else "answers again: back from quarantine")
+            w.trust, w.why, w.probe_backoff_s = "trusted", "", 1.0
+
+    def _strike(self, w: WorkerSlot, now: float, why: str, pause: bool = True) -> None:
+        w.strikes += 1
+        if w.trust == "trusted" and w.strikes < self.strikes_to_quarantine:
+            if pause:  # silent: no new work for a while unless it answers
+                w.paused_until = now + self.timeout_for(w)
+            return
+        if w.trust != "quarantined":
+            self.counters["quarantined"] += 1
+            log.warning("worker %s quarantined: %s; the onboard fallback covers for it until it answers a probe",
+                        w.name, why)
+        else:
+            w.probe_backoff_s = min(w.probe_backoff_s * 2, self.max_probe_backoff_s)
+        w.trust, w.why = "quarantined", why
+        w.next_probe = now + w.probe_backoff_s
+
     # receipts
     def done(self, name: str, seq: int, ok: bool = True) -> str:
         """A receipt. -> 'ok' | 'failed' (the worker dropped it) | 'unknown_worker' |
         'duplicate' | 'late' (after its timeout) | 'unknown_frame'. Only ok/failed free a slot."""
         with self.cond:
+            now = self.clock()
             w = self.workers.get(name)
             if w is None:
                 self.counters["unknown_worker"] += 1
                 return "unknown_worker"
             sent = w.in_flight.pop(seq, None)
             if sent is None:
-                prior = next((o for s, o in reversed(w.recent) if s == seq), None)
-                if prior == "timeout":
+                prior = next(((s, o) for s, o in reversed(w.recent) if s == seq), None)
+                if prior is not None and prior[1][0] == "timeout":
                     kind = "late"
-                    w.paused_until = 0.0  # it answers again: back in the rotation
+                    w.rtt.append(now - prior[1][1])  # its real time: the timeout adapts to it
+                    if ok:
+                        self._good(w)  # it answers again: back in the rotation
                     self.cond.notify_all()
+                    w.recent.append((seq, ("late", now)))
                 else:
                     kind = "duplicate" if prior is not None else "unknown_frame"
                 self.counters[kind] += 1
-                if prior is not None and kind == "late":
-                    w.recent.append((seq, "late"))
                 return kind
             outcome = "ok" if ok else "failed"
-            w.recent.append((seq, outcome))
-            w.paused_until = 0.0
+            w.recent.append((seq, (outcome, sent)))
+            w.rtt.append(now - sent)
             if ok:
                 w.completed += 1
                 self.counters["completed"] += 1
+                self._good(w)
             else:
                 w.failed += 1
                 self.counters["failed"] += 1
+                self._strike(w, now, f"{w.strikes + 1} failed receipt(s) in a row", pause=False)
             self.cond.notify_all()
             return outcome
 
     def expire(self) -> list[tuple[str, int]]:
-        """Free slots whose receipt is overdue; such a worker gets no new work for another
-        timeout unless it answers. -> [(worker, seq)]."""
+        """Free slots whose receipt is overdue (each worker's own adaptive timeout); a strike for
+        the worker. -> [(worker, seq)]."""
         out = []
         with self.cond:
             now = self.clock()
             for w in self.workers.values():
+                timeout = self.timeout_for(w)
                 for seq, sent in list(w.in_flight.items()):
-                    if now - sent > self.result_timeout_s:
+                    if now - sent > timeout:
                         del w.in_flight[seq]
-                        w.recent.append((seq, "timeout"))
+                        w.recent.append((seq, ("timeout", sent)))
                         w.timeouts += 1
-                        w.paused_until = now + self.result_timeout_s
                         self.counters["timeouts"] += 1
+                        self._strike(w, now, f"no receipt within {timeout:.1f} s "
+                                             f"({w.strikes + 1} item(s) in a row)")
                         out.append((w.name, seq))
             if out:
                 self.cond.notify_all()
@@ -323,7 +406,8 @@ class DispatchState:
         with self.cond:
             return {"counters": dict(self.counters),
                     "workers": {n: {"in_flight": len(w.in_flight), "assigned": w.assigned,
-                                    "completed": w.completed, "failed": w.failed, "timeouts": w.timeouts}
+                                    "completed": w.completed, "failed": w.failed, "timeouts": w.timeouts,
+                                    "trust": w.trust, "why": w.why, "timeout_s": self.timeout_for(w)}
                                 for n, w in self.workers.items()}}
 
 
@@ -372,12 +456,14 @@ class Dispatcher:
         name = str(sample.key_expr).rsplit("/", 1)[-1]
         if sample.kind == zenoh.SampleKind.PUT:
             if self.state.add_worker(name):
-                log.info("worker %s joined (%d alive)", name, self.state.alive())
+                log.info("worker %s joined (%d alive); on probation until its first good receipt", name,
+                         self.state.alive())
         else:
             lost = self.state.remove_worker(name)
             self.methods.pop(name, None)
             self.rates.forget(f"out_work_{name}")
-            log.warning("worker %s left (%d alive); %d in-flight frame(s) lost", name, self.state.alive(), lost)
+            log.warning("worker %s left (%d alive, %d trusted); %d in-flight frame(s) lost", name, self.state.alive(),
+                        self.state.trusted(), lost)
 
     def _on_done(self, sample) -> None:
         payload = sample.payload.to_bytes()
@@ -406,7 +492,7 @@ class Dispatcher:
 
         if self.transport != "raw" or msg.left.encoding != "raw":
             payload = codec.encode(reencode_frame(msg, self.transport, self.jpeg_quality))
-        age_ms = (time.time_ns() - msg.stamp_ns) / 1e6
+        age_ms = self.node.age_s(msg) * 1e3
         self.node.session.put(self._work.key(self.rid, instance=name), payload,
                               congestion_control=zenoh.CongestionControl.DROP, priority=zenoh.Priority.DATA,
                               attachment=make_attachment(age_ms, self.max_age_ms))
@@ -414,27 +500,35 @@ class Dispatcher:
 
     def _housekeeping(self, out) -> None:
         for name, seq in self.state.expire():
-            self.node.warn("timeout", f"worker {name}: no receipt for seq {seq} in "
-                                      f"{self.state.result_timeout_s:g} s; slot freed")
-        alive = self.state.alive()
+            self.node.warn("timeout", f"worker {name}: no receipt for seq {seq} in time; slot freed")
+        alive, trusted = self.state.alive(), self.state.trusted()
         snap = self.state.snapshot()
         self.node.extra.update({f"pool_{k}": float(v) for k, v in snap["counters"].items()})
         self.node.extra["workers_alive"] = float(alive)
+        self.node.extra["workers_trusted"] = float(trusted)
         self.node.extra["in_flight"] = float(sum(w["in_flight"] for w in snap["workers"].values()))
-        if alive:
-            methods = sorted({m for w, m in list(self.methods.items()) if w in snap["workers"]})
-            self.node.status = f"ok: {alive} worker(s)" + (f" ({', '.join(methods)})" if methods else "")
+        doubtful = {n: w for n, w in snap["workers"].items() if w["trust"] != "trusted"}
+        quarantined = [f"{n} ({w['why']})" for n, w in doubtful.items() if w["trust"] == "quarantined"]
+        probation = [n for n, w in doubtful.items() if w["trust"] == "probation"]
+        self.node.extra["workers_quarantined"] = float(len(quarantined))
+        notes = ([f"quarantined: {', '.join(quarantined)}"] if quarantined else []) + \
+                ([f"on probation: {', '.join(probation)}"] if probation else [])
+        note = f"; {'; '.join(notes)}" if notes else ""
+        if trusted:
+            methods = sorted({m for w, m in list(self.methods.items())
+                              if w in snap["workers"] and snap["workers"][w]["trust"] == "trusted"})
+            self.node.status = (f"ok: {trusted} worker{'s' if trusted > 1 else ''}"
+                                + (f" ({', '.join(methods)})" if methods else "") + note)
         elif self.fallback is not None:
-            self.node.status = f"fallback: no worker alive, computing onboard ({self.fallback.method})"
+            # One host with no offboard worker is the normal single-machine setup, not a fault.
+            what = f"computing onboard ({self.fallback.method}){note}"
+            self.node.status = f"ok: {what}" if not alive else f"fallback: {what}"
         else:
-            self.node.status = "no worker reachable"
+            self.node.status = f"no worker reachable{note}"
         self.rates.tick()
 
-    def _decode(self, payload: bytes) -> StereoFrame | None:
-        return self.node.decode_or_drop(payload, StereoFrame, "input on frames_rect")
-
     def _too_old(self, msg: StereoFrame) -> bool:
-        if (time.time_ns() - msg.stamp_ns) / 1e6 > self.max_age_ms:
+        if self.node.age_s(msg) * 1e3 > self.max_age_ms:
             self.node.extra["too_old"] = self.node.extra.get("too_old", 0) + 1
             return True
         return False
@@ -451,30 +545,33 @@ class Dispatcher:
             if now >= next_house:
                 self._housekeeping(out)
                 next_house = now + 0.1
-            if self.state.alive() == 0:
+            if self.state.trusted() == 0:
+                # No proven worker: the onboard fallback computes, except for a frame that goes to a
+                # worker due for a probe (a new one, or one back from quarantine).
                 pending = None
-                if self.fallback is None:
+                if self.fallback is None and not self.state.probe_due():
                     inbox.take(0.1)  # drain: overwritten frames count as drops; nothing to do
                     continue
-                payload = inbox.take(0.1)
-                if payload is None:
+                got = node.take(inbox, 0.1)
+                if got is None or self._too_old(got[0]):
                     continue
-                msg = self._decode(payload)
-                if msg is None or self._too_old(msg):
-                    continue
-                with node.processing(msg):
-                    out.put(self.fallback.compute(msg, node.instance))
-                    self.fallback.report(node)
-                    self.node.extra["fallback_frames"] = self.node.extra.get("fallback_frames", 0) + 1
+                msg, payload = got
+                name = self.state.claim(msg.seq)
+                if name is not None:
+                    self._dispatch(name, msg, payload)
+                elif self.fallback is not None:
+                    with node.processing(msg):
+                        out.put(self.fallback.compute(msg, node.instance))
+                        self.fallback.report(node)
+                        self.node.extra["fallback_frames"] = self.node.extra.get("fallback_frames", 0) + 1
                 continue
             if not self.state.wait_free(0.1):
                 continue
-            payload = inbox.take(0.0 if pending else 0.1)
-            if payload is not None:
+            got = node.take(inbox, 0.0 if pending else 0.1)
+            if got is not None:
                 if pending is not None:
                     node.extra["replaced_pending"] = node.extra.get("replaced_pending", 0) + 1
-                msg = self._decode(payload)
-                pending = (msg, payload) if msg is not None else pending
+                pending = got
             if pending is None:
                 continue
             msg, payload = pending
@@ -485,13 +582,16 @@ class Dispatcher:
             if name is None:
                 continue  # the free worker vanished meanwhile; keep the frame for the next one
             pending = None
-            with node.processing(msg):
-                try:
-                    self._send(name, msg, payload)
-                except BaseException:
-                    self.state.unclaim(name, msg.seq)
-                    raise
-                node._published((time.time_ns() - msg.stamp_ns))
+            self._dispatch(name, msg, payload)
+
+    def _dispatch(self, name: str, msg: StereoFrame, payload: bytes) -> None:
+        with self.node.processing(msg):
+            try:
+                self._send(name, msg, payload)
+            except BaseException:
+                self.state.unclaim(name, msg.seq)
+                raise
+            self.node._published(self.node.age_ns(msg))
 
 
 def run_dispatcher(node: Node, settings: Any) -> None:
@@ -506,19 +606,24 @@ def run_dispatcher(node: Node, settings: Any) -> None:
 # --- the worker (any host) ------------------------------------------------------------------------
 
 class WorkQueue:
-    """Work items in arrival order, at most `capacity` (the oldest is dropped beyond that: the
-    dispatcher bounds what is in flight, so this only guards against a misbehaving sender)."""
+    """Work items in arrival order, at most `capacity` of them and `max_bytes` in all (the oldest
+    are dropped beyond that: the dispatcher bounds what is in flight, so this only guards against a
+    misbehaving sender, whose items could otherwise hold 8 x 80 MB)."""
 
-    def __init__(self, capacity: int = 8):
-        self._items: deque[tuple[bytes, bytes | None, float]] = deque(maxlen=capacity)
+    def __init__(self, capacity: int = 8, max_bytes: int = 128 << 20):
+        self._items: deque[tuple[bytes, bytes | None, float]] = deque()
+        self.capacity, self.max_bytes = capacity, max_bytes
+        self._held = 0
         self._cond = threading.Condition()
         self.received = self.overflowed = self.bytes = 0
 
     def offer(self, payload: bytes, attachment: bytes | None) -> None:
         with self._cond:
-            if len(self._items) == self._items.maxlen:
-                self.overflowed += 1
             self._items.append((payload, attachment, time.monotonic()))
+            self._held += len(payload)
+            while len(self._items) > 1 and (len(self._items) > self.capacity or self._held > self.max_bytes):
+                self._held -= len(self._items.popleft()[0])
+                self.overflowed += 1
             self.received += 1
             self.bytes += len(payload)
             self._cond.notify()
@@ -527,7 +632,11 @@ class WorkQueue:
         with self._cond:
             if not self._items:
                 self._cond.wait(timeout)
-            return self._items.popleft() if self._items else None
+            if not self._items:
+                return None
+            item = self._items.popleft()
+            self._held -= len(item[0])
+            return item
 
 
 def run_worker(node: Node, settings: Any) -> None:
@@ -538,6 +647,10 @@ def run_worker(node: Node, settings: Any) -> None:
 
     def on_work(sample) -> None:
         att = sample.attachment
+        node.count_input()
+        if len(sample.payload) > topic("work").max_bytes:
+            node.extra["in_work_oversized"] = node.extra.get("in_work_oversized", 0) + 1
+            return
         payload = sample.payload.to_bytes()
         rates.add("in_work", len(payload))
         queue.offer(payload, att.to_bytes() if att is not None else None)

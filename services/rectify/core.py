@@ -79,6 +79,21 @@ class Rectifier:
 log = logging.getLogger("ballbot.rectify")
 
 
+def implausible_change(old: camera.RectifiedModel, new: camera.RectifiedModel, max_change: float) -> str:
+    """Why swapping `old` for `new` at run time is implausible, or "" if it is not. Every distance
+    is f*B/d: a baseline or focal length that changes by more than max_change (a fraction) between
+    two calibrations of the same rig is a different rig or a mistake, and would silently rescale
+    every obstacle (half the baseline halves every distance). 0 disables the check."""
+    if max_change <= 0:
+        return ""
+    for what, a, b, unit, k in (("baseline", old.baseline_m, new.baseline_m, "mm", 1000.0),
+                                ("focal length", old.focal_px, new.focal_px, "px", 1.0)):
+        if abs(b - a) > max_change * abs(a):
+            return (f"its {what} {b * k:.2f} {unit} differs from the one in use ({a * k:.2f} {unit}) by "
+                    f"{abs(b - a) / abs(a):.0%}, more than {max_change:.0%}")
+    return ""
+
+
 class CalibrationHolder:
     """The Rectifier in use, and how a new calibration replaces it at run time.
 
@@ -90,14 +105,16 @@ class CalibrationHolder:
     is logged and refused; the old one stays in use.
     """
 
-    def __init__(self, spec: str, alpha: float = 0.0):
+    def __init__(self, spec: str, alpha: float = 0.0, max_change: float = 0.05):
         self.alpha = alpha
+        self.max_change = max_change
         self.spec = spec
         self._lock = threading.Lock()  # serialises offers (file watcher vs. messages), not frames
         self._rectifier = Rectifier(camera.load_calibration(spec), alpha)
         self._path = Path(spec) if spec not in camera.PROFILES and Path(spec).exists() else None
         self._mtime = self._stat()
         self.stream_size: tuple[int, int] | None = None
+        self.stream_source: str | None = None  # StereoFrame.source of the frames seen lately
         self.generation = 0
         self.refused = 0
         self.last_error = ""
@@ -116,7 +133,7 @@ class CalibrationHolder:
                     self._rectifier.calibration.name or self.spec, why)
         return False
 
-    def offer(self, cal: camera.Calibration, origin: str) -> bool:
+    def offer(self, cal: camera.Calibration, origin: str, check_change: bool = True) -> bool:
         """Build a Rectifier for `cal` and swap it in; False (and logged) if refused."""
         with self._lock:
             if self.stream_size is not None and tuple(cal.image_size) != self.stream_size:
@@ -128,6 +145,10 @@ class CalibrationHolder:
                 return self._refuse(origin, str(e))
             except cv2.error as e:
                 return self._refuse(origin, f"OpenCV cannot rectify with it: {str(e).strip().splitlines()[-1]}")
+            jump = implausible_change(self._rectifier.model, new.model, self.max_change) if check_change else ""
+            if jump:
+                return self._refuse(origin, f"{jump}; a change this large is not applied at run time "
+                                            f"(restart rectify with the new calibration if it is right)")
             self._rectifier = new  # the swap: one reference assignment, between two frames
             self.generation += 1
             m = new.model
@@ -135,7 +156,7 @@ class CalibrationHolder:
                      cal.name or "?", origin, m.focal_px, m.baseline_m * 1000)
             return True
 
-    def offer_yaml(self, text: str, origin: str) -> bool:
+    def offer_yaml(self, text: str, origin: str, check_change: bool = True) -> bool:
         import yaml
 
         try:
@@ -146,7 +167,7 @@ class CalibrationHolder:
             cal = camera.calibration_from_dict(doc, where=origin)
         except CalibrationError as e:
             return self._refuse(origin, str(e))
-        return self.offer(cal, origin)
+        return self.offer(cal, origin, check_change)
 
     def _stat(self) -> tuple[float, int] | None:
         if self._path is None:

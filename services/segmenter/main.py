@@ -82,8 +82,11 @@ class ObstacleBuilder:
         out.sort(key=lambda o: o.distance_m)
         return out
 
-    def build(self, msg: DisparityMap, detections: list[Detection], stale: bool) -> ObstacleList:
-        obstacles = self.obstacles(detections, msg.stamp_ns / 1e9)
+    def build(self, msg: DisparityMap, detections: list[Detection], stale: bool,
+              t_s: float | None = None) -> ObstacleList:
+        """t_s: the frame's time for tracking, s, on a clock that never goes backwards (the service
+        passes Node.frame_time_s: monotonic); offline, the capture stamp."""
+        obstacles = self.obstacles(detections, msg.stamp_ns / 1e9 if t_s is None else t_s)
         return ObstacleList(robot_id=msg.robot_id, seq=msg.seq, stamp_ns=msg.stamp_ns, stages=dict(msg.stages),
                             publish_ns=time.time_ns(), stale=stale, method=self.settings.method, obstacles=obstacles)
 
@@ -110,17 +113,14 @@ def run(node: Node, settings: SegmenterSettings) -> None:
                         out.put(prev, count=False)
 
     threading.Thread(target=heartbeat, name="stale-heartbeat", daemon=True).start()
-    last_stamp = -1  # capture time orders frames; seq restarts with capture
+    # The inbox hands on only plausible stamps, newest first (common/node.py: FreshnessGate); ages
+    # and the tracker's time base are on the monotonic clock, so a wall-clock step moves neither.
     for msg in node.receive(inbox):
         with node.processing(msg):
-            if msg.stamp_ns <= last_stamp:
-                node.extra["out_of_order"] = node.extra.get("out_of_order", 0) + 1
-                continue
             detections = builder.detect(msg)
-            stale = (time.time_ns() - msg.stamp_ns) / 1e9 > settings.stale_after_s
-            result = builder.build(msg, detections, stale)
+            stale = node.age_s(msg) > settings.stale_after_s
+            result = builder.build(msg, detections, stale, t_s=node.frame_time_s(msg))
             with lock:
                 out.put(result)
                 last["list"], last["time"] = result, time.monotonic()
-                last_stamp = msg.stamp_ns
             node.status = "stale: input too old" if stale else "ok"

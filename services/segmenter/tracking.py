@@ -4,8 +4,11 @@ Each track is a constant-velocity Kalman filter in 3D (camera frame, metres; the
 independent, so the filter is three 2-state filters sharing one covariance shape). Association is
 one-to-one (Hungarian) on the distance between a track's prediction and a detection, gated at
 gate_m plus how far the track may have drifted while unseen (max_speed_mps * time unseen). A track
-unseen for longer than timeout_s is dropped, so a short occlusion keeps its id and a long one
-does not. Velocities are the filter's, zero until a track has been seen twice.
+unseen for longer than timeout_s and in at least min_missed frames is dropped, so a short
+occlusion keeps its id and a long one does not, while a segmenter starved of CPU (frames 1 s
+apart on a loaded robot) does not drop tracks it simply had no frame to see them in. Velocities
+are the filter's, zero until a track has been seen twice. t_s must not go backwards (the service
+passes a monotonic time base).
 """
 from __future__ import annotations
 
@@ -21,6 +24,7 @@ class Track:
     velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))  # (3,) m/s
     last_seen_s: float = 0.0
     hits: int = 1
+    missed: int = 0  # frames since it was last seen
     P: np.ndarray = field(default_factory=lambda: np.diag([0.05, 0.05, 1.0]))  # pos var, cov, vel var (per axis)
 
     def predicted(self, t_s: float) -> np.ndarray:
@@ -31,9 +35,10 @@ class Tracker:
     """update(positions, t) -> one Track per position, in order (new tracks get new ids)."""
 
     def __init__(self, gate_m: float = 0.6, timeout_s: float = 1.0, velocity_smoothing: float = 0.5,
-                 accel_mps2: float = 2.0, max_speed_mps: float = 2.5):
+                 accel_mps2: float = 2.0, max_speed_mps: float = 2.5, min_missed: int = 3):
         self.gate_m = gate_m
         self.timeout_s = timeout_s
+        self.min_missed = min_missed
         # velocity_smoothing is kept for compatibility; the Kalman gain replaces it
         self.accel = accel_mps2
         self.max_speed = max_speed_mps
@@ -74,7 +79,7 @@ class Tracker:
 
     def update(self, positions: list[np.ndarray], t_s: float) -> list[Track]:
         """positions: 3D points (camera frame, m) seen at time t_s (s) -> one track per position."""
-        self.tracks = [tr for tr in self.tracks if t_s - tr.last_seen_s <= self.timeout_s]
+        self.tracks = [tr for tr in self.tracks if t_s - tr.last_seen_s <= self.timeout_s or tr.missed < self.min_missed]
         pos = [np.asarray(p, dtype=float) for p in positions]
         assigned: dict[int, Track] = {}
         if self.tracks and pos:
@@ -98,5 +103,8 @@ class Tracker:
                 self.tracks.append(tr)
             else:
                 self._correct(tr, p, t_s)
+            tr.missed = -1  # seen in this frame (0 after the count below)
             out.append(tr)
+        for tr in self.tracks:
+            tr.missed += 1
         return out

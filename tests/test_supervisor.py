@@ -1,0 +1,65 @@
+"""`up`'s supervisor: restart backoff that resets after healthy running, and `--listen`."""
+from __future__ import annotations
+
+import argparse
+
+import pytest
+
+from ballbot_vision.cli import build_parser, up_endpoints
+from ballbot_vision.common.errors import BallbotError
+from ballbot_vision.supervisor import INITIAL_BACKOFF_S, Child, Supervisor
+
+
+class Exited:
+    """A child process that has exited with `code` (poll() as subprocess.Popen's)."""
+
+    def __init__(self, code: int = 1):
+        self.returncode = code
+
+    def poll(self) -> int:
+        return self.returncode
+
+
+def crash(sup: Supervisor, c: Child, ran_s: float, now: float) -> float:
+    """c dies after running ran_s; -> the delay until its restart."""
+    import ballbot_vision.supervisor as S
+
+    c.proc, c.started_at = Exited(), now - ran_s
+    real = S.time.monotonic
+    S.time.monotonic = lambda: now
+    try:
+        assert sup._restart_dead() is None
+    finally:
+        S.time.monotonic = real
+    return c.next_start - now
+
+
+def test_backoff_grows_in_a_crash_loop_and_resets_after_healthy_running():
+    sup = Supervisor(healthy_after_s=30.0)
+    c = Child("rectify", [])
+    sup.children.append(c)
+    delays = [crash(sup, c, ran_s=0.2, now=1000.0 + 100 * i) for i in range(5)]
+    assert delays == [0.5, 1.0, 2.0, 4.0, 8.0]
+    # it then runs fine for half an hour and crashes once: no 16 s wait
+    assert crash(sup, c, ran_s=1800.0, now=5000.0) == INITIAL_BACKOFF_S
+    assert c.restarts == 6
+
+
+def _up_args(*argv: str) -> argparse.Namespace:
+    return build_parser().parse_args(["up", *argv])
+
+
+def test_up_listen_sets_the_router_endpoints_and_the_services_connect_on_loopback(monkeypatch):
+    for var in ("BALLBOT_LISTEN", "BALLBOT_CONNECT"):
+        monkeypatch.delenv(var, raising=False)
+    assert up_endpoints(_up_args()) == (["tcp/127.0.0.1:7447"], "tcp/127.0.0.1:7447")
+    assert up_endpoints(_up_args("--connect", "tcp/127.0.0.1:9000")) == (["tcp/127.0.0.1:9000"], "tcp/127.0.0.1:9000")
+    assert up_endpoints(_up_args("--listen", "tcp/0.0.0.0:7447")) == (["tcp/0.0.0.0:7447"], "tcp/127.0.0.1:7447")
+    assert up_endpoints(_up_args("--listen", "tcp/0.0.0.0:7447", "--listen", "tcp/[::]:7448")) == \
+        (["tcp/0.0.0.0:7447", "tcp/[::]:7448"], "tcp/127.0.0.1:7447")
+    assert up_endpoints(_up_args("--listen", "tcp/192.168.1.5:7447")) == (["tcp/192.168.1.5:7447"],
+                                                                          "tcp/192.168.1.5:7447")
+    monkeypatch.setenv("BALLBOT_LISTEN", "tcp/0.0.0.0:7500")
+    assert up_endpoints(_up_args()) == (["tcp/0.0.0.0:7500"], "tcp/127.0.0.1:7500")
+    with pytest.raises(BallbotError, match="fixed port"):
+        up_endpoints(_up_args("--listen", "tcp/0.0.0.0:0"))
