@@ -276,6 +276,7 @@ class Inbox:
         self._cond = threading.Condition()
         self._waiting: Delivery | None = None
         self._taken_stamp = -1  # without a gate
+        self.on_refused: Callable[[str, Meta], None] | None = None  # (verdict, meta): the node logs it
         self.received = 0
         self.overwritten = 0
         self.late = 0  # every refusal (future, old, late; without a gate: late only)
@@ -302,8 +303,11 @@ class Inbox:
             waiting = self._waiting.meta.stamp_ns if self._waiting is not None and self._waiting.meta else None
             if meta is not None:
                 if self.gate is not None:
-                    if self.gate.check(meta, waiting) != "ok":
+                    verdict = self.gate.check(meta, waiting)
+                    if verdict != "ok":
                         self.late += 1
+                        if self.on_refused is not None and verdict != "late":
+                            self.on_refused(verdict, meta)
                         return
                 elif meta.stamp_ns <= self._taken_stamp or (waiting is not None and meta.stamp_ns < waiting):
                     self.late += 1
@@ -507,6 +511,10 @@ class Node:
         max_bytes unless a tighter one is known, e.g. from the calibrated image size)."""
         t = topic(name)
         inbox = Inbox(t, FreshnessGate(self.clock, self.limits), max_bytes, self.clock)
+        inbox.on_refused = lambda verdict, meta: self.warn(
+            f"refused-{verdict}", f"dropped input on {name}: capture stamp {meta.stamp_ns} is "
+                                  f"{'in the future' if verdict == 'future' else 'too old'} for this clock "
+                                  f"(counted in in_{name}_{verdict})")
         sub = self.session.declare_subscriber(key or t.key(self.robot_id), inbox.offer_sample)
         self._subscribers.append(sub)
         self._inboxes.append(inbox)
