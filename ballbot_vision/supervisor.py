@@ -55,6 +55,7 @@ class Child:
     next_start: float = 0.0
     backoff_s: float = field(default=0.5)
     started_at: float = 0.0
+    nice_offset: int = 0  # added to the supervisor's nice for this child (see cli.stage_nice)
 
 
 INITIAL_BACKOFF_S = 0.5
@@ -77,21 +78,22 @@ class Supervisor:
         self.stop_timeout_s = stop_timeout_s
         self.healthy_after_s = healthy_after_s
 
-    def add(self, name: str, argv: list[str]) -> None:
-        self.children.append(Child(name, argv))
+    def add(self, name: str, argv: list[str], nice_offset: int = 0) -> None:
+        self.children.append(Child(name, argv, nice_offset=nice_offset))
 
     def _start(self, c: Child) -> None:
+        nice = self.nice + c.nice_offset
         c.proc = subprocess.Popen([sys.executable, "-m", "ballbot_vision.cli", *c.argv],
-                                  preexec_fn=self._child_setup, env=self.env)
+                                  preexec_fn=lambda: self._child_setup(nice), env=self.env)
         c.started_at = time.monotonic()
         log.info("started %s (pid %d)", c.name, c.proc.pid)
 
-    def _child_setup(self) -> None:
+    def _child_setup(self, nice: int) -> None:
         """In the child before exec: die with the supervisor; run at the requested priority."""
         _die_with_parent()
-        if self.nice:
+        if nice:
             try:
-                os.setpriority(os.PRIO_PROCESS, 0, self.nice)
+                os.setpriority(os.PRIO_PROCESS, 0, max(-20, min(19, nice)))
             except OSError:  # a negative nice needs root or CAP_SYS_NICE: run at the default
                 pass
 

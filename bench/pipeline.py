@@ -267,13 +267,17 @@ def summarize(lists: list[Received], seconds: float, compute_ms: float) -> dict:
         stage_lat[s] = percentiles([(m.stages[s] - m.stages[prev]) / 1e6 for m in fresh
                                     if s in m.stages and prev in m.stages])
         prev = s
-    stale = len(lists) - len(fresh)
+    # A stale list is a pair that came out too late; the segmenter's heartbeat also repeats the last
+    # list, flagged stale, whenever no input came for stale_after_s (every pair at rates under 2/s):
+    # those repeat a seq already delivered and say nothing about keeping up.
+    fresh_seqs = {m.seq for m in fresh}
+    stale = len({m.seq for m in lists if m.stale and m.seq not in fresh_seqs})
     dropped_fraction = dropped / captured if captured else 1.0
     why = []
     if not fresh:
         why.append("no obstacle list")
     if stale:
-        why.append(f"{stale} stale list(s)")
+        why.append(f"{stale} pair(s) delivered stale")
     if dropped_fraction > MAX_DROPPED:
         why.append(f"{dropped_fraction:.0%} of pairs dropped")
     if fresh and lat["p95"] > MAX_P95_X_COMPUTE * compute_ms:
@@ -310,17 +314,6 @@ def search_rate(probe: Callable[[float], dict], start_hz: float, probes: int) ->
 
 # --- the pipeline under test ----------------------------------------------------------------------
 
-def renice(sup, nice: int) -> None:
-    """Set a supervisor's children to priority `nice`, right after they started (before they
-    create threads, which inherit it)."""
-    for c in sup.children:
-        if nice and c.proc is not None:
-            try:
-                os.setpriority(os.PRIO_PROCESS, c.proc.pid, nice)
-            except OSError:  # gone already, or not allowed: it runs at the default priority
-                pass
-
-
 class LivePipeline:
     """Router, rectify, disparity (+ workers) and segmenter as processes, capture restarted per
     offered rate, and a subscriber collecting every obstacle list (msgpack only: the bench stays light)."""
@@ -338,22 +331,22 @@ class LivePipeline:
         return dict(os.environ, BALLBOT_LOG="WARNING")
 
     def __enter__(self) -> "LivePipeline":
+        from ..cli import stage_nice
         from ..common.keys import topic
         from ..common.zenoh_session import ZenohOptions, open_session
         from ..supervisor import Supervisor
 
         c = ["--connect", self.endpoint, "--robot-id", self.rid]
-        self.sup = sup = Supervisor(env=self._env())
+        self.sup = sup = Supervisor(env=self._env(), nice=self.nice)  # as `up` runs them
         sup.add("router", ["run", "router", "--listen", self.endpoint, "--robot-id", self.rid])
-        sup.add("rectify", ["run", "rectify", *c])
+        sup.add("rectify", ["run", "rectify", *c], nice_offset=stage_nice("rectify"))
         sup.add("disparity", ["run", "disparity", *c, "--method", self.method]
-                + (["--fallback", "none"] if self.workers else []))
-        sup.add("segmenter", ["run", "segmenter", *c])
+                + (["--fallback", "none"] if self.workers else []), nice_offset=stage_nice("disparity"))
+        sup.add("segmenter", ["run", "segmenter", *c], nice_offset=stage_nice("segmenter"))
         for i in range(self.workers):
             sup.add(f"worker{i}", ["run", "disparity", *c, "--role", "worker", "--instance", f"bench-worker{i}",
-                                   "--threads", "1", "--method", self.method])
+                                   "--threads", "1", "--method", self.method], nice_offset=stage_nice("disparity"))
         sup.start_all(self.endpoint)
-        renice(sup, self.nice)
         self.session = open_session(ZenohOptions(mode="peer", connect=[self.endpoint], listen=["tcp/127.0.0.1:0"]))
         self.session.declare_subscriber(topic("obstacles").key(self.rid), self._on_obstacles)
         return self
@@ -396,17 +389,18 @@ class LivePipeline:
 
     def offer(self, rate: float, timeout_s: float = 90.0) -> None:
         """(Re)start capture at `rate` pairs/s; returns once its pairs come out as obstacle lists."""
+        from ..cli import stage_nice
         from ..supervisor import Supervisor
 
         if self._capture is not None:
             self._capture.stop_all()
         self._want_stamp = time.time_ns()
         self._first.clear()
-        self._capture = Supervisor(env=self._env())
+        self._capture = Supervisor(env=self._env(), nice=self.nice)
         self._capture.add("capture", ["run", "capture", "--connect", self.endpoint, "--robot-id", self.rid,
-                                      "--preload", str(self.preload), "--rate-hz", f"{rate:.3f}"])
+                                      "--preload", str(self.preload), "--rate-hz", f"{rate:.3f}"],
+                          nice_offset=stage_nice("capture"))
         self._capture.start_all()
-        renice(self._capture, self.nice)
         if not self._first.wait(timeout_s):
             raise RuntimeError(f"no obstacle list within {timeout_s:g} s of starting capture at {rate:.1f}/s "
                                "(run `ballbot-vision up` to see which service fails)")
@@ -460,7 +454,7 @@ def measure_once(live: LivePipeline, frames: Frames, args: argparse.Namespace, l
         rate = args.rate
     else:
         log("a first look at the references, for the search ...")
-        quick = references(frames, method, min(1.0, args.reference_seconds))
+        quick = references(frames, method, args.reference_seconds)
         compute_ms = quick["compute"]["total_ms_p50"]
 
         def probe(rate: float) -> dict:
@@ -471,7 +465,7 @@ def measure_once(live: LivePipeline, frames: Frames, args: argparse.Namespace, l
             return r
 
         # Start above what the matcher alone can do: the pipeline cannot deliver more.
-        start = min(1000.0, 1.3 * quick["matcher_2_threads"]["fps"])
+        start = min(1000.0, 1.3 * max(quick["matcher_2_threads"]["fps"], quick["matcher_1_thread"]["fps"]))
         log(f"searching the highest sustainable offered rate (from {start:.0f}/s) ...")
         rate, probes = search_rate(probe, start, args.probes)
     log("references: OpenCV's matcher alone (2 threads, 1 thread) and the in-process compute ...")
@@ -573,6 +567,10 @@ def bench_pipeline(args: argparse.Namespace) -> int:
     runs = []
     say(f"starting {procs} ...")
     with LivePipeline(method, args.preload, args.workers, nice=args.nice) as live:
+        # Every process's first frames import and allocate (the tracker's scipy, OpenCV's buffers):
+        # run a few seconds of pairs through before anything is measured.
+        live.offer(args.rate or 10.0)
+        time.sleep(3.0)  # a benchmark's warm-up, not a synchronisation
         for i in range(max(1, args.repeat)):
             if args.repeat > 1:
                 say(f"run {i + 1} of {args.repeat}")

@@ -112,12 +112,12 @@ def pool_run(method: str, workers: int, rate: float, warmup_s: float, seconds: f
     from ..common.messages import ServiceStats
     from ..common.zenoh_session import ZenohOptions, open_session
     from ..supervisor import Supervisor
-    from .pipeline import free_port, percentiles, renice
+    from .pipeline import free_port, percentiles
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     rid = f"scale{os.getpid()}"
     common = ["--robot-id", rid]
-    sup = Supervisor()
+    sup = Supervisor(nice=nice)
     sup.add("router", ["run", "router", "--listen", endpoint] + common)
     c = ["--connect", endpoint] + common
     if source == "pipeline":
@@ -150,7 +150,6 @@ def pool_run(method: str, workers: int, rate: float, warmup_s: float, seconds: f
 
     try:
         sup.start_all(endpoint)
-        renice(sup, nice)
         with open_session(ZenohOptions(mode="peer", connect=[endpoint], listen=["tcp/127.0.0.1:0"])) as session:
             session.declare_subscriber(topic("disparity").key(rid), on_disp)
             session.declare_subscriber(topic("stats").pattern(rid), on_stats)

@@ -276,6 +276,7 @@ class Inbox:
         self._cond = threading.Condition()
         self._waiting: Delivery | None = None
         self._taken_stamp = -1  # without a gate
+        self.on_refused: Callable[[str, Meta], None] | None = None  # (verdict, meta): the node logs it
         self.received = 0
         self.overwritten = 0
         self.late = 0  # every refusal (future, old, late; without a gate: late only)
@@ -302,8 +303,11 @@ class Inbox:
             waiting = self._waiting.meta.stamp_ns if self._waiting is not None and self._waiting.meta else None
             if meta is not None:
                 if self.gate is not None:
-                    if self.gate.check(meta, waiting) != "ok":
+                    verdict = self.gate.check(meta, waiting)
+                    if verdict != "ok":
                         self.late += 1
+                        if self.on_refused is not None and verdict != "late":
+                            self.on_refused(verdict, meta)
                         return
                 elif meta.stamp_ns <= self._taken_stamp or (waiting is not None and meta.stamp_ns < waiting):
                     self.late += 1
@@ -507,6 +511,10 @@ class Node:
         max_bytes unless a tighter one is known, e.g. from the calibrated image size)."""
         t = topic(name)
         inbox = Inbox(t, FreshnessGate(self.clock, self.limits), max_bytes, self.clock)
+        inbox.on_refused = lambda verdict, meta: self.warn(
+            f"refused-{verdict}", f"dropped input on {name}: capture stamp {meta.stamp_ns} is "
+                                  f"{'in the future' if verdict == 'future' else 'too old'} for this clock "
+                                  f"(counted in in_{name}_{verdict})")
         sub = self.session.declare_subscriber(key or t.key(self.robot_id), inbox.offer_sample)
         self._subscribers.append(sub)
         self._inboxes.append(inbox)
@@ -710,14 +718,24 @@ def _libc():
 
 
 def release_memory_eagerly() -> None:
-    """Large buffers (payloads, images) straight from and back to the OS. glibc otherwise raises its
-    mmap threshold after the first large free and serves later large buffers from the heap, which it
-    rarely returns: under a flood of big garbage a service grew by hundreds of MB and kept them."""
+    """Freed memory goes back to the OS once a second (trim_memory, from the stats thread), not on
+    every free. glibc by default raises its mmap threshold after the first large free and then
+    serves large buffers from the heap, which it rarely returns: under a flood of big garbage a
+    service grew by hundreds of MB and kept them; the once-a-second trim gives them back.
+
+    Large buffers still come from the heap, on purpose: a buffer above the mmap threshold is mapped
+    fresh and unmapped on free, so every image payload (0.3-12 MB, several per frame and stage)
+    would be page-faulted in again on each frame. With a 256 KB threshold a stage that only passes
+    640x480 pairs on spent 3.7 ms of CPU per pair instead of 1.7 (`ballbot-vision bench` shows it
+    as kernel time). One arena: malloc_trim returns the top of the main heap only, so the buffers
+    Zenoh's threads free must land there too (with an arena per thread a fuzz burst left a service
+    100 MB larger)."""
     libc = _libc()
     if libc is not None:
-        M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3
-        libc.mallopt(M_MMAP_THRESHOLD, 256 * 1024)
-        libc.mallopt(M_TRIM_THRESHOLD, 1024 * 1024)
+        M_TRIM_THRESHOLD, M_MMAP_THRESHOLD, M_ARENA_MAX = -1, -3, -8
+        libc.mallopt(M_ARENA_MAX, 1)
+        libc.mallopt(M_MMAP_THRESHOLD, 32 << 20)  # glibc's largest; pinned, so it never moves
+        libc.mallopt(M_TRIM_THRESHOLD, 128 << 20)  # no trim on each free: trim_memory does it at 1 Hz
 
 
 def trim_memory() -> None:

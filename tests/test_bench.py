@@ -49,6 +49,15 @@ def test_summarize_names_each_reason_a_rate_is_not_sustainable():
     assert not stale["sustainable"] and any("stale" in w for w in stale["why_not"])
     assert stale["obstacle_lists"] == 49  # a stale list is not a delivered one
 
+    # The segmenter's heartbeat repeats the last list, stale, when input pauses (any rate under 2/s):
+    # not a pair delivered late.
+    beat = lists(range(5), period_ms=1000.0)
+    beat += [Received(m.recv_ns + 600_000_000, m.seq, m.stamp_ns, m.publish_ns + 600_000_000, True, m.stages)
+             for m in beat]
+    slow_rate = summarize(beat, 5.0, compute_ms=10.0)
+    assert slow_rate["sustainable"], slow_rate["why_not"]
+    assert slow_rate["stale_lists"] == 0 and slow_rate["obstacle_lists"] == 5
+
     slow = summarize(lists(range(50), latency_ms=100.0), 1.0, compute_ms=10.0)
     assert not slow["sustainable"] and any("p95" in w for w in slow["why_not"])
 

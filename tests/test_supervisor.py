@@ -63,3 +63,27 @@ def test_up_listen_sets_the_router_endpoints_and_the_services_connect_on_loopbac
     assert up_endpoints(_up_args()) == (["tcp/0.0.0.0:7500"], "tcp/127.0.0.1:7500")
     with pytest.raises(BallbotError, match="fixed port"):
         up_endpoints(_up_args("--listen", "tcp/0.0.0.0:0"))
+
+
+def test_later_stages_run_ahead_of_earlier_ones():
+    from ballbot_vision.cli import PIPELINE, stage_nice
+
+    assert [stage_nice(s) for s in PIPELINE] == [3, 2, 1, 0]  # capture ... segmenter
+    assert stage_nice("router") == 0 and stage_nice("viewer") == 0
+
+
+def test_a_child_runs_at_the_supervisors_nice_plus_its_offset(tmp_path):
+    from helpers import free_port
+
+    def nice_of(pid: int) -> int:
+        with open(f"/proc/{pid}/stat") as f:
+            return int(f.read().rsplit(")", 1)[1].split()[16])
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    sup = Supervisor(nice=2, stop_timeout_s=10.0)
+    sup.add("router", ["run", "router", "--listen", endpoint, "--robot-id", "nice"], nice_offset=3)
+    try:
+        sup.start_all()
+        assert nice_of(sup.children[0].proc.pid) == 5
+    finally:
+        sup.stop_all()

@@ -116,7 +116,6 @@ async def _clients(port: int, seconds: float) -> dict:
             await bad.send_str(json.dumps({"replay": "explode"}))
             reply = await bad.receive(timeout=30)
             out["garbage_reply"] = json.loads(reply.data)
-            await bad.send_str(json.dumps({"replay": "step", "frames": 2}))
             # (this page then stops reading: the server's heartbeat closes it after 10 s without a pong)
 
             async def read_silent():
@@ -135,6 +134,7 @@ async def _clients(port: int, seconds: float) -> dict:
                     pictures += {"left", "disparity"} <= set(blobs)
                     await good.send_str('{"ack":1}')
             out["seconds"] = time.monotonic() - t0
+            await good.send_str(json.dumps({"replay": "step", "frames": 2}))  # the test listens as a replay would
             task.cancel()
     return out
 

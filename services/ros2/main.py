@@ -14,8 +14,11 @@ and publishes, as the ROS node `<namespace>/<node_name>` of ROS domain `domain_i
 The camera->base transform comes from the ground estimate each obstacle list carries (the
 segmenter's configured mount, or its fitted floor), else from this service's mount_height_m /
 pitch / roll, with this service's mount_yaw/x/y; it is
-re-published when it moves by more than tf_update_m / tf_update_deg. Stale obstacle lists (the
-input stopped) are not republished unless publish_stale: ROS messages have no stale flag.
+re-published when it moves by more than tf_update_m / tf_update_deg. Obstacle lists flagged stale
+are not republished unless publish_stale (ROS messages have no stale flag); even then the
+segmenter's heartbeat repeats of its last list (same capture stamp, sent while its input has
+stopped) never are: the node inbox refuses a stamp it has already handed on, and a ROS consumer
+tells a stopped stream from the header stamps' age.
 """
 from __future__ import annotations
 
@@ -65,7 +68,8 @@ class Ros2Settings(ServiceSettings):
     publish_points: bool = Field(True, description="publish the obstacles' 3D points (needs the disparity maps)")
     points_margin_m: float = Field(0.05, ge=0, le=2, description="points: widen each obstacle's 3D box by this")
     points_max: int = Field(5000, ge=1, le=1_000_000, description="points: at most this many per cloud")
-    publish_stale: bool = Field(False, description="also republish obstacle lists flagged stale")
+    publish_stale: bool = Field(False, description="also republish obstacle lists computed from late "
+                                               "input (flagged stale); heartbeat repeats of the last list never are")
     marker_lifetime_s: float = Field(0.5, ge=0, le=60, description="markers vanish after this unless renewed (0: never)")
     tf_static: bool = Field(True, description="publish base_frame -> camera_frame on /tf_static")
     mount_height_m: float | None = Field(None, gt=0, le=10, description="camera height above the floor, for "

@@ -27,6 +27,7 @@ from ...common.messages import DisparityMap, FreeSpace, GroundTruth, ObstacleLis
 from ..recorder.recording import colorize_disparity
 
 STAGES = ("capture", "rectify", "disparity", "segmenter")
+RING = 48  # recent frames, disparity maps and truths kept to pair with a later obstacle list
 STATS_MAX_AGE_S = 3.5  # stats are published once a second; older ones belong to a stopped instance
 
 
@@ -102,9 +103,11 @@ class ViewInputs:
     """What the viewer holds: recent frames and disparity maps (payloads by capture stamp, decoded
     only when shown), the latest obstacle list, free space, truth and every instance's stats."""
 
-    frames: deque = field(default_factory=lambda: deque(maxlen=12))  # (stamp_ns, payload)
-    disparities: deque = field(default_factory=lambda: deque(maxlen=12))
-    truths: deque = field(default_factory=lambda: deque(maxlen=12))
+    # (stamp_ns, payload): enough to still hold the picture of an obstacle list that comes ~1.5 s
+    # (30 Hz) to ~5 s (10 Hz) after its capture, at most ~45 MB of 640x480 BGR pairs
+    frames: deque = field(default_factory=lambda: deque(maxlen=RING))
+    disparities: deque = field(default_factory=lambda: deque(maxlen=RING))
+    truths: deque = field(default_factory=lambda: deque(maxlen=RING))
     obstacles: ObstacleList | None = None
     freespace: FreeSpace | None = None
     stats: dict[tuple[str, str], tuple[float, ServiceStats]] = field(default_factory=dict)

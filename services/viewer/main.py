@@ -206,6 +206,8 @@ class Viewer:
                                 frames=frames, speed=speed)
         except Exception as e:
             return f"bad replay command: {e}"
+        if not self._control.matching_status.matching:
+            return "no replay is running (capture --source mcap) for robot " + repr(self.node.robot_id)
         self._control.put(codec.encode(msg))
         return None
 

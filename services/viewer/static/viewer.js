@@ -4,6 +4,7 @@
 "use strict";
 
 const ORANGE = "#ff8c00", GREEN = "#3ee66b";
+const MAX_LABELS = 20; // beyond this many obstacles only the nearest are labelled (all are boxed)
 const STAGE_COLOURS = {capture: "#7fb3ff", rectify: "#9be37b", disparity: "#ffd166", segmenter: "#ff9f7f"};
 // What this page drew last, for people debugging and for the browser test (tests/test_viewer.py).
 const state = window.viewer = {updates: 0, imageUpdates: 0, drawn: null, doc: null, connected: false, errors: []};
@@ -25,6 +26,7 @@ function unpack(buffer) {
 
 async function drawPicture(canvas, blob) {
   const bitmap = await createImageBitmap(blob);
+  canvas.parentElement.classList.toggle("panorama", bitmap.width > 2 * bitmap.height);
   if (canvas.width !== bitmap.width || canvas.height !== bitmap.height) {
     canvas.width = bitmap.width;
     canvas.height = bitmap.height;
@@ -46,7 +48,8 @@ function label(ctx, text, x, y, colour, px) {
 }
 
 function drawBoxes(ctx, doc) {
-  const scale = Math.max(1, ctx.canvas.width / 640);
+  // line and font size grow with the picture, but not past its height (a car's 1344x372)
+  const scale = Math.max(1, Math.min(ctx.canvas.width / 640, ctx.canvas.height / 480));
   const drawn = {seq: null, stamp_ns: null, boxes: [], truth: []};
   if (doc.truth) {
     ctx.setLineDash([6 * scale, 4 * scale]);
@@ -66,13 +69,13 @@ function drawBoxes(ctx, doc) {
     drawn.stamp_ns = obs.stamp_ns;
     ctx.lineWidth = 2 * scale;
     ctx.strokeStyle = ORANGE;
-    for (const o of obs.list) {
+    obs.list.forEach((o, i) => { // nearest first
       const [x0, y0, x1, y1] = o.bbox_px;
       ctx.strokeRect(x0, y0, x1 - x0, y1 - y0);
       const text = `#${o.id} ${o.distance_m.toFixed(2)} m`;
-      label(ctx, text, x0, y0, ORANGE, 13 * scale);
-      drawn.boxes.push({id: o.id, bbox_px: [x0, y0, x1, y1], text});
-    }
+      if (i < MAX_LABELS) label(ctx, text, x0, y0, ORANGE, 13 * scale);
+      drawn.boxes.push({id: o.id, bbox_px: [x0, y0, x1, y1], text, labelled: i < MAX_LABELS});
+    });
   }
   return drawn;
 }
@@ -134,15 +137,15 @@ function drawMap(doc, freespaceBitmap) {
   ctx.lineTo(u0 + 7, v0 + 6);
   ctx.fill();
   const stale = doc.obstacles && doc.obstacles.stale;
-  for (const it of items) {
+  items.forEach((it, i) => {
     const [u, v] = at(it.fwd + it.deep / 2, it.left + it.wide / 2);
     ctx.fillStyle = stale ? "rgba(150,150,150,0.5)" : "rgba(255,140,0,0.55)";
     ctx.strokeStyle = ORANGE;
     ctx.fillRect(u, v, Math.max(2, it.wide * scale), Math.max(2, it.deep * scale));
     ctx.strokeRect(u, v, Math.max(2, it.wide * scale), Math.max(2, it.deep * scale));
     ctx.fillStyle = "#fff";
-    ctx.fillText(`#${it.o.id} ${it.o.distance_m.toFixed(2)} m`, u + Math.max(2, it.wide * scale) + 3, v + 10);
-  }
+    if (i < MAX_LABELS) ctx.fillText(`#${it.o.id} ${it.o.distance_m.toFixed(2)} m`, u + Math.max(2, it.wide * scale) + 3, v + 10);
+  });
   $("map-info").textContent = `(${base ? "robot base: forward up, left left" : "camera: forward up, right right"}` +
     `${base && doc.freespace ? "; green free, red occupied" : ""}; ${range} m)`;
 }
@@ -167,6 +170,7 @@ function drawInfo(doc) {
   $("seq").textContent = obs ? obs.seq : (doc.image ? doc.image.seq : "-");
   $("stale").hidden = !(obs && obs.stale);
   if (obs) {
+    $("obstacle-count").textContent = `(${obs.list.length}, nearest first${obs.list.length > MAX_LABELS ? `; the ${MAX_LABELS} nearest labelled on the pictures` : ""})`;
     $("latency").textContent = fmt(obs.latency.capture_to_obstacles_ms, 1);
     fillTable($("obstacles").tBodies[0], obs.list.map((o) => {
       const p = o.position_base_m;
