@@ -187,7 +187,7 @@ def _read_ros_one(path: Path) -> dict:
         "R": _ros_mat(doc, "rectification_matrix", 3, 3, where),
         "P": _ros_mat(doc, "projection_matrix", 3, 4, where),
         "name": str(doc.get("camera_name", path.stem)),
-        "path": where,
+        "where": where,
     }
 
 
@@ -199,28 +199,38 @@ def is_ros_camera_info(path: str | Path) -> bool:
     return isinstance(doc, dict) and "camera_matrix" in doc and "projection_matrix" in doc
 
 
-def read_ros_pair(left: str | Path, right: str | Path, name: str = "") -> camera.RawRig:
-    a, b = _read_ros_one(Path(left)), _read_ros_one(Path(right))
+def rig_from_ros_cameras(a: dict, b: dict, name: str, fields: tuple[str, str] = ("rectification_matrix",
+                                                                                 "projection_matrix")) -> camera.RawRig:
+    """A raw rig from the two cameras of a ROS stereo calibration (camera_info files, or
+    sensor_msgs/CameraInfo messages): each camera's K and distortion, and the right camera's pose
+    from both cameras' rectification R and projection P (P = K' [I | t] in the rectified frame, so
+    t = K'^-1 P[:, 3]). a, b: {"size", "K", "D", "R", "P", "where"}; fields: how the caller's
+    format names R and P, for the errors."""
+    r_field, p_field = fields
     if a["size"] != b["size"]:
-        raise CalibrationError(f"{b['path']}: field 'image_width'/'image_height' {b['size']} differs from "
-                               f"{a['path']}'s {a['size']}")
+        raise CalibrationError(f"{b['where']}: image size {b['size']} differs from {a['where']}'s {a['size']}")
     t = []
     for c in (a, b):
-        camera._check_rotation(c["R"], f"{c['path']}: rectification_matrix")
+        camera._check_rotation(c["R"], f"{c['where']}: {r_field}")
         KP = c["P"][:, :3]
         if abs(np.linalg.det(KP)) < 1e-9:
-            raise CalibrationError(f"{c['path']}: field 'projection_matrix' has a singular left 3x3 block")
+            raise CalibrationError(f"{c['where']}: field '{p_field}' has a singular left 3x3 block")
         t.append(np.linalg.solve(KP, c["P"][:, 3]))
     R = b["R"].T @ a["R"]
     T = b["R"].T @ (t[1] - t[0])
     if np.linalg.norm(T) < 1e-9:
-        raise CalibrationError(f"{b['path']}: field 'projection_matrix' has no baseline (P[0,3] = -fx*B is 0); "
+        raise CalibrationError(f"{b['where']}: field '{p_field}' has no baseline (P[0,3] = -fx*B is 0); "
                                "is this the right camera of a stereo pair?")
     try:
         return camera.RawRig(a["size"], camera.Intrinsics.from_matrix(a["K"], a["D"]),
-                             camera.Intrinsics.from_matrix(b["K"], b["D"]), R, T, name or a["name"])
+                             camera.Intrinsics.from_matrix(b["K"], b["D"]), R, T, name)
     except CalibrationError as e:
-        raise CalibrationError(f"{left}, {right}: {e}") from None
+        raise CalibrationError(f"{a['where']}, {b['where']}: {e}") from None
+
+
+def read_ros_pair(left: str | Path, right: str | Path, name: str = "") -> camera.RawRig:
+    a, b = _read_ros_one(Path(left)), _read_ros_one(Path(right))
+    return rig_from_ros_cameras(a, b, name or a["name"])
 
 
 def write_ros_pair(rig: camera.RawRig, left: str | Path, right: str | Path, alpha: float = 0.0) -> None:

@@ -268,7 +268,7 @@ def _camera_info(msg: Any, where: str) -> dict:
         raise CalibrationError(f"{where}: CameraInfo with image size {msg.width}x{msg.height}")
     if np.allclose(R, 0):
         R = np.eye(3)
-    return {"size": (int(msg.width), int(msg.height)), "K": K, "D": d, "R": R, "P": P}
+    return {"size": (int(msg.width), int(msg.height)), "K": K, "D": d, "R": R, "P": P, "where": where}
 
 
 def calibration_from_camera_infos(left: Any, right: Any, rectified: bool, where: str = "CameraInfo") -> camera.Calibration:
@@ -288,16 +288,6 @@ def calibration_from_camera_infos(left: Any, right: Any, rectified: bool, where:
         model = camera.RectifiedModel(a["size"][0], a["size"][1], float(Pl[0, 0]), float(Pl[0, 2]), float(Pl[1, 2]),
                                       float(baseline))
         return camera.RectifiedRig(model, name="ros2 camera_info")
-    t = []
-    for c, side in ((a, "left"), (b, "right")):
-        camera._check_rotation(c["R"], f"{where} {side}: R")
-        KP = c["P"][:, :3]
-        if abs(np.linalg.det(KP)) < 1e-9:
-            raise CalibrationError(f"{where} {side}: P has a singular left 3x3 block")
-        t.append(np.linalg.solve(KP, c["P"][:, 3]))
-    R = b["R"].T @ a["R"]
-    T = b["R"].T @ (t[1] - t[0])
-    if np.linalg.norm(T) < 1e-9:
-        raise CalibrationError(f"{where} right: P has no baseline (P[0,3] = -fx * baseline is 0)")
-    return camera.RawRig(a["size"], camera.Intrinsics.from_matrix(a["K"], a["D"]),
-                         camera.Intrinsics.from_matrix(b["K"], b["D"]), R, T, name="ros2 camera_info")
+    from ..rectify.formats import rig_from_ros_cameras
+
+    return rig_from_ros_cameras(a, b, "ros2 camera_info", fields=("R", "P"))
