@@ -355,8 +355,7 @@ class LivePipeline:
         try:
             self.session.close()
         finally:
-            if self._capture is not None:
-                self._capture.stop_all()
+            self.stop_capture()
             self.sup.stop_all()
 
     def _on_obstacles(self, sample) -> None:
@@ -387,13 +386,23 @@ class LivePipeline:
         out["bench"] = time.process_time()
         return out
 
+    @property
+    def capturing(self) -> bool:
+        return self._capture is not None
+
+    def stop_capture(self) -> None:
+        """Stop offering pairs: the pipeline idles (its processes stay up), so a reference measured
+        now has the cores to itself, as the pipeline had them while it was measured."""
+        if self._capture is not None:
+            self._capture.stop_all()
+            self._capture = None
+
     def offer(self, rate: float, timeout_s: float = 90.0) -> None:
         """(Re)start capture at `rate` pairs/s; returns once its pairs come out as obstacle lists."""
         from ..cli import stage_nice
         from ..supervisor import Supervisor
 
-        if self._capture is not None:
-            self._capture.stop_all()
+        self.stop_capture()
         self._want_stamp = time.time_ns()
         self._first.clear()
         self._capture = Supervisor(env=self._env(), nice=self.nice)
@@ -419,6 +428,7 @@ class LivePipeline:
         r["cpu_ms_per_list"] = {k: v for k, v in per.items() if not k.startswith("sys:")}
         r["kernel_cpu_ms_per_list"] = {k[4:]: v for k, v in per.items() if k.startswith("sys:")}
         r["offered_hz"] = rate
+        self.stop_capture()
         return r
 
 
@@ -439,17 +449,22 @@ def ratios(ref: dict, pipe: dict) -> dict:
         # matcher's own CPU per frame, and the rate that CPU allows on an otherwise idle machine.
         "cpu_x_matcher_1_thread": cpu / ref["matcher_1_thread"]["cpu_ms"],
         "idle_machine_fps_bound_x_matcher_2_threads":
-            (cores * 1000.0 / cpu) / (min(cores, 2) * 1000.0 / ref["matcher_2_threads"]["cpu_ms"]),"fps_x_matcher_2_threads": pipe["fps"] / m2 if m2 else 0.0,
-            "fps_x_matcher_1_thread": pipe["fps"] / m1 if m1 else 0.0,
-            "fps_x_compute": pipe["fps"] / ref["compute"]["fps"],
-            "latency_p50_x_compute": lat["p50"] / comp, "latency_p95_x_compute": lat["p95"] / comp,
-            "latency_p99_x_compute": lat["p99"] / comp}
+            (cores * 1000.0 / cpu) / (min(cores, 2) * 1000.0 / ref["matcher_2_threads"]["cpu_ms"]),
+        "fps_x_matcher_2_threads": pipe["fps"] / m2 if m2 else 0.0,
+        "fps_x_matcher_1_thread": pipe["fps"] / m1 if m1 else 0.0,
+        "fps_x_compute": pipe["fps"] / ref["compute"]["fps"],
+        "latency_p50_x_compute": lat["p50"] / comp, "latency_p95_x_compute": lat["p95"] / comp,
+        "latency_p99_x_compute": lat["p99"] / comp}
 
 
 def measure_once(live: LivePipeline, frames: Frames, args: argparse.Namespace, log: Callable[[str], None]) -> dict:
-    """Search the rate (unless --rate), then references, the measured run, references again."""
+    """Search the rate (unless --rate), then references, the measured run, references again.
+    Every reference is measured with capture stopped (live.measure stops it when done): pairs
+    still flowing through the pipeline would take the cores from the reference and flatter every
+    ratio."""
     method = live.method
     probes: list[dict] = []
+    live.stop_capture()
     if args.rate > 0:
         rate = args.rate
     else:
