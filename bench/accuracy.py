@@ -127,15 +127,44 @@ def scores(d: np.ndarray, gt: np.ndarray) -> dict[str, float]:
     return out
 
 
-def matchers(num_disparities: int) -> dict:
-    """name -> run(left_bgr, right_bgr) -> float32 px, NaN invalid."""
+def opencv_baselines(num_disparities: int) -> dict:
+    """name -> (OpenCV matcher object, whether it matches the colour pair): the OpenCV rows, with
+    the documented settings the module docstring lists."""
     import cv2
 
+    def bm_sample(block):
+        m = cv2.StereoBM_create(num_disparities, block)
+        m.setPreFilterCap(31)
+        m.setTextureThreshold(10)
+        m.setUniquenessRatio(15)
+        m.setSpeckleWindowSize(100)
+        m.setSpeckleRange(32)
+        m.setDisp12MaxDiff(1)
+        return m, False
+
+    def sgbm_sample(block, mode=cv2.STEREO_SGBM_MODE_SGBM, cn=3):
+        # OpenCV's recommended penalties for cn channels and a block of w = block (stereo_match.cpp)
+        return cv2.StereoSGBM_create(0, num_disparities, block, P1=8 * cn * block * block,
+                                     P2=32 * cn * block * block, disp12MaxDiff=1, preFilterCap=63,
+                                     uniquenessRatio=10, speckleWindowSize=100, speckleRange=32, mode=mode), cn == 3
+
+    return {
+        "opencv-bm-9": bm_sample(9),
+        "opencv-bm-15": bm_sample(15),
+        "opencv-sgbm-default": (cv2.StereoSGBM_create(0, num_disparities), True),
+        "opencv-sgbm-sample": sgbm_sample(3),
+        "opencv-sgbm-hh": sgbm_sample(3, cv2.STEREO_SGBM_MODE_HH),
+        "opencv-sgbm-3way": sgbm_sample(3, cv2.STEREO_SGBM_MODE_SGBM_3WAY),
+        "opencv-sgbm-5": sgbm_sample(5),
+    }
+
+
+def matchers(num_disparities: int) -> dict:
+    """name -> run(left_bgr, right_bgr) -> float32 px, NaN invalid."""
     from ..common.disparity import to_float
     from ..services.disparity.matchers import MatcherConfig, gray, make_matcher
 
-    def opencv(make, colour: bool):
-        m = make()
+    def opencv(m, colour: bool):
         invalid = (m.getMinDisparity() - 1) * 16
 
         def run(left, right):
@@ -145,36 +174,14 @@ def matchers(num_disparities: int) -> dict:
             return d
         return run
 
-    def bm_sample(block):
-        def make():
-            m = cv2.StereoBM_create(num_disparities, block)
-            m.setPreFilterCap(31)
-            m.setTextureThreshold(10)
-            m.setUniquenessRatio(15)
-            m.setSpeckleWindowSize(100)
-            m.setSpeckleRange(32)
-            m.setDisp12MaxDiff(1)
-            return m
-        return make
-
-    def sgbm_sample(block, mode=cv2.STEREO_SGBM_MODE_SGBM, cn=3):
-        return lambda: cv2.StereoSGBM_create(0, num_disparities, block, P1=8 * cn * block * block,
-                                             P2=32 * cn * block * block, disp12MaxDiff=1, preFilterCap=63,
-                                             uniquenessRatio=10, speckleWindowSize=100, speckleRange=32, mode=mode)
-
     def ours(**kw):
         cfg = MatcherConfig(num_disparities=num_disparities, **kw)
         m = make_matcher(cfg)
         return lambda left, right: to_float(m.compute(left, right), 16.0, cfg.invalid_value)
 
+    runs = {name: opencv(m, colour) for name, (m, colour) in opencv_baselines(num_disparities).items()}
     return {
-        "opencv-bm-9": opencv(bm_sample(9), False),
-        "opencv-bm-15": opencv(bm_sample(15), False),
-        "opencv-sgbm-default": opencv(lambda: cv2.StereoSGBM_create(0, num_disparities), True),
-        "opencv-sgbm-sample": opencv(sgbm_sample(3), True),
-        "opencv-sgbm-hh": opencv(sgbm_sample(3, cv2.STEREO_SGBM_MODE_HH), True),
-        "opencv-sgbm-3way": opencv(sgbm_sample(3, cv2.STEREO_SGBM_MODE_SGBM_3WAY), True),
-        "opencv-sgbm-5": opencv(sgbm_sample(5), True),
+        **runs,
         "bm": ours(method="bm"),
         "bm+lr": ours(method="bm", lr_check=True),
         "sgbm": ours(method="sgbm"),

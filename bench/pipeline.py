@@ -442,7 +442,7 @@ def pipeline_cpu_ms(pipe: dict) -> float:
 def ratios(ref: dict, pipe: dict) -> dict:
     m2, m1, comp = ref["matcher_2_threads"]["fps"], ref["matcher_1_thread"]["fps"], ref["compute"]["total_ms_p50"]
     lat = pipe["latency_ms"]
-    cpu = pipeline_cpu_ms(pipe)
+    cpu = pipeline_cpu_ms(pipe) or float("nan")  # no CPU counted: no pipeline process was seen
     cores = os.cpu_count() or 1
     return {
         # CPU time is what a busy machine distorts least: the pipeline's CPU per list against the

@@ -12,7 +12,8 @@ in-process single-thread time); the dispatcher drops what no worker is free for.
 
 Targets (issue #14): one worker delivers >= 0.9 x its own in-process one-thread ceiling, two
 workers >= 1.8 x that ceiling (not x one worker, which a slow single worker would flatter). The
-ceiling is measured in the same run, before and after the pool runs, and averaged.
+ceiling is measured in the same run on the same pairs, before the first pool run and after each
+one; a run is scored against the mean of the two ceilings around it.
 """
 from __future__ import annotations
 
@@ -27,20 +28,25 @@ import msgpack
 import numpy as np
 
 
-def ceiling(method: str, threads: int, seconds: float = 3.0) -> dict:
-    """In-process disparity only (the worker's own matcher), on rectified synthetic pairs: frames/s
-    with `threads` OpenCV threads (0: OpenCV's default, one per core), as frames / wall time like
-    the pool's maps/s, and the CPU time per frame."""
-    import cv2
-
+def rectified_pairs(n: int = 4) -> list[tuple[np.ndarray, np.ndarray]]:
+    """n rectified synthetic 640x480 pairs: what the feeder publishes and the ceilings match."""
     from ..common import camera
     from ..services.capture.sources import SyntheticSource
-    from ..services.disparity.matchers import MatcherConfig, StereoMatcher
     from ..services.rectify.core import Rectifier
 
-    src = SyntheticSource("two-boxes", "lifecam-studio", 30.0, preload=2)
+    src = SyntheticSource("two-boxes", "lifecam-studio", 30.0, preload=n)
     rect = Rectifier(camera.load_calibration("lifecam-studio"))
-    pairs = [rect.rectify(p.left, p.right) for p in (src.read(), src.read())]
+    return [rect.rectify(p.left, p.right) for p in (src.read() for _ in range(n))]
+
+
+def ceiling(method: str, threads: int, pairs: list, seconds: float = 3.0) -> dict:
+    """In-process disparity only (the worker's own matcher) on `pairs`: frames/s with `threads`
+    OpenCV threads (0: OpenCV's default, one per core), as frames / wall time like the pool's
+    maps/s, and the CPU time per frame."""
+    import cv2
+
+    from ..services.disparity.matchers import MatcherConfig, StereoMatcher
+
     m = StereoMatcher(MatcherConfig(method=method))
     before = cv2.getNumThreads()
     cv2.setNumThreads(threads if threads else -1)
@@ -49,7 +55,7 @@ def ceiling(method: str, threads: int, seconds: float = 3.0) -> dict:
         times = []
         cpu0, t_start = time.process_time(), time.perf_counter()
         while time.perf_counter() - t_start < seconds or len(times) < 3:
-            l, r = pairs[len(times) % 2]
+            l, r = pairs[len(times) % len(pairs)]
             t0 = time.perf_counter()
             m.compute(l, r)
             times.append(time.perf_counter() - t0)
@@ -61,22 +67,15 @@ def ceiling(method: str, threads: int, seconds: float = 3.0) -> dict:
             "cpu_ms": cpu * 1e3 / len(times)}
 
 
-def rectified_payloads(rid: str, n: int = 4) -> list[tuple[int, bytes]]:
-    """n rectified synthetic pairs as StereoFrame payloads (seq and stamp are patched per send)."""
+def rectified_payloads(rid: str, pairs: list) -> list:
+    """The rectified pairs as StereoFrame payloads (seq and stamp are patched per send)."""
     from ..common import camera, codec
     from ..common.messages import StereoFrame
-    from ..services.capture.sources import SyntheticSource
     from ..services.rectify.core import Rectifier
 
-    src = SyntheticSource("two-boxes", "lifecam-studio", 30.0, preload=n)
-    rect = Rectifier(camera.load_calibration("lifecam-studio"))
-    out = []
-    for i in range(n):
-        p = src.read()
-        l, r = rect.rectify(p.left, p.right)
-        out.append(StereoFrame(robot_id=rid, seq=0, stamp_ns=0, left=codec.image_from_array(l),
-                               right=codec.image_from_array(r), camera=rect.model_message, source="bench"))
-    return out
+    model = Rectifier(camera.load_calibration("lifecam-studio")).model_message
+    return [StereoFrame(robot_id=rid, seq=0, stamp_ns=0, left=codec.image_from_array(l),
+                        right=codec.image_from_array(r), camera=model, source="bench") for l, r in pairs]
 
 
 def _feed(session, rid: str, frames: list, rate: float, stop: threading.Event) -> None:
@@ -106,7 +105,7 @@ def _cpu_all(sup) -> dict[str, float]:
 
 
 def pool_run(method: str, workers: int, rate: float, warmup_s: float, seconds: float, max_in_flight: int = 1,
-             source: str = "feeder", nice: int = 0) -> dict:
+             source: str = "feeder", nice: int = 0, pairs: list | None = None) -> dict:
     from ..common import codec
     from ..common.keys import topic
     from ..common.messages import ServiceStats
@@ -123,7 +122,7 @@ def pool_run(method: str, workers: int, rate: float, warmup_s: float, seconds: f
     if source == "pipeline":
         sup.add("capture", ["run", "capture", *c, "--preload", "8", "--rate-hz", f"{rate:.2f}"])
         sup.add("rectify", ["run", "rectify", *c])
-    frames = rectified_payloads(rid) if source == "feeder" else []
+    frames = rectified_payloads(rid, pairs or rectified_pairs()) if source == "feeder" else []
     stop_feed = threading.Event()
     sup.add("dispatch", ["run", "disparity", *c, "--method", method, "--fallback", "none",
                          "--max-in-flight", str(max_in_flight)])
@@ -200,6 +199,24 @@ def spread(values: list[float]) -> dict:
     return {"median": float(np.median(v)), "min": float(v.min()), "max": float(v.max()), "n": len(values)}
 
 
+def score_runs(runs: list[dict], ceilings: list[dict], cores: int) -> tuple[dict, dict]:
+    """runs[i] was measured between the one-thread ceilings ceilings[i] and ceilings[i + 1]
+    (len(runs) + 1 of them): its maps/s against their mean, so load that changes over the bench
+    moves a run and its reference together. Sets run["ceiling_one_thread"] and
+    run["x_one_thread_ceiling"]; -> (per worker count: spread of the ratio, the targets of the
+    counts this machine has the cores for: {n: {x_one_thread_ceiling (median), target, met}})."""
+    if len(ceilings) != len(runs) + 1:
+        raise ValueError(f"{len(runs)} runs need {len(runs) + 1} ceilings around them, got {len(ceilings)}")
+    for r, before, after in zip(runs, ceilings, ceilings[1:]):
+        r["ceiling_one_thread"] = mean_ceiling(before, after)
+        r["x_one_thread_ceiling"] = r["fps"] / r["ceiling_one_thread"]["fps"]
+    counts = sorted({r["workers"] for r in runs})
+    by_n = {n: spread([r["x_one_thread_ceiling"] for r in runs if r["workers"] == n]) for n in counts}
+    targets = {n: {"x_one_thread_ceiling": by_n[n]["median"], "target": t, "met": by_n[n]["median"] >= t}
+               for n, t in TARGETS.items() if n in by_n and n <= cores}
+    return by_n, targets
+
+
 def main(argv: list[str] | None = None) -> int:
     from ..services.disparity.main import DisparitySettings
 
@@ -228,22 +245,22 @@ def main(argv: list[str] | None = None) -> int:
             a.nice = 0
     cores = os.cpu_count() or 1
     say = (lambda text: None) if a.json else (lambda text: print(text, file=sys.stderr, flush=True))
+    pairs = rectified_pairs()
     say("in-process ceilings (1 thread, all threads) ...")
-    before = (ceiling(a.method, 1), ceiling(a.method, 0))
+    ceilings, all_threads = [ceiling(a.method, 1, pairs)], [ceiling(a.method, 0, pairs)]
     runs = []
     for _ in range(max(1, a.repeat)):
         for n in a.workers:
-            rate = min(120.0, a.rate_factor * min(n, cores) * before[0]["fps"])
+            rate = min(120.0, a.rate_factor * min(n, cores) * ceilings[-1]["fps"])
             say(f"{n} worker(s), offering {rate:.1f} pairs/s ...")
-            runs.append(pool_run(a.method, n, rate, a.warmup, a.seconds, a.max_in_flight, a.source, a.nice))
-    say("in-process ceilings again ...")
-    after = (ceiling(a.method, 1), ceiling(a.method, 0))
-    one, ceil = mean_ceiling(before[0], after[0]), mean_ceiling(before[1], after[1])
-    for r in runs:
-        r["x_one_thread_ceiling"] = r["fps"] / one["fps"]
-    by_n = {n: spread([r["x_one_thread_ceiling"] for r in runs if r["workers"] == n]) for n in a.workers}
-    targets = {n: {"x_one_thread_ceiling": by_n[n]["median"], "target": t, "met": by_n[n]["median"] >= t}
-               for n, t in TARGETS.items() if n in by_n and n <= cores}
+            runs.append(pool_run(a.method, n, rate, a.warmup, a.seconds, a.max_in_flight, a.source, a.nice, pairs))
+            say("in-process 1-thread ceiling again ...")
+            ceilings.append(ceiling(a.method, 1, pairs))
+    all_threads.append(ceiling(a.method, 0, pairs))
+    by_n, targets = score_runs(runs, ceilings, cores)
+    one = dict(mean_ceiling(ceilings[0], ceilings[-1]), fps=float(np.mean([c["fps"] for c in ceilings])),
+               cpu_ms=float(np.mean([c["cpu_ms"] for c in ceilings])), all_fps=[c["fps"] for c in ceilings])
+    ceil = mean_ceiling(*all_threads)
     report = {"method": a.method, "image": "640x480", "cores": cores, "max_in_flight": a.max_in_flight, "nice": a.nice,
               "source": a.source, "rate_factor": a.rate_factor, "ceiling_one_thread": one,
               "ceiling_all_threads": ceil, "runs": runs, "x_one_thread_ceiling": by_n, "targets": targets}
@@ -252,10 +269,11 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     print(f"{a.method}, 640x480, 64 disparities, {cores} cores, max_in_flight {a.max_in_flight}, "
           f"offered {a.rate_factor:g} x min(N, cores) x the 1-thread rate by the {a.source}")
-    print(f"in-process ceiling, same run (mean of before and after): 1 thread {one['fps']:.1f} fps "
-          f"({one['before_fps']:.1f} / {one['after_fps']:.1f}), {ceil['threads']} threads {ceil['fps']:.1f} fps")
+    print(f"in-process ceiling, same run, same pairs: 1 thread {one['fps']:.1f} fps (before, between and after the "
+          f"runs: {' / '.join(f'{v:.1f}' for v in one['all_fps'])}), {ceil['threads']} threads {ceil['fps']:.1f} fps")
     for r in runs:
-        print(f"{r['workers']} worker(s): {r['fps']:6.1f} maps/s = {r['x_one_thread_ceiling']:.2f} x the 1-thread ceiling, "
+        print(f"{r['workers']} worker(s): {r['fps']:6.1f} maps/s = {r['x_one_thread_ceiling']:.2f} x the 1-thread ceiling "
+              f"around it ({r['ceiling_one_thread']['fps']:.1f} fps), "
               f"offered {r['offered_hz']:.1f}/s, latency p50 {r['latency_ms']['p50']:.0f} ms, per worker {r['per_worker']}, "
               f"duplicates {r['duplicates']}, load avg {r['load_avg_1min']:.1f}")
         cpu = r["cpu_ms_per_map"]

@@ -1,13 +1,16 @@
-"""The pipeline benchmark: its bookkeeping (seq gaps, the sustainable verdict, the rate search) on
-made-up inputs, and one short real run of `ballbot-vision bench --json` (numbers not judged here:
-speed targets live in the benchmark, not in tests)."""
+"""The benchmarks' bookkeeping on made-up inputs (seq gaps, the sustainable verdict, the rate search,
+the ratios and targets, references measured with the pipeline idle, the scaling runs scored against
+the ceilings around them, the accuracy baselines' settings) and short real runs of `bench --json`
+and `bench-segmenter` (numbers not judged here: speed targets live in the benchmarks, not in tests)."""
 from __future__ import annotations
 
+import argparse
 import json
 import subprocess
 
 import pytest
 
+from ballbot_vision.bench import pipeline
 from ballbot_vision.bench.pipeline import (MAX_DROPPED, Received, search_rate, seq_gaps, summarize)
 from helpers import REPO, cli
 
@@ -120,3 +123,144 @@ def test_bench_json_runs_the_four_processes_and_the_references():
     if run["pipeline"]["obstacle_lists"]:
         assert run["ratios"]["latency_p50_x_compute"] > 0
     assert r["targets"] == {"fps_x_matcher_2_threads": 0.8, "latency_p50_x_compute": 1.5}
+
+
+# --- ratios, targets and the references ------------------------------------------------------------
+
+def made_up_references(m2_fps=100.0, m1_fps=60.0, compute_ms=20.0) -> dict:
+    return {"matcher_2_threads": {"threads": 2, "fps": m2_fps, "ms_p50": 1000.0 / m2_fps, "cpu_ms": 18.0},
+            "matcher_1_thread": {"threads": 1, "fps": m1_fps, "ms_p50": 1000.0 / m1_fps, "cpu_ms": 15.0},
+            "compute": {"stage_ms_p50": {"rectify": 2.0, "disparity": compute_ms - 5.0, "segmenter": 3.0},
+                        "stage_cpu_ms": {"rectify": 2.0, "disparity": compute_ms - 5.0, "segmenter": 3.0},
+                        "total_ms_p50": compute_ms, "fps": 1000.0 / compute_ms}}
+
+
+def test_ratios_put_the_pipeline_over_the_references_of_the_same_run():
+    pipe = summarize(lists(range(160), latency_ms=30.0, period_ms=12.5), 2.0, compute_ms=20.0)
+    pipe["cpu_ms_per_list"] = {"capture": 1.0, "rectify": 3.0, "disparity": 16.0, "segmenter": 5.0, "bench": 9.0}
+    x = pipeline.ratios(made_up_references(), pipe)
+    assert x["fps_x_matcher_2_threads"] == pytest.approx(80.0 / 100.0)
+    assert x["fps_x_matcher_1_thread"] == pytest.approx(80.0 / 60.0)
+    assert x["latency_p50_x_compute"] == pytest.approx(30.0 / 20.0)
+    assert x["latency_p95_x_compute"] == pytest.approx(pipe["latency_ms"]["p95"] / 20.0)
+    assert x["latency_p99_x_compute"] == pytest.approx(pipe["latency_ms"]["p99"] / 20.0)
+    assert x["cpu_x_matcher_1_thread"] == pytest.approx(25.0 / 15.0)  # the bench's own subscriber left out
+    verdicts = {label: ok for label, _, _, _, ok in pipeline.targets({"ratios": x})}
+    assert verdicts == {"delivered fps / OpenCV matcher alone (2 threads)": True,
+                        "latency p50 / in-process per-frame compute": True}
+    x["fps_x_matcher_2_threads"], x["latency_p50_x_compute"] = 0.79, 1.51
+    assert not any(ok for *_, ok in pipeline.targets({"ratios": x}))
+
+
+def test_ratios_without_any_pipeline_cpu_are_not_a_number_rather_than_a_crash():
+    pipe = summarize([], 1.0, compute_ms=20.0)
+    pipe["cpu_ms_per_list"] = {"bench": 0.1}
+    x = pipeline.ratios(made_up_references(), pipe)
+    assert x["fps_x_matcher_2_threads"] == 0.0
+    assert x["cpu_x_matcher_1_thread"] != x["cpu_x_matcher_1_thread"]  # NaN
+
+
+class Idle:
+    """Stands in for the capture supervisor: no processes."""
+    children: list = []
+
+    def stop_all(self) -> None:
+        pass
+
+
+@pytest.mark.parametrize("rate", [0.0, 40.0])
+def test_every_reference_is_measured_with_capture_stopped(monkeypatch, rate):
+    """The last probe's pairs kept flowing while OpenCV's matcher was measured alone: the reference
+    shared the cores with the pipeline and every ratio came out flattered."""
+    live = pipeline.LivePipeline("bm", preload=2)
+    live.sup = Idle()
+    offered = []
+
+    def offer(r: float, timeout_s: float = 90.0) -> None:
+        offered.append(r)
+        live._capture = Idle()
+
+    monkeypatch.setattr(live, "offer", offer)
+    seen = []
+
+    def references(frames, method, seconds=2.0):
+        seen.append(live.capturing)
+        return made_up_references()
+
+    monkeypatch.setattr(pipeline, "references", references)
+    monkeypatch.setattr(pipeline.time, "sleep", lambda s: None)
+    live.offer(10.0)  # the warm-up leaves capture running
+    args = argparse.Namespace(rate=rate, warmup=0.0, probe_seconds=0.0, seconds=0.0, probes=2, reference_seconds=0.0)
+    r = pipeline.measure_once(live, frames=None, args=args, log=lambda text: None)
+    assert seen and not any(seen), seen
+    assert len(seen) == (3 if rate == 0 else 2)  # the search's first look, before and after the measured run
+    assert len(offered) == (1 + 1 + len(r["search"]) if rate == 0 else 2)
+    assert r["pipeline"]["offered_hz"] == (rate or min(p["offered_hz"] for p in r["search"]))
+    assert not live.capturing
+
+
+def test_the_matcher_reference_has_the_services_matcher_settings():
+    from ballbot_vision.services.disparity.matchers import MatcherConfig
+
+    c = MatcherConfig(method="bm")
+    m = pipeline.opencv_matcher("bm")
+    assert (m.getBlockSize(), m.getNumDisparities(), m.getMinDisparity()) == (c.block, 64, c.min_disparity)
+    assert (m.getUniquenessRatio(), m.getTextureThreshold()) == (c.uniqueness_ratio, c.texture_threshold)
+    s = MatcherConfig(method="sgbm")
+    g = pipeline.opencv_matcher("sgbm")
+    assert (g.getBlockSize(), g.getP1(), g.getP2()) == (s.block, 8 * s.block ** 2, 32 * s.block ** 2)  # grey: cn 1
+
+
+# --- scaling ----------------------------------------------------------------------------------------
+
+def ceiling_of(fps: float) -> dict:
+    return {"threads": 1, "fps": fps, "ms_p50": 1000.0 / fps, "cpu_ms": 1000.0 / fps}
+
+
+def test_scaling_scores_each_run_against_the_ceilings_measured_around_it():
+    from ballbot_vision.bench.scaling import TARGETS, score_runs
+
+    runs = [{"workers": 1, "fps": 18.0}, {"workers": 2, "fps": 27.0}, {"workers": 3, "fps": 30.0}]
+    # the machine got busier during the bench: the ceiling fell from 20 to 10 fps
+    ceilings = [ceiling_of(20.0), ceiling_of(20.0), ceiling_of(10.0), ceiling_of(10.0)]
+    by_n, targets = score_runs(runs, ceilings, cores=2)
+    assert [r["x_one_thread_ceiling"] for r in runs] == pytest.approx([18 / 20, 27 / 15, 30 / 10])
+    assert runs[1]["ceiling_one_thread"]["before_fps"] == 20.0 and runs[1]["ceiling_one_thread"]["after_fps"] == 10.0
+    assert by_n[3]["median"] == pytest.approx(3.0)
+    assert set(targets) == {1, 2}  # three workers have no target; two only where there are two cores
+    assert targets[1] == {"x_one_thread_ceiling": pytest.approx(0.9), "target": TARGETS[1], "met": True}
+    assert targets[2]["met"] and targets[2]["target"] == 1.8
+    _, one_core = score_runs([dict(r) for r in runs], ceilings, cores=1)
+    assert set(one_core) == {1}
+
+
+def test_scaling_repeats_give_medians_and_a_short_ceiling_list_is_refused():
+    from ballbot_vision.bench.scaling import score_runs
+
+    runs = [{"workers": 1, "fps": f} for f in (16.0, 19.0, 10.0)]
+    by_n, targets = score_runs(runs, [ceiling_of(20.0)] * 4, cores=2)
+    assert by_n[1] == {"median": pytest.approx(0.8), "min": pytest.approx(0.5), "max": pytest.approx(0.95), "n": 3}
+    assert not targets[1]["met"]
+    with pytest.raises(ValueError, match="ceilings"):
+        score_runs(runs, [ceiling_of(20.0)] * 3, cores=2)
+
+
+# --- accuracy baselines -----------------------------------------------------------------------------
+
+def test_accuracy_compares_with_opencvs_recommended_penalties_and_the_same_bm_block():
+    from ballbot_vision.bench import accuracy
+    from ballbot_vision.services.disparity.matchers import MatcherConfig
+
+    base = accuracy.opencv_baselines(64)
+    assert list(base) == accuracy.OPENCV_METHODS
+    for name in ("opencv-sgbm-sample", "opencv-sgbm-hh", "opencv-sgbm-3way", "opencv-sgbm-5"):
+        m, colour = base[name]
+        w, cn = m.getBlockSize(), 3 if colour else 1
+        assert colour and (m.getP1(), m.getP2()) == (8 * cn * w * w, 32 * cn * w * w), name
+    assert base["opencv-sgbm-5"][0].getBlockSize() == MatcherConfig(method="sgbm").block
+    bare, _ = base["opencv-sgbm-default"]
+    assert (bare.getP1(), bare.getP2()) == (0, 0)  # kept as a reference row, never the only one
+    bm, colour = base["opencv-bm-15"]
+    assert bm.getBlockSize() == MatcherConfig(method="bm").block and not colour
+    assert accuracy.REFERENCE in base
+
