@@ -128,7 +128,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
 def cmd_bench_segmenter(args: argparse.Namespace) -> int:
     from .bench.segmenter import bench_segmenter, format_bench
 
-    result = bench_segmenter(args.scenario, args.method or None, args.repeat)
+    result = bench_segmenter(args.scenario, args.method or None, args.repeat, real=args.real,
+                             real_pairs=args.real_pairs, real_max_range_m=args.real_max_range)
     _out(json.dumps(result, indent=2) if args.json else format_bench(result))
     return 0
 
@@ -190,10 +191,18 @@ def register(sub: argparse._SubParsersAction, common) -> None:
     e.set_defaults(func=cmd_eval)
 
     b = sub.add_parser("bench-segmenter", help="segmentation time per frame for each method",
-                       description="Time each segmentation method on disparity maps of a synthetic scenario.")
+                       description="Time each segmentation method on disparity maps of a synthetic scenario "
+                                   "(and of a real recording with --real), beside the default matcher's time "
+                                   "on the same pairs in the same run.")
     b.add_argument("--scenario", default="two-boxes")
-    b.add_argument("--method", action="append", metavar="M", help="seed or layers (default: both)")
+    b.add_argument("--method", action="append", metavar="M", help="seed or layers (default: all)")
     b.add_argument("--repeat", type=int, default=50, help="timed runs per method")
+    b.add_argument("--real", metavar="DIR", default=None,
+                   help="also a recording: DIR/left, DIR/right and DIR/calibration.yaml (e.g. "
+                        "../shared/data/real/karlsruhe-0023); matched with the default matcher, then segmented")
+    b.add_argument("--real-pairs", type=int, default=1, metavar="N", help="the first N pairs of --real (default 1)")
+    b.add_argument("--real-max-range", type=float, default=20.0, metavar="M",
+                   help="segmenter range on --real, m (default 20: a street seen from a car)")
     b.add_argument("--json", action="store_true")
     b.set_defaults(func=cmd_bench_segmenter)
 

@@ -7,12 +7,15 @@ from __future__ import annotations
 import argparse
 import json
 import subprocess
+from pathlib import Path
 
 import pytest
 
 from ballbot_vision.bench import pipeline
 from ballbot_vision.bench.pipeline import (MAX_DROPPED, Received, search_rate, seq_gaps, summarize)
 from helpers import REPO, cli
+
+KARLSRUHE = Path("/work/shared/data/real/karlsruhe-0023")
 
 
 def lists(seqs, stale=(), latency_ms=10.0, period_ms=20.0):
@@ -264,3 +267,37 @@ def test_accuracy_compares_with_opencvs_recommended_penalties_and_the_same_bm_bl
     assert bm.getBlockSize() == MatcherConfig(method="bm").block and not colour
     assert accuracy.REFERENCE in base
 
+
+# --- bench-segmenter --------------------------------------------------------------------------------
+
+def test_bench_segmenter_times_every_method_beside_the_matcher():
+    from ballbot_vision.bench.segmenter import bench_segmenter, format_bench, segmenter_methods
+
+    r = bench_segmenter(repeat=2)
+    (synthetic,) = r["sets"]
+    assert synthetic["image"] == "640x480" and synthetic["matcher"]["method"] == "bm"
+    assert set(synthetic["methods"]) == set(segmenter_methods()) >= {"layers"}
+    for m in synthetic["methods"].values():
+        assert m["runs"] == 2 and m["ms_min"] <= m["ms_median"] <= m["ms_p95"]
+        assert m["x_matcher"] == pytest.approx(m["ms_median"] / synthetic["matcher"]["ms_median"])
+    assert synthetic["methods"]["layers"]["detections"] >= 1  # two boxes: it segmented something
+    assert "x matcher" in format_bench(r)
+
+
+@pytest.mark.skipif(not KARLSRUHE.is_dir(), reason=f"real recordings not found at {KARLSRUHE.parent} (see HELPERS.md)")
+def test_bench_segmenter_times_a_real_karlsruhe_pair():
+    out = subprocess.run(cli("bench-segmenter", "--real", str(KARLSRUHE), "--repeat", "2", "--method", "layers",
+                             "--json"), capture_output=True, text=True, timeout=300, cwd=REPO)
+    assert out.returncode == 0, out.stderr[-3000:]
+    synthetic, real = json.loads(out.stdout)["sets"]
+    assert real["image"] == "1344x372" and real["pairs"] == 1 and real["max_range_m"] == 20.0
+    assert list(real["methods"]) == ["layers"] and real["methods"]["layers"]["runs"] == 2
+    assert real["methods"]["layers"]["detections"] > 0  # a street within 20 m: segmented, not an empty map
+    assert real["matcher"]["ms_median"] > 0
+
+
+def test_bench_segmenter_without_a_recording_says_what_is_missing(tmp_path):
+    out = subprocess.run(cli("bench-segmenter", "--real", str(tmp_path), "--repeat", "1"),
+                         capture_output=True, text=True, timeout=300, cwd=REPO)
+    assert out.returncode != 0
+    assert "calibration.yaml" in out.stderr and "Traceback" not in out.stderr
