@@ -197,9 +197,39 @@ def test_every_reference_is_measured_with_capture_stopped(monkeypatch, rate):
     r = pipeline.measure_once(live, frames=None, args=args, log=lambda text: None)
     assert seen and not any(seen), seen
     assert len(seen) == (3 if rate == 0 else 2)  # the search's first look, before and after the measured run
-    assert len(offered) == (1 + 1 + len(r["search"]) if rate == 0 else 2)
-    assert r["pipeline"]["offered_hz"] == (rate or min(p["offered_hz"] for p in r["search"]))
+    # the warm-up, the search's probes, the measured run, and (searched rates only) the runs at lower
+    # rates after it was not sustained (nothing is, here: no obstacle list ever comes)
+    assert len(offered) == 1 + len(r["search"]) + 1 + len(r["rejected"])
+    assert len(r["rejected"]) == (pipeline.MAX_BACKOFFS if rate == 0 else 0)
     assert not live.capturing
+
+
+def test_a_searched_rate_the_measured_run_does_not_sustain_is_stepped_down(monkeypatch):
+    """Probes are short; the measured run may show a few % more drops at the same rate."""
+    monkeypatch.setattr(pipeline, "references", lambda frames, method, seconds=2.0: made_up_references())
+    calls = []
+
+    class Live:
+        method = "bm"
+
+        def stop_capture(self) -> None:
+            pass
+
+        def measure(self, rate, warmup_s, seconds, compute_ms) -> dict:
+            calls.append((rate, seconds))
+            drop_every = 4 if (rate > 50 or (seconds == 10.0 and rate > 45)) else 0  # the long run holds less
+            seqs = [s for s in range(200) if not drop_every or s % drop_every]
+            r = summarize(lists(seqs), 2.0, compute_ms)
+            r["cpu_ms_per_list"], r["kernel_cpu_ms_per_list"] = {"disparity": 10.0}, {"disparity": 1.0}
+            return dict(r, offered_hz=rate)
+
+    args = argparse.Namespace(rate=0.0, warmup=0.0, probe_seconds=3.0, seconds=10.0, probes=6, reference_seconds=0.0)
+    r = pipeline.measure_once(Live(), frames=None, args=args, log=lambda text: None)
+    searched = max(p["offered_hz"] for p in r["search"] if p["sustainable"])
+    assert 45 < searched <= 50
+    assert [q["offered_hz"] for q in r["rejected"]] == [searched]
+    assert r["pipeline"]["sustainable"] and r["pipeline"]["offered_hz"] == pytest.approx(searched * pipeline.BACKOFF)
+    assert "not sustained" in pipeline.format_run(r, {"frames": 2, "method": "bm", "processes": "fake"})
 
 
 def test_the_matcher_reference_has_the_services_matcher_settings():
