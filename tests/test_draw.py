@@ -110,3 +110,41 @@ def test_bad_images_are_refused():
         D.draw_frame(np.zeros((100, 100), np.uint8), _list([]), MODEL)
     with pytest.raises(ValueError, match="8-bit"):
         D.draw_frame(np.zeros((240, 320), np.float32), _list([]), MODEL)
+
+
+def test_obstacles_command_draws_one_picture_per_pair_and_prints_ground_and_free_space(tmp_path, capsys):
+    import json
+
+    import cv2
+
+    from ballbot_vision.cli import main
+    from ballbot_vision.common.messages import ObstacleList
+    from ballbot_vision.services.capture.synthetic import Scene, SyntheticWorld
+
+    rig = camera.load_calibration("lifecam-studio")
+    world = SyntheticWorld(Scene.builtin("touching"), rig, camera.rectify_rig(rig), seed=0)
+    (tmp_path / "L").mkdir()
+    (tmp_path / "R").mkdir()
+    for k in range(2):
+        left, right = world.render(k / 15)
+        cv2.imwrite(str(tmp_path / "L" / f"left{k}.png"), left)
+        cv2.imwrite(str(tmp_path / "R" / f"right{k}.png"), right)
+    out = tmp_path / "pictures"
+    assert main(["obstacles", str(tmp_path / "L"), str(tmp_path / "R"), "--calibration", "lifecam-studio",
+                 "--draw", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert text.count("  ground: ") == 2 and text.count("  free space: ") == 2
+    pictures = sorted(p.name for p in out.glob("*.png"))
+    assert pictures == ["left0.png", "left1.png"]
+    pic = cv2.imread(str(out / "left1.png"))
+    assert pic.shape == (480, 640, 3)
+    assert (np.all(pic == D.CONFIRMED, axis=-1) | np.all(pic == D.UNCONFIRMED, axis=-1)).sum() > 100
+    # --json stays one ObstacleList per pair
+    assert main(["obstacles", str(tmp_path / "L"), str(tmp_path / "R"), "--calibration", "lifecam-studio",
+                 "--json"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert len(lines) == 2
+    for line in lines:
+        doc = json.loads(line)
+        doc.pop("left"), doc.pop("right")
+        assert len(ObstacleList.model_validate(doc).obstacles) == 2
