@@ -97,7 +97,7 @@ def cmd_obstacles(args: argparse.Namespace) -> int:
     from .common.files import list_images, pair_images
     from .services.disparity.matchers import SCALE
     from .services.rectify.core import Rectifier
-    from .services.segmenter.draw import draw_frame, ground_mount
+    from .services.segmenter.draw import draw_frame, frame_mount
     from .services.segmenter.main import ObstacleBuilder
 
     settings = _segmenter_settings(args)
@@ -125,9 +125,7 @@ def cmd_obstacles(args: argparse.Namespace) -> int:
         ms = (time.perf_counter() - t0) * 1e3
         msg = result.obstacles
         if draw_dir is not None:
-            g = msg.ground
-            mount = (ground_mount(g, settings.mount_yaw_deg, settings.mount_x_m, settings.mount_y_m)
-                     if g is not None and g.source != "none" else None)
+            mount = frame_mount(msg.ground, settings)
             name = lp.stem if isinstance(lp, Path) else f"{Path(args.left).stem}_{msg.seq:06d}"  # a recording's pair
             _write_picture(draw_dir / f"{name}.png",
                            draw_frame(left, msg, rect.model, result.freespace, mount))
@@ -182,9 +180,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 
 # Settings for real recordings where the user set none (flag, environment or --config): a car's or a
-# room's range rather than a small robot's, an unknown mount (fitted per frame; `mount estimate`
-# writes one), and a search range covering a few metres at a car's baseline.
-REAL_SEGMENTER_DEFAULTS = {"max_range_m": 30.0, "mount_height_m": None}
+# room's range rather than a small robot's, and a search range covering a few metres at a car's
+# baseline (64 px ends at 5.8 m on Karlsruhe: nearer parked cars saturate it).
+REAL_SEGMENTER_DEFAULTS = {"max_range_m": 30.0}
 REAL_DISPARITY_DEFAULTS = {"num_disparities": 128}
 
 
@@ -383,7 +381,7 @@ def register(sub: argparse._SubParsersAction, common) -> None:
     add_settings_arguments(e, SegmenterSettings, exclude=("method",),
                            title="segmenter settings for --real (the 'segmenter' section of --config FILE, or "
                                  "the environment variable shown; --method picks the method; unset, a recording "
-                                 "runs with max_range_m 30 and mount_height_m null)")
+                                 "runs with max_range_m 30)")
     e.set_defaults(func=cmd_eval)
 
     m = sub.add_parser("mount", help="the camera mount: estimate height, pitch and roll from recorded pairs")

@@ -8,6 +8,7 @@ from ballbot_vision.common import camera
 from ballbot_vision.common.messages import FreeSpace, GroundEstimate, Obstacle, ObstacleList
 from ballbot_vision.services.segmenter import draw as D
 from ballbot_vision.services.segmenter.mount import Mount
+from ballbot_vision.services.segmenter.settings import SegmenterSettings
 
 MODEL = camera.RectifiedModel(320, 240, 200.0, 160.0, 120.0, 0.1)
 GREY = 100
@@ -77,7 +78,7 @@ def _project(mount: Mount, p_base) -> tuple[int, int]:
 
 def test_free_space_cells_project_onto_the_ground_green_free_red_occupied():
     ground = GroundEstimate(height_m=1.0, pitch_deg=20.0, roll_deg=3.0, source="fitted")
-    mount = D.ground_mount(ground)
+    mount = D.frame_mount(ground, SegmenterSettings())
     res, n = 0.5, 20
     cells = np.full((n, n), -1, np.int8)  # row: y from -5 m, col: x from 0 m
     cells[:, 2:8] = 0  # x 1..4 m free
@@ -86,6 +87,7 @@ def test_free_space_cells_project_onto_the_ground_green_free_red_occupied():
                    origin_m=(0.0, -5.0), cells=cells.tobytes())
     img = np.full((240, 320), GREY, np.uint8)
     out = D.draw_frame(img, _list([], ground), MODEL, fs)
+    assert np.array_equal(out, D.draw_frame(img, _list([], ground), MODEL, fs, mount))
     free_px = _project(mount, (1.75, 0.25, 0.0))
     occ_px = _project(mount, (3.25, -0.25, 0.0))
     unknown_px = _project(mount, (0.9, 0.0, 0.0))  # ahead of the free cells
@@ -98,7 +100,8 @@ def test_free_space_cells_project_onto_the_ground_green_free_red_occupied():
     assert _is(out[unknown_px[1], unknown_px[0]], (GREY,) * 3)
     assert _is(out[30, 160], (GREY,) * 3)  # above the horizon: nothing
     # the same grid with the mount yawed 90 deg left sees none of it (the cells lie to its right)
-    turned = D.draw_frame(img, _list([], ground), MODEL, fs, D.ground_mount(ground, yaw_deg=90.0, x_m=-6.0))
+    turned = D.draw_frame(img, _list([], ground), MODEL, fs,
+                          D.frame_mount(ground, SegmenterSettings(mount_yaw_deg=90.0, mount_x_m=-6.0)))
     assert np.all(turned[D.CAPTION_PX:] == GREY)
     # no ground estimate: no grid
     plain = D.draw_frame(img, _list([]), MODEL, fs)

@@ -393,7 +393,7 @@ def evaluate_recording(rec: Recording, seg_settings, matcher_cfg, frames: int | 
     frame's obstacles; with draw_dir, one picture per pair (draw.draw_frame) named after the left image."""
     import cv2
 
-    from .draw import draw_frame, ground_mount
+    from .draw import draw_frame, frame_mount
 
     out = None
     if draw_dir is not None:
@@ -423,9 +423,7 @@ def evaluate_recording(rec: Recording, seg_settings, matcher_cfg, frames: int | 
             fr.freespace_occupied = int(np.count_nonzero(cells == 100))
         report.frames.append(fr)
         if out is not None:
-            g = result.obstacles.ground
-            mount = (ground_mount(g, seg_settings.mount_yaw_deg, seg_settings.mount_x_m, seg_settings.mount_y_m)
-                     if g is not None and g.source != "none" else None)
+            mount = frame_mount(result.obstacles.ground, seg_settings)
             pic = draw_frame(pf.left, result.obstacles, pf.model, result.freespace, mount)
             path = out / f"{pf.left_path.stem}.png"
             if not cv2.imwrite(str(path), pic):
