@@ -6,6 +6,7 @@ Plus natural sort of offline file lists and one flag name per concept across com
 from __future__ import annotations
 
 import json
+import os
 import zlib
 from pathlib import Path
 
@@ -32,6 +33,13 @@ def _png_header_only(w: int, h: int) -> bytes:
     return b"\x89PNG\r\n\x1a\n" + len(ihdr).to_bytes(4, "big") + chunk + zlib.crc32(chunk).to_bytes(4, "big")
 
 
+def _bmp_header_only(w: int, h: int) -> bytes:
+    """A BMP whose BITMAPINFOHEADER claims w x h, 24 bit, followed by a few bytes of pixels."""
+    info = (40).to_bytes(4, "little") + w.to_bytes(4, "little") + h.to_bytes(4, "little", signed=True) \
+        + (1).to_bytes(2, "little") + (24).to_bytes(2, "little") + bytes(24)
+    return b"BM" + (54 + 64).to_bytes(4, "little") + bytes(4) + (54).to_bytes(4, "little") + info + bytes(64)
+
+
 def _jpeg(img: np.ndarray) -> bytes:
     return cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 95])[1].tobytes()
 
@@ -47,6 +55,8 @@ def _bad_images() -> dict[str, tuple[str, bytes, str]]:
     return {
         "1x1": (".png", cv2.imencode(".png", np.zeros((1, 1), np.uint8))[1].tobytes(), "1x1 pixels is too small"),
         "huge-header": (".png", _png_header_only(100000, 100000), "100000x100000 pixels is larger than"),
+        "huge-pgm-header": (".pgm", b"P5\n# a comment\n30000 30000\n255\n" + bytes(100), "30000x30000 pixels is larger than"),
+        "huge-bmp-header": (".bmp", _bmp_header_only(50000, -50000), "50000x50000 pixels is larger than"),
         "empty": (".png", b"", "the file is empty"),
         "binary": (".png", bytes(range(256)) * 8, "not an image file OpenCV can decode"),
         "truncated-jpeg": (".jpg", jpg[:len(jpg) // 2], "truncated or corrupt JPEG"),
@@ -141,6 +151,35 @@ def test_bad_calibration_files_are_one_line_errors(tmp_path, capfd, command, con
     rc = main(argv)
     _one_line_error(capfd, rc, str(cal), phrase)
     assert not (tmp_path / "out" / "d.npy").exists()
+
+
+@pytest.mark.parametrize("ext,params", [(".png", []), (".jpg", []), (".pgm", []), (".ppm", []), (".bmp", []),
+                                        (".tif", []), (".tif", [cv2.IMWRITE_TIFF_COMPRESSION, 1]), (".webp", []),
+                                        (".webp", [cv2.IMWRITE_WEBP_QUALITY, 101])])
+def test_image_sizes_are_read_from_every_header_opencv_writes(ext, params):
+    from ballbot_vision.common.files import image_header_size
+
+    img = np.zeros((37, 53, 3) if ext == ".ppm" else (37, 53), np.uint8)
+    assert image_header_size(cv2.imencode(ext, img, params)[1].tobytes()) == (53, 37)
+
+
+def test_an_oversized_image_of_a_format_without_a_known_header_is_refused_by_opencv_before_decoding(tmp_path):
+    """OpenCV's own size limits are set to ours before cv2 loads (ballbot_vision/__init__.py): a
+    format image_header_size does not read (Sun raster) is held to them too, before OpenCV
+    allocates the image. With OpenCV's default limit (1 gigapixel) this 48 MP header cut off from
+    its pixels was "not an image file"."""
+    import subprocess
+    import sys
+
+    ras = bytes.fromhex("59a66a95") + b"".join(v.to_bytes(4, "big") for v in (8000, 6000, 8, 48_000_000, 1, 0, 0))
+    (tmp_path / "l.ras").write_bytes(ras + bytes(100))
+    cv2.imwrite(str(tmp_path / "r.png"), _scene()[1])
+    env = {k: v for k, v in os.environ.items() if not k.startswith("OPENCV_IO_MAX_IMAGE")}
+    r = subprocess.run([sys.executable, "-m", "ballbot_vision.cli", "disparity", str(tmp_path / "l.ras"),
+                        str(tmp_path / "r.png"), "-o", str(tmp_path / "d.npy")], capture_output=True, text=True,
+                       timeout=120, env=env)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr
+    assert f"LEFT {tmp_path / 'l.ras'}: the image is larger than this program handles" in r.stderr
 
 
 def test_offline_file_lists_sort_naturally(tmp_path, capfd):
