@@ -57,7 +57,7 @@ def cmd_obstacles(args: argparse.Namespace) -> int:
     from .common import camera
     from .common.messages import ObstacleList
     from .common.disparity import to_float
-    from .common.files import list_images, pair_images
+    from .common.files import check_pair, list_images, pair_images
     from .services.disparity.matchers import SCALE, StereoMatcher
     from .services.rectify.core import Rectifier
     from .services.segmenter.main import ObstacleBuilder
@@ -71,8 +71,14 @@ def cmd_obstacles(args: argparse.Namespace) -> int:
         raise BallbotError("obstacles: image pairs need LEFT, RIGHT and --calibration (a recording: FILE.mcap)")
     else:
         cal = camera.load_calibration(args.calibration)
-        pairs = ((lp, rp, _read(lp, rect), _read(rp, rect), k / args.fps) for k, (lp, rp) in
-                 enumerate(pair_images(list_images(args.left, "LEFT"), list_images(args.right, "RIGHT"))))
+        file_pairs = pair_images(list_images(args.left, "LEFT"), list_images(args.right, "RIGHT"))
+
+        def read_pairs():
+            for k, (lp, rp) in enumerate(file_pairs):
+                left, right = _read(lp, rect), _read(rp, rect)
+                check_pair(left, right, str(lp), str(rp))
+                yield lp, rp, left, right, k / args.fps
+        pairs = read_pairs()
     rect = Rectifier(cal, args.alpha)
     mcfg = _matcher_settings(args)
     stereo = StereoMatcher(mcfg)

@@ -51,7 +51,7 @@ def check_readable(path: str | Path, what: str = "") -> Path:
     p = Path(os.path.expanduser(str(path)))
     label = f"{what} {path}" if what else str(path)
     if not p.exists():
-        raise FileError(f"{label}: no such file")
+        raise FileError(f"{label}: no such file or folder")
     if p.is_dir():
         raise FileError(f"{label}: is a folder, not a file")
     if not os.access(p, os.R_OK):
@@ -265,6 +265,17 @@ def decode_image(data: bytes, where: str) -> np.ndarray:
         print(said, file=sys.stderr)
     check_image_size(img.shape[1], img.shape[0], where)
     return img
+
+
+def check_pair(left: np.ndarray, right: np.ndarray, left_name: str, right_name: str) -> None:
+    """The two images of a stereo pair must agree in size and in colour (grey or BGR): else a
+    FileError naming both files."""
+    if left.shape != right.shape:
+        def kind(a: np.ndarray) -> str:
+            return f"{a.shape[1]}x{a.shape[0]} " + ("grey" if a.ndim == 2 else "colour")
+
+        raise FileError(f"{left_name} is {kind(left)} but {right_name} is {kind(right)}: the two images of a "
+                        f"stereo pair must agree in size and colour")
 
 
 def read_image(path: str | Path, what: str = "") -> np.ndarray:

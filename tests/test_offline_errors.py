@@ -234,3 +234,79 @@ def test_an_image_of_another_size_than_the_calibration_names_the_file(tmp_path, 
         rc = main(argv[:2 if argv[0] == "calibration" else 1] + [str(tmp_path / "l.png"), str(tmp_path / "r.png"),
                   "--calibration", "lifecam-studio"] + argv[2 if argv[0] == "calibration" else 1:])
         _one_line_error(capfd, rc, f"{tmp_path / 'l.png'}: image is 320x240", "640x480")
+
+
+def test_a_missing_path_reads_the_same_in_every_command(tmp_path, capfd):
+    """One wording for "nothing there": `<argument> <path>: no such file or folder`."""
+    left, right = _scene()
+    cv2.imwrite(str(tmp_path / "right.png"), right)
+    nope, out = tmp_path / "nope.png", tmp_path / "out"
+    cases = {**{name: (argv, "LEFT") for name, argv in _commands(nope, tmp_path / "right.png", out).items()},
+             "mcap from-images": (["mcap", "from-images", str(nope), str(tmp_path / "right.png"), "-o",
+                                   str(out / "x.mcap")], "LEFT"),
+             "calibration show": (["calibration", "show", str(nope)], "calibration"),
+             "calibration import": (["calibration", "import", str(nope), "-o", str(out / "i.yaml")], ""),
+             "mcap info": (["mcap", "info", str(nope)], "recording")}
+    cases["calibrate"] = (cases["calibrate"][0], "--left")
+    for name, (argv, what) in cases.items():
+        rc = main(argv)
+        err = _one_line_error(capfd, rc)
+        assert f"error: {what + ' ' if what else ''}{nope}: no such file or folder" in err, (name, err)
+
+
+def test_an_output_path_that_cannot_be_written_is_a_one_line_error(tmp_path, capfd):
+    """-o into a file, or a folder where a file goes: the path and the reason, exit 2, no traceback."""
+    left, right = _scene()
+    cv2.imwrite(str(tmp_path / "l.png"), left)
+    cv2.imwrite(str(tmp_path / "r.png"), right)
+    (tmp_path / "a-file").write_text("x")
+    (tmp_path / "a-folder").mkdir()
+    l, r, f = str(tmp_path / "l.png"), str(tmp_path / "r.png"), tmp_path / "a-file"
+    for argv, where, why in [
+        (["disparity", l, r, "-o", f"{f}/d.npy"], f, "is a file, not a folder"),
+        (["rectify", l, r, "--calibration", "lifecam-studio", "-o", str(f)], f, "is a file, not a folder"),
+        (["calibration", "show", "lifecam-studio"], None, None),
+        (["calibration", "export", "lifecam-studio", f"{f}/l.yaml", f"{f}/r.yaml"], f"{f}/l.yaml",
+         "a part of the path is a file, not a folder"),
+        (["sample-pair", str(f)], f, "is a file, not a folder"),
+        (["mcap", "from-images", l, r, "-o", f"{f}/x.mcap"], f"{f}/x.mcap", "a part of the path is a file"),
+    ]:
+        rc = main(argv)
+        if where is None:
+            assert rc == 0
+            capfd.readouterr()
+            continue
+        _one_line_error(capfd, rc, f"{where}: ", why)
+    # a calibration written over a folder: refused before anything is written
+    rc = main(["calibration", "export", "lifecam-studio", str(tmp_path / "a-folder"), str(tmp_path / "r.yaml"),
+               "--format", "ros"])
+    _one_line_error(capfd, rc, f"{tmp_path / 'a-folder'}: is a folder, not a file")
+
+
+def test_a_bad_image_in_the_middle_of_a_conversion_keeps_the_pairs_before_it(tmp_path, capfd):
+    pytest.importorskip("mcap")
+    from ballbot_vision.services.recorder.recording import RecordingReader
+
+    left, right = _scene()
+    (tmp_path / "L").mkdir(), (tmp_path / "R").mkdir()
+    for i in (1, 2, 3, 10):
+        cv2.imwrite(str(tmp_path / "L" / f"left{i}.png"), left)
+        cv2.imwrite(str(tmp_path / "R" / f"right{i}.png"), right)
+    (tmp_path / "L" / "left10.png").write_bytes(BAD_IMAGES["truncated-png"][1])
+    out = tmp_path / "x.mcap"
+    rc = main(["mcap", "from-images", str(tmp_path / "L"), str(tmp_path / "R"), "-o", str(out)])
+    _one_line_error(capfd, rc, "left10.png: truncated or corrupt PNG", f"{out} holds the 3 pair(s) before it")
+    assert len(list(RecordingReader(out).pairs())) == 3
+
+
+def test_a_grey_and_a_colour_image_are_not_a_pair(tmp_path, capfd):
+    left, right = _scene()
+    cv2.imwrite(str(tmp_path / "l.png"), left)
+    cv2.imwrite(str(tmp_path / "r.png"), cv2.cvtColor(right, cv2.COLOR_GRAY2BGR))
+    for argv in (["disparity", "-o", str(tmp_path / "d.npy")],
+                 ["obstacles", "--calibration", str(tmp_path / "cal.yaml")]):
+        (tmp_path / "cal.yaml").write_text("rectified: true\nimage_size: [320, 240]\nfocal_px: 300\n"
+                                           "principal_point: [160, 120]\nbaseline_m: 0.1\n")
+        rc = main(argv[:1] + [str(tmp_path / "l.png"), str(tmp_path / "r.png")] + argv[1:])
+        _one_line_error(capfd, rc, "l.png is 320x240 grey but ", "r.png is 320x240 colour")
+    assert not (tmp_path / "d.npy").exists()
