@@ -55,7 +55,6 @@ def cmd_obstacles(args: argparse.Namespace) -> int:
     import time
 
     from .common import camera
-    from .common.messages import ObstacleList
     from .common.disparity import to_float
     from .common.files import check_pair, list_images, pair_images
     from .services.disparity.matchers import SCALE, StereoMatcher
@@ -87,13 +86,11 @@ def cmd_obstacles(args: argparse.Namespace) -> int:
         left, right = rect.rectify(left, right)
         d = to_float(stereo.compute(left, right), SCALE, mcfg.invalid_value)
         t0 = time.perf_counter()
-        dets = builder.segmenter.detect(d, rect.model, left)
+        result = builder.process(d, rect.model, t_s=stamp_s, seq=k, stamp_ns=int(stamp_s * 1e9), image=left)
         ms = (time.perf_counter() - t0) * 1e3
-        obstacles = builder.obstacles(dets, stamp_s)
+        obstacles = result.obstacles.obstacles
         if args.json:
-            msg = ObstacleList(robot_id="offline", seq=k, stamp_ns=int(stamp_s * 1e9), publish_ns=time.time_ns(),
-                               stale=False, method=settings.method, obstacles=obstacles)
-            doc = json.loads(msg.model_dump_json())
+            doc = json.loads(result.obstacles.model_dump_json())
             doc["left"], doc["right"] = str(lp), str(rp)
             _out(json.dumps(doc))
         else:

@@ -172,8 +172,9 @@ def test_settings_default_to_layers_and_seed_can_reproduce_the_thesis():
     assert s.method == "layers" and s.range_m == 4.5
     thesis = SegmenterSettings(method="seed", floor_removal=False)
     assert thesis.range_m == 3.0
-    assert SegmenterSettings(mount_height_m=None).mount() is None
-    assert SegmenterSettings(mount_roll_deg=2.0, mount_x_m=0.1).mount() == Mount(1.0, 15.0, 0.0, 2.0, 0.1, 0.0)
+    assert SegmenterSettings().mount() is None  # no silent mount: the ground is estimated
+    assert (SegmenterSettings(mount_height_m=1.0, mount_pitch_deg=15.0, mount_roll_deg=2.0, mount_x_m=0.1).mount()
+            == Mount(1.0, 15.0, 0.0, 2.0, 0.1, 0.0))
 
 
 def _message(d: np.ndarray, model=MODEL, width=None) -> DisparityMap:
@@ -187,19 +188,21 @@ def _message(d: np.ndarray, model=MODEL, width=None) -> DisparityMap:
 
 
 def test_builder_publishes_every_field_and_the_base_frame():
-    b = ObstacleBuilder(SegmenterSettings())
+    b = ObstacleBuilder(SegmenterSettings(mount_height_m=1.0, mount_pitch_deg=15.0))
     msg = _message(scene([(200, 330, 1.8, 150), (330, 470, 2.5, 200)]))
-    out = b.build(msg, b.detect(msg), stale=False)
+    out = b.process_message(msg).obstacles
     assert out.method == "layers" and len(out.obstacles) == 2
     near, far = out.obstacles  # nearest first
     assert near.distance_m < far.distance_m
     assert near.id != far.id and near.confidence > 0.8 and near.area_px > 1000
     assert abs(near.disparity_px - FB / 1.8) < 0.3
     base = np.array(near.position_base_m)
-    assert np.allclose(base, Mount(1.0, 15.0).to_base(near.position_m))
+    g = out.ground  # fitted to the map's floor, near the configured mount; the base frame is the fitted one's
+    assert g.source == "fitted" and abs(g.height_m - 1.0) < 0.03 and abs(g.pitch_deg - 15.0) < 0.5
+    assert np.allclose(base, Mount(g.height_m, g.pitch_deg, 0.0, g.roll_deg).to_base(near.position_m))
     assert 1.6 < base[0] < 2.0 and base[2] > 0.05  # ahead, above the floor
     # the same scene again: the same ids, no velocity
-    again = b.build(msg, b.detect(msg), stale=False)
+    again = b.process_message(msg).obstacles
     assert [o.id for o in again.obstacles] == [near.id, far.id]
     assert np.linalg.norm(again.obstacles[0].velocity_mps) < 0.05
 
@@ -207,7 +210,7 @@ def test_builder_publishes_every_field_and_the_base_frame():
 def test_builder_on_bad_maps():
     b = ObstacleBuilder(SegmenterSettings())
     msg = _message(np.full((MODEL.height, MODEL.width), np.nan, np.float32))
-    assert b.build(msg, b.detect(msg), stale=False).obstacles == []
+    assert b.process_message(msg).obstacles.obstacles == []
     bad = _message(np.zeros((MODEL.height, MODEL.width - 10), np.float32))
     with pytest.raises(DecodeError, match="camera model"):
         b.detect(bad)

@@ -38,100 +38,11 @@ import cv2
 import numpy as np
 
 from ...common import camera
-from .mount import FloorPlane, Mount
+from ...common.messages import GroundEstimate
+from .ground import GroundEstimator, grid
+from .mount import FloorPlane
 from .seed import Detection
 from .settings import SegmenterSettings
-
-
-def _coords(h: int, w: int, step: int) -> tuple[np.ndarray, np.ndarray]:
-    """Full-resolution pixel coordinates of the working grid's samples (u: (1, w), v: (h, 1))."""
-    return (np.arange(w, dtype=np.float32)[None, :] * step, np.arange(h, dtype=np.float32)[:, None] * step)
-
-
-def _plane_from_mount(mount: Mount, model: camera.RectifiedModel) -> FloorPlane:
-    return FloorPlane.from_normal(mount.down_camera, mount.height_m, model.focal_px, model.cx, model.cy,
-                                  model.baseline_m)
-
-
-def _ransac_plane(u: np.ndarray, v: np.ndarray, d: np.ndarray, rng: np.random.Generator,
-                  n_hyp: int = 64) -> np.ndarray | None:
-    """Floor candidate without a mount: the plane d = a u + b v + c with most points within 1 px,
-    among planes that rise downwards (b > 0: nearer towards the bottom of the image)."""
-    if d.size < 50:
-        return None
-    idx = rng.integers(0, d.size, size=(n_hyp, 3))
-    A = np.stack([u[idx], v[idx], np.ones((n_hyp, 3), np.float32)], -1)
-    ok = np.abs(np.linalg.det(A)) > 1e-3
-    if not ok.any():
-        return None
-    planes = np.linalg.solve(A[ok], d[idx][ok][..., None])[..., 0]  # (k, 3)
-    planes = planes[planes[:, 1] > 1e-3]
-    if not len(planes):
-        return None
-    res = np.abs(planes[:, 0:1] * u[None] + planes[:, 1:2] * v[None] + planes[:, 2:3] - d[None])
-    score = (res < 1.0).sum(1)
-    return planes[int(score.argmax())]
-
-
-def _lstsq_plane(u: np.ndarray, v: np.ndarray, d: np.ndarray) -> np.ndarray:
-    """Least-squares (a, b, c) of d = a u + b v + c, by the 3x3 normal equations (centred)."""
-    u = u.astype(np.float64)
-    v = v.astype(np.float64)
-    d = d.astype(np.float64)
-    mu, mv, md = u.mean(), v.mean(), d.mean()
-    u -= mu
-    v -= mv
-    d -= md
-    A = np.array([[u @ u, u @ v], [u @ v, v @ v]])
-    a, b = np.linalg.solve(A + 1e-9 * np.eye(2), np.array([u @ d, v @ d]))
-    return np.array([a, b, md - a * mu - b * mv])
-
-
-def fit_floor(d: np.ndarray, model: camera.RectifiedModel, cfg: SegmenterSettings, step: int) -> FloorPlane | None:
-    """The floor plane in disparity space from a (median-filtered) working-resolution disparity map
-    d (0 = invalid); the mount's plane when the fit fails or disagrees with it; None when there is
-    neither a mount nor a plausible fit."""
-    mount = cfg.mount()
-    prior = _plane_from_mount(mount, model) if mount is not None else None
-    if not cfg.fit_floor:
-        return prior
-    h, w = d.shape
-    s = 2  # fit on every other working pixel
-    sub = d[::s, ::s]
-    uu, vv = _coords(*sub.shape, step * s)
-    uu = np.broadcast_to(uu, sub.shape)
-    vv = np.broadcast_to(vv, sub.shape)
-    valid = sub > 0
-    u, v, dv = uu[valid], vv[valid], sub[valid]
-    if dv.size < 50:
-        return prior
-    if prior is not None:
-        p = np.array([prior.a, prior.b, prior.c])
-        tols = (0.25, 0.12, 0.06)
-    else:
-        low = v > model.cy
-        p = _ransac_plane(u[low], v[low], dv[low], np.random.default_rng(0))
-        if p is None:
-            return None
-        tols = (0.12, 0.06)
-    inl = np.zeros(0, bool)
-    for tol in tols:
-        pred = p[0] * u + p[1] * v + p[2]
-        inl = (pred > 0) & (np.abs(dv - pred) <= np.maximum(0.6, tol * pred))
-        if inl.sum() < 200:
-            return prior
-        p = _lstsq_plane(u[inl], v[inl], dv[inl])
-    fitted = FloorPlane(float(p[0]), float(p[1]), float(p[2]), 1.0, True, int(inl.sum()))
-    n, height = fitted.normal_height(model.focal_px, model.cx, model.cy, model.baseline_m)
-    fitted = FloorPlane(fitted.a, fitted.b, fitted.c, height, True, fitted.inliers)
-    if prior is not None:
-        n0, h0 = prior.normal_height(model.focal_px, model.cx, model.cy, model.baseline_m)
-        tilt = np.degrees(np.arccos(np.clip(float(n @ n0), -1, 1)))
-        if tilt > cfg.max_tilt_deg or abs(height - h0) > 0.3 * h0:
-            return prior
-    elif n[1] <= 0.2:  # the floor must be below the camera
-        return None
-    return fitted
 
 
 @dataclass
@@ -225,82 +136,138 @@ def _merge_close(regions: list[_Region], gap_m: float) -> list[_Region]:
 
 
 _STAT_SAMPLES = 1500  # percentiles of a region are taken on at most ~2x this many of its points
+_SQUARE = np.ones((3, 3), np.uint8)
 _CROSS = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
-_GRIDS: dict[tuple[int, int, int], tuple[np.ndarray, np.ndarray]] = {}
 
 
-def segment(disparity: np.ndarray, model: camera.RectifiedModel, cfg: SegmenterSettings | None = None,
-            image: np.ndarray | None = None, floor_out: list | None = None) -> list[Detection]:
-    """disparity: (H, W) float32 px, NaN = invalid, rectified left camera `model`.
-    image: the rectified left image (H, W) uint8, only for edge_refine. floor_out: if a list, the
-    floor plane used (or None) is appended to it. -> detections, camera frame."""
+@dataclass
+class LayersFrame:
+    """Everything one frame's segmentation found, for the obstacle list and the free-space grid."""
+
+    detections: list[Detection]
+    points: list[np.ndarray]  # per detection, its (n, 3) camera-frame points, m
+    floor: FloorPlane | None  # the disparity-space floor plane used (None: no floor removed)
+    ground: GroundEstimate | None  # what the ground estimator said (None: floor removal off)
+    floor_points: np.ndarray  # (k, 3) camera-frame points seen on the floor (empty without a floor)
+
+
+def _working_disparity(disparity: np.ndarray, cfg: SegmenterSettings, confidence: np.ndarray | None,
+                       step: int) -> tuple[np.ndarray, np.ndarray]:
+    """(raw, median-filtered) working-resolution disparity, 0 = invalid; pixels whose confidence is
+    below min_confidence are invalid."""
+    d0 = np.nan_to_num(np.asarray(disparity, dtype=np.float32)[::step, ::step], nan=0.0, posinf=0.0, neginf=0.0)
+    np.maximum(d0, 0, out=d0)
+    if confidence is not None and cfg.min_confidence > 0:
+        d0[np.asarray(confidence)[::step, ::step] < cfg.min_confidence] = 0
+    dm = cv2.medianBlur(d0, cfg.median_ksize) if cfg.median_ksize > 1 else d0
+    return d0, dm
+
+
+def _group(dm: np.ndarray, stand: np.ndarray, cfg: SegmenterSettings, model: camera.RectifiedModel,
+           step: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Group standing pixels into objects on the column-disparity grid (u-disparity): a cell
+    (column, disparity bin) is occupied when its standing pixels cover min_cell_height_m of height;
+    occupied cells that touch (one cell of slack) are one object. In metres this is a polar grid
+    on the ground whose depth resolution follows the matcher's (fine near, coarse far), so a car's
+    parts and a wall seen obliquely stay whole while a person in front of a wall stays apart.
+    -> (ys, xs, d, label) of the grouped pixels, sorted by label (labels from 1)."""
+    ys, xs = np.nonzero(stand)
+    dv = dm[ys, xs]
+    w = dm.shape[1]
+    bins = (dv / np.float32(cfg.group_bin_px)).astype(np.int32)
+    nb = int(bins.max()) + 2 if bins.size else 1
+    height = np.float32(step * model.baseline_m) / dv  # metres of height one working pixel covers
+    occ = np.bincount(bins * w + xs, weights=height, minlength=nb * w).reshape(nb, w)
+    cells = (occ >= cfg.min_cell_height_m).astype(np.uint8)
+    _, cc = cv2.connectedComponents(cv2.dilate(cells, _SQUARE), connectivity=8)
+    lab = cc[bins, xs] * cells[bins, xs]
+    order = np.argsort(lab, kind="stable")
+    ys, xs, dv, lab = ys[order], xs[order], dv[order], lab[order]
+    first = int(np.searchsorted(lab, 1))
+    return ys[first:], xs[first:], dv[first:], lab[first:]
+
+
+def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: SegmenterSettings | None = None,
+                  ground: GroundEstimator | None = None, confidence: np.ndarray | None = None,
+                  image: np.ndarray | None = None) -> LayersFrame:
+    """disparity: (H, W) float32 px, NaN = invalid, rectified left camera `model`. ground: the
+    estimator that carries the ground from frame to frame (None: a fresh one, this frame alone).
+    confidence: (H, W) uint8 from the matcher, if it gives one. image: the rectified left image,
+    only for edge_refine."""
     cfg = cfg or SegmenterSettings()
     if disparity.shape != (model.height, model.width):
         raise ValueError(f"disparity is {disparity.shape[1]}x{disparity.shape[0]}, camera model is "
                          f"{model.width}x{model.height}")
+    if confidence is not None and confidence.shape != disparity.shape:
+        raise ValueError(f"confidence is {confidence.shape[1]}x{confidence.shape[0]}, disparity "
+                         f"{disparity.shape[1]}x{disparity.shape[0]}")
     step = max(1, int(cfg.downsample))
-    d0 = np.nan_to_num(np.asarray(disparity, dtype=np.float32)[::step, ::step], nan=0.0, posinf=0.0, neginf=0.0)
-    h, w = d0.shape
-    np.maximum(d0, 0, out=d0)
-    dm = cv2.medianBlur(d0, cfg.median_ksize) if cfg.median_ksize > 1 else d0
-    fB = model.focal_px * model.baseline_m
-    keep = cv2.inRange(dm, fB / cfg.range_m, fB / cfg.min_range_m)  # uint8 0/255
-    floor = None
-    if cfg.floor_removal and keep.any():
-        floor = fit_floor(np.where(keep > 0, dm, np.float32(0)), model, cfg, step)
-        if floor is not None:
-            key = (h, w, step)
-            if key not in _GRIDS:
-                _GRIDS[key] = _coords(h, w, step)
-            u, v = _GRIDS[key]
-            k = 1.0 / max(1e-3, 1.0 - cfg.floor_margin_m / floor.height_m)
-            df = (np.float32(floor.a) * u) + (np.float32(floor.b) * v + np.float32(floor.c))
-            thr = np.maximum(df * np.float32(k), df + np.float32(0.5))
-            keep[dm <= thr] = 0
-    if floor_out is not None:
-        floor_out.append(floor)
-    if not keep.any():
-        return []
+    d0, dm = _working_disparity(disparity, cfg, confidence, step)
+    h, w = dm.shape
+    f, B = model.focal_px, model.baseline_m
+    fB = f * B
+    keep = cv2.inRange(dm, fB / cfg.range_m, fB / cfg.min_range_m) > 0
+    dk = np.where(keep, dm, np.float32(0))
+    floor, estimate = None, None
+    if cfg.floor_removal:
+        ground = ground or GroundEstimator(cfg)
+        floor, estimate = ground.update(dk, model, step)
+    u, v = grid(h, w, step)
+    empty = np.zeros((0, 3))
+    floor_points = empty
+    if floor is not None:
+        df = np.float32(floor.a) * u + (np.float32(floor.b) * v + np.float32(floor.c))
+        k = 1.0 / max(1e-3, 1.0 - cfg.floor_margin_m / floor.height_m)
+        on_floor = dk <= np.maximum(df * np.float32(k), df + np.float32(cfg.ground_noise_px))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            above = np.float32(floor.height_m) * (1 - df / dk)  # height above the floor, m
+        stand = keep & ~on_floor & (above <= cfg.robot_height_m)
+        seen_floor = keep & on_floor & (above > -4 * cfg.floor_margin_m - 0.1)
+        floor_points = _points(*np.nonzero(seen_floor[::2, ::2]), dk[::2, ::2][seen_floor[::2, ::2]], model, 2 * step)
+    else:
+        above = None
+        stand = keep
+    # A pixel with a 4-neighbour nearer by more than the similarity tolerance sits on a depth step,
+    # where block matching blends the two depths into a phantom between them: it is not grouped.
+    ds = np.where(stand, dm, np.float32(0))
+    stand &= ~(cv2.dilate(ds, _CROSS) > ds * np.float32(1.0 + cfg.step_rel) + np.float32(cfg.step_px))
+    if not stand.any():
+        return LayersFrame([], [], floor, estimate, floor_points)
 
-    # Region growing with a similarity tolerance, as one connected-components pass: a pixel whose
-    # 4-neighbour is nearer by more than the tolerance is cut, so no region crosses a depth step.
-    dk = np.where(keep > 0, dm, np.float32(0))
-    nearest_nb = cv2.dilate(dk, _CROSS)
-    keep[nearest_nb > dk * np.float32(1.0 + cfg.step_rel) + np.float32(cfg.step_px)] = 0
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(keep, connectivity=4)
-    f = model.focal_px
+    ys, xs, dv, lab = _group(dm, stand, cfg, model, step)
+    bounds = np.flatnonzero(np.diff(lab)) + 1
     regions: list[_Region] = []
-    for i in range(1, n):
-        x0, y0, bw, bh, area = (int(x) for x in stats[i])
+    for gy, gx, gd in zip(np.split(ys, bounds), np.split(xs, bounds), np.split(dv, bounds)):
+        area = gy.size
         if area < cfg.min_pixels:
             continue
-        lab = labels[y0:y0 + bh, x0:x0 + bw]
-        ys, xs = np.nonzero(lab == i)
-        dv = dk[y0:y0 + bh, x0:x0 + bw][ys, xs]
-        med = float(np.median(dv))
-        px_m = fB / med / f * step  # metres per working pixel at the region's depth
-        if max(bw, bh) * px_m < cfg.min_size_m and area * px_m * px_m < cfg.min_area_m2:
+        x0, y0, x1, y1 = int(gx.min()), int(gy.min()), int(gx.max()) + 1, int(gy.max()) + 1
+        med = float(np.median(gd))
+        px_m = B / med * step  # metres per working pixel at the region's depth
+        if max(x1 - x0, y1 - y0) * px_m < cfg.min_size_m and area * px_m * px_m < cfg.min_area_m2:
             continue
         if area * px_m * px_m < 0.25 * cfg.min_area_m2:
             continue
-        good = np.abs(dv - med) <= 3 * (cfg.step_px + cfg.step_rel * med) + 0.1 * med
-        dg = dv[good].astype(np.float64)
-        zs = fB / dg
-        pts = np.stack([((xs[good] + x0) * step - model.cx) * zs / f, ((ys[good] + y0) * step - model.cy) * zs / f,
-                        zs], 1)
-        valid = int(np.count_nonzero(d0[y0:y0 + bh, x0:x0 + bw][ys, xs]))
-        y1 = y0 + bh
+        if above is not None and float(np.percentile(above[gy, gx], 98)) < cfg.min_height_m:
+            continue  # nothing of it stands up: a marking, a shadow, a mat
+        pts = _points(gy, gx, gd, model, step)
+        valid = (int(np.count_nonzero(d0[gy, gx])) if confidence is None
+                 else float(confidence[gy * step, gx * step].astype(np.float32).sum() / 255.0))
         filled = 0
         if floor is not None and cfg.fill_to_floor:
-            extra = _fill_to_floor(lab == i, dk[y0:y0 + bh, x0:x0 + bw], x0, y0, floor, cfg, model, step)
+            mask = np.zeros((y1 - y0, x1 - x0), bool)
+            mask[gy - y0, gx - x0] = True
+            extra = _fill_to_floor(mask, np.where(mask, dm[y0:y1, x0:x1], np.float32(0)), x0, y0, floor, cfg,
+                                   model, step)
             if extra is not None:
                 pts = np.concatenate([pts, extra])
                 filled = len(extra)
                 y1 = max(y1, min(h, int(np.ceil((float(np.max(extra[:, 1] / extra[:, 2])) * f + model.cy) / step)) + 1))
         lo, hi = np.percentile(pts[::max(1, len(pts) // _STAT_SAMPLES)], [2, 98], axis=0)
-        regions.append(_Region(pts, lo, hi, (x0, y0, x0 + bw, y1), area, valid, dg, filled))
+        regions.append(_Region(pts, lo, hi, (x0, y0, x1, y1), area, valid, gd.astype(np.float64), filled))
     regions = _merge_close(regions, cfg.merge_gap_m)
     out: list[Detection] = []
+    points: list[np.ndarray] = []
     for r in regions:
         size = r.hi - r.lo
         if max(size[0], size[1]) < cfg.min_size_m or r.area * (float(np.mean(r.pts[:, 2])) / f * step) ** 2 < cfg.min_area_m2:
@@ -313,10 +280,27 @@ def segment(disparity: np.ndarray, model: camera.RectifiedModel, cfg: SegmenterS
                              bbox_px=(x0 * step, y0 * step, min(model.width, x1 * step), min(model.height, y1 * step)),
                              area_px=int((r.area + r.filled) * step * step),
                              disparity_px=float(np.median(r.disparities)),
-                             confidence=r.valid / max(1, r.area)))
+                             confidence=float(min(1.0, r.valid / max(1, r.area)))))
+        points.append(r.pts)
     if cfg.edge_refine and image is not None and out:
         out = [_refine_box(det, image) for det in out]
-    return out
+    return LayersFrame(out, points, floor, estimate, floor_points)
+
+
+def _points(ys: np.ndarray, xs: np.ndarray, d: np.ndarray, model: camera.RectifiedModel, step: int) -> np.ndarray:
+    """Camera-frame points (n, 3), m, of working-grid pixels (ys, xs) with disparities d."""
+    z = model.focal_px * model.baseline_m / d.astype(np.float64)
+    return np.stack([(xs * step - model.cx) * z / model.focal_px, (ys * step - model.cy) * z / model.focal_px, z], 1)
+
+
+def segment(disparity: np.ndarray, model: camera.RectifiedModel, cfg: SegmenterSettings | None = None,
+            image: np.ndarray | None = None, floor_out: list | None = None) -> list[Detection]:
+    """One frame on its own (a fresh ground estimate): detections, camera frame. floor_out: if a
+    list, the floor plane used (or None) is appended to it."""
+    frame = segment_frame(disparity, model, cfg, image=image)
+    if floor_out is not None:
+        floor_out.append(frame.floor)
+    return frame.detections
 
 
 def _refine_box(det: Detection, image: np.ndarray, reach: int = 4) -> Detection:

@@ -9,6 +9,11 @@ occlusion keeps its id and a long one does not, while a segmenter starved of CPU
 apart on a loaded robot) does not drop tracks it simply had no frame to see them in. Velocities
 are the filter's, zero until a track has been seen twice. t_s must not go backwards (the service
 passes a monotonic time base).
+
+A track is confirmed once it has been seen in confirm_m of the last confirm_n frames, and stays
+confirmed while it lives: one-frame flukes never reach a planner as trusted. When the frame the
+positions are given in moves (the robot drove and turned: odometry), `move` carries every track
+into the new frame first, so a parked car keeps its id and a zero velocity over the ground.
 """
 from __future__ import annotations
 
@@ -25,6 +30,8 @@ class Track:
     last_seen_s: float = 0.0
     hits: int = 1
     missed: int = 0  # frames since it was last seen
+    seen_bits: int = 1  # bit k: seen k frames ago
+    confirmed: bool = False
     P: np.ndarray = field(default_factory=lambda: np.diag([0.05, 0.05, 1.0]))  # pos var, cov, vel var (per axis)
 
     def predicted(self, t_s: float) -> np.ndarray:
@@ -35,8 +42,10 @@ class Tracker:
     """update(positions, t) -> one Track per position, in order (new tracks get new ids)."""
 
     def __init__(self, gate_m: float = 0.6, timeout_s: float = 1.0, velocity_smoothing: float = 0.5,
-                 accel_mps2: float = 2.0, max_speed_mps: float = 2.5, min_missed: int = 3):
+                 accel_mps2: float = 2.0, max_speed_mps: float = 2.5, min_missed: int = 3, confirm_m: int = 3,
+                 confirm_n: int = 5):
         self.gate_m = gate_m
+        self.confirm_m, self.confirm_n = confirm_m, max(confirm_n, confirm_m)
         self.timeout_s = timeout_s
         self.min_missed = min_missed
         # velocity_smoothing is kept for compatibility; the Kalman gain replaces it
@@ -45,11 +54,24 @@ class Tracker:
         self.tracks: list[Track] = []
         self._next_id = 1
 
-    @staticmethod
-    def measurement_var(p: np.ndarray) -> float:
-        """Centroid noise (m^2) of a detection at p: stereo depth noise grows with distance."""
-        z = float(abs(p[2]))
-        return (0.01 + 0.005 * z * z) ** 2
+    def move(self, R: np.ndarray, t: np.ndarray) -> None:
+        """The frame moved: a point p of the old frame is R p + t in the new one."""
+        for tr in self.tracks:
+            tr.position = R @ tr.position + t
+            tr.velocity = R @ tr.velocity
+
+    def clear(self) -> None:
+        self.tracks = []
+
+    depth_scale: float | None = None  # f * B of the rig (px m), when known
+
+    def measurement_var(self, p: np.ndarray) -> float:
+        """Centroid noise (m^2) of a detection at p: stereo depth noise grows with the square of the
+        distance over f B (a quarter pixel of centroid disparity noise); without the rig, a generic
+        indoor one. The distance is |p|: the same in the camera and the base frame, near enough."""
+        z2 = float(p @ p)
+        k = 0.25 / self.depth_scale if self.depth_scale else 0.005
+        return (0.01 + k * z2) ** 2
 
     def _correct(self, tr: Track, p: np.ndarray, t_s: float) -> None:
         dt = t_s - tr.last_seen_s
@@ -89,7 +111,8 @@ class Tracker:
             P = np.array(pos)
             D = np.linalg.norm(pred[:, None, :] - P[None, :, :], axis=2)
             unseen = np.array([t_s - tr.last_seen_s for tr in self.tracks])
-            gate = self.gate_m + self.max_speed * np.maximum(0.0, unseen - 0.1)
+            sigma = np.sqrt([self.measurement_var(p) for p in pred])
+            gate = self.gate_m + 2 * sigma + self.max_speed * np.maximum(0.0, unseen - 0.1)
             cost = np.where(D <= gate[:, None], D, 1e6)
             for ti, pi in zip(*linear_sum_assignment(cost)):
                 if cost[ti, pi] < 1e6:
@@ -105,6 +128,12 @@ class Tracker:
                 self._correct(tr, p, t_s)
             tr.missed = -1  # seen in this frame (0 after the count below)
             out.append(tr)
+        window = (1 << self.confirm_n) - 1
         for tr in self.tracks:
             tr.missed += 1
+            if tr.missed == 0 and tr.hits > 1:
+                tr.seen_bits = ((tr.seen_bits << 1) | 1) & window
+            elif tr.missed > 0:
+                tr.seen_bits = (tr.seen_bits << 1) & window
+            tr.confirmed = tr.confirmed or bin(tr.seen_bits).count("1") >= self.confirm_m
         return out
