@@ -84,9 +84,14 @@ def _make_matcher(mcfg, model):
 def _write_picture(path: Path, picture) -> None:
     import cv2
 
-    path.parent.mkdir(parents=True, exist_ok=True)
+    from .common.errors import path_error
+
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise BallbotError(f"--draw {path.parent}: {path_error(e)}") from None
     if not cv2.imwrite(str(path), picture):
-        raise BallbotError(f"{path}: cannot write")
+        raise BallbotError(f"--draw {path}: cannot write the picture")
 
 
 def cmd_obstacles(args: argparse.Namespace) -> int:
@@ -94,7 +99,7 @@ def cmd_obstacles(args: argparse.Namespace) -> int:
 
     from .common import camera
     from .common.disparity import to_float
-    from .common.files import list_images, pair_images
+    from .common.files import check_pair, list_images, pair_images
     from .services.disparity.matchers import SCALE
     from .services.rectify.core import Rectifier
     from .services.segmenter.draw import draw_frame, frame_mount
@@ -109,8 +114,14 @@ def cmd_obstacles(args: argparse.Namespace) -> int:
         raise BallbotError("obstacles: image pairs need LEFT, RIGHT and --calibration (a recording: FILE.mcap)")
     else:
         cal = camera.load_calibration(args.calibration)
-        pairs = ((lp, rp, _read(lp, rect), _read(rp, rect), k / args.fps) for k, (lp, rp) in
-                 enumerate(pair_images(list_images(args.left, "LEFT"), list_images(args.right, "RIGHT"))))
+        file_pairs = pair_images(list_images(args.left, "LEFT"), list_images(args.right, "RIGHT"))
+
+        def read_pairs():
+            for k, (lp, rp) in enumerate(file_pairs):
+                left, right = _read(lp, rect), _read(rp, rect)
+                check_pair(left, right, str(lp), str(rp))
+                yield lp, rp, left, right, k / args.fps
+        pairs = read_pairs()
     rect = Rectifier(cal, args.alpha)
     mcfg, matcher, gate = _make_matcher(_matcher_settings(args), rect.model)
     builder = ObstacleBuilder(settings)

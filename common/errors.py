@@ -24,3 +24,15 @@ class SourceError(BallbotError):
 class FileError(BallbotError):
     """A file the user gave that is missing, unreadable, empty, binary, truncated, corrupt or of an
     impossible size (see common/files.py for the one wording every command uses)."""
+
+
+def path_error(e: OSError) -> str:
+    """What went wrong with an OSError's path, in the words common/files.py uses for the same."""
+    import errno
+
+    known = {errno.ENOENT: "no such file or folder", errno.EEXIST: "is a file, not a folder",
+             errno.ENOTDIR: "a part of the path is a file, not a folder", errno.EISDIR: "is a folder, not a file",
+             errno.EACCES: "permission denied", errno.EPERM: "permission denied",
+             errno.EROFS: "read-only file system", errno.ENOSPC: "no space left on the device"}
+    why = known.get(e.errno or 0) or (e.strerror or str(e)).rstrip(".")
+    return why[:1].lower() + why[1:]

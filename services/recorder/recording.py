@@ -34,7 +34,7 @@ import cv2
 import numpy as np
 
 from ...common import codec
-from ...common.errors import BallbotError
+from ...common.errors import BallbotError, path_error
 from ...common.messages import (CameraModel, DisparityMap, FreeSpace, GroundTruth, Image, ObstacleList, ServiceStats,
                                 StereoFrame, TruthObstacle)
 from . import foxglove
@@ -100,7 +100,7 @@ class RecordingWriter:
         try:
             self._file: IO[bytes] = open(self.path, "wb")
         except OSError as e:
-            raise RecordingError(f"{path}: cannot write the recording: {e.strerror or e}") from None
+            raise RecordingError(f"{path}: cannot write the recording ({path_error(e)})") from None
         kinds = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
         if compression not in kinds:
             raise RecordingError(f"compression {compression!r}: expected one of {', '.join(kinds)}")
@@ -349,7 +349,7 @@ class RecordingReader:
             with open(self.path, "rb") as f:
                 magic = f.read(8)
         except OSError as e:
-            raise RecordingError(f"{path}: cannot read the recording: {e.strerror or e}") from None
+            raise RecordingError(f"recording {path}: {path_error(e)}") from None
         if magic != b"\x89MCAP0\r\n":
             raise RecordingError(f"{path}: not an MCAP file (it starts with {magic[:8]!r})")
         self.truncated = False

@@ -62,8 +62,8 @@ class Rectifier:
     def check_size(self, image: np.ndarray, name: str) -> None:
         h, w = image.shape[:2]
         if (w, h) != tuple(self.size):
-            raise BallbotError(f"{name}: image is {w}x{h}, the calibration '{self.calibration.name or '?'}' "
-                               f"is for {self.size[0]}x{self.size[1]}")
+            named = f" '{self.calibration.name}'" if self.calibration.name else ""
+            raise BallbotError(f"{name}: image is {w}x{h}, the calibration{named} is for {self.size[0]}x{self.size[1]}")
 
     def rectify(self, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """left, right: (H, W) or (H, W, 3) images of the calibrated size -> rectified, same dtype."""

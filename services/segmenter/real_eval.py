@@ -353,7 +353,7 @@ def process_recording(rec: Recording, seg_settings, matcher_cfg, frames: int | N
     ObstacleBuilder (tracks carry over from pair to pair; the matcher's confidence and the
     recording's odometry, where there are any, are passed on)."""
     from ...common.disparity import to_float
-    from ...common.files import read_image
+    from ...common.files import check_pair, read_image
     from ..disparity.matchers import SCALE, gate_for_range, make_matcher
     from ..rectify.core import Rectifier
     from .main import ObstacleBuilder
@@ -370,6 +370,7 @@ def process_recording(rec: Recording, seg_settings, matcher_cfg, frames: int | N
     for k in range(n):
         lp, rp = rec.pairs[k]
         left, right = read_image(lp), read_image(rp)
+        check_pair(left, right, str(lp), str(rp))
         rect.check_size(left, str(lp))
         rect.check_size(right, str(rp))
         left, right = rect.rectify(left, right)
@@ -395,10 +396,15 @@ def evaluate_recording(rec: Recording, seg_settings, matcher_cfg, frames: int | 
 
     from .draw import draw_frame, frame_mount
 
+    from ...common.errors import path_error
+
     out = None
     if draw_dir is not None:
         out = Path(draw_dir)
-        out.mkdir(parents=True, exist_ok=True)
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise BallbotError(f"--draw {out}: {path_error(e)}") from None
     report = RealReport(rec.name, rec.calibration_source, rec.stamps_from, rec.odometry is not None, [],
                         pictures=str(out) if out else None)
     report.settings = {"segmenter": seg_settings.model_dump(), "disparity": None, "range_m": seg_settings.range_m}
