@@ -98,14 +98,17 @@ def parse_text(cls: type[ServiceSettings], name: str, text: str) -> Any:
 
 
 def add_settings_arguments(p: argparse.ArgumentParser, cls: type[ServiceSettings], *, prefix: str = "",
-                           title: str | None = None) -> None:
+                           title: str | None = None, exclude: tuple[str, ...] = ()) -> None:
     """One flag per field of `cls` (`--rate-hz`), documented from the model. In a command that runs
     several stages, `prefix` marks the settings of the stages that are not the command's own
     (`obstacles --disparity-method sgbm` beside the segmenter's `--method`); load them with the same
-    prefix. Values land in per-section attributes, so two models never share a flag's value."""
+    prefix. Values land in per-section attributes, so two models never share a flag's value. `exclude`:
+    fields the command sets itself (no flag)."""
     g = p.add_argument_group(title or f"{cls.section} settings (also the '{cls.section}' section of --config "
                                       f"FILE, or the environment variable shown)")
     for name, f in cls.model_fields.items():
+        if name in exclude:
+            continue
         default = f.default if f.default_factory is None else f.default_factory()
         kw: dict[str, Any] = {"nargs": "?", "const": "true", "metavar": "BOOL"} if _is_bool(f.annotation) \
             else {"metavar": "V"}
