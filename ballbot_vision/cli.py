@@ -402,7 +402,7 @@ def main(argv: list[str] | None = None) -> int:
         return args.func(args) or 0
     except BallbotError as e:
         print(f"ballbot-vision: error: {e}", file=sys.stderr)
-        return 2
+        return e.exit_status
     except KeyboardInterrupt:
         return 130
     except BrokenPipeError:  # `... | head` closed the pipe: not an error of ours

@@ -2,7 +2,10 @@
 
 
 class BallbotError(Exception):
-    """Base of every error a user can cause (bad file, bad setting, bad message)."""
+    """Base of every error a user can cause (bad file, bad setting, bad message). The CLI prints it
+    on one line and exits with `exit_status`: 2, bad input or settings (retrying cannot help)."""
+
+    exit_status = 2
 
 
 class CalibrationError(BallbotError):
@@ -19,6 +22,13 @@ class DecodeError(BallbotError):
 
 class SourceError(BallbotError):
     """A capture source that cannot be opened or read."""
+
+
+class ConnectError(BallbotError):
+    """No Zenoh router answers, or an endpoint cannot be listened on: perhaps only for now, so the
+    exit status is 1 (`up` restarts a service that meets it, as it does a crash)."""
+
+    exit_status = 1
 
 
 class FileError(BallbotError):

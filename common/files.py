@@ -17,11 +17,12 @@ import tempfile
 import threading
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Iterator, Sequence
-
-import numpy as np
+from typing import TYPE_CHECKING, Any, Iterator, Sequence
 
 from .errors import FileError
+
+if TYPE_CHECKING:  # numpy is imported where images are decoded: reading a YAML file needs none
+    import numpy as np
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".pnm", ".webp")
 
@@ -83,20 +84,74 @@ def read_text(path: str | Path, what: str = "") -> str:
         raise FileError(f"{label}: binary data, not a text file (byte {e.start} is not UTF-8)") from None
 
 
-def read_yaml(path: str | Path, what: str = "") -> Any:
-    """A YAML file parsed (safe_load). OpenCV FileStorage's `%YAML:1.0` first line, which YAML
-    parsers reject, is accepted (EuRoC and OpenCV write it). Errors name the file and line."""
+# Hostile YAML: a few hundred bytes of nested aliases ("billion laughs") expand to hundreds of
+# millions of values once anything walks the document (1.6 GB for a 700-byte calibration before this
+# limit), and thousands of nested brackets exhaust Python's recursion. No calibration, scenario or
+# config comes near either limit.
+MAX_YAML_VALUES = 200_000
+
+
+def parse_yaml(text: str, label: str) -> Any:
+    """YAML text -> Python (safe_load semantics). OpenCV FileStorage's `%YAML:1.0` first line,
+    which YAML parsers reject, is accepted (EuRoC and OpenCV write it). Invalid YAML, aliases that
+    expand to more than MAX_YAML_VALUES values and too deep nesting are a FileError naming `label`
+    (and the line)."""
     import yaml
 
-    text = read_text(path, what)
-    label = f"{what} {path}" if what else str(path)
     text = re.sub(r"\A%YAML:\d+\.\d+[^\n]*\n", "", text)
+    loader = yaml.SafeLoader(text)
     try:
-        return yaml.safe_load(text)
+        node = loader.get_single_node()
+        if node is not None:
+            n = _expanded_values(node)
+            if n > MAX_YAML_VALUES:
+                raise FileError(f"{label}: YAML aliases that expand to more than {MAX_YAML_VALUES} values "
+                                f"({'endless' if n >= 1 << 62 else n})")
+        return loader.construct_document(node) if node is not None else None
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
         where = f" (line {mark.line + 1}: {getattr(e, 'problem', '') or 'syntax error'})" if mark else ""
         raise FileError(f"{label}: not valid YAML{where}") from None
+    except RecursionError:
+        raise FileError(f"{label}: YAML nested too deeply") from None
+    finally:
+        loader.dispose()
+
+
+def _expanded_values(root: Any) -> int:
+    """How many values the YAML node graph holds once its aliases are expanded, counted without
+    expanding them (a shared node is counted once per reference, its size computed once)."""
+    import yaml
+
+    size: dict[int, int] = {}
+    visiting: set[int] = set()
+    stack: list[tuple[Any, bool]] = [(root, False)]
+    while stack:  # post-order without recursion
+        node, children_done = stack.pop()
+        if id(node) in size:
+            continue
+        if not children_done and id(node) in visiting:  # a node that holds itself (&a [*a]): endless
+            return 1 << 62
+        if isinstance(node, yaml.SequenceNode):
+            kids = list(node.value)
+        elif isinstance(node, yaml.MappingNode):
+            kids = [n for pair in node.value for n in pair]
+        else:
+            size[id(node)] = 1
+            continue
+        if children_done:
+            size[id(node)] = min(1 + sum(size[id(k)] for k in kids), 1 << 62)
+        else:
+            visiting.add(id(node))
+            stack.append((node, True))
+            stack.extend((k, False) for k in kids if id(k) not in size)
+    return size[id(root)]
+
+
+def read_yaml(path: str | Path, what: str = "") -> Any:
+    """A YAML file parsed as parse_yaml does; missing, empty, binary or hostile files are a
+    FileError naming the file (and the line)."""
+    return parse_yaml(read_text(path, what), f"{what} {path}" if what else str(path))
 
 
 # --- images --------------------------------------------------------------------------------------
@@ -234,6 +289,7 @@ def decode_image(data: bytes, where: str) -> np.ndarray:
     scaled to 8). A truncated or corrupt file, an unknown format or an impossible size is a
     FileError naming `where`."""
     import cv2
+    import numpy as np
 
     size = image_header_size(data)
     if size is not None:

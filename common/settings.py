@@ -21,7 +21,6 @@ import argparse
 import os
 import types
 import typing
-from pathlib import Path
 from typing import Any, ClassVar, TypeVar
 
 from pydantic import BaseModel, ConfigDict, TypeAdapter, ValidationError
@@ -142,17 +141,15 @@ def flags_given(cls: type[ServiceSettings], args: argparse.Namespace | None) -> 
 
 def read_config_section(config_file: str, section: str) -> dict[str, Any]:
     """The mapping under `section` in a `--config` YAML file ({} when absent)."""
-    import yaml
+    from .errors import FileError
+    from .files import read_yaml
 
-    path = Path(config_file)
-    try:
-        doc = yaml.safe_load(path.read_text())
-    except FileNotFoundError:
-        raise ConfigError(f"{config_file}: no such config file") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise ConfigError(f"{config_file}: cannot read the config file ({getattr(e, 'strerror', None) or e})") from None
-    except yaml.YAMLError as e:
-        raise ConfigError(f"{config_file}: not valid YAML: {e}") from None
+    try:  # missing, empty, binary or hostile files in the wording every command uses
+        doc = read_yaml(config_file, "config")
+    except FileError as e:
+        if "the file is empty" not in str(e):
+            raise ConfigError(str(e)) from None
+        doc = None
     doc = doc or {}
     if not isinstance(doc, dict):
         raise ConfigError(f"{config_file}: expected a mapping of service sections (capture:, rectify:, ...)")

@@ -310,3 +310,79 @@ def test_a_grey_and_a_colour_image_are_not_a_pair(tmp_path, capfd):
         rc = main(argv[:1] + [str(tmp_path / "l.png"), str(tmp_path / "r.png")] + argv[1:])
         _one_line_error(capfd, rc, "l.png is 320x240 grey but ", "r.png is 320x240 colour")
     assert not (tmp_path / "d.npy").exists()
+
+
+def _laughs(levels: int = 9) -> str:
+    """A few hundred bytes of nested YAML aliases ("billion laughs") that expand to 9**levels values."""
+    lines = ['l0: &l0 ["x", "x", "x", "x", "x", "x", "x", "x", "x"]']
+    lines += [f"l{i}: &l{i} [{', '.join([f'*l{i - 1}'] * 9)}]" for i in range(1, levels)]
+    return "\n".join(lines) + f"\nrectified: true\nfocal_px: 700\nprincipal_point: [1, 1]\nbaseline_m: 0.1\n" \
+                              f"image_size: *l{levels - 1}\n"
+
+
+HOSTILE_YAML = {
+    "aliases": (_laughs(), "YAML aliases that expand to more than 200000 values"),
+    "self-reference": ("a: &a [*a]\n", "YAML aliases that expand to more than 200000 values (endless)"),
+    "nesting": ("a: " + "[" * 5000 + "]" * 5000 + "\n", "YAML nested too deeply"),
+}
+
+
+@pytest.mark.parametrize("kind", list(HOSTILE_YAML))
+@pytest.mark.parametrize("command", ["calibration show", "calibration import", "obstacles", "--config"])
+def test_hostile_yaml_is_refused_before_it_is_walked(tmp_path, capfd, command, kind):
+    """A 700-byte calibration of nested aliases took 1.6 GB and 4 s before it was refused; deep
+    nesting was a RecursionError traceback."""
+    text, phrase = HOSTILE_YAML[kind]
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(text)
+    left, right = _scene()
+    cv2.imwrite(str(tmp_path / "l.png"), left)
+    cv2.imwrite(str(tmp_path / "r.png"), right)
+    argv = {"calibration show": ["calibration", "show", str(bad)],
+            "calibration import": ["calibration", "import", str(bad), "-o", str(tmp_path / "i.yaml")],
+            "obstacles": ["obstacles", str(tmp_path / "l.png"), str(tmp_path / "r.png"), "--calibration", str(bad)],
+            "--config": ["obstacles", str(tmp_path / "l.png"), str(tmp_path / "r.png"), "--calibration",
+                         "lifecam-studio", "--config", str(bad)]}[command]
+    rc = main(argv)
+    _one_line_error(capfd, rc, str(bad), phrase)
+    assert not (tmp_path / "i.yaml").exists()
+
+
+def test_a_hostile_calibration_message_is_refused_by_rectify():
+    """The same YAML on the calibration key: refused and logged, the calibration in use stays."""
+    from ballbot_vision.services.rectify.core import CalibrationHolder
+
+    holder = CalibrationHolder("lifecam-studio")
+    before = holder.current()
+    assert not holder.offer_yaml(HOSTILE_YAML["aliases"][0], "a message")
+    assert holder.current() is before and "expand to more than 200000 values" in holder.last_error
+
+
+@pytest.mark.parametrize("content,phrase", [
+    ("M1: !!opencv-matrix\n   rows: 3\n   cols: 3\n", "field 'M1' is not a readable OpenCV matrix: no 'dt'"),
+    ("M1: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n   data: [ 1, 2 ]\n",
+     "field 'M1' is not a readable OpenCV matrix: its 'data' do not hold rows x cols numbers"),
+    ("image_width: .nan\nimage_height: 480\n", "field 'image_width' must be a whole number of pixels, got nan"),
+])
+def test_an_opencv_file_with_broken_fields_is_a_one_line_error(tmp_path, capfd, content, phrase):
+    """cv::FileStorage's own assertions (cv2.error) and a NaN size were tracebacks."""
+    from ballbot_vision.common import camera
+
+    rig = camera.load_calibration("lifecam-studio")
+    mat = lambda m: "!!opencv-matrix\n   rows: {}\n   cols: {}\n   dt: d\n   data: [ {} ]\n".format(  # noqa: E731
+        *np.atleast_2d(m).shape, ", ".join(f"{v:.6f}" for v in np.ravel(m)))
+    good = {"M1": rig.left.K, "D1": rig.left.D[None], "M2": rig.right.K, "D2": rig.right.D[None]}
+    key = content.split(":", 1)[0]
+    body = "".join(f"{k}: {mat(v)}" for k, v in good.items() if k != key)
+    (tmp_path / "intrinsics.yml").write_text("%YAML:1.0\n" + content + body)
+    (tmp_path / "extrinsics.yml").write_text("%YAML:1.0\n" + f"R: {mat(rig.R)}T: {mat(rig.T[:, None] * 1000)}")
+    argv = ["calibration", "import", str(tmp_path / "intrinsics.yml"), str(tmp_path / "extrinsics.yml"),
+            "--units-m", "0.001", "-o", str(tmp_path / "rig.yaml")]
+    size = [] if key == "image_width" else ["--image-size", "640x480"]  # else the file gives it
+    rc = main(argv + size)
+    _one_line_error(capfd, rc, str(tmp_path / "intrinsics.yml"), phrase)
+    assert not (tmp_path / "rig.yaml").exists()
+    # the same files, repaired, import
+    (tmp_path / "intrinsics.yml").write_text("%YAML:1.0\n" + "".join(f"{k}: {mat(v)}" for k, v in good.items()))
+    assert main(argv + ["--image-size", "640x480"]) == 0
+    assert camera.load_calibration(str(tmp_path / "rig.yaml")).image_size == (640, 480)

@@ -482,9 +482,8 @@ def offline_pairs(path: str | Path, calibration: str | None = None):
     pairs yields (left label, right label, left, right, t_s) in capture order, t_s from the
     recording's stamps, and calibration is `calibration` (a file or profile) or else the
     recording's own, as a Calibration."""
-    import yaml
-
     from ...common import camera
+    from ...common.files import parse_yaml
 
     reader = RecordingReader(path)
     pairs = reader.pairs("raw")
@@ -494,7 +493,8 @@ def offline_pairs(path: str | Path, calibration: str | None = None):
     if calibration:
         cal = camera.load_calibration(calibration)
     elif first.calibration_yaml:
-        cal = camera.calibration_from_dict(yaml.safe_load(first.calibration_yaml), where=f"{path}: /calibration")
+        cal = camera.calibration_from_dict(parse_yaml(first.calibration_yaml, f"{path}: /calibration"),
+                                           where=f"{path}: /calibration")
     else:
         raise RecordingError(f"{path}: the recording holds no calibration; give one with --calibration")
 

@@ -157,12 +157,13 @@ class CalibrationHolder:
             return True
 
     def offer_yaml(self, text: str, origin: str, check_change: bool = True) -> bool:
-        import yaml
+        from ...common.errors import FileError
+        from ...common.files import parse_yaml
 
-        try:
-            doc = yaml.safe_load(text)
-        except yaml.YAMLError as e:
-            return self._refuse(origin, f"not valid YAML: {e}")
+        try:  # hostile YAML (aliases that expand to millions of values) is refused before it is walked
+            doc = parse_yaml(text, "calibration")
+        except FileError as e:
+            return self._refuse(origin, str(e))
         try:
             cal = camera.calibration_from_dict(doc, where=origin)
         except CalibrationError as e:
