@@ -1,34 +1,40 @@
-"""The default segmenter: depth-aware region growing on the disparity map, with the floor removed.
+"""The default segmenter: things that stand up from the ground, one obstacle per object.
 
-disparity (H, W) float32 px, NaN = invalid  ->  list of Detection (camera frame, metres)
+disparity (H, W) float32 px, NaN = invalid  ->  LayersFrame (detections camera frame, metres; the
+floor plane and ground estimate used; the floor the robot may drive on, for free space)
 
-Unlike the thesis's single Otsu threshold (seed.py), objects that touch in the image but sit at
-different depths stay apart, objects cut by the image border are kept, and the floor is a fitted
-plane rather than "whatever is far".
+Unlike the thesis's single Otsu threshold (seed.py), the floor is found in the data every frame,
+only what stands on it counts, and objects are grouped where they stand.
 
- 1. work on every `downsample`-th pixel (2: 320x240 for a 640x480 map), NaN -> 0
+ 1. work on every `downsample`-th pixel (2: 320x240 for a 640x480 map), NaN -> 0; pixels whose
+    matcher confidence is below min_confidence are invalid
  2. 5x5 median filter (removes block-matching speckle, keeps depth steps sharp)
  3. range gate: min_range_m <= Z <= max_range_m
- 4. floor: a plane d = a u + b v + c in disparity space (a flat floor is a plane there),
-    fitted by least squares to the pixels in a band around the plane the camera mount predicts,
-    the band narrowed over three passes (without a mount: RANSAC on the lower half first);
-    checked against the mount (normal within max_tilt_deg, height within 30 %), the mount's plane
-    as the fallback; pixels less than floor_margin_m above it are floor
- 5. region growing with a similarity tolerance: 4-neighbours belong together when their
-    disparities differ by at most step_px + step_rel * d. Implemented as one connected-components
-    pass after removing every pixel with a 4-neighbour nearer by more than the tolerance (one
-    3x3 dilation), so no region can leak across a depth step
- 6. regions smaller than min_size_m (largest extent) or min_area_m2 (frontal area) are dropped
- 7. per region, its pixels' 3D points (outliers beyond the tolerance of the median disparity
-    dropped); where a column ends within floor_margin_m (+4 cm) of the floor, the object stands on
-    it and the strip that floor removal cut off is filled back in along the floor normal
- 8. regions whose 3D extents come within merge_gap_m of each other on every axis are one object
-    (a chair's back leg, seen between its front legs, is apart from the seat in the image)
- 9. per object: centroid (mean of the points, like the surface points a camera sees), extent
-    (2nd-98th percentile), nearest distance (2nd percentile of range), bbox, area, median
-    disparity, confidence = fraction of the region's pixels with a valid raw disparity
-10. optional boundary refinement (edge_refine): each box side is snapped to the strongest
-    intensity edge of the left image within a few pixels (the thesis's hybrid idea)
+ 4. the ground: a plane d = a u + b v + c in disparity space, fitted this frame (ground.py: the
+    last frames' estimate, the configured mount or RANSAC as the first guess; checked, smoothed,
+    published as height / pitch / roll)
+ 5. height band: a pixel stands when it is more than floor_margin_m (and ground_noise_px of
+    disparity) above the floor and at most robot_height_m above it; markings, shadows, mats are
+    floor, canopy and ceilings are above the robot
+ 6. a standing pixel with a 4-neighbour nearer by more than step_px + step_rel * d sits on a depth
+    step, where block matching blends two depths into a phantom: it is not grouped
+ 7. grouping on the column-disparity grid (u-disparity): a cell (column, disparity bin) is
+    occupied when its standing pixels cover min_cell_height_m; touching cells are one object.
+    In metres this is a polar grid on the ground as fine as the matcher can see: a car, a wall
+    seen obliquely, a person stay whole; a person in front of a wall stays apart
+ 8. objects smaller than min_size_m / min_area_m2, or whose top is below min_height_m, are dropped
+ 9. per object, its 3D points; where a column ends within floor_margin_m (+4 cm) of the floor the
+    object stands on it and the strip the band cut off is filled back in along the floor normal
+10. objects whose 3D extents come within merge_gap_m are one (a chair's back leg seen between its
+    front legs); a small object mostly inside a larger one's box is part of it (depths meet) or
+    seen through it (wholly behind: a car's windows) and dropped
+11. per object: centroid (mean of the points), extent (2nd-98th percentile), nearest distance
+    (2nd percentile of range), bbox, area, median disparity, confidence (mean matcher confidence,
+    else the fraction of its pixels with a valid raw disparity)
+12. the drivable floor: along each column, from the image's bottom edge to the farthest floor
+    point seen, stopped by anything standing (freespace.py turns it into the grid)
+13. optional boundary refinement (edge_refine): each box side snapped to the strongest intensity
+    edge of the left image within a few pixels (the thesis's hybrid idea)
 """
 from __future__ import annotations
 
