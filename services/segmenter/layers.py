@@ -135,10 +135,12 @@ def _merge_close(regions: list[_Region], gap_m: float) -> list[_Region]:
     return out
 
 
-def _absorb_contained(regions: list[_Region], gap_m: float, inside: float = 0.8) -> list[_Region]:
-    """A region whose image box lies mostly (inside) within a larger region's box is either part of
-    it (their depths meet: merged), or seen through it (wholly farther: a car's windows, a shelter's
-    glass; dropped: the nearer object is what stands in the way), or in front of it (kept)."""
+def _absorb_contained(regions: list[_Region], gap_m: float, model: camera.RectifiedModel, step: int,
+                      inside: float = 0.8) -> list[_Region]:
+    """A region whose image box lies mostly (inside) within a larger region's box is, compared
+    with the larger one's depth in the same image columns: part of it (the depths meet: merged),
+    seen through it (farther: a car's windows, a shelter's glass; dropped, the nearer object is
+    what stands in the way), or in front of it (kept: a chessboard on its stand before a wall)."""
     if len(regions) < 2:
         return regions
     order = sorted(range(len(regions)), key=lambda i: -regions[i].area)
@@ -156,9 +158,16 @@ def _absorb_contained(regions: list[_Region], gap_m: float, inside: float = 0.8)
             own = (r.bbox[2] - r.bbox[0]) * (r.bbox[3] - r.bbox[1])
             if ix * iy < inside * own:
                 continue
-            if r.lo[2] > c.hi[2] + gap_m:
+            u = c.pts[:, 0] / c.pts[:, 2] * model.focal_px + model.cx  # full-resolution columns
+            there = (u >= r.bbox[0] * step) & (u < r.bbox[2] * step)
+            if not there.any():
+                continue
+            zc = np.percentile(c.pts[there, 2], [10, 90])
+            zr = float(np.median(r.pts[:, 2]))
+            tol = gap_m + 0.02 * zr
+            if zr > zc[1] + tol:
                 alive[ri] = False  # behind it
-            elif r.hi[2] >= c.lo[2] - gap_m:
+            elif zr >= zc[0] - tol:
                 alive[ri] = False
                 c = regions[ci] = _union([c, r])
     return [r for r, a in zip(regions, alive) if a]
@@ -302,7 +311,7 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
                 y1 = max(y1, min(h, int(np.ceil((float(np.max(extra[:, 1] / extra[:, 2])) * f + model.cy) / step)) + 1))
         lo, hi = np.percentile(pts[::max(1, len(pts) // _STAT_SAMPLES)], [2, 98], axis=0)
         regions.append(_Region(pts, lo, hi, (x0, y0, x1, y1), area, valid, gd.astype(np.float64), filled))
-    regions = _absorb_contained(_merge_close(regions, cfg.merge_gap_m), cfg.merge_gap_m)
+    regions = _absorb_contained(_merge_close(regions, cfg.merge_gap_m), cfg.merge_gap_m, model, step)
     out: list[Detection] = []
     points: list[np.ndarray] = []
     for r in regions:
