@@ -246,7 +246,11 @@ def test_a_missing_path_reads_the_same_in_every_command(tmp_path, capfd):
                                    str(out / "x.mcap")], "LEFT"),
              "calibration show": (["calibration", "show", str(nope)], "calibration"),
              "calibration import": (["calibration", "import", str(nope), "-o", str(out / "i.yaml")], ""),
-             "mcap info": (["mcap", "info", str(nope)], "recording")}
+             "mcap info": (["mcap", "info", str(nope)], "recording"),
+             "calibrate --pairs": (["calibrate", "--pairs", str(nope), "--square-size", "0.03"], "--pairs"),
+             "sample-pair --scenario": (["sample-pair", str(out / "s"), "--scenario", str(nope)], "scenario"),
+             "--config": (["obstacles", str(nope), str(nope), "--calibration", "lifecam-studio", "--config",
+                           str(nope)], "config")}
     cases["calibrate"] = (cases["calibrate"][0], "--left")
     for name, (argv, what) in cases.items():
         rc = main(argv)
