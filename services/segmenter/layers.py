@@ -1,34 +1,40 @@
-"""The default segmenter: depth-aware region growing on the disparity map, with the floor removed.
+"""The default segmenter: things that stand up from the ground, one obstacle per object.
 
-disparity (H, W) float32 px, NaN = invalid  ->  list of Detection (camera frame, metres)
+disparity (H, W) float32 px, NaN = invalid  ->  LayersFrame (detections camera frame, metres; the
+floor plane and ground estimate used; the floor the robot may drive on, for free space)
 
-Unlike the thesis's single Otsu threshold (seed.py), objects that touch in the image but sit at
-different depths stay apart, objects cut by the image border are kept, and the floor is a fitted
-plane rather than "whatever is far".
+Unlike the thesis's single Otsu threshold (seed.py), the floor is found in the data every frame,
+only what stands on it counts, and objects are grouped where they stand.
 
- 1. work on every `downsample`-th pixel (2: 320x240 for a 640x480 map), NaN -> 0
+ 1. work on every `downsample`-th pixel (2: 320x240 for a 640x480 map), NaN -> 0; pixels whose
+    matcher confidence is below min_confidence are invalid
  2. 5x5 median filter (removes block-matching speckle, keeps depth steps sharp)
  3. range gate: min_range_m <= Z <= max_range_m
- 4. floor: a plane d = a u + b v + c in disparity space (a flat floor is a plane there),
-    fitted by least squares to the pixels in a band around the plane the camera mount predicts,
-    the band narrowed over three passes (without a mount: RANSAC on the lower half first);
-    checked against the mount (normal within max_tilt_deg, height within 30 %), the mount's plane
-    as the fallback; pixels less than floor_margin_m above it are floor
- 5. region growing with a similarity tolerance: 4-neighbours belong together when their
-    disparities differ by at most step_px + step_rel * d. Implemented as one connected-components
-    pass after removing every pixel with a 4-neighbour nearer by more than the tolerance (one
-    3x3 dilation), so no region can leak across a depth step
- 6. regions smaller than min_size_m (largest extent) or min_area_m2 (frontal area) are dropped
- 7. per region, its pixels' 3D points (outliers beyond the tolerance of the median disparity
-    dropped); where a column ends within floor_margin_m (+4 cm) of the floor, the object stands on
-    it and the strip that floor removal cut off is filled back in along the floor normal
- 8. regions whose 3D extents come within merge_gap_m of each other on every axis are one object
-    (a chair's back leg, seen between its front legs, is apart from the seat in the image)
- 9. per object: centroid (mean of the points, like the surface points a camera sees), extent
-    (2nd-98th percentile), nearest distance (2nd percentile of range), bbox, area, median
-    disparity, confidence = fraction of the region's pixels with a valid raw disparity
-10. optional boundary refinement (edge_refine): each box side is snapped to the strongest
-    intensity edge of the left image within a few pixels (the thesis's hybrid idea)
+ 4. the ground: a plane d = a u + b v + c in disparity space, fitted this frame (ground.py: the
+    last frames' estimate, the configured mount or RANSAC as the first guess; checked, smoothed,
+    published as height / pitch / roll)
+ 5. height band: a pixel stands when it is more than floor_margin_m (and ground_noise_px of
+    disparity) above the floor and at most robot_height_m above it; markings, shadows, mats are
+    floor, canopy and ceilings are above the robot
+ 6. a standing pixel with a 4-neighbour nearer by more than step_px + step_rel * d sits on a depth
+    step, where block matching blends two depths into a phantom: it is not grouped
+ 7. grouping on the column-disparity grid (u-disparity): a cell (column, disparity bin) is
+    occupied when its standing pixels cover min_cell_height_m; touching cells are one object.
+    In metres this is a polar grid on the ground as fine as the matcher can see: a car, a wall
+    seen obliquely, a person stay whole; a person in front of a wall stays apart
+ 8. objects smaller than min_size_m / min_area_m2, or whose top is below min_height_m, are dropped
+ 9. per object, its 3D points; where a column ends within floor_margin_m (+4 cm) of the floor the
+    object stands on it and the strip the band cut off is filled back in along the floor normal
+10. objects whose 3D extents come within merge_gap_m are one (a chair's back leg seen between its
+    front legs); a small object mostly inside a larger one's box is part of it (depths meet) or
+    seen through it (wholly behind: a car's windows) and dropped
+11. per object: centroid (mean of the points), extent (2nd-98th percentile), nearest distance
+    (2nd percentile of range), bbox, area, median disparity, confidence (mean matcher confidence,
+    else the fraction of its pixels with a valid raw disparity)
+12. the drivable floor: along each column, from the image's bottom edge to the farthest floor
+    point seen, stopped by anything standing (freespace.py turns it into the grid)
+13. optional boundary refinement (edge_refine): each box side snapped to the strongest intensity
+    edge of the left image within a few pixels (the thesis's hybrid idea)
 """
 from __future__ import annotations
 
@@ -125,14 +131,45 @@ def _merge_close(regions: list[_Region], gap_m: float) -> list[_Region]:
         if len(g) == 1:
             out.append(g[0])
             continue
-        pts = np.concatenate([r.pts for r in g])
-        lo, hi = np.percentile(pts[::max(1, len(pts) // _STAT_SAMPLES)], [2, 98], axis=0)
-        out.append(_Region(pts, lo, hi,
-                           (min(r.bbox[0] for r in g), min(r.bbox[1] for r in g),
-                            max(r.bbox[2] for r in g), max(r.bbox[3] for r in g)),
-                           sum(r.area for r in g), sum(r.valid for r in g),
-                           np.concatenate([r.disparities for r in g]), sum(r.filled for r in g)))
+        out.append(_union(g))
     return out
+
+
+def _absorb_contained(regions: list[_Region], gap_m: float, inside: float = 0.8) -> list[_Region]:
+    """A region whose image box lies mostly (inside) within a larger region's box is either part of
+    it (their depths meet: merged), or seen through it (wholly farther: a car's windows, a shelter's
+    glass; dropped: the nearer object is what stands in the way), or in front of it (kept)."""
+    if len(regions) < 2:
+        return regions
+    order = sorted(range(len(regions)), key=lambda i: -regions[i].area)
+    alive = [True] * len(regions)
+    for ci in order:
+        if not alive[ci]:
+            continue
+        c = regions[ci]
+        for ri in order:
+            r = regions[ri]
+            if ri == ci or not alive[ri] or r.area >= c.area:
+                continue
+            ix = max(0, min(r.bbox[2], c.bbox[2]) - max(r.bbox[0], c.bbox[0]))
+            iy = max(0, min(r.bbox[3], c.bbox[3]) - max(r.bbox[1], c.bbox[1]))
+            own = (r.bbox[2] - r.bbox[0]) * (r.bbox[3] - r.bbox[1])
+            if ix * iy < inside * own:
+                continue
+            if r.lo[2] > c.hi[2] + gap_m:
+                alive[ri] = False  # behind it
+            elif r.hi[2] >= c.lo[2] - gap_m:
+                alive[ri] = False
+                c = regions[ci] = _union([c, r])
+    return [r for r, a in zip(regions, alive) if a]
+
+
+def _union(g: list[_Region]) -> _Region:
+    pts = np.concatenate([r.pts for r in g])
+    lo, hi = np.percentile(pts[::max(1, len(pts) // _STAT_SAMPLES)], [2, 98], axis=0)
+    return _Region(pts, lo, hi, (min(r.bbox[0] for r in g), min(r.bbox[1] for r in g), max(r.bbox[2] for r in g),
+                                 max(r.bbox[3] for r in g)), sum(r.area for r in g), sum(r.valid for r in g),
+                   np.concatenate([r.disparities for r in g]), sum(r.filled for r in g))
 
 
 _STAT_SAMPLES = 1500  # percentiles of a region are taken on at most ~2x this many of its points
@@ -148,7 +185,7 @@ class LayersFrame:
     points: list[np.ndarray]  # per detection, its (n, 3) camera-frame points, m
     floor: FloorPlane | None  # the disparity-space floor plane used (None: no floor removed)
     ground: GroundEstimate | None  # what the ground estimator said (None: floor removal off)
-    floor_points: np.ndarray  # (k, 3) camera-frame points seen on the floor (empty without a floor)
+    floor_points: np.ndarray  # (k, 3) camera-frame points of the floor the robot may drive on (see _drivable)
 
 
 def _working_disparity(disparity: np.ndarray, cfg: SegmenterSettings, confidence: np.ndarray | None,
@@ -223,7 +260,7 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
             above = np.float32(floor.height_m) * (1 - df / dk)  # height above the floor, m
         stand = keep & ~on_floor & (above <= cfg.robot_height_m)
         seen_floor = keep & on_floor & (above > -4 * cfg.floor_margin_m - 0.1)
-        floor_points = _points(*np.nonzero(seen_floor[::2, ::2]), dk[::2, ::2][seen_floor[::2, ::2]], model, 2 * step)
+        floor_points = _drivable(floor, df, seen_floor, keep & ~on_floor, dk, model, cfg, step)
     else:
         above = None
         stand = keep
@@ -265,7 +302,7 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
                 y1 = max(y1, min(h, int(np.ceil((float(np.max(extra[:, 1] / extra[:, 2])) * f + model.cy) / step)) + 1))
         lo, hi = np.percentile(pts[::max(1, len(pts) // _STAT_SAMPLES)], [2, 98], axis=0)
         regions.append(_Region(pts, lo, hi, (x0, y0, x1, y1), area, valid, gd.astype(np.float64), filled))
-    regions = _merge_close(regions, cfg.merge_gap_m)
+    regions = _absorb_contained(_merge_close(regions, cfg.merge_gap_m), cfg.merge_gap_m)
     out: list[Detection] = []
     points: list[np.ndarray] = []
     for r in regions:
@@ -285,6 +322,38 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
     if cfg.edge_refine and image is not None and out:
         out = [_refine_box(det, image) for det in out]
     return LayersFrame(out, points, floor, estimate, floor_points)
+
+
+def _drivable(floor: FloorPlane, df: np.ndarray, seen_floor: np.ndarray, standing: np.ndarray, dk: np.ndarray,
+              model: camera.RectifiedModel, cfg: SegmenterSettings, step: int) -> np.ndarray:
+    """Points of the floor plane the robot may drive on, camera frame: along each image column (a
+    ray on the ground), the floor from the image's bottom edge out to the farthest floor point seen
+    in that column, but not beyond anything standing in it (any pixel above the floor margin,
+    obstacle or not) nor beyond the vision range. Block matching sees little of a smooth road, so
+    the floor between seen points counts as seen; an obstacle that left no pixel is not known."""
+    fB = model.focal_px * model.baseline_m
+    with np.errstate(divide="ignore"):
+        zf = np.where(df > 0, fB / np.maximum(df, 1e-6), np.inf).astype(np.float32)  # floor depth per pixel
+        zd = np.where(dk > 0, fB / np.maximum(dk, 1e-6), np.inf).astype(np.float32)
+    far = np.where(seen_floor, zf, 0).max(0)
+    near_standing = np.where(standing, zd, np.inf).min(0)
+    limit = np.minimum(np.minimum(far, near_standing), cfg.range_m)
+    near = zf[-1]  # the floor at the image's bottom edge
+    cols = np.nonzero(np.isfinite(near) & (limit > near))[0]
+    if not cols.size:
+        return np.zeros((0, 3))
+    # march along each column's ray on the floor in steps of half a free-space cell
+    spacing = 0.5 * cfg.freespace_resolution_m
+    n = int(min(2000, np.ceil(float((limit[cols] - near[cols]).max()) / spacing))) + 1
+    z = near[cols][:, None] + spacing * np.arange(n)[None, :]
+    z = np.where(z <= limit[cols][:, None], z, np.nan).ravel()
+    u = np.repeat(cols.astype(np.float64) * step, n)
+    ok = np.isfinite(z)
+    z, u = z[ok], u[ok]
+    f = model.focal_px
+    # the floor's pixel row at depth z in column u: a u + b v + c = f B / z
+    v = (fB / z - floor.a * u - floor.c) / floor.b
+    return np.stack([(u - model.cx) * z / f, (v - model.cy) * z / f, z], 1)
 
 
 def _points(ys: np.ndarray, xs: np.ndarray, d: np.ndarray, model: camera.RectifiedModel, step: int) -> np.ndarray:

@@ -122,15 +122,17 @@ class ObstacleBuilder:
             return mount_from_ground(ground, self.settings)
         return self.mount
 
-    def _ego_motion(self, odometry: Odometry | None, t_s: float) -> bool:
+    def _ego_motion(self, odometry: Odometry | None, t_s: float) -> float | None:
         """Carry the tracks into this frame's base frame by the robot's own motion since the last
-        frame. -> True when odometry was used (velocities are then over the ground)."""
+        frame. -> the distance driven (m), or None without odometry (velocities are then relative
+        to the robot, not over the ground)."""
         dt = None if self._last_t is None else t_s - self._last_t
         if odometry is None or dt is None or not 0 <= dt <= self.settings.odometry_timeout_s * 4:
-            return False
+            return None
         R = _rz(-odometry.angular_radps[2] * dt)
-        self.tracker.move(R, -R @ (np.asarray(odometry.linear_mps, float) * dt))
-        return True
+        step = np.asarray(odometry.linear_mps, float) * dt
+        self.tracker.move(R, -R @ step)
+        return float(np.linalg.norm(step))
 
     def process(self, disparity: np.ndarray, model: camera.RectifiedModel, *, t_s: float, seq: int, stamp_ns: int,
                 robot_id: str = "offline", confidence: np.ndarray | None = None, odometry: Odometry | None = None,
@@ -146,13 +148,22 @@ class ObstacleBuilder:
         if track_frame != self._track_frame:
             self.tracker.clear()  # positions of one frame mean nothing in the other
             self._track_frame = track_frame
-        over_ground = track_frame == "base" and self._ego_motion(odometry, t_s)
+        driven = self._ego_motion(odometry, t_s) if track_frame == "base" else None
+        over_ground = driven is not None
         self._last_t = t_s
         dets = frame.detections
         positions = [mount.to_base(d.position_m) if mount is not None else np.asarray(d.position_m, float)
                      for d in dets]
         self.tracker.depth_scale = model.focal_px * model.baseline_m
-        tracks = self.tracker.update(positions, t_s)
+        self.tracker.ground_plane = track_frame == "base"
+        boxes = None
+        if mount is not None:
+            boxes = [_footprint(mount, pts) for pts in frame.points] if len(frame.points) == len(dets) else \
+                [np.array([p[:2] - 0.5 * np.asarray(d.size_m)[[2, 0]], p[:2] + 0.5 * np.asarray(d.size_m)[[2, 0]]])
+                 for d, p in zip(dets, positions)]
+        # the faster the robot drives, the more of each object's visible surface changes between two
+        # frames (what the field of view cuts off, what occludes what): its centroid jumps further
+        tracks = self.tracker.update(positions, t_s, boxes, widen_m=1.5 * (driven or 0.0))
         obstacles = []
         for det, tr, pos in zip(dets, tracks, positions):
             if mount is not None:
@@ -189,6 +200,12 @@ class ObstacleBuilder:
         return self.process(disparity, model, t_s=msg.stamp_ns / 1e9 if t_s is None else t_s, seq=msg.seq,
                             stamp_ns=msg.stamp_ns, robot_id=msg.robot_id, confidence=confidence, odometry=odometry,
                             stale=stale, stages=msg.stages)
+
+
+def _footprint(mount: Mount, points_camera: np.ndarray) -> np.ndarray:
+    """(2, 2) lo, hi of an obstacle's points on the ground (base x, y; 2nd-98th percentile)."""
+    p = mount.to_base(points_camera[::max(1, len(points_camera) // 1000)])
+    return np.percentile(p[:, :2], [2, 98], axis=0)
 
 
 def _vec(v) -> tuple[float, float, float]:

@@ -33,7 +33,7 @@ class SegmenterSettings(ServiceSettings):
                                    "above the floor's too (matching noise on a far road is metres of height)")
     robot_height_m: float = Field(2.0, gt=0, le=20, description="layers: points higher above the floor than this "
                                   "(canopy, ceilings, signs over the road) are not obstacles")
-    min_height_m: float = Field(0.12, ge=0, le=5, description="layers: an obstacle's top must be this far above "
+    min_height_m: float = Field(0.2, ge=0, le=5, description="layers: an obstacle's top must be this far above "
                                 "the floor (lower things: lane markings, shadows, mats)")
     mount_height_m: float | None = Field(None, gt=0, le=20, description="camera height above the floor, m "
                                          "(null: unknown: the ground is estimated from the disparity every frame; "

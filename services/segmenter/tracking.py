@@ -33,9 +33,15 @@ class Track:
     seen_bits: int = 1  # bit k: seen k frames ago
     confirmed: bool = False
     P: np.ndarray = field(default_factory=lambda: np.diag([0.05, 0.05, 1.0]))  # pos var, cov, vel var (per axis)
+    box: np.ndarray | None = None  # (2, 2): lo, hi of the footprint on the ground (x, y), when known
 
     def predicted(self, t_s: float) -> np.ndarray:
         return self.position + self.velocity * max(0.0, t_s - self.last_seen_s)
+
+    def predicted_box(self, t_s: float) -> np.ndarray | None:
+        if self.box is None:
+            return None
+        return self.box + (self.velocity[:2] * max(0.0, t_s - self.last_seen_s))[None, :]
 
 
 class Tracker:
@@ -59,11 +65,19 @@ class Tracker:
         for tr in self.tracks:
             tr.position = R @ tr.position + t
             tr.velocity = R @ tr.velocity
+            if tr.box is not None:
+                (x0, y0), (x1, y1) = tr.box
+                corners = np.array([[x0, y0, 0], [x1, y0, 0], [x0, y1, 0], [x1, y1, 0]]) @ R.T + t
+                tr.box = np.array([corners[:, :2].min(0), corners[:, :2].max(0)])
 
     def clear(self) -> None:
         self.tracks = []
 
     depth_scale: float | None = None  # f * B of the rig (px m), when known
+    # True when positions are in the base frame (z up): tracks are associated by where they stand on
+    # the ground, so a detection that grows or shrinks in height (a car merging with the tree behind
+    # it in one frame) still finds its track
+    ground_plane: bool = False
 
     def measurement_var(self, p: np.ndarray) -> float:
         """Centroid noise (m^2) of a detection at p: stereo depth noise grows with the square of the
@@ -99,8 +113,14 @@ class Tracker:
         tr.last_seen_s = t_s
         tr.hits += 1
 
-    def update(self, positions: list[np.ndarray], t_s: float) -> list[Track]:
-        """positions: 3D points (camera frame, m) seen at time t_s (s) -> one track per position."""
+    def update(self, positions: list[np.ndarray], t_s: float, boxes: list[np.ndarray] | None = None,
+               widen_m: float = 0.0) -> list[Track]:
+        """positions: 3D points (camera or base frame, m) seen at time t_s (s) -> one track per
+        position. boxes (ground_plane only): per position, its footprint (2, 2) lo, hi in x, y:
+        tracks are then associated by the gap between footprints (0 when they overlap) plus a tenth
+        of the centroid distance, so a long wall or railing whose visible part slides along as the
+        robot drives keeps its id. widen_m: added to the gate (the caller's allowance for how much
+        more of the scene changes between frames when the robot itself moves fast)."""
         self.tracks = [tr for tr in self.tracks if t_s - tr.last_seen_s <= self.timeout_s or tr.missed < self.min_missed]
         pos = [np.asarray(p, dtype=float) for p in positions]
         assigned: dict[int, Track] = {}
@@ -109,10 +129,19 @@ class Tracker:
 
             pred = np.array([tr.predicted(t_s) for tr in self.tracks])
             P = np.array(pos)
-            D = np.linalg.norm(pred[:, None, :] - P[None, :, :], axis=2)
+            dims = slice(0, 2) if self.ground_plane else slice(0, 3)
+            D = np.linalg.norm(pred[:, None, dims] - P[None, :, dims], axis=2)
+            if self.ground_plane and boxes is not None:
+                tb = [tr.predicted_box(t_s) for tr in self.tracks]
+                have = np.array([b is not None for b in tb])
+                if have.any():
+                    T = np.array([b if b is not None else np.zeros((2, 2)) for b in tb])  # (nt, 2, 2)
+                    B = np.asarray(boxes, float)  # (nd, 2, 2)
+                    gap = np.maximum(0.0, np.maximum(T[:, None, 0] - B[None, :, 1], B[None, :, 0] - T[:, None, 1]))
+                    D = np.where(have[:, None], np.linalg.norm(gap, axis=2) + 0.1 * D, D)
             unseen = np.array([t_s - tr.last_seen_s for tr in self.tracks])
             sigma = np.sqrt([self.measurement_var(p) for p in pred])
-            gate = self.gate_m + 2 * sigma + self.max_speed * np.maximum(0.0, unseen - 0.1)
+            gate = self.gate_m + widen_m + 2 * sigma + self.max_speed * np.maximum(0.0, unseen - 0.1)
             cost = np.where(D <= gate[:, None], D, 1e6)
             for ti, pi in zip(*linear_sum_assignment(cost)):
                 if cost[ti, pi] < 1e6:
@@ -126,6 +155,8 @@ class Tracker:
                 self.tracks.append(tr)
             else:
                 self._correct(tr, p, t_s)
+            if boxes is not None:
+                tr.box = np.asarray(boxes[pi], float)
             tr.missed = -1  # seen in this frame (0 after the count below)
             out.append(tr)
         window = (1 << self.confirm_n) - 1
