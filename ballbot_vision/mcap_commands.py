@@ -142,7 +142,8 @@ def cmd_to_images(args: argparse.Namespace) -> int:
         (out / "calibration.yaml").write_text(calibration)
     print(f"wrote {n} {reader.kind} pairs to {left_dir} and {right_dir}"
           f"{' and calibration.yaml' if calibration else ''}"
-          f"{' (the recording was cut off: read up to its last complete chunk)' if reader.truncated else ''}",
+          f"{' (the recording was cut off: read up to its last complete chunk)' if reader.truncated else ''}"
+          f"{f'; {reader.damaged} pair(s) with a damaged image skipped' if getattr(reader, 'damaged', 0) else ''}",
           file=sys.stderr)
     return 0
 

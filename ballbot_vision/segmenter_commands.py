@@ -127,6 +127,8 @@ def cmd_obstacles(args: argparse.Namespace) -> int:
     builder = ObstacleBuilder(settings)
     draw_dir = Path(args.draw) if args.draw else None
     for k, (lp, rp, left, right, stamp_s) in enumerate(pairs):
+        rect.check_size(left, str(lp))  # a recording's pairs: named by file and seq
+        rect.check_size(right, str(rp))
         left, right = rect.rectify(left, right)
         match = matcher.match(left, right, gate)
         d = to_float(match.disparity, SCALE, mcfg.invalid_value)

@@ -284,10 +284,11 @@ _DAMAGE = re.compile(r"(corrupt|premature end|libpng|libjpeg|invalid|crc error|t
                      r"unsupported marker|huffman|extraneous bytes)", re.IGNORECASE)
 
 
-def decode_image(data: bytes, where: str) -> np.ndarray:
-    """Encoded image bytes -> (H, W) uint8 grey or (H, W, 3) uint8 BGR (alpha dropped, 16-bit
-    scaled to 8). A truncated or corrupt file, an unknown format or an impossible size is a
-    FileError naming `where`."""
+def imdecode_checked(data: bytes, where: str, flags: int | None = None) -> np.ndarray:
+    """cv2.imdecode (flags default IMREAD_ANYCOLOR) that refuses what OpenCV only warns about: a
+    truncated or corrupt JPEG/PNG (libjpeg and libpng say so on stderr and hand back an image),
+    an undecodable file, a header that claims an impossible size. FileError naming `where`; the
+    codec's stderr is captured, so its warnings never reach the terminal alone."""
     import cv2
     import numpy as np
 
@@ -296,7 +297,7 @@ def decode_image(data: bytes, where: str) -> np.ndarray:
         check_image_size(size[0], size[1], where)
     with _stderr_captured() as noise:
         try:
-            img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_ANYCOLOR)
+            img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_ANYCOLOR if flags is None else flags)
         except cv2.error as e:
             if "CV_IO_MAX_IMAGE" in str(e):  # its pixel limit, which is ours: a size we refuse
                 raise FileError(f"{where}: the image is larger than this program handles (at most "
@@ -319,6 +320,14 @@ def decode_image(data: bytes, where: str) -> np.ndarray:
         raise FileError(f"{where}: truncated or corrupt {kind or 'image'} ({damage[0]})")
     if said:  # something else the codec said: not ours to hide, not worth failing for
         print(said, file=sys.stderr)
+    return img
+
+
+def decode_image(data: bytes, where: str) -> np.ndarray:
+    """Encoded image bytes -> (H, W) uint8 grey or (H, W, 3) uint8 BGR (alpha dropped, 16-bit
+    scaled to 8). A truncated or corrupt file, an unknown format or an impossible size is a
+    FileError naming `where`."""
+    img = imdecode_checked(data, where)
     check_image_size(img.shape[1], img.shape[0], where)
     return img
 

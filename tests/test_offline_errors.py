@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import zlib
 from pathlib import Path
 
@@ -246,7 +247,11 @@ def test_a_missing_path_reads_the_same_in_every_command(tmp_path, capfd):
                                    str(out / "x.mcap")], "LEFT"),
              "calibration show": (["calibration", "show", str(nope)], "calibration"),
              "calibration import": (["calibration", "import", str(nope), "-o", str(out / "i.yaml")], ""),
-             "mcap info": (["mcap", "info", str(nope)], "recording")}
+             "mcap info": (["mcap", "info", str(nope)], "recording"),
+             "calibrate --pairs": (["calibrate", "--pairs", str(nope), "--square-size", "0.03"], "--pairs"),
+             "sample-pair --scenario": (["sample-pair", str(out / "s"), "--scenario", str(nope)], "scenario"),
+             "--config": (["obstacles", str(nope), str(nope), "--calibration", "lifecam-studio", "--config",
+                           str(nope)], "config")}
     cases["calibrate"] = (cases["calibrate"][0], "--left")
     for name, (argv, what) in cases.items():
         rc = main(argv)
@@ -386,3 +391,36 @@ def test_an_opencv_file_with_broken_fields_is_a_one_line_error(tmp_path, capfd, 
     (tmp_path / "intrinsics.yml").write_text("%YAML:1.0\n" + "".join(f"{k}: {mat(v)}" for k, v in good.items()))
     assert main(argv + ["--image-size", "640x480"]) == 0
     assert camera.load_calibration(str(tmp_path / "rig.yaml")).image_size == (640, 480)
+
+
+def test_a_damaged_jpeg_inside_a_recording_is_skipped_with_its_reason(tmp_path, capfd, caplog):
+    """libjpeg only warns about a damaged JPEG and hands back a grey-smeared image: inside a
+    recording the pair is skipped and named (it used to yield obstacles, exit 0, with "Corrupt
+    JPEG data" alone on stderr); the pairs around it go on."""
+    pytest.importorskip("mcap")
+    left, right = (cv2.resize(i, (640, 480)) for i in _scene())
+    (tmp_path / "L").mkdir(), (tmp_path / "R").mkdir()
+    for i in range(3):
+        cv2.imwrite(str(tmp_path / "L" / f"left{i}.png"), left)
+        cv2.imwrite(str(tmp_path / "R" / f"right{i}.png"), right)
+    rec = tmp_path / "rec.mcap"
+    assert main(["mcap", "from-images", str(tmp_path / "L"), str(tmp_path / "R"), "-o", str(rec), "--format", "jpeg",
+                 "--compression", "none", "--calibration", "lifecam-studio"]) == 0
+    data = bytearray(rec.read_bytes())
+    starts = [m.start() for m in re.finditer(rb"/9j/", data)]  # base64 of a JPEG's first bytes
+    assert len(starts) == 6
+    middle = starts[2] + (data.index(b'"', starts[2]) - starts[2]) // 2  # pair 1's left image, mid-scan
+    data[middle:middle + 2000] = b"A" * 2000  # still valid base64 and JSON: zeros inside the JPEG
+    rec.write_bytes(bytes(data))
+    capfd.readouterr()
+
+    assert main(["obstacles", str(rec), "--json", "--disparity-num-disparities", "32"]) == 0
+    out, err = capfd.readouterr()
+    assert [json.loads(line)["left"] for line in out.splitlines()] == [f"{rec}#0:left", f"{rec}#2:left"]
+    said = err + caplog.text  # the warning is logged (pytest's handler holds it in-process)
+    assert "pair seq 1 left: truncated or corrupt JPEG" in said and "pair skipped" in said
+    assert not any(line.startswith("Corrupt JPEG") for line in err.splitlines()), err
+
+    assert main(["mcap", "to-images", str(rec), "-o", str(tmp_path / "out")]) == 0
+    err = capfd.readouterr().err
+    assert "wrote 2 raw pairs" in err and "1 pair(s) with a damaged image skipped" in err
