@@ -362,7 +362,14 @@ def test_capture_from_ros2_camera_topics_gives_obstacles(tmp_path):
                 return all(any(np.linalg.norm(np.subtract(o.position_m, t.visible_centroid_m)) < 0.3
                                for o in ol.obstacles) for t in truth)
             ok = lists.wait_for(lambda items: sum(matches(m) for m in items) >= 3, 150)
-            graph = get_topic_info("/stereo/left/image_raw", domain_id=0, router_port=port, timeout=2.0, verbose=True)
+            seen: dict = {}
+
+            def subscribed() -> bool:  # asked again until the capture's token is in (loaded machine)
+                seen["graph"] = get_topic_info("/stereo/left/image_raw", domain_id=0, router_port=port, timeout=2.0,
+                                               verbose=True)
+                return seen["graph"] is not None and seen["graph"].subscriber_count >= 1
+            wait_until(subscribed, 60, "the capture's subscription in the SDK's graph query")
+            graph = seen["graph"]
             cap = stats.wait_for(lambda items: any(x.service == "capture" and x.extra.get("ros2_errors", 0) >= 1
                                                    for x in items), 20)
             stop_pub.set()
