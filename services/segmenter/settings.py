@@ -69,8 +69,9 @@ class SegmenterSettings(ServiceSettings):
                                 "grid that groups standing points into objects, px")
     min_cell_height_m: float = Field(0.05, ge=0, le=5, description="layers: a column-disparity cell is occupied "
                                      "when its standing points cover this much height")
-    min_confidence: int = Field(32, ge=0, le=255, description="pixels whose disparity confidence (when the matcher "
-                                "gives one) is below this are not used")
+    min_confidence: int = Field(200, ge=0, le=255, description="pixels whose disparity confidence (when the matcher "
+                                "gives one, e.g. dense) is below this are not used: dense fills every hole "
+                                "smoothly, and filled pixels would join neighbouring objects into one")
     # free space
     freespace: bool = Field(True, description="publish the free-space grid (needs a ground estimate)")
     freespace_resolution_m: float = Field(0.1, gt=0, le=10, description="free-space cell size, m")
