@@ -18,7 +18,29 @@ METHODS = ("layers", "seed")
 DEFAULT_RANGE_M = {"seed": 3.0, "layers": 4.5}
 
 
-class SegmenterSettings(ServiceSettings):
+class MountSettings(ServiceSettings):
+    """Where the rectified left camera sits on the robot (see mount.py for the frames and angles):
+    one definition for every service that needs it (the segmenter, the ROS 2 bridge's /tf_static)."""
+
+    mount_height_m: float | None = Field(None, gt=0, le=20, description="camera height above the floor, m "
+                                         "(null: unknown: the segmenter estimates the ground from the disparity "
+                                         "every frame, the ROS 2 bridge takes that estimate from the obstacle "
+                                         "lists; set it, or run `mount estimate`, to give the estimate a prior)")
+    mount_pitch_deg: float = Field(0.0, ge=-90, le=90, description="camera pitch, positive looking down")
+    mount_yaw_deg: float = Field(0.0, ge=-180, le=180, description="camera yaw on the robot, positive to the left")
+    mount_roll_deg: float = Field(0.0, ge=-90, le=90, description="camera roll, positive right side down")
+    mount_x_m: float = Field(0.0, ge=-10, le=10, description="camera position ahead of the base origin")
+    mount_y_m: float = Field(0.0, ge=-10, le=10, description="camera position left of the base origin")
+
+    def mount(self) -> Mount | None:
+        """The configured camera mount, or None when its height is unknown."""
+        if self.mount_height_m is None:
+            return None
+        return Mount(self.mount_height_m, self.mount_pitch_deg, self.mount_yaw_deg, self.mount_roll_deg,
+                     self.mount_x_m, self.mount_y_m)
+
+
+class SegmenterSettings(MountSettings):
     section = "segmenter"
     method: Literal["layers", "seed"] = Field(
         "layers", description="layers: depth-aware regions, floor plane, border objects kept; "
@@ -35,14 +57,6 @@ class SegmenterSettings(ServiceSettings):
                                   "(canopy, ceilings, signs over the road) are not obstacles")
     min_height_m: float = Field(0.2, ge=0, le=5, description="layers: an obstacle's top must be this far above "
                                 "the floor (lower things: lane markings, shadows, mats)")
-    mount_height_m: float | None = Field(None, gt=0, le=20, description="camera height above the floor, m "
-                                         "(null: unknown: the ground is estimated from the disparity every frame; "
-                                         "set it, or run `mount estimate`, to give the estimate a prior)")
-    mount_pitch_deg: float = Field(0.0, ge=-90, le=90, description="camera pitch, positive looking down")
-    mount_yaw_deg: float = Field(0.0, ge=-180, le=180, description="camera yaw on the robot, positive to the left")
-    mount_roll_deg: float = Field(0.0, ge=-90, le=90, description="camera roll, positive right side down")
-    mount_x_m: float = Field(0.0, ge=-10, le=10, description="camera position ahead of the base origin")
-    mount_y_m: float = Field(0.0, ge=-10, le=10, description="camera position left of the base origin")
     # seed
     min_area_fraction: float = Field(0.03, ge=0, le=1, description="seed: area opening, fraction of the image")
     close_radius_px: int = Field(3, ge=0, le=50, description="seed: morphological closing radius, px")
@@ -92,9 +106,3 @@ class SegmenterSettings(ServiceSettings):
     def range_m(self) -> float:
         return self.max_range_m if self.max_range_m is not None else DEFAULT_RANGE_M[self.method]
 
-    def mount(self) -> Mount | None:
-        """The configured camera mount, or None when its height is unknown."""
-        if self.mount_height_m is None:
-            return None
-        return Mount(self.mount_height_m, self.mount_pitch_deg, self.mount_yaw_deg, self.mount_roll_deg,
-                     self.mount_x_m, self.mount_y_m)
