@@ -402,12 +402,22 @@ def main(argv: list[str] | None = None) -> int:
         return args.func(args) or 0
     except BallbotError as e:
         print(f"ballbot-vision: error: {e}", file=sys.stderr)
-        return 2
+        return e.exit_status
     except KeyboardInterrupt:
         return 130
     except BrokenPipeError:  # `... | head` closed the pipe: not an error of ours
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
+    except OSError as e:
+        # A path the user gave that cannot be written (or made): -o into a missing or read-only
+        # folder, a folder where a file goes. Input files are read through common/files.py, which
+        # words its own errors; an OSError without a path is not the user's and keeps its traceback.
+        if e.filename is None:
+            raise
+        from .common.errors import path_error
+
+        print(f"ballbot-vision: error: {e.filename}: {path_error(e)}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -57,7 +57,7 @@ def cmd_disparity(args: argparse.Namespace) -> int:
     from .common import camera
     from .common.settings import load_settings
     from .common.disparity import to_float
-    from .common.files import read_image
+    from .common.files import check_pair, read_image
     from .services.disparity.matchers import MatcherConfig, gate_for_range, make_matcher
     from .services.rectify.core import Rectifier
 
@@ -68,9 +68,7 @@ def cmd_disparity(args: argparse.Namespace) -> int:
     if cfg.threads:
         cv2.setNumThreads(cfg.threads)
     left, right = read_image(args.left, "LEFT"), read_image(args.right, "RIGHT")
-    if left.shape[:2] != right.shape[:2]:
-        raise BallbotError(f"{args.left} is {left.shape[1]}x{left.shape[0]}, {args.right} is "
-                           f"{right.shape[1]}x{right.shape[0]}")
+    check_pair(left, right, f"LEFT {args.left}", f"RIGHT {args.right}")
     if args.confidence and Path(args.confidence).suffix.lower() != ".png":
         raise BallbotError(f"--confidence {args.confidence}: a .png file (8-bit confidence)")
     gate = 0.0

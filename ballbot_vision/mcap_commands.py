@@ -74,6 +74,7 @@ def _stamps_from_names(files: list[Path]) -> list[int] | None:
 
 
 def cmd_from_images(args: argparse.Namespace) -> int:
+    from .common.errors import SourceError
     from .services.capture.files import ImageSource
     from .services.recorder.main import calibration_text
     from .services.recorder.recording import Converter, RecordingWriter, encode_array
@@ -84,7 +85,7 @@ def cmd_from_images(args: argparse.Namespace) -> int:
     out = Path(args.output)
     if out.suffix.lower() != ".mcap":
         raise BallbotError(f"{out}: a recording's name ends in .mcap")
-    src = ImageSource(args.left, args.right, max_rate=True)  # names what is wrong with the folders
+    src = ImageSource(args.left, args.right, max_rate=True, labels=("LEFT", "RIGHT"))  # names what is wrong
     cal = calibration_text(args.calibration) if args.calibration else None
     stamps = None if args.fps else _stamps_from_names(src.left_files)
     fps = args.fps or 30.0
@@ -100,7 +101,10 @@ def cmd_from_images(args: argparse.Namespace) -> int:
             for r in Converter.calibration(cal, args.calibration, stamps[0]):
                 writer.write(r.topic, r.doc, r.log_time_ns)
         while True:
-            pair = src.read()
+            try:
+                pair = src.read()
+            except SourceError as e:  # a bad file later on: the pairs before it stay in a complete file
+                raise BallbotError(f"{e}; {out} holds the {n} pair(s) before it") from None
             if pair is None:
                 break
             i = int(pair.extra["index"])
@@ -138,7 +142,8 @@ def cmd_to_images(args: argparse.Namespace) -> int:
         (out / "calibration.yaml").write_text(calibration)
     print(f"wrote {n} {reader.kind} pairs to {left_dir} and {right_dir}"
           f"{' and calibration.yaml' if calibration else ''}"
-          f"{' (the recording was cut off: read up to its last complete chunk)' if reader.truncated else ''}",
+          f"{' (the recording was cut off: read up to its last complete chunk)' if reader.truncated else ''}"
+          f"{f'; {reader.damaged} pair(s) with a damaged image skipped' if getattr(reader, 'damaged', 0) else ''}",
           file=sys.stderr)
     return 0
 

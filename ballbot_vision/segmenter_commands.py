@@ -1,6 +1,7 @@
-"""`obstacles`, `eval` and `bench-segmenter`: the segmenter's offline commands (registered through
-cli.py's COMMAND_MODULES hook). The work is done by services/segmenter/{main,layers,seed,eval}.py
-and bench/segmenter.py; this module only parses and prints."""
+"""`obstacles`, `eval` (synthetic, or `--real DIR`), `mount estimate` and `bench-segmenter`: the
+segmenter's offline commands (registered through cli.py's COMMAND_MODULES hook). The work is done by
+services/segmenter/{main,layers,seed,eval,real_eval,mount_estimate,draw}.py and bench/segmenter.py;
+this module only parses and prints."""
 from __future__ import annotations
 
 import argparse
@@ -51,15 +52,57 @@ def format_obstacles(obstacles, header: str = "") -> str:
     return "\n".join(lines)
 
 
+def format_ground(ground) -> str:
+    if ground is None:
+        return "  ground: unknown"
+    inl = f", {ground.inlier_fraction:.0%} inliers" if ground.inlier_fraction else ""
+    return (f"  ground: camera {ground.height_m:.2f} m above it, pitch {ground.pitch_deg:+.1f} deg, "
+            f"roll {ground.roll_deg:+.1f} deg ({ground.source}{inl})")
+
+
+def format_freespace(fs) -> str:
+    import numpy as np
+
+    if fs is None:
+        return "  free space: none"
+    cells = np.frombuffer(fs.cells, np.int8)
+    a = fs.resolution_m ** 2
+    free, occ = int(np.count_nonzero(cells == 0)), int(np.count_nonzero(cells == 100))
+    return (f"  free space: {fs.width}x{fs.height} cells of {fs.resolution_m:g} m from base ({fs.origin_m[0]:g}, "
+            f"{fs.origin_m[1]:g}) m: {free} free ({free * a:.1f} m^2), {occ} occupied ({occ * a:.1f} m^2), "
+            f"{cells.size - free - occ} unknown")
+
+
+def _make_matcher(mcfg, model):
+    """The disparity settings' matcher for this camera (num_disparities auto resolved) and its range gate."""
+    from .services.disparity.matchers import gate_for_range, make_matcher
+
+    cfg = mcfg.resolved(model.focal_px, model.baseline_m, model.width)
+    return cfg, make_matcher(cfg), gate_for_range(cfg.max_range_m, model.focal_px, model.baseline_m)
+
+
+def _write_picture(path: Path, picture) -> None:
+    import cv2
+
+    from .common.errors import path_error
+
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise BallbotError(f"--draw {path.parent}: {path_error(e)}") from None
+    if not cv2.imwrite(str(path), picture):
+        raise BallbotError(f"--draw {path}: cannot write the picture")
+
+
 def cmd_obstacles(args: argparse.Namespace) -> int:
     import time
 
     from .common import camera
-    from .common.messages import ObstacleList
     from .common.disparity import to_float
-    from .common.files import list_images, pair_images
-    from .services.disparity.matchers import SCALE, StereoMatcher
+    from .common.files import check_pair, list_images, pair_images
+    from .services.disparity.matchers import SCALE
     from .services.rectify.core import Rectifier
+    from .services.segmenter.draw import draw_frame, frame_mount
     from .services.segmenter.main import ObstacleBuilder
 
     settings = _segmenter_settings(args)
@@ -71,34 +114,60 @@ def cmd_obstacles(args: argparse.Namespace) -> int:
         raise BallbotError("obstacles: image pairs need LEFT, RIGHT and --calibration (a recording: FILE.mcap)")
     else:
         cal = camera.load_calibration(args.calibration)
-        pairs = ((lp, rp, _read(lp, rect), _read(rp, rect), k / args.fps) for k, (lp, rp) in
-                 enumerate(pair_images(list_images(args.left, "LEFT"), list_images(args.right, "RIGHT"))))
+        file_pairs = pair_images(list_images(args.left, "LEFT"), list_images(args.right, "RIGHT"))
+
+        def read_pairs():
+            for k, (lp, rp) in enumerate(file_pairs):
+                left, right = _read(lp, rect), _read(rp, rect)
+                check_pair(left, right, str(lp), str(rp))
+                yield lp, rp, left, right, k / args.fps
+        pairs = read_pairs()
     rect = Rectifier(cal, args.alpha)
-    mcfg = _matcher_settings(args)
-    stereo = StereoMatcher(mcfg)
+    mcfg, matcher, gate = _make_matcher(_matcher_settings(args), rect.model)
     builder = ObstacleBuilder(settings)
+    draw_dir = Path(args.draw) if args.draw else None
     for k, (lp, rp, left, right, stamp_s) in enumerate(pairs):
+        rect.check_size(left, str(lp))  # a recording's pairs: named by file and seq
+        rect.check_size(right, str(rp))
         left, right = rect.rectify(left, right)
-        d = to_float(stereo.compute(left, right), SCALE, mcfg.invalid_value)
+        match = matcher.match(left, right, gate)
+        d = to_float(match.disparity, SCALE, mcfg.invalid_value)
         t0 = time.perf_counter()
-        dets = builder.segmenter.detect(d, rect.model, left)
+        result = builder.process(d, rect.model, t_s=stamp_s, seq=k, stamp_ns=int(stamp_s * 1e9),
+                                 confidence=match.confidence, image=left)
         ms = (time.perf_counter() - t0) * 1e3
-        obstacles = builder.obstacles(dets, stamp_s)
+        msg = result.obstacles
+        if draw_dir is not None:
+            mount = frame_mount(msg.ground, settings)
+            name = lp.stem if isinstance(lp, Path) else f"{Path(args.left).stem}_{msg.seq:06d}"  # a recording's pair
+            _write_picture(draw_dir / f"{name}.png",
+                           draw_frame(left, msg, rect.model, result.freespace, mount))
         if args.json:
-            msg = ObstacleList(robot_id="offline", seq=k, stamp_ns=int(stamp_s * 1e9), publish_ns=time.time_ns(),
-                               stale=False, method=settings.method, obstacles=obstacles)
             doc = json.loads(msg.model_dump_json())
             doc["left"], doc["right"] = str(lp), str(rp)
             _out(json.dumps(doc))
         else:
-            _out(format_obstacles(obstacles, f"{lp} {rp}: {len(obstacles)} obstacle(s), {settings.method}, "
-                                             f"{ms:.1f} ms (camera frame: x right, y down, z forward)"))
+            _out(format_obstacles(msg.obstacles, f"{lp} {rp}: {len(msg.obstacles)} obstacle(s), {settings.method}, "
+                                                 f"{ms:.1f} ms (camera frame: x right, y down, z forward)"))
+            _out(format_ground(msg.ground))
+            _out(format_freespace(result.freespace))
     return 0
 
 
 # --- eval --------------------------------------------------------------------------------------
 
 def cmd_eval(args: argparse.Namespace) -> int:
+    if args.real:
+        return cmd_eval_real(args)
+    from .common.settings import flags_given
+    from .services.segmenter.main import SegmenterSettings
+
+    if args.draw:
+        raise BallbotError("eval: --draw goes with --real DIR (a recording)")
+    given = flags_given(SegmenterSettings, args)
+    if given:
+        raise BallbotError(f"eval: {', '.join(SegmenterSettings.flag(k) for k in given)}: the segmenter's settings go "
+                           "with --real DIR (the synthetic scenarios set their own per method)")
     from .services.capture.synthetic import list_builtin_scenarios
     from .services.segmenter import eval as E
 
@@ -120,6 +189,126 @@ def cmd_eval(args: argparse.Namespace) -> int:
         _out(E.format_table(result))
         _out("\nerrors against the centroid of each obstacle's surface visible to the matcher; "
              "depth % for truths at 0.5-4 m; vel err after 4 frames of a track")
+    return 0
+
+
+# Settings for real recordings where the user set none (flag, environment or --config): a car's or a
+# room's range rather than a small robot's, and a search range covering a few metres at a car's
+# baseline (64 px ends at 5.8 m on Karlsruhe: nearer parked cars saturate it).
+REAL_SEGMENTER_DEFAULTS = {"max_range_m": 30.0}
+REAL_DISPARITY_DEFAULTS = {"num_disparities": 128}
+
+
+def _explicit(cls, args: argparse.Namespace) -> set[str]:
+    """Fields of settings model `cls` set by a flag, an environment variable or the --config file."""
+    import os
+
+    from .common.settings import flags_given, read_config_section
+
+    keys = set(flags_given(cls, args))
+    keys |= {n for n in cls.model_fields if os.environ.get(cls.env_var(n))}
+    config = getattr(args, "config", None)
+    if config:
+        keys |= set(read_config_section(config, cls.section))
+    return keys
+
+
+def _real_settings(args: argparse.Namespace, **forced):
+    """(segmenter settings, disparity settings, {field: note} of the recording defaults applied)."""
+    from .common.settings import load_settings
+    from .services.disparity.config import MatcherConfig
+    from .services.segmenter.main import SegmenterSettings
+
+    seg_over = {k: v for k, v in REAL_SEGMENTER_DEFAULTS.items() if k not in _explicit(SegmenterSettings, args)}
+    seg_over.update(forced)
+    disp_over = {k: v for k, v in REAL_DISPARITY_DEFAULTS.items() if k not in _explicit(MatcherConfig, args)}
+    seg = load_settings(SegmenterSettings, getattr(args, "config", None), args, **seg_over)
+    disp = load_settings(MatcherConfig, getattr(args, "config", None), args, prefix="disparity-", **disp_over)
+    applied = {**{f"segmenter {k}": v for k, v in seg_over.items() if k not in forced},
+               **{f"disparity {k}": v for k, v in disp_over.items()}}
+    return seg, disp, applied
+
+
+def _method_override(args: argparse.Namespace) -> dict:
+    from .services.segmenter.settings import METHODS
+
+    if not args.method:
+        return {}
+    if len(args.method) != 1 or args.method[0] not in METHODS:
+        raise BallbotError(f"eval --real: --method takes one segmenter method ({', '.join(METHODS)}), "
+                           f"got {', '.join(args.method)}")
+    return {"method": args.method[0]}
+
+
+def _describe_defaults(applied: dict) -> str:
+    if not applied:
+        return ""
+    shown = ", ".join(f"{k} {'null' if v is None else v}" for k, v in applied.items())
+    return f"recording defaults (none configured): {shown}"
+
+
+def cmd_eval_real(args: argparse.Namespace) -> int:
+    from .services.segmenter import real_eval as R
+
+    if args.scenarios:
+        raise BallbotError("eval --real DIR runs a recording; leave out the scenario names")
+    seg, disp, applied = _real_settings(args, **_method_override(args))
+    rec = R.open_recording(args.real, fps=args.fps or 10.0)
+    if args.frames is not None and args.frames < 1:
+        raise BallbotError(f"--frames {args.frames}: at least 1")
+    on_frame = None
+    if not args.json:
+        _out(f"eval --real {rec.root}: {min(args.frames or len(rec.pairs), len(rec.pairs))} of {len(rec.pairs)} pairs")
+        if applied:
+            _out(_describe_defaults(applied))
+        on_frame = lambda fr: _out(R.format_frame(fr))  # noqa: E731
+    report = R.evaluate_recording(rec, seg, disp, frames=args.frames, draw_dir=args.draw, alpha=args.alpha,
+                                  on_frame=on_frame)
+    if args.json:
+        doc = R.report_to_json(report)
+        doc["recording_defaults"] = {k: v for k, v in applied.items()}
+        _out(json.dumps(doc, indent=2))
+    else:
+        _out(R.format_report(report))
+    return 0
+
+
+# --- mount estimate ----------------------------------------------------------------------------
+
+def cmd_mount_estimate(args: argparse.Namespace) -> int:
+    from .services.segmenter import real_eval as R
+    from .services.segmenter.mount_estimate import estimate_from_grounds, format_estimate, merge_into_config
+
+    if args.real:
+        if args.left or args.right:
+            raise BallbotError("mount estimate: give either LEFT RIGHT --calibration CAL or --real DIR")
+        rec = R.open_recording(args.real, fps=10.0)
+    elif not (args.left and args.right and args.calibration):
+        raise BallbotError("mount estimate: give LEFT RIGHT --calibration CAL (folders, globs or files), "
+                           "or --real DIR (a recording folder)")
+    else:
+        rec = R.recording_from_files(args.left, args.right, args.calibration)
+    if args.frames < 1:
+        raise BallbotError(f"--frames {args.frames}: at least 1")
+    seg, disp, applied = _real_settings(args, mount_height_m=None)
+    if applied and not args.json:
+        _out(_describe_defaults(applied))
+    grounds = []
+    for pf in R.process_recording(rec, seg, disp, frames=args.frames, alpha=args.alpha):
+        grounds.append(pf.result.obstacles.ground)
+    est = estimate_from_grounds(grounds)
+    if args.json:
+        doc = {"frames": est.frames, "fitted": est.fitted, "sources": est.sources, **est.settings_values(),
+               "spread": est.spread}
+        _out(json.dumps(doc, indent=2))
+    else:
+        _out(format_estimate(est))
+    if args.write:
+        kept = merge_into_config(args.write, est.settings_values())
+        msg = f"wrote {', '.join(f'{k} {v}' for k, v in est.settings_values().items())} to {args.write} (segmenter:)"
+        if not kept:
+            msg += "; the file was rewritten from its content (its comments are gone)"
+        print(msg, file=sys.stderr if args.json else sys.stdout, flush=True)
     return 0
 
 
@@ -168,27 +357,71 @@ def register(sub: argparse._SubParsersAction, common) -> None:
     o.add_argument("--json", action="store_true", help="one ObstacleList JSON object per pair")
     o.add_argument("--fps", type=float, default=15.0, help="frame rate of a sequence, for velocities")
     o.add_argument("--config", default=None, metavar="FILE", help="YAML with 'segmenter' and 'disparity' sections")
+    o.add_argument("--draw", default=None, metavar="DIR", help="also write one picture per pair into DIR, named "
+                   "after the left image: boxes with track id and distance, free space, ground")
     _matcher_args(o)
     add_settings_arguments(o, SegmenterSettings)
     o.set_defaults(func=cmd_obstacles)
 
-    e = sub.add_parser("eval", help="synthetic scenarios with ground truth -> detection and position-error report",
+    e = sub.add_parser("eval", help="synthetic scenarios with ground truth -> detection and position-error report; "
+                                    "--real DIR: a real recording -> label-free figures",
                        description="Render the built-in scenarios, run them through the real rectify, "
-                                   "disparity and segmenter cores, and score each method against the truth.")
+                                   "disparity and segmenter cores, and score each method against the truth. "
+                                   "With --real DIR: run a real recording (left/ right/ calibration.yaml "
+                                   "[insdata.txt], or EuRoC cam0/ cam1/ with their sensor yamls) through the "
+                                   "same cores and report label-free figures: obstacles per frame, flat "
+                                   "obstacles (judged against an independent v-disparity road profile), track "
+                                   "life, ground estimates, time per frame.")
     e.add_argument("scenarios", nargs="*", metavar="SCENARIO", help="built-in scenario names or YAML files "
                    "(default: all built-in)")
     e.add_argument("--method", action="append", metavar="M",
                    help="seed (the thesis), seed+floor, layers; repeat for several (default: all three)")
     e.add_argument("--json", action="store_true")
-    e.add_argument("--frames", type=int, default=None, help="frames per scenario (default: 3 static, 45 moving)")
-    e.add_argument("--fps", type=float, default=None, help="scene frame rate (default: 15)")
+    e.add_argument("--frames", type=int, default=None, help="frames per scenario (default: 3 static, 45 moving); "
+                   "--real: the first N pairs (default: all)")
+    e.add_argument("--fps", type=float, default=None, help="scene frame rate (default: 15); --real: the "
+                   "recording's, where neither insdata.txt nor image names give stamps (default: 10)")
     e.add_argument("--seed", type=int, default=0, help="texture and noise seed")
     g = e.add_argument_group("mount error", "tell the segmenter a wrong camera mount (a balancing robot leans)")
     g.add_argument("--mount-pitch-error", type=float, default=0.0, metavar="DEG")
     g.add_argument("--mount-roll-error", type=float, default=0.0, metavar="DEG")
     g.add_argument("--mount-height-error", type=float, default=0.0, metavar="M")
+    r = e.add_argument_group("real recordings")
+    r.add_argument("--real", default=None, metavar="DIR", help="a recording folder instead of the scenarios")
+    r.add_argument("--draw", default=None, metavar="OUT", help="--real: one picture per pair into OUT")
+    r.add_argument("--alpha", type=float, default=0.0, help="--real: rectification alpha for a raw rig (default: 0)")
+    e.add_argument("--config", default=None, metavar="FILE", help="YAML with 'segmenter' and 'disparity' sections")
     _matcher_args(e)
+    add_settings_arguments(e, SegmenterSettings, exclude=("method",),
+                           title="segmenter settings for --real (the 'segmenter' section of --config FILE, or "
+                                 "the environment variable shown; --method picks the method; unset, a recording "
+                                 "runs with max_range_m 30)")
     e.set_defaults(func=cmd_eval)
+
+    m = sub.add_parser("mount", help="the camera mount: estimate height, pitch and roll from recorded pairs")
+    ms = m.add_subparsers(dest="mount_command", required=True, metavar="ACTION")
+    me = ms.add_parser("estimate", help="pairs -> camera height above the floor, pitch, roll (median of "
+                                        "the frames whose ground was fitted)",
+                       description="Run the pairs through rectify, disparity and the segmenter with no mount "
+                                   "configured, take the median of the per-frame ground planes fitted to the "
+                                   "disparity, print height, pitch and roll with their spread, and with --write "
+                                   "set them in the 'segmenter' section of a config file.")
+    me.add_argument("left", metavar="LEFT", nargs="?", help="left images: folder, glob or file")
+    me.add_argument("right", metavar="RIGHT", nargs="?", help="right images: folder, glob or file")
+    me.add_argument("--calibration", metavar="CAL", help="calibration YAML or profile (with LEFT RIGHT)")
+    me.add_argument("--real", default=None, metavar="DIR", help="a recording folder instead of LEFT RIGHT "
+                    "--calibration (layouts as eval --real)")
+    me.add_argument("--frames", type=int, default=20, help="pairs to use, from the first (default: 20)")
+    me.add_argument("--write", default=None, metavar="CONFIG.yaml", help="set mount_height_m, mount_pitch_deg and "
+                    "mount_roll_deg in this file's 'segmenter' section (created if missing; the rest is kept)")
+    me.add_argument("--alpha", type=float, default=0.0, help="rectification alpha for a raw rig (default: 0)")
+    me.add_argument("--json", action="store_true")
+    me.add_argument("--config", default=None, metavar="FILE", help="YAML with 'segmenter' and 'disparity' "
+                    "sections (its mount is ignored)")
+    _matcher_args(me)
+    add_settings_arguments(me, SegmenterSettings, exclude=("mount_height_m", "mount_pitch_deg", "mount_roll_deg"),
+                           title="segmenter settings (unset: max_range_m 30; the mount is what is estimated)")
+    me.set_defaults(func=cmd_mount_estimate)
 
     b = sub.add_parser("bench-segmenter", help="segmentation time per frame for each method",
                        description="Time each segmentation method on disparity maps of a synthetic scenario "
@@ -208,4 +441,4 @@ def register(sub: argparse._SubParsersAction, common) -> None:
 
 
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit("use: ballbot-vision obstacles | eval | bench-segmenter")
+    sys.exit("use: ballbot-vision obstacles | eval | mount estimate | bench-segmenter")

@@ -186,8 +186,8 @@ def in_process_compute(frames: Frames, method: str, seconds: float) -> dict:
     cpu = dict.fromkeys(stages, 0.0)
     for i in range(3):  # first calls import and allocate (the tracker's scipy): not per-frame compute
         l, r = rect.rectify(*frames.raw[i % len(frames.raw)])
-        builder.obstacles(builder.segmenter.detect(to_float(matcher.compute(l, r), 16.0, cfg.invalid_value),
-                                                   rect.model), -1.0 + i / 30.0)
+        builder.process(to_float(matcher.compute(l, r), 16.0, cfg.invalid_value), rect.model, t_s=-1.0 + i / 30.0,
+                        seq=i, stamp_ns=0)
     t_end = time.perf_counter() + seconds
     n = 0
     while time.perf_counter() < t_end or n < 5:
@@ -197,8 +197,7 @@ def in_process_compute(frames: Frames, method: str, seconds: float) -> dict:
         marks.append((time.perf_counter(), time.process_time()))
         d = matcher.compute(l, r)
         marks.append((time.perf_counter(), time.process_time()))
-        detections = builder.segmenter.detect(to_float(d, 16.0, cfg.invalid_value), rect.model)
-        builder.obstacles(detections, n / 30.0)
+        builder.process(to_float(d, 16.0, cfg.invalid_value), rect.model, t_s=n / 30.0, seq=n, stamp_ns=0)
         marks.append((time.perf_counter(), time.process_time()))
         for s, (a, b) in zip(stages, zip(marks, marks[1:])):
             times[s].append((b[0] - a[0]) * 1e3)

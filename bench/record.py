@@ -51,7 +51,7 @@ def _pipeline_messages(n: int):
         d = DisparityMap(robot_id="bench", seq=k, stamp_ns=stamp, image=codec.image_from_array(matcher.compute(l, r)),
                          scale=16.0, invalid_value=cfg.invalid_value, min_disparity=cfg.min_disparity,
                          num_disparities=cfg.fixed_num_disparities, camera=rect.model_message, method=cfg.method)
-        obstacles = builder.build(d, builder.detect(d), stale=False)
+        obstacles = builder.process_message(d).obstacles
         truth = truth_message("bench", k, stamp, "person-walking", pair.truth)
         out.append((raw, rectified, d, obstacles, truth))
     return out

@@ -275,7 +275,7 @@ def load_calibration(spec: str | Path) -> Calibration:
     if s in PROFILES:
         return PROFILES[s]()
     if not Path(s).expanduser().exists():
-        raise CalibrationError(f"{s}: no such calibration file or built-in profile "
+        raise CalibrationError(f"calibration {s}: no such file or folder, nor a built-in profile "
                                f"(profiles: {', '.join(sorted(PROFILES))})")
     try:
         doc = read_yaml(s, "calibration")

@@ -17,16 +17,19 @@ import tempfile
 import threading
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Iterator, Sequence
-
-import numpy as np
+from typing import TYPE_CHECKING, Any, Iterator, Sequence
 
 from .errors import FileError
+
+if TYPE_CHECKING:  # numpy is imported where images are decoded: reading a YAML file needs none
+    import numpy as np
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".pnm", ".webp")
 
 # Limits of any image or calibration image size. 8K (7680x4320, 33 MP) fits; a 1x1 image or a
-# calibration that asks for 200000x200000 pixels (remap tables of ~240 GB) does not.
+# calibration that asks for 200000x200000 pixels (remap tables of ~240 GB) does not. OpenCV's own
+# decoders are held to the same limits (ballbot_vision/__init__.py sets them before cv2 loads), so
+# an oversized image of a format image_header_size does not read is refused before decoding.
 MIN_IMAGE_SIDE = 16
 MAX_IMAGE_SIDE = 16384
 MAX_IMAGE_PIXELS = 40_000_000
@@ -49,7 +52,7 @@ def check_readable(path: str | Path, what: str = "") -> Path:
     p = Path(os.path.expanduser(str(path)))
     label = f"{what} {path}" if what else str(path)
     if not p.exists():
-        raise FileError(f"{label}: no such file")
+        raise FileError(f"{label}: no such file or folder")
     if p.is_dir():
         raise FileError(f"{label}: is a folder, not a file")
     if not os.access(p, os.R_OK):
@@ -81,20 +84,74 @@ def read_text(path: str | Path, what: str = "") -> str:
         raise FileError(f"{label}: binary data, not a text file (byte {e.start} is not UTF-8)") from None
 
 
-def read_yaml(path: str | Path, what: str = "") -> Any:
-    """A YAML file parsed (safe_load). OpenCV FileStorage's `%YAML:1.0` first line, which YAML
-    parsers reject, is accepted (EuRoC and OpenCV write it). Errors name the file and line."""
+# Hostile YAML: a few hundred bytes of nested aliases ("billion laughs") expand to hundreds of
+# millions of values once anything walks the document (1.6 GB for a 700-byte calibration before this
+# limit), and thousands of nested brackets exhaust Python's recursion. No calibration, scenario or
+# config comes near either limit.
+MAX_YAML_VALUES = 200_000
+
+
+def parse_yaml(text: str, label: str) -> Any:
+    """YAML text -> Python (safe_load semantics). OpenCV FileStorage's `%YAML:1.0` first line,
+    which YAML parsers reject, is accepted (EuRoC and OpenCV write it). Invalid YAML, aliases that
+    expand to more than MAX_YAML_VALUES values and too deep nesting are a FileError naming `label`
+    (and the line)."""
     import yaml
 
-    text = read_text(path, what)
-    label = f"{what} {path}" if what else str(path)
     text = re.sub(r"\A%YAML:\d+\.\d+[^\n]*\n", "", text)
+    loader = yaml.SafeLoader(text)
     try:
-        return yaml.safe_load(text)
+        node = loader.get_single_node()
+        if node is not None:
+            n = _expanded_values(node)
+            if n > MAX_YAML_VALUES:
+                raise FileError(f"{label}: YAML aliases that expand to more than {MAX_YAML_VALUES} values "
+                                f"({'endless' if n >= 1 << 62 else n})")
+        return loader.construct_document(node) if node is not None else None
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
         where = f" (line {mark.line + 1}: {getattr(e, 'problem', '') or 'syntax error'})" if mark else ""
         raise FileError(f"{label}: not valid YAML{where}") from None
+    except RecursionError:
+        raise FileError(f"{label}: YAML nested too deeply") from None
+    finally:
+        loader.dispose()
+
+
+def _expanded_values(root: Any) -> int:
+    """How many values the YAML node graph holds once its aliases are expanded, counted without
+    expanding them (a shared node is counted once per reference, its size computed once)."""
+    import yaml
+
+    size: dict[int, int] = {}
+    visiting: set[int] = set()
+    stack: list[tuple[Any, bool]] = [(root, False)]
+    while stack:  # post-order without recursion
+        node, children_done = stack.pop()
+        if id(node) in size:
+            continue
+        if not children_done and id(node) in visiting:  # a node that holds itself (&a [*a]): endless
+            return 1 << 62
+        if isinstance(node, yaml.SequenceNode):
+            kids = list(node.value)
+        elif isinstance(node, yaml.MappingNode):
+            kids = [n for pair in node.value for n in pair]
+        else:
+            size[id(node)] = 1
+            continue
+        if children_done:
+            size[id(node)] = min(1 + sum(size[id(k)] for k in kids), 1 << 62)
+        else:
+            visiting.add(id(node))
+            stack.append((node, True))
+            stack.extend((k, False) for k in kids if id(k) not in size)
+    return size[id(root)]
+
+
+def read_yaml(path: str | Path, what: str = "") -> Any:
+    """A YAML file parsed as parse_yaml does; missing, empty, binary or hostile files are a
+    FileError naming the file (and the line)."""
+    return parse_yaml(read_text(path, what), f"{what} {path}" if what else str(path))
 
 
 # --- images --------------------------------------------------------------------------------------
@@ -111,26 +168,92 @@ def check_image_size(width: int, height: int, where: str) -> None:
 
 
 def image_header_size(data: bytes) -> tuple[int, int] | None:
-    """(width, height) from a PNG or JPEG header without decoding, so a small file that claims a
-    huge image (a decompression bomb) is refused before any memory is spent; None otherwise."""
+    """(width, height) from a PNG, JPEG, PNM, BMP, TIFF or WebP header without decoding, so that a
+    small file that claims a huge image (a decompression bomb, or a header cut off from its data)
+    is refused, with its size, before any memory is spent; None for anything else (OpenCV's own
+    pixel limit, which is ours, then refuses an oversized image before decoding it)."""
+    for parse in (_png_size, _jpeg_size, _pnm_size, _bmp_size, _tiff_size, _webp_size):
+        try:
+            size = parse(data)
+        except (IndexError, ValueError):  # a header cut short: the decoder says what is wrong
+            size = None
+        if size is not None:
+            return size
+    return None
+
+
+def _png_size(data: bytes) -> tuple[int, int] | None:
     if data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) >= 24 and data[12:16] == b"IHDR":
         return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
-    if data[:2] == b"\xff\xd8":
-        i = 2
-        while i + 9 <= len(data):
-            if data[i] != 0xFF:
-                return None
-            marker = data[i + 1]
-            if marker == 0xFF:  # fill byte
-                i += 1
-                continue
-            length = int.from_bytes(data[i + 2:i + 4], "big")
-            if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):  # SOFn
-                return int.from_bytes(data[i + 7:i + 9], "big"), int.from_bytes(data[i + 5:i + 7], "big")
-            if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
-                i += 2
-                continue
-            i += 2 + length
+    return None
+
+
+def _jpeg_size(data: bytes) -> tuple[int, int] | None:
+    if data[:2] != b"\xff\xd8":
+        return None
+    i = 2
+    while i + 9 <= len(data):
+        if data[i] != 0xFF:
+            return None
+        marker = data[i + 1]
+        if marker == 0xFF:  # fill byte
+            i += 1
+            continue
+        length = int.from_bytes(data[i + 2:i + 4], "big")
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):  # SOFn
+            return int.from_bytes(data[i + 7:i + 9], "big"), int.from_bytes(data[i + 5:i + 7], "big")
+        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
+            i += 2
+            continue
+        i += 2 + length
+    return None
+
+
+_PNM = re.compile(rb"\AP[1-6](?:\s|#[^\n]*\n)+(\d+)(?:\s|#[^\n]*\n)+(\d+)\s")
+
+
+def _pnm_size(data: bytes) -> tuple[int, int] | None:
+    m = _PNM.match(data[:1024])
+    return (int(m.group(1)), int(m.group(2))) if m else None
+
+
+def _bmp_size(data: bytes) -> tuple[int, int] | None:
+    if data[:2] != b"BM" or len(data) < 26:
+        return None
+    if int.from_bytes(data[14:18], "little") == 12:  # OS/2 BITMAPCOREHEADER: 16-bit sides
+        return int.from_bytes(data[18:20], "little"), int.from_bytes(data[20:22], "little")
+    # BITMAPINFOHEADER and later: 32-bit signed sides, a negative height means rows top-down
+    return (abs(int.from_bytes(data[18:22], "little", signed=True)),
+            abs(int.from_bytes(data[22:26], "little", signed=True)))
+
+
+def _tiff_size(data: bytes) -> tuple[int, int] | None:
+    """Width and height (tags 256, 257) of the first image of a TIFF."""
+    order = {b"II": "little", b"MM": "big"}.get(data[:2])
+    if order is None or int.from_bytes(data[2:4], order) != 42:
+        return None
+    ifd = int.from_bytes(data[4:8], order)
+    count = int.from_bytes(data[ifd:ifd + 2], order)
+    sides: dict[int, int] = {}
+    for k in range(count):
+        e = ifd + 2 + 12 * k
+        tag, kind = int.from_bytes(data[e:e + 2], order), int.from_bytes(data[e + 2:e + 4], order)
+        if tag in (256, 257):
+            sides[tag] = int.from_bytes(data[e + 8:e + (10 if kind == 3 else 12)], order)  # SHORT or LONG
+    return (sides[256], sides[257]) if len(sides) == 2 else None
+
+
+def _webp_size(data: bytes) -> tuple[int, int] | None:
+    if data[:4] != b"RIFF" or data[8:12] != b"WEBP" or len(data) < 30:
+        return None
+    chunk = data[12:16]
+    if chunk == b"VP8X":  # extended: canvas size minus one, 24 bits each
+        return int.from_bytes(data[24:27], "little") + 1, int.from_bytes(data[27:30], "little") + 1
+    if chunk == b"VP8L":  # lossless: 14 bits each, minus one
+        bits = int.from_bytes(data[21:25], "little")
+        return (bits & 0x3FFF) + 1, ((bits >> 14) & 0x3FFF) + 1
+    if chunk == b"VP8 ":  # lossy: after the frame tag and start code
+        return int.from_bytes(data[26:28], "little") & 0x3FFF, int.from_bytes(data[28:30], "little") & 0x3FFF
     return None
 
 
@@ -161,19 +284,24 @@ _DAMAGE = re.compile(r"(corrupt|premature end|libpng|libjpeg|invalid|crc error|t
                      r"unsupported marker|huffman|extraneous bytes)", re.IGNORECASE)
 
 
-def decode_image(data: bytes, where: str) -> np.ndarray:
-    """Encoded image bytes -> (H, W) uint8 grey or (H, W, 3) uint8 BGR (alpha dropped, 16-bit
-    scaled to 8). A truncated or corrupt file, an unknown format or an impossible size is a
-    FileError naming `where`."""
+def imdecode_checked(data: bytes, where: str, flags: int | None = None) -> np.ndarray:
+    """cv2.imdecode (flags default IMREAD_ANYCOLOR) that refuses what OpenCV only warns about: a
+    truncated or corrupt JPEG/PNG (libjpeg and libpng say so on stderr and hand back an image),
+    an undecodable file, a header that claims an impossible size. FileError naming `where`; the
+    codec's stderr is captured, so its warnings never reach the terminal alone."""
     import cv2
+    import numpy as np
 
     size = image_header_size(data)
     if size is not None:
         check_image_size(size[0], size[1], where)
     with _stderr_captured() as noise:
         try:
-            img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_ANYCOLOR)
+            img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_ANYCOLOR if flags is None else flags)
         except cv2.error as e:
+            if "CV_IO_MAX_IMAGE" in str(e):  # its pixel limit, which is ours: a size we refuse
+                raise FileError(f"{where}: the image is larger than this program handles (at most "
+                                f"{MAX_IMAGE_SIDE} per side and {MAX_IMAGE_PIXELS // 1_000_000} megapixels)") from None
             img, noise_exc = None, str(e).strip().splitlines()[-1]
         else:
             noise_exc = ""
@@ -192,8 +320,27 @@ def decode_image(data: bytes, where: str) -> np.ndarray:
         raise FileError(f"{where}: truncated or corrupt {kind or 'image'} ({damage[0]})")
     if said:  # something else the codec said: not ours to hide, not worth failing for
         print(said, file=sys.stderr)
+    return img
+
+
+def decode_image(data: bytes, where: str) -> np.ndarray:
+    """Encoded image bytes -> (H, W) uint8 grey or (H, W, 3) uint8 BGR (alpha dropped, 16-bit
+    scaled to 8). A truncated or corrupt file, an unknown format or an impossible size is a
+    FileError naming `where`."""
+    img = imdecode_checked(data, where)
     check_image_size(img.shape[1], img.shape[0], where)
     return img
+
+
+def check_pair(left: np.ndarray, right: np.ndarray, left_name: str, right_name: str) -> None:
+    """The two images of a stereo pair must agree in size and in colour (grey or BGR): else a
+    FileError naming both files."""
+    if left.shape != right.shape:
+        def kind(a: np.ndarray) -> str:
+            return f"{a.shape[1]}x{a.shape[0]} " + ("grey" if a.ndim == 2 else "colour")
+
+        raise FileError(f"{left_name} is {kind(left)} but {right_name} is {kind(right)}: the two images of a "
+                        f"stereo pair must agree in size and colour")
 
 
 def read_image(path: str | Path, what: str = "") -> np.ndarray:

@@ -21,7 +21,6 @@ import argparse
 import os
 import types
 import typing
-from pathlib import Path
 from typing import Any, ClassVar, TypeVar
 
 from pydantic import BaseModel, ConfigDict, TypeAdapter, ValidationError
@@ -99,14 +98,17 @@ def parse_text(cls: type[ServiceSettings], name: str, text: str) -> Any:
 
 
 def add_settings_arguments(p: argparse.ArgumentParser, cls: type[ServiceSettings], *, prefix: str = "",
-                           title: str | None = None) -> None:
+                           title: str | None = None, exclude: tuple[str, ...] = ()) -> None:
     """One flag per field of `cls` (`--rate-hz`), documented from the model. In a command that runs
     several stages, `prefix` marks the settings of the stages that are not the command's own
     (`obstacles --disparity-method sgbm` beside the segmenter's `--method`); load them with the same
-    prefix. Values land in per-section attributes, so two models never share a flag's value."""
+    prefix. Values land in per-section attributes, so two models never share a flag's value. `exclude`:
+    fields the command sets itself (no flag)."""
     g = p.add_argument_group(title or f"{cls.section} settings (also the '{cls.section}' section of --config "
                                       f"FILE, or the environment variable shown)")
     for name, f in cls.model_fields.items():
+        if name in exclude:
+            continue
         default = f.default if f.default_factory is None else f.default_factory()
         kw: dict[str, Any] = {"nargs": "?", "const": "true", "metavar": "BOOL"} if _is_bool(f.annotation) \
             else {"metavar": "V"}
@@ -139,17 +141,15 @@ def flags_given(cls: type[ServiceSettings], args: argparse.Namespace | None) -> 
 
 def read_config_section(config_file: str, section: str) -> dict[str, Any]:
     """The mapping under `section` in a `--config` YAML file ({} when absent)."""
-    import yaml
+    from .errors import FileError
+    from .files import read_yaml
 
-    path = Path(config_file)
-    try:
-        doc = yaml.safe_load(path.read_text())
-    except FileNotFoundError:
-        raise ConfigError(f"{config_file}: no such config file") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise ConfigError(f"{config_file}: cannot read the config file ({getattr(e, 'strerror', None) or e})") from None
-    except yaml.YAMLError as e:
-        raise ConfigError(f"{config_file}: not valid YAML: {e}") from None
+    try:  # missing, empty, binary or hostile files in the wording every command uses
+        doc = read_yaml(config_file, "config")
+    except FileError as e:
+        if "the file is empty" not in str(e):
+            raise ConfigError(str(e)) from None
+        doc = None
     doc = doc or {}
     if not isinstance(doc, dict):
         raise ConfigError(f"{config_file}: expected a mapping of service sections (capture:, rectify:, ...)")

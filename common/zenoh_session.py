@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 from dataclasses import dataclass, field
 
 DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
@@ -66,27 +67,68 @@ def options_from_args(args: argparse.Namespace) -> ZenohOptions:
     return o
 
 
+def _zenoh_says(e: Exception) -> str:
+    """A Zenoh error's own words, without the Rust source location and JSON5 wrapping."""
+    text = str(e)
+    m = re.search(r'msg: "(.*?)(?: at /[^"]*)?"', text)
+    text = m.group(1) if m else text
+    text = re.sub(r"\s+at /\S+\.rs:\d+\.?", "", text)
+    parse = re.search(r"-->\s*(\d+):(\d+).*?=\s*([^\n]+)", text, re.S)  # JSON5's pointer at the error
+    if parse:
+        text = f"line {parse.group(1)}, column {parse.group(2)}: {parse.group(3)}"
+    return " ".join(text.split()).rstrip(".!").strip()
+
+
 def make_config(o: ZenohOptions):
+    """The Zenoh config; a config file or endpoint Zenoh refuses is a ConfigError naming it."""
     import zenoh
 
-    conf = zenoh.Config.from_file(o.config_file) if o.config_file else zenoh.Config()
-    conf.insert_json5("mode", json.dumps(o.mode))
-    conf.insert_json5("scouting/multicast/enabled", "false")
+    from .errors import ConfigError
+
+    if o.config_file:
+        if not os.path.isfile(o.config_file):
+            raise ConfigError(f"--zenoh-config {o.config_file}: no such file or folder" if not
+                              os.path.exists(o.config_file) else f"--zenoh-config {o.config_file}: is a folder, not a file")
+        try:
+            conf = zenoh.Config.from_file(o.config_file)
+        except zenoh.ZError as e:
+            raise ConfigError(f"--zenoh-config {o.config_file}: not a Zenoh config ({_zenoh_says(e)})") from None
+    else:
+        conf = zenoh.Config()
+    # (what the user set, Zenoh's key, value): an error names the first
+    settings = [(f"--mode {o.mode}", "mode", json.dumps(o.mode)), ("", "scouting/multicast/enabled", "false")]
     if o.connect:
-        conf.insert_json5("connect/endpoints", json.dumps(o.connect))
+        settings.append((f"--connect {','.join(o.connect)}", "connect/endpoints", json.dumps(o.connect)))
     if o.listen:
-        conf.insert_json5("listen/endpoints", json.dumps(o.listen))
+        settings.append((f"--listen {','.join(o.listen)}", "listen/endpoints", json.dumps(o.listen)))
     if o.lease_ms:
-        conf.insert_json5("transport/link/tx/lease", str(int(o.lease_ms)))
+        settings.append((f"BALLBOT_LEASE_MS {o.lease_ms}", "transport/link/tx/lease", str(int(o.lease_ms))))
     # Zenoh reassembles a fragmented message of up to 1 GB by default before anyone can look at
     # it; no message of ours comes near 128 MB (the per-key caps in keys.py are tighter still).
-    conf.insert_json5("transport/link/rx/max_message_size", str(MAX_MESSAGE_BYTES))
+    settings.append(("", "transport/link/rx/max_message_size", str(MAX_MESSAGE_BYTES)))
+    for option, key, value in settings:
+        try:
+            conf.insert_json5(key, value)
+        except zenoh.ZError as e:
+            raise ConfigError(f"{option or key + ' ' + value}: {_zenoh_says(e)}") from None
     return conf
 
 
 def open_session(o: ZenohOptions):
-    """Open a session; use as a context manager so callback threads stop on exit."""
+    """Open a session; use as a context manager so callback threads stop on exit. A router that
+    does not answer, or an endpoint that cannot be listened on, is a ConnectError (exit status 1:
+    it may work a moment later, so `up` restarts a service that meets it)."""
     import zenoh
 
+    from .errors import ConnectError
+
     zenoh.try_init_log_from_env()
-    return zenoh.open(make_config(o))
+    conf = make_config(o)
+    try:
+        return zenoh.open(conf)
+    except zenoh.ZError as e:
+        why = _zenoh_says(e)
+        if why.startswith("Unable to connect"):
+            where = ", ".join(o.connect) or "the endpoints of " + str(o.config_file)
+            raise ConnectError(f"no Zenoh router answers at {where} (is it running, and --connect right?)") from None
+        raise ConnectError(f"Zenoh session ({o.mode}): {why}") from None

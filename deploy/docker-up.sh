@@ -11,6 +11,8 @@
 #   4. image    docker build -> ballbot-vision:latest (cached layers reused; a failed build leaves no
 #               stopped container and no untagged image behind)
 #   5. up       `docker compose up ARGS...` with the top-level docker-compose.yml
+# Step 1 also makes the calibration key the robot's containers share (BALLBOT_CALIBRATION_KEY),
+# once (deploy/calibration-key.sh): kept in .env and deploy/.env, which compose reads.
 #
 # Usage: deploy/docker-up.sh [--build-only] [--rebuild-base] [--] [ARGS for `compose up`...]
 #   deploy/docker-up.sh                       # build what is missing, then the pipeline in the foreground
@@ -128,6 +130,10 @@ else
     fail "neither 'docker compose' nor 'docker-compose' is installed (Debian: apt-get install docker-compose)"
 fi
 done_step "engine $info, ${COMPOSE[*]} $("${COMPOSE[@]}" version --short 2>/dev/null || echo '?')"
+
+# The robot's containers share one calibration key, which the compose files require: made once
+# and kept in .env and deploy/.env (deploy/calibration-key.sh).
+"$HERE/calibration-key.sh" 2>&1 | sed 's/^/docker-up:       /' >&2 || fail "deploy/calibration-key.sh could not keep the calibration key"
 
 # --- 2. base image ------------------------------------------------------------------------------
 step 2 base "$BASE_IMAGE"

@@ -4,11 +4,15 @@ carries, so a dependency added without re-locking fails here in seconds, not in 
 20-minute build; every compose file builds on the base image deploy/build-base-image.sh makes."""
 from __future__ import annotations
 
+import os
 import re
+import shutil
 import subprocess
 import sys
 import tomllib
 
+import pytest
+import yaml
 from packaging.requirements import Requirement
 from packaging.utils import canonicalize_name
 
@@ -58,8 +62,88 @@ def test_every_compose_file_builds_on_the_local_base_image():
 
 
 def test_docker_up_script_parses_and_documents_itself():
-    for script in ("docker-up.sh", "build-base-image.sh", "fetch-wheels.sh", "lock-constraints.sh"):
+    for script in ("docker-up.sh", "build-base-image.sh", "fetch-wheels.sh", "lock-constraints.sh", "calibration-key.sh"):
         subprocess.run(["bash", "-n", str(REPO / "deploy" / script)], check=True)
     out = subprocess.run(["bash", str(REPO / "deploy" / "docker-up.sh"), "--help"], capture_output=True, text=True,
                          check=True).stdout
     assert "docker-compose" in out and "--build-only" in out
+
+
+def _services(path) -> dict:
+    return yaml.safe_load(path.read_text())["services"]  # YAML merge keys (<<: *anchor) resolved
+
+
+def test_the_robots_containers_share_one_required_calibration_key():
+    """capture signs calibrations and rectify checks them with BALLBOT_CALIBRATION_KEY: every robot
+    container gets the same one, required (no default a public file would give everyone); offboard
+    workers get none."""
+    required = "${BALLBOT_CALIBRATION_KEY:?"
+    robot_side = {}
+    for f in (REPO / "docker-compose.yml", REPO / "deploy" / "robot.compose.yml"):
+        for name, svc in _services(f).items():
+            command = svc.get("command") or []
+            if command[:1] != ["run"] or command[1] == "router":
+                continue
+            key = (svc.get("environment") or {}).get("BALLBOT_CALIBRATION_KEY")
+            if f.name == "docker-compose.yml" and svc.get("networks") == ["offboard"]:
+                assert key is None, f"{f.name}: the offboard worker {name} must not hold the robot's key"
+                continue
+            assert key is not None and key.startswith(required), f"{f.name}: {name} has no required key: {key!r}"
+            robot_side[f"{f.name}:{name}"] = key
+    assert {"docker-compose.yml:capture", "docker-compose.yml:rectify", "robot.compose.yml:capture",
+            "robot.compose.yml:rectify"} <= set(robot_side)
+    assert len({v for k, v in robot_side.items() if k.startswith("docker-compose.yml")}) == 1
+    for name, svc in _services(REPO / "deploy" / "offboard.compose.yml").items():
+        assert "BALLBOT_CALIBRATION_KEY" not in (svc.get("environment") or {}), name
+    for ignore in (".gitignore", ".dockerignore"):
+        assert ".env" in (REPO / ignore).read_text(), f"{ignore} must keep the key files out"
+
+
+def test_calibration_key_script_makes_one_key_once_and_keeps_it(tmp_path):
+    """deploy/calibration-key.sh (docker-up.sh's step 1): one key in .env and deploy/.env, made
+    once, kept on the next run, never printed; a key set in the environment or kept in either file
+    wins; another variable's line without its newline is not swallowed."""
+    (tmp_path / "deploy").mkdir()
+    script = tmp_path / "deploy" / "calibration-key.sh"
+    shutil.copy(REPO / "deploy" / "calibration-key.sh", script)
+
+    def run(**env) -> subprocess.CompletedProcess:
+        base = {k: v for k, v in os.environ.items() if k not in ("BALLBOT_CALIBRATION_KEY", "SUDO_USER")}
+        return subprocess.run(["bash", str(script)], capture_output=True, text=True, check=True, env={**base, **env})
+
+    def keys() -> set[str]:
+        return {line.split("=", 1)[1] for f in (tmp_path / ".env", tmp_path / "deploy" / ".env")
+                for line in f.read_text().splitlines() if line.startswith("BALLBOT_CALIBRATION_KEY=")}
+
+    (tmp_path / "deploy" / ".env").write_text("BALLBOT_ROBOT_ID=r7")  # no newline at the end
+    first = run()
+    (key,) = keys()
+    assert re.fullmatch(r"[0-9a-f]{64}", key) and key not in first.stdout + first.stderr
+    assert "BALLBOT_ROBOT_ID=r7\n" in (tmp_path / "deploy" / ".env").read_text()
+    assert (tmp_path / ".env").stat().st_mode & 0o077 == 0
+    run()
+    assert keys() == {key}
+    (tmp_path / ".env").unlink()
+    run(BALLBOT_CALIBRATION_KEY="set-by-hand")  # deploy/.env keeps its own; .env gets the one set
+    assert {line for line in (tmp_path / ".env").read_text().splitlines()} == {"BALLBOT_CALIBRATION_KEY=set-by-hand"}
+    assert key in (tmp_path / "deploy" / ".env").read_text()
+
+
+def test_compose_refuses_to_start_without_the_key_and_reads_it_from_env_file(tmp_path):
+    """What compose itself makes of docker-compose.yml (`config` only: nothing is built or run)."""
+    compose = (["docker-compose"] if shutil.which("docker-compose") else
+               ["docker", "compose"] if shutil.which("docker") and subprocess.run(
+                   ["docker", "compose", "version"], capture_output=True).returncode == 0 else None)
+    if compose is None:
+        pytest.skip("neither docker-compose nor `docker compose` is installed")
+    shutil.copy(REPO / "docker-compose.yml", tmp_path)
+    env = {k: v for k, v in os.environ.items() if k != "BALLBOT_CALIBRATION_KEY"}
+    r = subprocess.run(compose + ["config"], cwd=tmp_path, capture_output=True, text=True, env=env, timeout=120)
+    assert r.returncode != 0 and "calibration-key.sh" in r.stdout + r.stderr, r.stdout + r.stderr
+    (tmp_path / ".env").write_text("BALLBOT_CALIBRATION_KEY=k123\n")
+    r = subprocess.run(compose + ["--profile", "viewer", "--profile", "ros2", "config"], cwd=tmp_path,
+                       capture_output=True, text=True, env=env, timeout=120)
+    assert r.returncode == 0, r.stderr
+    services = yaml.safe_load(r.stdout)["services"]
+    with_key = {n for n, s in services.items() if (s.get("environment") or {}).get("BALLBOT_CALIBRATION_KEY") == "k123"}
+    assert with_key == {"capture", "rectify", "dispatch", "segmenter", "ros2", "viewer"}, with_key

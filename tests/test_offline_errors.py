@@ -6,6 +6,8 @@ Plus natural sort of offline file lists and one flag name per concept across com
 from __future__ import annotations
 
 import json
+import os
+import re
 import zlib
 from pathlib import Path
 
@@ -32,6 +34,13 @@ def _png_header_only(w: int, h: int) -> bytes:
     return b"\x89PNG\r\n\x1a\n" + len(ihdr).to_bytes(4, "big") + chunk + zlib.crc32(chunk).to_bytes(4, "big")
 
 
+def _bmp_header_only(w: int, h: int) -> bytes:
+    """A BMP whose BITMAPINFOHEADER claims w x h, 24 bit, followed by a few bytes of pixels."""
+    info = (40).to_bytes(4, "little") + w.to_bytes(4, "little") + h.to_bytes(4, "little", signed=True) \
+        + (1).to_bytes(2, "little") + (24).to_bytes(2, "little") + bytes(24)
+    return b"BM" + (54 + 64).to_bytes(4, "little") + bytes(4) + (54).to_bytes(4, "little") + info + bytes(64)
+
+
 def _jpeg(img: np.ndarray) -> bytes:
     return cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 95])[1].tobytes()
 
@@ -47,6 +56,8 @@ def _bad_images() -> dict[str, tuple[str, bytes, str]]:
     return {
         "1x1": (".png", cv2.imencode(".png", np.zeros((1, 1), np.uint8))[1].tobytes(), "1x1 pixels is too small"),
         "huge-header": (".png", _png_header_only(100000, 100000), "100000x100000 pixels is larger than"),
+        "huge-pgm-header": (".pgm", b"P5\n# a comment\n30000 30000\n255\n" + bytes(100), "30000x30000 pixels is larger than"),
+        "huge-bmp-header": (".bmp", _bmp_header_only(50000, -50000), "50000x50000 pixels is larger than"),
         "empty": (".png", b"", "the file is empty"),
         "binary": (".png", bytes(range(256)) * 8, "not an image file OpenCV can decode"),
         "truncated-jpeg": (".jpg", jpg[:len(jpg) // 2], "truncated or corrupt JPEG"),
@@ -143,6 +154,35 @@ def test_bad_calibration_files_are_one_line_errors(tmp_path, capfd, command, con
     assert not (tmp_path / "out" / "d.npy").exists()
 
 
+@pytest.mark.parametrize("ext,params", [(".png", []), (".jpg", []), (".pgm", []), (".ppm", []), (".bmp", []),
+                                        (".tif", []), (".tif", [cv2.IMWRITE_TIFF_COMPRESSION, 1]), (".webp", []),
+                                        (".webp", [cv2.IMWRITE_WEBP_QUALITY, 101])])
+def test_image_sizes_are_read_from_every_header_opencv_writes(ext, params):
+    from ballbot_vision.common.files import image_header_size
+
+    img = np.zeros((37, 53, 3) if ext == ".ppm" else (37, 53), np.uint8)
+    assert image_header_size(cv2.imencode(ext, img, params)[1].tobytes()) == (53, 37)
+
+
+def test_an_oversized_image_of_a_format_without_a_known_header_is_refused_by_opencv_before_decoding(tmp_path):
+    """OpenCV's own size limits are set to ours before cv2 loads (ballbot_vision/__init__.py): a
+    format image_header_size does not read (Sun raster) is held to them too, before OpenCV
+    allocates the image. With OpenCV's default limit (1 gigapixel) this 48 MP header cut off from
+    its pixels was "not an image file"."""
+    import subprocess
+    import sys
+
+    ras = bytes.fromhex("59a66a95") + b"".join(v.to_bytes(4, "big") for v in (8000, 6000, 8, 48_000_000, 1, 0, 0))
+    (tmp_path / "l.ras").write_bytes(ras + bytes(100))
+    cv2.imwrite(str(tmp_path / "r.png"), _scene()[1])
+    env = {k: v for k, v in os.environ.items() if not k.startswith("OPENCV_IO_MAX_IMAGE")}
+    r = subprocess.run([sys.executable, "-m", "ballbot_vision.cli", "disparity", str(tmp_path / "l.ras"),
+                        str(tmp_path / "r.png"), "-o", str(tmp_path / "d.npy")], capture_output=True, text=True,
+                       timeout=120, env=env)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr
+    assert f"LEFT {tmp_path / 'l.ras'}: the image is larger than this program handles" in r.stderr
+
+
 def test_offline_file_lists_sort_naturally(tmp_path, capfd):
     """left2 before left10: a sequence is tracked in the order it was recorded."""
     left, right = (cv2.resize(i, (640, 480)) for i in _scene())
@@ -195,3 +235,192 @@ def test_an_image_of_another_size_than_the_calibration_names_the_file(tmp_path, 
         rc = main(argv[:2 if argv[0] == "calibration" else 1] + [str(tmp_path / "l.png"), str(tmp_path / "r.png"),
                   "--calibration", "lifecam-studio"] + argv[2 if argv[0] == "calibration" else 1:])
         _one_line_error(capfd, rc, f"{tmp_path / 'l.png'}: image is 320x240", "640x480")
+
+
+def test_a_missing_path_reads_the_same_in_every_command(tmp_path, capfd):
+    """One wording for "nothing there": `<argument> <path>: no such file or folder`."""
+    left, right = _scene()
+    cv2.imwrite(str(tmp_path / "right.png"), right)
+    nope, out = tmp_path / "nope.png", tmp_path / "out"
+    cases = {**{name: (argv, "LEFT") for name, argv in _commands(nope, tmp_path / "right.png", out).items()},
+             "mcap from-images": (["mcap", "from-images", str(nope), str(tmp_path / "right.png"), "-o",
+                                   str(out / "x.mcap")], "LEFT"),
+             "calibration show": (["calibration", "show", str(nope)], "calibration"),
+             "calibration import": (["calibration", "import", str(nope), "-o", str(out / "i.yaml")], ""),
+             "mcap info": (["mcap", "info", str(nope)], "recording"),
+             "calibrate --pairs": (["calibrate", "--pairs", str(nope), "--square-size", "0.03"], "--pairs"),
+             "sample-pair --scenario": (["sample-pair", str(out / "s"), "--scenario", str(nope)], "scenario"),
+             "--config": (["obstacles", str(nope), str(nope), "--calibration", "lifecam-studio", "--config",
+                           str(nope)], "config")}
+    cases["calibrate"] = (cases["calibrate"][0], "--left")
+    for name, (argv, what) in cases.items():
+        rc = main(argv)
+        err = _one_line_error(capfd, rc)
+        assert f"error: {what + ' ' if what else ''}{nope}: no such file or folder" in err, (name, err)
+
+
+def test_an_output_path_that_cannot_be_written_is_a_one_line_error(tmp_path, capfd):
+    """-o into a file, or a folder where a file goes: the path and the reason, exit 2, no traceback."""
+    left, right = _scene()
+    cv2.imwrite(str(tmp_path / "l.png"), left)
+    cv2.imwrite(str(tmp_path / "r.png"), right)
+    (tmp_path / "a-file").write_text("x")
+    (tmp_path / "a-folder").mkdir()
+    l, r, f = str(tmp_path / "l.png"), str(tmp_path / "r.png"), tmp_path / "a-file"
+    for argv, where, why in [
+        (["disparity", l, r, "-o", f"{f}/d.npy"], f, "is a file, not a folder"),
+        (["rectify", l, r, "--calibration", "lifecam-studio", "-o", str(f)], f, "is a file, not a folder"),
+        (["calibration", "show", "lifecam-studio"], None, None),
+        (["calibration", "export", "lifecam-studio", f"{f}/l.yaml", f"{f}/r.yaml"], f"{f}/l.yaml",
+         "a part of the path is a file, not a folder"),
+        (["sample-pair", str(f)], f, "is a file, not a folder"),
+        (["mcap", "from-images", l, r, "-o", f"{f}/x.mcap"], f"{f}/x.mcap", "a part of the path is a file"),
+    ]:
+        rc = main(argv)
+        if where is None:
+            assert rc == 0
+            capfd.readouterr()
+            continue
+        _one_line_error(capfd, rc, f"{where}: ", why)
+    # a calibration written over a folder: refused before anything is written
+    rc = main(["calibration", "export", "lifecam-studio", str(tmp_path / "a-folder"), str(tmp_path / "r.yaml"),
+               "--format", "ros"])
+    _one_line_error(capfd, rc, f"{tmp_path / 'a-folder'}: is a folder, not a file")
+
+
+def test_a_bad_image_in_the_middle_of_a_conversion_keeps_the_pairs_before_it(tmp_path, capfd):
+    pytest.importorskip("mcap")
+    from ballbot_vision.services.recorder.recording import RecordingReader
+
+    left, right = _scene()
+    (tmp_path / "L").mkdir(), (tmp_path / "R").mkdir()
+    for i in (1, 2, 3, 10):
+        cv2.imwrite(str(tmp_path / "L" / f"left{i}.png"), left)
+        cv2.imwrite(str(tmp_path / "R" / f"right{i}.png"), right)
+    (tmp_path / "L" / "left10.png").write_bytes(BAD_IMAGES["truncated-png"][1])
+    out = tmp_path / "x.mcap"
+    rc = main(["mcap", "from-images", str(tmp_path / "L"), str(tmp_path / "R"), "-o", str(out)])
+    _one_line_error(capfd, rc, "left10.png: truncated or corrupt PNG", f"{out} holds the 3 pair(s) before it")
+    assert len(list(RecordingReader(out).pairs())) == 3
+
+
+def test_a_grey_and_a_colour_image_are_not_a_pair(tmp_path, capfd):
+    left, right = _scene()
+    cv2.imwrite(str(tmp_path / "l.png"), left)
+    cv2.imwrite(str(tmp_path / "r.png"), cv2.cvtColor(right, cv2.COLOR_GRAY2BGR))
+    for argv in (["disparity", "-o", str(tmp_path / "d.npy")],
+                 ["obstacles", "--calibration", str(tmp_path / "cal.yaml")]):
+        (tmp_path / "cal.yaml").write_text("rectified: true\nimage_size: [320, 240]\nfocal_px: 300\n"
+                                           "principal_point: [160, 120]\nbaseline_m: 0.1\n")
+        rc = main(argv[:1] + [str(tmp_path / "l.png"), str(tmp_path / "r.png")] + argv[1:])
+        _one_line_error(capfd, rc, "l.png is 320x240 grey but ", "r.png is 320x240 colour")
+    assert not (tmp_path / "d.npy").exists()
+
+
+def _laughs(levels: int = 9) -> str:
+    """A few hundred bytes of nested YAML aliases ("billion laughs") that expand to 9**levels values."""
+    lines = ['l0: &l0 ["x", "x", "x", "x", "x", "x", "x", "x", "x"]']
+    lines += [f"l{i}: &l{i} [{', '.join([f'*l{i - 1}'] * 9)}]" for i in range(1, levels)]
+    return "\n".join(lines) + f"\nrectified: true\nfocal_px: 700\nprincipal_point: [1, 1]\nbaseline_m: 0.1\n" \
+                              f"image_size: *l{levels - 1}\n"
+
+
+HOSTILE_YAML = {
+    "aliases": (_laughs(), "YAML aliases that expand to more than 200000 values"),
+    "self-reference": ("a: &a [*a]\n", "YAML aliases that expand to more than 200000 values (endless)"),
+    "nesting": ("a: " + "[" * 5000 + "]" * 5000 + "\n", "YAML nested too deeply"),
+}
+
+
+@pytest.mark.parametrize("kind", list(HOSTILE_YAML))
+@pytest.mark.parametrize("command", ["calibration show", "calibration import", "obstacles", "--config"])
+def test_hostile_yaml_is_refused_before_it_is_walked(tmp_path, capfd, command, kind):
+    """A 700-byte calibration of nested aliases took 1.6 GB and 4 s before it was refused; deep
+    nesting was a RecursionError traceback."""
+    text, phrase = HOSTILE_YAML[kind]
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(text)
+    left, right = _scene()
+    cv2.imwrite(str(tmp_path / "l.png"), left)
+    cv2.imwrite(str(tmp_path / "r.png"), right)
+    argv = {"calibration show": ["calibration", "show", str(bad)],
+            "calibration import": ["calibration", "import", str(bad), "-o", str(tmp_path / "i.yaml")],
+            "obstacles": ["obstacles", str(tmp_path / "l.png"), str(tmp_path / "r.png"), "--calibration", str(bad)],
+            "--config": ["obstacles", str(tmp_path / "l.png"), str(tmp_path / "r.png"), "--calibration",
+                         "lifecam-studio", "--config", str(bad)]}[command]
+    rc = main(argv)
+    _one_line_error(capfd, rc, str(bad), phrase)
+    assert not (tmp_path / "i.yaml").exists()
+
+
+def test_a_hostile_calibration_message_is_refused_by_rectify():
+    """The same YAML on the calibration key: refused and logged, the calibration in use stays."""
+    from ballbot_vision.services.rectify.core import CalibrationHolder
+
+    holder = CalibrationHolder("lifecam-studio")
+    before = holder.current()
+    assert not holder.offer_yaml(HOSTILE_YAML["aliases"][0], "a message")
+    assert holder.current() is before and "expand to more than 200000 values" in holder.last_error
+
+
+@pytest.mark.parametrize("content,phrase", [
+    ("M1: !!opencv-matrix\n   rows: 3\n   cols: 3\n", "field 'M1' is not a readable OpenCV matrix: no 'dt'"),
+    ("M1: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n   data: [ 1, 2 ]\n",
+     "field 'M1' is not a readable OpenCV matrix: its 'data' do not hold rows x cols numbers"),
+    ("image_width: .nan\nimage_height: 480\n", "field 'image_width' must be a whole number of pixels, got nan"),
+])
+def test_an_opencv_file_with_broken_fields_is_a_one_line_error(tmp_path, capfd, content, phrase):
+    """cv::FileStorage's own assertions (cv2.error) and a NaN size were tracebacks."""
+    from ballbot_vision.common import camera
+
+    rig = camera.load_calibration("lifecam-studio")
+    mat = lambda m: "!!opencv-matrix\n   rows: {}\n   cols: {}\n   dt: d\n   data: [ {} ]\n".format(  # noqa: E731
+        *np.atleast_2d(m).shape, ", ".join(f"{v:.6f}" for v in np.ravel(m)))
+    good = {"M1": rig.left.K, "D1": rig.left.D[None], "M2": rig.right.K, "D2": rig.right.D[None]}
+    key = content.split(":", 1)[0]
+    body = "".join(f"{k}: {mat(v)}" for k, v in good.items() if k != key)
+    (tmp_path / "intrinsics.yml").write_text("%YAML:1.0\n" + content + body)
+    (tmp_path / "extrinsics.yml").write_text("%YAML:1.0\n" + f"R: {mat(rig.R)}T: {mat(rig.T[:, None] * 1000)}")
+    argv = ["calibration", "import", str(tmp_path / "intrinsics.yml"), str(tmp_path / "extrinsics.yml"),
+            "--units-m", "0.001", "-o", str(tmp_path / "rig.yaml")]
+    size = [] if key == "image_width" else ["--image-size", "640x480"]  # else the file gives it
+    rc = main(argv + size)
+    _one_line_error(capfd, rc, str(tmp_path / "intrinsics.yml"), phrase)
+    assert not (tmp_path / "rig.yaml").exists()
+    # the same files, repaired, import
+    (tmp_path / "intrinsics.yml").write_text("%YAML:1.0\n" + "".join(f"{k}: {mat(v)}" for k, v in good.items()))
+    assert main(argv + ["--image-size", "640x480"]) == 0
+    assert camera.load_calibration(str(tmp_path / "rig.yaml")).image_size == (640, 480)
+
+
+def test_a_damaged_jpeg_inside_a_recording_is_skipped_with_its_reason(tmp_path, capfd, caplog):
+    """libjpeg only warns about a damaged JPEG and hands back a grey-smeared image: inside a
+    recording the pair is skipped and named (it used to yield obstacles, exit 0, with "Corrupt
+    JPEG data" alone on stderr); the pairs around it go on."""
+    pytest.importorskip("mcap")
+    left, right = (cv2.resize(i, (640, 480)) for i in _scene())
+    (tmp_path / "L").mkdir(), (tmp_path / "R").mkdir()
+    for i in range(3):
+        cv2.imwrite(str(tmp_path / "L" / f"left{i}.png"), left)
+        cv2.imwrite(str(tmp_path / "R" / f"right{i}.png"), right)
+    rec = tmp_path / "rec.mcap"
+    assert main(["mcap", "from-images", str(tmp_path / "L"), str(tmp_path / "R"), "-o", str(rec), "--format", "jpeg",
+                 "--compression", "none", "--calibration", "lifecam-studio"]) == 0
+    data = bytearray(rec.read_bytes())
+    starts = [m.start() for m in re.finditer(rb"/9j/", data)]  # base64 of a JPEG's first bytes
+    assert len(starts) == 6
+    middle = starts[2] + (data.index(b'"', starts[2]) - starts[2]) // 2  # pair 1's left image, mid-scan
+    data[middle:middle + 2000] = b"A" * 2000  # still valid base64 and JSON: zeros inside the JPEG
+    rec.write_bytes(bytes(data))
+    capfd.readouterr()
+
+    assert main(["obstacles", str(rec), "--json", "--disparity-num-disparities", "32"]) == 0
+    out, err = capfd.readouterr()
+    assert [json.loads(line)["left"] for line in out.splitlines()] == [f"{rec}#0:left", f"{rec}#2:left"]
+    said = err + caplog.text  # the warning is logged (pytest's handler holds it in-process)
+    assert "pair seq 1 left: truncated or corrupt JPEG" in said and "pair skipped" in said
+    assert not any(line.startswith("Corrupt JPEG") for line in err.splitlines()), err
+
+    assert main(["mcap", "to-images", str(rec), "-o", str(tmp_path / "out")]) == 0
+    err = capfd.readouterr().err
+    assert "wrote 2 raw pairs" in err and "1 pair(s) with a damaged image skipped" in err

@@ -53,7 +53,7 @@ def test_block_matching_agrees_with_true_depth(chain):
 
 def test_seed_segmentation_finds_both_boxes_within_5_percent(chain):
     pair, rect, _, _, disparity = chain
-    dets = segment(disparity, rect.model, SegmenterSettings(method="seed"))
+    dets = segment(disparity, rect.model, SegmenterSettings(method="seed", mount_height_m=1.0, mount_pitch_deg=15.0))
     assert len(dets) == len(pair.truth) == 2
     for t in pair.truth:
         c = np.asarray(t.visible_centroid_m)

@@ -172,8 +172,9 @@ def test_settings_default_to_layers_and_seed_can_reproduce_the_thesis():
     assert s.method == "layers" and s.range_m == 4.5
     thesis = SegmenterSettings(method="seed", floor_removal=False)
     assert thesis.range_m == 3.0
-    assert SegmenterSettings(mount_height_m=None).mount() is None
-    assert SegmenterSettings(mount_roll_deg=2.0, mount_x_m=0.1).mount() == Mount(1.0, 15.0, 0.0, 2.0, 0.1, 0.0)
+    assert SegmenterSettings().mount() is None  # no silent mount: the ground is estimated
+    assert (SegmenterSettings(mount_height_m=1.0, mount_pitch_deg=15.0, mount_roll_deg=2.0, mount_x_m=0.1).mount()
+            == Mount(1.0, 15.0, 0.0, 2.0, 0.1, 0.0))
 
 
 def _message(d: np.ndarray, model=MODEL, width=None) -> DisparityMap:
@@ -187,19 +188,21 @@ def _message(d: np.ndarray, model=MODEL, width=None) -> DisparityMap:
 
 
 def test_builder_publishes_every_field_and_the_base_frame():
-    b = ObstacleBuilder(SegmenterSettings())
+    b = ObstacleBuilder(SegmenterSettings(mount_height_m=1.0, mount_pitch_deg=15.0))
     msg = _message(scene([(200, 330, 1.8, 150), (330, 470, 2.5, 200)]))
-    out = b.build(msg, b.detect(msg), stale=False)
+    out = b.process_message(msg).obstacles
     assert out.method == "layers" and len(out.obstacles) == 2
     near, far = out.obstacles  # nearest first
     assert near.distance_m < far.distance_m
     assert near.id != far.id and near.confidence > 0.8 and near.area_px > 1000
     assert abs(near.disparity_px - FB / 1.8) < 0.3
     base = np.array(near.position_base_m)
-    assert np.allclose(base, Mount(1.0, 15.0).to_base(near.position_m))
+    g = out.ground  # fitted to the map's floor, near the configured mount; the base frame is the fitted one's
+    assert g.source == "fitted" and abs(g.height_m - 1.0) < 0.03 and abs(g.pitch_deg - 15.0) < 0.5
+    assert np.allclose(base, Mount(g.height_m, g.pitch_deg, 0.0, g.roll_deg).to_base(near.position_m))
     assert 1.6 < base[0] < 2.0 and base[2] > 0.05  # ahead, above the floor
     # the same scene again: the same ids, no velocity
-    again = b.build(msg, b.detect(msg), stale=False)
+    again = b.process_message(msg).obstacles
     assert [o.id for o in again.obstacles] == [near.id, far.id]
     assert np.linalg.norm(again.obstacles[0].velocity_mps) < 0.05
 
@@ -207,7 +210,7 @@ def test_builder_publishes_every_field_and_the_base_frame():
 def test_builder_on_bad_maps():
     b = ObstacleBuilder(SegmenterSettings())
     msg = _message(np.full((MODEL.height, MODEL.width), np.nan, np.float32))
-    assert b.build(msg, b.detect(msg), stale=False).obstacles == []
+    assert b.process_message(msg).obstacles.obstacles == []
     bad = _message(np.zeros((MODEL.height, MODEL.width - 10), np.float32))
     with pytest.raises(DecodeError, match="camera model"):
         b.detect(bad)
@@ -240,3 +243,125 @@ def test_obstacles_command_on_rendered_images(tmp_path, capsys):
     assert main(["obstacles", str(tmp_path / "left.png"), str(tmp_path / "nope.png"),
                  "--calibration", "lifecam-studio"]) == 2
     assert "nope.png" in capsys.readouterr().err
+
+
+# --- the ground every frame, the height band, free space (issue: real scenes) ----------------------
+
+def _frame(d, cfg, ground=None):
+    from ballbot_vision.services.segmenter.ground import GroundEstimator
+    return layers.segment_frame(d, MODEL, cfg, ground=ground or GroundEstimator(cfg))
+
+
+@pytest.mark.parametrize("mount", [Mount(1.0, 15.0), Mount(0.6, 25.0, roll_deg=4.0), Mount(1.6, 6.0, roll_deg=-2.0)])
+def test_ground_is_estimated_without_a_mount(mount):
+    fr = _frame(scene([(250, 390, 2.0, 120)], mount=mount, wall_m=6.0), SegmenterSettings())
+    g = fr.ground
+    assert g.source == "fitted" and g.inlier_fraction > 0.3
+    assert abs(g.height_m - mount.height_m) < 0.02 * mount.height_m
+    assert abs(g.pitch_deg - mount.pitch_deg) < 0.3 and abs(g.roll_deg - mount.roll_deg) < 0.3
+    assert _depths(fr.detections) == [2.0]
+
+
+def test_a_wrong_mount_and_a_swaying_camera_still_remove_the_floor():
+    from ballbot_vision.services.segmenter.ground import GroundEstimator
+
+    cfg = SegmenterSettings(mount_height_m=1.0, mount_pitch_deg=20.0)  # told 5 degrees wrong
+    ground = GroundEstimator(cfg)
+    for k in range(12):  # a ballbot sways: pitch 15 +- 4 degrees, roll +- 2, frame to frame
+        truth = Mount(1.0, 15.0 + 4.0 * np.sin(k), roll_deg=2.0 * np.cos(k))
+        fr = _frame(scene([(250, 390, 2.0, 120)], mount=truth, seed_=k), cfg, ground)
+        assert fr.ground.source == "fitted", k
+        assert abs(fr.ground.pitch_deg - truth.pitch_deg) < 0.4 and abs(fr.ground.roll_deg - truth.roll_deg) < 0.4
+        assert _depths(fr.detections) == [2.0], (k, _depths(fr.detections))  # no floor patches
+
+
+def test_without_a_floor_in_view_the_last_ground_stands_in_then_none():
+    from ballbot_vision.services.segmenter.ground import GroundEstimator
+
+    cfg = SegmenterSettings()
+    ground = GroundEstimator(cfg)
+    assert _frame(scene([]), cfg, ground).ground.source == "fitted"
+    wall = np.full((MODEL.height, MODEL.width), FB / 2.0, np.float32)  # a wall fills the view
+    assert _frame(wall, cfg, ground).ground.source == "tracked"
+    assert _frame(wall, cfg).ground.source == "none"  # no history, no mount: said so
+
+
+def test_markings_are_floor_canopy_is_above_the_robot_and_only_standing_things_are_obstacles():
+    mount = Mount(1.0, 0.0)  # level: the top rows see 1.8 m above the camera at 5 m
+    d = scene([(400, 520, 2.5, 150)], mount=mount, wall_m=9.0)
+    fp = floor_plane(mount)
+    v, u = np.mgrid[0:MODEL.height, 0:MODEL.width].astype(np.float32)
+    flat = fp.disparity(u, v) * (1 / (1 - 0.05 / 1.0))  # a patch 5 cm above the floor: a mat, a marking
+    d[330:400, 150:300] = flat[330:400, 150:300]
+    # a canopy more than 2.6 m above the floor, 5 m ahead: rows where a point at depth 5 m is that high
+    z = 5.0
+    rows = [r for r in range(MODEL.height) if 1.0 - (r - MODEL.cy) / MODEL.focal_px * z > 2.6]
+    assert rows
+    d[min(rows):max(rows) + 1, 100:600] = FB / z
+    fr = _frame(d, SegmenterSettings(max_range_m=6.0))
+    assert _depths(fr.detections) == [2.5]
+    tall = _frame(d, SegmenterSettings(max_range_m=6.0, robot_height_m=5.0))
+    assert 5.0 in [round(float(x.position_m[2]), 1) for x in tall.detections]  # a taller robot hits it
+
+
+def test_free_space_is_free_up_to_the_obstacle_occupied_at_it_unknown_behind():
+    from ballbot_vision.services.segmenter import freespace
+    from ballbot_vision.services.segmenter.ground import mount_from_ground
+
+    cfg = SegmenterSettings(freespace_resolution_m=0.1)
+    fr = _frame(scene([(250, 390, 2.0, 200)], wall_m=6.0), cfg)
+    m = mount_from_ground(fr.ground, cfg)
+    g = freespace.occupancy(fr.floor_points, fr.points, m, MODEL, cfg.range_m, cfg.freespace_resolution_m)
+
+    def cell(x, y):
+        return g.cells[int((y - g.origin_m[1]) / g.resolution_m), int((x - g.origin_m[0]) / g.resolution_m)]
+
+    box_x = float(m.to_base(fr.detections[0].position_m)[0])
+    assert 1.7 < box_x < 2.2
+    assert cell(1.5, 0.0) == 0 and cell(1.7, 0.0) == 0  # floor between the camera's near edge (1.43 m) and the box
+    assert cell(box_x, 0.0) == 100  # the box
+    assert cell(3.5, 0.0) == -1  # behind it: not seen
+    assert cell(3.5, -1.3) == 0 and cell(3.5, 1.3) == 0  # beside it, the floor is seen out to the wall
+    assert cell(1.0, 0.0) == -1  # under the camera, below its field of view
+
+
+def test_builder_publishes_ground_free_space_and_confirms_tracks():
+    b = ObstacleBuilder(SegmenterSettings(track_confirm_m=3, track_confirm_n=5))
+    d = scene([(250, 390, 2.0, 150)])
+    outs = [b.process(d, MODEL, t_s=k / 15, seq=k, stamp_ns=k) for k in range(4)]
+    confirmed = [r.obstacles.obstacles[0].confirmed for r in outs]
+    assert confirmed == [False, False, True, True]  # seen in 3 of the last 5 frames
+    last = outs[-1]
+    assert last.obstacles.ground.source == "fitted" and last.obstacles.velocity_reference == "camera"
+    fs = last.freespace
+    cells = np.frombuffer(fs.cells, np.int8)
+    assert fs.frame_id == "base" and cells.size == fs.width * fs.height and (cells == 0).any() and (cells == 100).any()
+    assert last.obstacles.obstacles[0].position_base_m is not None
+    seed_out = ObstacleBuilder(SegmenterSettings(method="seed")).process(d, MODEL, t_s=0, seq=0, stamp_ns=0)
+    assert seed_out.freespace is None and seed_out.obstacles.ground is None  # no mount, no ground: said so
+
+
+def test_odometry_gives_velocities_over_the_ground():
+    from ballbot_vision.common.messages import Odometry
+
+    b = ObstacleBuilder(SegmenterSettings(mount_height_m=1.0, mount_pitch_deg=15.0))
+    speed, fps = 0.6, 15.0
+    ids = set()
+    for k in range(20):  # the robot drives at 0.6 m/s towards a box standing still
+        z = 3.0 - speed * k / fps
+        cols = int(70 / z * 2.0)
+        d = scene([(320 - cols, 320 + cols, z, int(250 / z))], wall_m=8.0, seed_=k)
+        odo = Odometry(robot_id="r", seq=k, stamp_ns=k, linear_mps=(speed, 0.0, 0.0))
+        res = b.process(d, MODEL, t_s=k / fps, seq=k, stamp_ns=k, odometry=odo)
+        (o,) = res.obstacles.obstacles
+        ids.add(o.id)
+    assert res.obstacles.velocity_reference == "ground" and len(ids) == 1
+    assert np.linalg.norm(o.velocity_base_mps) < 0.15, o.velocity_base_mps  # it stands still
+    still = ObstacleBuilder(SegmenterSettings(mount_height_m=1.0, mount_pitch_deg=15.0))
+    for k in range(20):  # without odometry: relative to the robot, it approaches at the robot's speed
+        z = 3.0 - speed * k / fps
+        cols = int(70 / z * 2.0)
+        res = still.process(scene([(320 - cols, 320 + cols, z, int(250 / z))], wall_m=8.0, seed_=k), MODEL,
+                            t_s=k / fps, seq=k, stamp_ns=k)
+    (o,) = res.obstacles.obstacles
+    assert res.obstacles.velocity_reference == "camera" and o.velocity_base_mps[0] == pytest.approx(-speed, abs=0.15)

@@ -74,10 +74,12 @@ def test_env_and_config_file_are_named_too(tmp_path, monkeypatch):
     with pytest.raises(ConfigError, match=f"{cfg}: capture.rate_hz: .*greater than 0"):
         capture([], str(cfg))
     cfg.write_bytes(b"\x89PNG\r\n\x1a\n\x00\x00\xff\xfe")
-    with pytest.raises(ConfigError, match="cannot read the config file|not valid YAML"):
+    with pytest.raises(ConfigError, match=f"config {cfg}: binary data, not a text file"):
         capture([], str(cfg))
-    with pytest.raises(ConfigError, match="no such config file"):
+    with pytest.raises(ConfigError, match=f"config {tmp_path / 'missing.yaml'}: no such file or folder"):
         capture([], str(tmp_path / "missing.yaml"))
+    cfg.write_text("")  # an empty config is no settings, not an error
+    assert capture([], str(cfg)).rate_hz == capture([]).rate_hz
 
 
 def test_several_stages_in_one_command_keep_their_values_apart():
@@ -121,3 +123,61 @@ def test_run_service_help_still_lists_every_setting():
     r = subprocess.run([sys.executable, "-m", "ballbot_vision.cli", "--help"], capture_output=True, text=True,
                        timeout=120)
     assert r.returncode == 0 and "healthcheck" in r.stdout and "calibration" in r.stdout and "obstacles" in r.stdout
+
+
+_HEAVY_AT_EXIT = ("import atexit, sys\n"
+                  "def report():\n"
+                  "    heavy = sorted(m for m in sys.modules if m in ('cv2', 'scipy', 'numpy')"
+                  " or m.startswith(('ballbot_vision.services', 'ballbot_vision.bench')))\n"
+                  "    print('HEAVY', heavy, file=sys.stderr, flush=True)\n"
+                  "atexit.register(report)\n"
+                  "from ballbot_vision import cli\n"
+                  "sys.exit(cli.main(sys.argv[1:]))\n")
+
+
+def test_a_running_router_and_a_real_healthcheck_import_neither_opencv_nor_numpy():
+    """Not only their --help: a router that starts, serves and stops, and a healthcheck that
+    connects to it and gives its verdict (no service here: 'no healthy stats', exit 1)."""
+    import signal
+
+    from helpers import free_port, wait_port
+
+    port = free_port()
+    router = subprocess.Popen([sys.executable, "-c", _HEAVY_AT_EXIT, "run", "router", "--listen",
+                               f"tcp/127.0.0.1:{port}"], stderr=subprocess.PIPE, text=True)
+    try:
+        wait_port(port, router)
+        hc = subprocess.run([sys.executable, "-c", _HEAVY_AT_EXIT, "healthcheck", "--connect", f"tcp/127.0.0.1:{port}",
+                             "--timeout", "0.5"], capture_output=True, text=True, timeout=120)
+        assert hc.returncode == 1 and "no healthy stats from any service" in hc.stderr, hc.stderr
+        assert "HEAVY []" in hc.stderr, hc.stderr[-2000:]
+    finally:
+        router.send_signal(signal.SIGINT)
+        err = router.communicate(timeout=60)[1]
+    assert router.returncode == 0 and "HEAVY []" in err, err[-2000:]
+
+
+@pytest.mark.parametrize("case", ["no router", "bad endpoint", "missing config", "bad config", "service, no router"])
+def test_zenoh_problems_are_one_line_not_a_traceback(tmp_path, case):
+    """A router that does not answer: exit 1 (it may answer later: `up` restarts a service that
+    meets it); an endpoint or config file Zenoh refuses: exit 2 (a setting to fix)."""
+    from helpers import cli, free_port
+
+    port = free_port()  # nothing listens there
+    (tmp_path / "bad.json5").write_text("{ mode: ")
+    argv, status, phrase = {
+        "no router": (["healthcheck", "--connect", f"tcp/127.0.0.1:{port}", "--timeout", "1"], 1,
+                      f"no Zenoh router answers at tcp/127.0.0.1:{port}"),
+        "bad endpoint": (["watch", "--mode", "client", "--connect", "localhost:7447", "--timeout", "1"], 2,
+                         "--connect localhost:7447: Endpoints must be of the form <protocol>/<address>"),
+        "missing config": (["watch", "--zenoh-config", str(tmp_path / "nope.json5"), "--timeout", "1"], 2,
+                           f"--zenoh-config {tmp_path / 'nope.json5'}: no such file or folder"),
+        "bad config": (["status", "--zenoh-config", str(tmp_path / "bad.json5")], 2,
+                       f"--zenoh-config {tmp_path / 'bad.json5'}: not a Zenoh config"),
+        "service, no router": (["run", "rectify", "--mode", "client", "--connect", f"tcp/127.0.0.1:{port}"], 1,
+                               f"no Zenoh router answers at tcp/127.0.0.1:{port}"),
+    }[case]
+    r = subprocess.run(cli(*argv), capture_output=True, text=True, timeout=120)
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == status and len(lines) == 1 and lines[0].startswith("ballbot-vision: error: "), r.stderr
+    assert phrase in r.stderr, r.stderr

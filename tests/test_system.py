@@ -11,7 +11,8 @@ import pytest
 
 from ballbot_vision.common import codec
 from ballbot_vision.common.keys import topic
-from ballbot_vision.common.messages import (GroundTruth, Image, ObstacleList, ServiceStats, StereoFrame)
+from ballbot_vision.common.messages import (FreeSpace, GroundTruth, Image, ObstacleList, Odometry, ServiceStats,
+                                            StereoFrame)
 
 from helpers import Collector, cli, pid_alive
 
@@ -64,6 +65,23 @@ def test_up_publishes_obstacles_matching_ground_truth_and_stops_cleanly(up):
             f"no three fresh lists in a row: {[(m.seq, m.stale) for m in obstacles.items[-10:]]}"
         ids = [sorted(o.id for o in m.obstacles) for m in fresh]
         assert ids[0] == ids[-1], "track ids must be stable on a static scene"
+        # no mount is configured: the ground is estimated from the disparity (the scene's camera: 1 m, 15 deg)
+        g = fresh[-1].ground
+        assert g.source == "fitted" and abs(g.height_m - 1.0) < 0.05 and abs(g.pitch_deg - 15.0) < 1.0, g
+        # free space next to the obstacle list, on the public key a planner subscribes to
+        grids = Collector(FreeSpace)
+        s.declare_subscriber("ballbot/freespace/**", grids)
+        assert grids.wait_for(lambda items: len(items) >= 2, 60), "no free-space grid published"
+        cells = np.frombuffer(grids.items[-1].cells, np.int8)
+        assert (cells == 0).sum() > 100 and (cells == 100).any() and grids.items[-1].ground.source == "fitted"
+        # odometry (the robot standing still) turns velocities into velocities over the ground
+        odo = s.declare_publisher(topic("odometry").key(up.robot_id))
+
+        def over_ground(items) -> bool:
+            odo.put(codec.encode(Odometry(robot_id=up.robot_id, seq=0, stamp_ns=time.time_ns(),
+                                          linear_mps=(0.0, 0.0, 0.0), source="test")))
+            return bool(items) and items[-1].velocity_reference == "ground"
+        assert obstacles.wait_for(over_ground, 60), "odometry was not used"
 
         status = subprocess.run(cli("status", "--connect", up.endpoint, "--json", "--wait", "2.5"),
                                 capture_output=True, text=True, timeout=60)

@@ -71,3 +71,29 @@ def test_new_object_far_from_tracks_gets_a_new_id():
     a2, b = tr.update([np.array([0.0, 0.0, 2.0]), np.array([1.5, 0.0, 2.0])], 0.1)
     assert a2.id == a.id and b.id != a.id
     assert tr.update([], 0.2) == []
+
+
+def test_a_track_is_confirmed_after_m_of_the_last_n_frames_and_a_fluke_never():
+    tr = Tracker(confirm_m=3, confirm_n=5)
+    a, fluke = np.array([0.0, 0.0, 2.0]), np.array([1.5, 0.0, 3.0])
+    seen = [True, False, True, False, True, True]
+    states = []
+    for k, s in enumerate(seen):
+        tracks = tr.update(([a] if s else []) + ([fluke] if k == 0 else []), k / 15)
+        if s:
+            states.append(tracks[0].confirmed)
+    assert states == [False, False, True, True]  # the 3rd sighting within 5 frames confirms
+    assert not any(t.confirmed for t in tr.tracks if t.id != 1)
+
+
+def test_move_carries_tracks_by_the_robots_own_motion():
+    tr = Tracker()
+    tr.ground_plane = True
+    box = np.array([[1.8, -0.2], [2.2, 0.2]])
+    (t0,) = tr.update([np.array([2.0, 0.0, 0.3])], 0.0, [box])
+    # the robot drives 0.8 m forward and turns 90 degrees left: the object is now 1.2 m to its right
+    R = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # rotation by -90 deg about z
+    tr.move(R, -R @ np.array([0.8, 0.0, 0.0]))
+    assert np.allclose(tr.tracks[0].position, [0.0, -1.2, 0.3]) and np.allclose(tr.tracks[0].box, [[-0.2, -1.4], [0.2, -1.0]])
+    (t1,) = tr.update([np.array([0.0, -1.2, 0.3])], 0.1, [np.array([[-0.2, -1.4], [0.2, -1.0]])])
+    assert t1.id == t0.id and np.linalg.norm(t1.velocity) < 1e-6

@@ -25,11 +25,12 @@ log = logging.getLogger("ballbot.capture")
 
 # --- images ----------------------------------------------------------------------------------------
 
-def list_images(spec: str, side: str) -> list[Path]:
+def list_images(spec: str, side: str, label: str = "") -> list[Path]:
     """A folder (every image file in it) or a glob pattern ('left/*.png', 'data/**/im0.png') ->
-    files in natural sort order (img2 before img10)."""
+    files in natural sort order (img2 before img10). Errors name `label` (default: the capture
+    setting, --images-left)."""
     try:
-        return files.list_images(spec, f"images: --images-{side}")
+        return files.list_images(spec, label or f"images: --images-{side}")
     except FileError as e:
         raise SourceError(str(e)) from None
 
@@ -54,10 +55,11 @@ class ImageSource:
     name = "images"
 
     def __init__(self, left: str, right: str, rate_hz: float = 30.0, loop: bool = False,
-                 max_rate: bool = False, ctx: SourceContext | None = None):
+                 max_rate: bool = False, ctx: SourceContext | None = None, labels: tuple[str, str] = ("", "")):
+        """labels: how errors name the two arguments (default: capture's --images-left/right)."""
         self.ctx = ctx or SourceContext()
-        self.left_files = list_images(left, "left")
-        self.right_files = list_images(right, "right")
+        self.left_files = list_images(left, "left", labels[0])
+        self.right_files = list_images(right, "right", labels[1])
         nl, nr = len(self.left_files), len(self.right_files)
         if nl != nr:
             n = min(nl, nr)

@@ -33,7 +33,8 @@ class McapSource:
             raise SourceError("mcap: no recording given (--mcap FILE)")
         self.ctx = ctx or SourceContext()
         try:
-            self.reader = RecordingReader(path)
+            # not strict: the capture service's other threads log while a frame decodes (see RecordingReader)
+            self.reader = RecordingReader(path, strict_images=False)
             info = self.reader.info()
         except RecordingError as e:
             raise SourceError(f"mcap: {e}") from None

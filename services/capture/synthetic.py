@@ -315,7 +315,7 @@ class Scene:
             return cls.from_yaml(path)
         if str(name).endswith((".yaml", ".yml")) and Path(name).is_file():
             return cls.from_yaml(name)
-        raise ConfigError(f"{name}: no such built-in scenario or scenario file "
+        raise ConfigError(f"scenario {name}: no such file or folder, nor a built-in scenario "
                           f"(built-in: {', '.join(list_builtin_scenarios())})")
 
     @classmethod

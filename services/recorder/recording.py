@@ -34,7 +34,7 @@ import cv2
 import numpy as np
 
 from ...common import codec
-from ...common.errors import BallbotError
+from ...common.errors import BallbotError, path_error
 from ...common.messages import (CameraModel, DisparityMap, FreeSpace, GroundTruth, Image, ObstacleList, ServiceStats,
                                 StereoFrame, TruthObstacle)
 from . import foxglove
@@ -100,7 +100,7 @@ class RecordingWriter:
         try:
             self._file: IO[bytes] = open(self.path, "wb")
         except OSError as e:
-            raise RecordingError(f"{path}: cannot write the recording: {e.strerror or e}") from None
+            raise RecordingError(f"{path}: cannot write the recording ({path_error(e)})") from None
         kinds = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
         if compression not in kinds:
             raise RecordingError(f"compression {compression!r}: expected one of {', '.join(kinds)}")
@@ -324,16 +324,28 @@ class RecordingInfo:
         return min(self.channels.get(left, 0), self.channels.get(right, 0))
 
 
-def decode_image(doc: dict, where: str) -> np.ndarray:
+def decode_image(doc: dict, where: str, strict: bool = True) -> np.ndarray:
+    """A recorded image (Foxglove CompressedImage doc) -> array. strict: a JPEG or PNG that libjpeg
+    or libpng reports damaged is refused (their warnings on stderr are captured for it, see
+    common/files.py); else only an image that does not decode at all is."""
     import base64
+
+    from ...common.errors import FileError
+    from ...common.files import imdecode_checked
 
     try:
         data = base64.b64decode(doc["data"])
     except (KeyError, TypeError, ValueError) as e:
         raise RecordingError(f"{where}: no base64 image data ({type(e).__name__})") from None
-    a = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
-    if a is None:
-        raise RecordingError(f"{where}: {doc.get('format', '?')} image of {len(data)} bytes does not decode")
+    if strict:  # a damaged JPEG or PNG is refused, not decoded grey with libjpeg's warning on stderr
+        try:
+            a = imdecode_checked(data, where, cv2.IMREAD_UNCHANGED)
+        except FileError as e:
+            raise RecordingError(str(e)) from None
+    else:
+        a = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+        if a is None:
+            raise RecordingError(f"{where}: {doc.get('format', '?')} image of {len(data)} bytes does not decode")
     if a.ndim == 3 and a.shape[2] == 4:
         a = cv2.cvtColor(a, cv2.COLOR_BGRA2BGR)
     return a
@@ -341,15 +353,18 @@ def decode_image(doc: dict, where: str) -> np.ndarray:
 
 class RecordingReader:
     """Reads a recording back. Opening checks it is an MCAP file; a file whose writer was killed
-    (no summary) is read up to its last complete chunk, with `truncated` set and a warning."""
+    (no summary) is read up to its last complete chunk, with `truncated` set and a warning.
+    strict_images: see decode_image (off where other threads log meanwhile: capturing stderr
+    around a decode would swallow their lines)."""
 
-    def __init__(self, path: str | Path):
+    def __init__(self, path: str | Path, strict_images: bool = True):
         self.path = Path(path)
+        self.strict_images = strict_images
         try:
             with open(self.path, "rb") as f:
                 magic = f.read(8)
         except OSError as e:
-            raise RecordingError(f"{path}: cannot read the recording: {e.strerror or e}") from None
+            raise RecordingError(f"recording {path}: {path_error(e)}") from None
         if magic != b"\x89MCAP0\r\n":
             raise RecordingError(f"{path}: not an MCAP file (it starts with {magic[:8]!r})")
         self.truncated = False
@@ -416,7 +431,8 @@ class RecordingReader:
     def pairs(self, kind: str = "auto") -> Iterator[RecordedPair]:
         """Stereo pairs in capture order: the raw pairs ("raw"), the rectified ones ("rectified"),
         or raw when the recording has them, else rectified ("auto"). A pair missing a half is
-        skipped (counted in `unpaired`)."""
+        skipped (counted in `unpaired`), as is one with a damaged image (logged, counted in
+        `damaged`): a replay goes on past it."""
         info = self.info()
         if kind == "auto":
             kind = "raw" if info.pairs("raw") else "rectified"
@@ -426,25 +442,33 @@ class RecordingReader:
             raise RecordingError(f"{self.path}: no {kind} stereo pairs ({left_t} and {right_t}); it holds {have}")
         self.kind = kind
         self.unpaired = 0
+        self.damaged = 0
         halves: dict[int, dict[str, Any]] = {}
         truths: dict[int, GroundTruth] = {}
         calibration: str | None = None
         pending: tuple[int, int, dict] | None = None  # a complete pair waits for its truth (same log time)
 
-        def finish(seq: int, t: int, half: dict) -> RecordedPair:
+        def finish(seq: int, t: int, half: dict) -> RecordedPair | None:
             where = f"{self.path}: pair seq {seq}"
             truth = truths.pop(seq, None)
             for old in [s for s in truths if s < seq]:
                 del truths[old]
-            return RecordedPair(seq=seq, stamp_ns=t, left=decode_image(half[left_t][0], f"{where} left"),
-                                right=decode_image(half[right_t][0], f"{where} right"),
+            try:
+                left = decode_image(half[left_t][0], f"{where} left", self.strict_images)
+                right = decode_image(half[right_t][0], f"{where} right", self.strict_images)
+            except RecordingError as e:
+                self.damaged += 1
+                log.warning("%s; pair skipped", e)
+                return None
+            return RecordedPair(seq=seq, stamp_ns=t, left=left, right=right,
                                 truth=None if truth is None else truth.obstacles,
                                 scenario="" if truth is None else truth.scenario,
                                 calibration_yaml=calibration if kind == "raw" else None)
 
         for topic, m in self._messages([left_t, right_t, TRUTH, CALIBRATION]):
             if pending is not None and m.log_time > pending[1]:
-                yield finish(*pending)
+                if (pair := finish(*pending)) is not None:
+                    yield pair
                 pending = None
             try:
                 doc = json.loads(m.data)
@@ -468,11 +492,11 @@ class RecordingReader:
             for old in [s for s in halves if s < m.sequence - 64]:  # a half whose partner never came
                 del halves[old]
                 self.unpaired += 1
-            if pending is not None:
-                yield finish(*pending)
+            if pending is not None and (pair := finish(*pending)) is not None:
+                yield pair
             pending = (m.sequence, half[left_t][1], half)
-        if pending is not None:
-            yield finish(*pending)
+        if pending is not None and (pair := finish(*pending)) is not None:
+            yield pair
         self.unpaired += len(halves)
 
 
@@ -482,9 +506,8 @@ def offline_pairs(path: str | Path, calibration: str | None = None):
     pairs yields (left label, right label, left, right, t_s) in capture order, t_s from the
     recording's stamps, and calibration is `calibration` (a file or profile) or else the
     recording's own, as a Calibration."""
-    import yaml
-
     from ...common import camera
+    from ...common.files import parse_yaml
 
     reader = RecordingReader(path)
     pairs = reader.pairs("raw")
@@ -494,7 +517,8 @@ def offline_pairs(path: str | Path, calibration: str | None = None):
     if calibration:
         cal = camera.load_calibration(calibration)
     elif first.calibration_yaml:
-        cal = camera.calibration_from_dict(yaml.safe_load(first.calibration_yaml), where=f"{path}: /calibration")
+        cal = camera.calibration_from_dict(parse_yaml(first.calibration_yaml, f"{path}: /calibration"),
+                                           where=f"{path}: /calibration")
     else:
         raise RecordingError(f"{path}: the recording holds no calibration; give one with --calibration")
 

@@ -53,7 +53,8 @@ def find_pairs(left: str | None = None, right: str | None = None, pairs_dir: str
     if pairs_dir is not None:
         d = Path(pairs_dir)
         if not d.is_dir():
-            raise CalibrationError(f"--pairs {pairs_dir!r}: not a folder")
+            raise CalibrationError(f"--pairs {pairs_dir}: " + ("is a file, not a folder" if d.exists() else
+                                                               "no such file or folder"))
         if (d / "left").is_dir() and (d / "right").is_dir():
             return pair_images(list_images(str(d / "left"), "--pairs"), list_images(str(d / "right"), "--pairs"))
         imgs = natural_sorted([f for f in d.iterdir() if f.suffix.lower() in IMAGE_EXTENSIONS])

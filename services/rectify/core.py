@@ -62,8 +62,8 @@ class Rectifier:
     def check_size(self, image: np.ndarray, name: str) -> None:
         h, w = image.shape[:2]
         if (w, h) != tuple(self.size):
-            raise BallbotError(f"{name}: image is {w}x{h}, the calibration '{self.calibration.name or '?'}' "
-                               f"is for {self.size[0]}x{self.size[1]}")
+            named = f" '{self.calibration.name}'" if self.calibration.name else ""
+            raise BallbotError(f"{name}: image is {w}x{h}, the calibration{named} is for {self.size[0]}x{self.size[1]}")
 
     def rectify(self, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """left, right: (H, W) or (H, W, 3) images of the calibrated size -> rectified, same dtype."""
@@ -157,12 +157,13 @@ class CalibrationHolder:
             return True
 
     def offer_yaml(self, text: str, origin: str, check_change: bool = True) -> bool:
-        import yaml
+        from ...common.errors import FileError
+        from ...common.files import parse_yaml
 
-        try:
-            doc = yaml.safe_load(text)
-        except yaml.YAMLError as e:
-            return self._refuse(origin, f"not valid YAML: {e}")
+        try:  # hostile YAML (aliases that expand to millions of values) is refused before it is walked
+            doc = parse_yaml(text, "calibration")
+        except FileError as e:
+            return self._refuse(origin, str(e))
         try:
             cal = camera.calibration_from_dict(doc, where=origin)
         except CalibrationError as e:

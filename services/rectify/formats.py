@@ -35,8 +35,8 @@ import numpy as np
 import yaml
 
 from ...common import camera
-from ...common.errors import CalibrationError
-from ...common.files import read_text, read_yaml
+from ...common.errors import BallbotError, CalibrationError, FileError
+from ...common.files import parse_yaml, read_text, read_yaml
 
 # --- OpenCV stereo_calib ------------------------------------------------------------------------
 
@@ -55,7 +55,13 @@ def _fs_mat(fs: Any, key: str, path: Path, shape: tuple[int, ...] | None = None)
     node = fs.getNode(key)
     if node.empty():
         return None
-    m = node.mat()
+    try:
+        m = node.mat()
+    except (cv2.error, SystemError) as e:  # an !!opencv-matrix without dt, or whose data do not fill it
+        why = ("no 'dt' (element type)" if "dt.empty" in str(e) else
+               "its 'data' do not hold rows x cols numbers" if "nelems" in str(e) else
+               "rows, cols, dt and data expected")
+        raise CalibrationError(f"{path}: field '{key}' is not a readable OpenCV matrix: {why}") from None
     if m is None:
         raise CalibrationError(f"{path}: field '{key}' is not a matrix")
     m = np.asarray(m, dtype=np.float64)
@@ -64,18 +70,23 @@ def _fs_mat(fs: Any, key: str, path: Path, shape: tuple[int, ...] | None = None)
     return m.reshape(shape) if shape is not None else m
 
 
-def _fs_size(fs: Any) -> tuple[int, int] | None:
+def _fs_size(fs: Any, path: Path) -> tuple[int, int] | None:
+    def side(v: float, key: str) -> int:
+        if not math.isfinite(v) or v != round(v):
+            raise CalibrationError(f"{path}: field '{key}' must be a whole number of pixels, got {v}")
+        return int(v)
+
     w, h = fs.getNode("image_width"), fs.getNode("image_height")
     if not w.empty() and not h.empty():
-        return int(w.real()), int(h.real())
+        return side(w.real(), "image_width"), side(h.real(), "image_height")
     for key in ("imageSize", "image_size"):
         n = fs.getNode(key)
         if not n.empty():
             if n.isSeq() and n.size() == 2:
-                return int(n.at(0).real()), int(n.at(1).real())
-            m = n.mat()
+                return side(n.at(0).real(), key), side(n.at(1).real(), key)
+            m = _fs_mat(fs, key, path)
             if m is not None and m.size == 2:
-                return int(m.ravel()[0]), int(m.ravel()[1])
+                return side(float(m.ravel()[0]), key), side(float(m.ravel()[1]), key)
     return None
 
 
@@ -106,7 +117,7 @@ def read_stereo_calib(paths: list[str | Path], units_m: float = 1.0, image_size:
                 if m is not None:
                     found[key] = (m, p)
             if size is None:
-                size = _fs_size(fs)
+                size = _fs_size(fs, p)
         finally:
             fs.release()
     missing = [k for k in ("M1", "D1", "M2", "D2", "R", "T") if k not in found]
@@ -193,8 +204,8 @@ def _read_ros_one(path: Path) -> dict:
 
 def is_ros_camera_info(path: str | Path) -> bool:
     try:
-        doc = yaml.safe_load(Path(path).read_text())
-    except Exception:
+        doc = read_yaml(path)
+    except BallbotError:
         return False
     return isinstance(doc, dict) and "camera_matrix" in doc and "projection_matrix" in doc
 
@@ -379,14 +390,13 @@ def read_euroc_pair(left: str | Path, right: str | Path, name: str = "", docs: t
 def _peek_yaml(path: str) -> Any:
     """The parsed YAML document, or None when the file is not plain YAML (OpenCV FileStorage's
     !!opencv-matrix tags). Missing, empty and binary files raise FileError here."""
-    import yaml
-
     text = read_text(path)
-    text = re.sub(r"\A%YAML:\d+\.\d+[^\n]*\n", "", text)
     try:
-        return yaml.safe_load(text)
-    except yaml.YAMLError:
-        return None
+        return parse_yaml(text, path)
+    except FileError as e:
+        if "not valid YAML" in str(e):
+            return None
+        raise  # hostile YAML: aliases that expand too far, too deep nesting
 
 
 def import_files(files: list[str], units_m: float = 1.0, image_size: tuple[int, int] | None = None,

@@ -34,7 +34,7 @@ from ...common.errors import ConfigError
 from ...common.keys import topic
 from ...common.messages import DisparityMap, ObstacleList
 from ...common.node import Node
-from ...common.settings import ServiceSettings
+from ..segmenter.settings import MountSettings
 from ..segmenter.mount import Mount
 
 SUBSCRIBES = ["obstacles", "freespace", "frames_rect", "disparity"]
@@ -51,7 +51,7 @@ TOPICS = {
 }
 
 
-class Ros2Settings(ServiceSettings):
+class Ros2Settings(MountSettings):
     section = "ros2"
     distro: Literal["humble", "jazzy"] = Field("jazzy", description="ROS 2 distro of the other side (humble: "
                                                "TypeHashNotSupported in keys, 24-byte GIDs; jazzy: RIHS01 hashes)")
@@ -72,13 +72,6 @@ class Ros2Settings(ServiceSettings):
                                                "input (flagged stale); heartbeat repeats of the last list never are")
     marker_lifetime_s: float = Field(0.5, ge=0, le=60, description="markers vanish after this unless renewed (0: never)")
     tf_static: bool = Field(True, description="publish base_frame -> camera_frame on /tf_static")
-    mount_height_m: float | None = Field(None, gt=0, le=10, description="camera height above the floor, for "
-                                         "/tf_static while obstacle lists carry no ground estimate (null: wait)")
-    mount_pitch_deg: float = Field(15.0, ge=-90, le=90, description="with mount-height-m: pitch, positive down")
-    mount_roll_deg: float = Field(0.0, ge=-90, le=90, description="with mount-height-m: roll, right side down")
-    mount_yaw_deg: float = Field(0.0, ge=-180, le=180, description="camera yaw on the robot (as the segmenter's)")
-    mount_x_m: float = Field(0.0, ge=-10, le=10, description="camera position ahead of the base origin")
-    mount_y_m: float = Field(0.0, ge=-10, le=10, description="camera position left of the base origin")
     tf_update_m: float = Field(0.02, ge=0, le=1, description="re-publish /tf_static when the camera moved this much")
     tf_update_deg: float = Field(1.0, ge=0, le=90, description="... or turned this much")
 
@@ -99,9 +92,7 @@ def mount_from(msg: ObstacleList | None, s: Ros2Settings) -> Mount | None:
     g = msg.ground if msg is not None else None
     if g is not None and g.source != "none":
         return Mount(g.height_m, g.pitch_deg, s.mount_yaw_deg, g.roll_deg, s.mount_x_m, s.mount_y_m)
-    if s.mount_height_m is not None:
-        return Mount(s.mount_height_m, s.mount_pitch_deg, s.mount_yaw_deg, s.mount_roll_deg, s.mount_x_m, s.mount_y_m)
-    return None
+    return s.mount()
 
 
 def mount_moved(a: Mount | None, b: Mount, s: Ros2Settings) -> bool:

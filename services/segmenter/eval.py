@@ -234,9 +234,9 @@ def score_method(data: ScenarioData, method: str, overrides: dict | None = None,
     last_id: dict[str, int] = {}
     for k, fr in enumerate(data.frames):
         t0 = time.perf_counter()
-        dets = builder.segmenter.detect(fr.disparity, data.model, fr.left)
+        res = builder.process(fr.disparity, data.model, t_s=fr.t_s, seq=k, stamp_ns=int(fr.t_s * 1e9), image=fr.left)
         sc._ms.append((time.perf_counter() - t0) * 1e3)
-        obs = builder.obstacles(dets, fr.t_s)
+        obs = res.obstacles.obstacles
         for o in obs:
             first_seen.setdefault(o.id, k)
         in_range = [i for i, (c, n) in enumerate(fr.measurable) if n > 0 and 0 < c[2] <= eval_range_m]

@@ -1,24 +1,30 @@
 """segmenter: disparity -> obstacles (PUBLIC: ballbot/obstacles/<robot_id>)."""
 from __future__ import annotations
 
+import logging
 import threading
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
 from ...common import camera, codec
 from ...common.errors import DecodeError
-from ...common.messages import DisparityMap, Obstacle, ObstacleList
+from ...common.messages import DisparityMap, FreeSpace, GroundEstimate, Obstacle, ObstacleList, Odometry
+from ...common.keys import topic
 from ...common.node import Node
 from ...common.disparity import to_float
-from . import layers, seed
-from .mount import Mount
+from . import freespace, layers, seed
+from .ground import GroundEstimator, mount_from_ground, plane_from_mount
+from .mount import FloorPlane, Mount
 from .seed import Detection
 from .settings import METHODS, SegmenterSettings  # noqa: F401  (SegmenterSettings: cli's service table)
 from .tracking import Tracker
 
-SUBSCRIBES = ["disparity"]
-PUBLISHES = ["obstacles"]
+log = logging.getLogger("ballbot")
+
+SUBSCRIBES = ["disparity", "odometry"]
+PUBLISHES = ["obstacles", "freespace"]
 
 
 def camera_to_base(p: np.ndarray, height_m: float, pitch_deg: float) -> tuple[float, float, float]:
@@ -50,53 +56,190 @@ class Segmenter:
         return layers.segment(disparity, model, self.settings, image=image)
 
 
+@dataclass
+class FrameResult:
+    """One frame's output: the public obstacle list, the free-space grid (None without a ground or
+    for seed) and the disparity-space floor plane used (None: no floor removed)."""
+
+    obstacles: ObstacleList
+    freespace: FreeSpace | None
+    floor: FloorPlane | None
+
+
+def _rz(yaw: float) -> np.ndarray:
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
 class ObstacleBuilder:
-    """Detections + tracking -> the public ObstacleList (pure: no Zenoh)."""
+    """Disparity -> ground, obstacles, tracks and free space (pure: no Zenoh). Stateful: the ground
+    estimate and the tracks carry over from frame to frame, so feed it one stream in order."""
 
     def __init__(self, settings: SegmenterSettings):
         self.settings = settings
         self.segmenter = Segmenter(settings)
         self.mount = settings.mount()
-        self.tracker = Tracker(settings.track_gate_m, settings.track_timeout_s)
+        self.ground = GroundEstimator(settings)
+        self.tracker = Tracker(settings.track_gate_m, settings.track_timeout_s,
+                               max_speed_mps=settings.track_max_speed_mps, confirm_m=settings.track_confirm_m,
+                               confirm_n=settings.track_confirm_n)
+        self._track_frame = ""  # "base" or "camera": the frame the tracks are kept in
+        self._last_t: float | None = None
 
-    def detect(self, msg: DisparityMap) -> list[Detection]:
+    def detect(self, msg: DisparityMap) -> tuple[np.ndarray, camera.RectifiedModel, np.ndarray | None]:
+        """A disparity message -> (disparity px float32 with NaN invalid, camera model, confidence)."""
         if (msg.image.width, msg.image.height) != (msg.camera.width, msg.camera.height):
             raise DecodeError(f"disparity image is {msg.image.width}x{msg.image.height}, its camera model "
                               f"{msg.camera.width}x{msg.camera.height}")
         raw = codec.array_from_image(msg.image, "disparity")
-        disparity = to_float(raw, msg.scale, msg.invalid_value)
-        return self.segmenter.detect(disparity, model_from_message(msg))
+        confidence = None
+        if msg.confidence is not None:
+            confidence = codec.array_from_image(msg.confidence, "disparity confidence")
+            if confidence.shape != raw.shape[:2] or confidence.dtype != np.uint8:
+                raise DecodeError(f"disparity confidence is {msg.confidence.width}x{msg.confidence.height} "
+                                  f"{confidence.dtype}, the map {msg.image.width}x{msg.image.height}: expected uint8 "
+                                  f"of the same size")
+        return to_float(raw, msg.scale, msg.invalid_value), model_from_message(msg), confidence
 
-    def obstacles(self, detections: list[Detection], t_s: float) -> list[Obstacle]:
-        """Track the detections seen at time t_s (s) -> obstacles, nearest first."""
-        tracks = self.tracker.update([d.position_m for d in detections], t_s)
-        out = []
-        for det, tr in zip(detections, tracks):
-            base = (tuple(float(v) for v in self.mount.to_base(det.position_m)) if self.mount is not None else None)
-            out.append(Obstacle(
-                id=tr.id, position_m=tuple(float(v) for v in det.position_m),
-                size_m=tuple(float(v) for v in det.size_m), distance_m=max(0.0, float(det.distance_m)),
-                velocity_mps=tuple(float(v) for v in tr.velocity), bbox_px=det.bbox_px, area_px=det.area_px,
-                disparity_px=float(det.disparity_px), confidence=float(min(1.0, max(0.0, det.confidence))),
-                position_base_m=base))
-        out.sort(key=lambda o: o.distance_m)
-        return out
+    def segment(self, disparity: np.ndarray, model: camera.RectifiedModel, confidence: np.ndarray | None = None,
+                image: np.ndarray | None = None) -> layers.LayersFrame:
+        cfg = self.settings
+        if disparity.size == 0:
+            return layers.LayersFrame([], [], None, None, np.zeros((0, 3)))
+        if self.segmenter.method == "seed":
+            dets = seed.segment(disparity, model, cfg)
+            floor = plane_from_mount(self.mount, model) if self.mount is not None and cfg.floor_removal else None
+            g = self.mount
+            estimate = (GroundEstimate(height_m=g.height_m, pitch_deg=g.pitch_deg, roll_deg=g.roll_deg,
+                                       source="prior") if g is not None else None)
+            return layers.LayersFrame(dets, [], floor, estimate, np.zeros((0, 3)))
+        return layers.segment_frame(disparity, model, cfg, ground=self.ground, confidence=confidence, image=image)
 
-    def build(self, msg: DisparityMap, detections: list[Detection], stale: bool,
-              t_s: float | None = None) -> ObstacleList:
-        """t_s: the frame's time for tracking, s, on a clock that never goes backwards (the service
-        passes Node.frame_time_s: monotonic); offline, the capture stamp."""
-        obstacles = self.obstacles(detections, msg.stamp_ns / 1e9 if t_s is None else t_s)
-        return ObstacleList(robot_id=msg.robot_id, seq=msg.seq, stamp_ns=msg.stamp_ns, stages=dict(msg.stages),
-                            publish_ns=time.time_ns(), stale=stale, method=self.settings.method, obstacles=obstacles)
+    def _mount_for(self, ground: GroundEstimate | None) -> Mount | None:
+        """Where the camera is on the robot this frame: from the ground estimate when it was measured
+        (fitted or tracked), else the configured mount (None: unknown, no base frame)."""
+        if ground is not None and ground.source in ("fitted", "tracked"):
+            return mount_from_ground(ground, self.settings)
+        return self.mount
+
+    def _ego_motion(self, odometry: Odometry | None, t_s: float) -> float | None:
+        """Carry the tracks into this frame's base frame by the robot's own motion since the last
+        frame. -> the distance driven (m), or None without odometry (velocities are then relative
+        to the robot, not over the ground)."""
+        dt = None if self._last_t is None else t_s - self._last_t
+        if odometry is None or dt is None or not 0 <= dt <= self.settings.odometry_timeout_s * 4:
+            return None
+        R = _rz(-odometry.angular_radps[2] * dt)
+        step = np.asarray(odometry.linear_mps, float) * dt
+        self.tracker.move(R, -R @ step)
+        return float(np.linalg.norm(step))
+
+    def process(self, disparity: np.ndarray, model: camera.RectifiedModel, *, t_s: float, seq: int, stamp_ns: int,
+                robot_id: str = "offline", confidence: np.ndarray | None = None, odometry: Odometry | None = None,
+                image: np.ndarray | None = None, stale: bool = False,
+                stages: dict[str, int] | None = None) -> FrameResult:
+        """disparity: (H, W) float32 px, NaN = invalid, matching `model`; t_s: the frame's time on a
+        clock that never goes backwards (the service: Node.frame_time_s; offline: the capture time);
+        odometry: the robot's motion at this frame, if known (velocities are then over the ground)."""
+        cfg = self.settings
+        frame = self.segment(disparity, model, confidence, image)
+        mount = self._mount_for(frame.ground)
+        track_frame = "base" if mount is not None else "camera"
+        if track_frame != self._track_frame:
+            self.tracker.clear()  # positions of one frame mean nothing in the other
+            self._track_frame = track_frame
+        driven = self._ego_motion(odometry, t_s) if track_frame == "base" else None
+        over_ground = driven is not None
+        self._last_t = t_s
+        dets = frame.detections
+        positions = [mount.to_base(d.position_m) if mount is not None else np.asarray(d.position_m, float)
+                     for d in dets]
+        self.tracker.depth_scale = model.focal_px * model.baseline_m
+        self.tracker.ground_plane = track_frame == "base"
+        boxes = None
+        if mount is not None:
+            boxes = [_footprint(mount, pts) for pts in frame.points] if len(frame.points) == len(dets) else \
+                [np.array([p[:2] - 0.5 * np.asarray(d.size_m)[[2, 0]], p[:2] + 0.5 * np.asarray(d.size_m)[[2, 0]]])
+                 for d, p in zip(dets, positions)]
+        # the faster the robot drives, the more of each object's visible surface changes between two
+        # frames (what the field of view cuts off, what occludes what): its centroid jumps further
+        tracks = self.tracker.update(positions, t_s, boxes, widen_m=1.5 * (driven or 0.0))
+        obstacles = []
+        for det, tr, pos in zip(dets, tracks, positions):
+            if mount is not None:
+                v_base = tr.velocity
+                v_cam = mount.R_base_camera.T @ v_base
+                base, vbase = _vec(pos), _vec(v_base)
+            else:
+                v_cam, base, vbase = tr.velocity, None, None
+            obstacles.append(Obstacle(
+                id=tr.id, position_m=_vec(det.position_m), size_m=_vec(det.size_m),
+                distance_m=max(0.0, float(det.distance_m)), velocity_mps=_vec(v_cam), bbox_px=det.bbox_px,
+                area_px=det.area_px, disparity_px=float(det.disparity_px),
+                confidence=float(min(1.0, max(0.0, det.confidence))), position_base_m=base, velocity_base_mps=vbase,
+                confirmed=tr.confirmed, track_frames=tr.hits))
+        obstacles.sort(key=lambda o: o.distance_m)
+        now = time.time_ns()
+        out = ObstacleList(robot_id=robot_id, seq=seq, stamp_ns=stamp_ns, stages=dict(stages or {}), publish_ns=now,
+                           stale=stale, method=cfg.method, obstacles=obstacles, ground=frame.ground,
+                           velocity_reference="ground" if over_ground else "camera")
+        free = None
+        if cfg.freespace and mount is not None and frame.floor is not None and cfg.method == "layers":
+            g = freespace.occupancy(frame.floor_points, frame.points, mount, model, cfg.range_m,
+                                    cfg.freespace_resolution_m)
+            free = FreeSpace(robot_id=robot_id, seq=seq, stamp_ns=stamp_ns, stages=dict(stages or {}), publish_ns=now,
+                             resolution_m=g.resolution_m, width=g.width, height=g.height,
+                             origin_m=(float(g.origin_m[0]), float(g.origin_m[1])), cells=g.cells.tobytes(),
+                             ground=frame.ground)
+        return FrameResult(out, free, frame.floor)
+
+    def process_message(self, msg: DisparityMap, *, stale: bool = False, t_s: float | None = None,
+                        odometry: Odometry | None = None) -> FrameResult:
+        """A disparity message -> its FrameResult (t_s: None takes the capture stamp)."""
+        disparity, model, confidence = self.detect(msg)
+        return self.process(disparity, model, t_s=msg.stamp_ns / 1e9 if t_s is None else t_s, seq=msg.seq,
+                            stamp_ns=msg.stamp_ns, robot_id=msg.robot_id, confidence=confidence, odometry=odometry,
+                            stale=stale, stages=msg.stages)
+
+
+def _footprint(mount: Mount, points_camera: np.ndarray) -> np.ndarray:
+    """(2, 2) lo, hi of an obstacle's points on the ground (base x, y; 2nd-98th percentile)."""
+    p = mount.to_base(points_camera[::max(1, len(points_camera) // 1000)])
+    return np.percentile(p[:, :2], [2, 98], axis=0)
+
+
+def _vec(v) -> tuple[float, float, float]:
+    return tuple(float(x) for x in v)  # type: ignore[return-value]
 
 
 def run(node: Node, settings: SegmenterSettings) -> None:
     builder = ObstacleBuilder(settings)
     inbox = node.latest("disparity")
     out = node.publisher("obstacles")
+    free_out = node.publisher("freespace")
     lock = threading.Lock()
     last: dict[str, ObstacleList | float] = {"list": None, "time": time.monotonic()}
+    odometry: dict[str, Odometry | float | None] = {"msg": None, "at": 0.0}
+    odometry_cap = topic("odometry").max_bytes
+    if settings.mount() is None and settings.method == "layers":
+        log.info("segmenter: no camera mount configured: the ground is estimated from the disparity every frame "
+                 "(published with each list; `ballbot-vision mount estimate` measures a mount for the config)")
+
+    def on_odometry(sample) -> None:  # Zenoh's thread: size cap, decode, keep the newest
+        payload = sample.payload.to_bytes()
+        if odometry_cap and len(payload) > odometry_cap:
+            node.decode_errors += 1
+            node.warn("odometry", f"dropped an odometry message of {len(payload)} bytes (cap {odometry_cap})")
+            return
+        msg = node.decode_or_drop(payload, Odometry, "odometry message", "odometry")
+        if msg is not None:
+            odometry["msg"], odometry["at"] = msg, time.monotonic()
+
+    node.subscribe(topic("odometry").key(node.robot_id), on_odometry)
+
+    def fresh_odometry() -> Odometry | None:
+        msg = odometry["msg"]
+        return msg if msg is not None and time.monotonic() - odometry["at"] <= settings.odometry_timeout_s else None
 
     def heartbeat() -> None:
         # With no input the last list goes out again, flagged stale, so subscribers can tell a quiet
@@ -117,10 +260,13 @@ def run(node: Node, settings: SegmenterSettings) -> None:
     # and the tracker's time base are on the monotonic clock, so a wall-clock step moves neither.
     for msg in node.receive(inbox):
         with node.processing(msg):
-            detections = builder.detect(msg)
             stale = node.age_s(msg) > settings.stale_after_s
-            result = builder.build(msg, detections, stale, t_s=node.frame_time_s(msg))
+            result = builder.process_message(msg, stale=stale, t_s=node.frame_time_s(msg), odometry=fresh_odometry())
             with lock:
-                out.put(result)
-                last["list"], last["time"] = result, time.monotonic()
+                out.put(result.obstacles)
+                last["list"], last["time"] = result.obstacles, time.monotonic()
+            if result.freespace is not None:
+                free_out.put(result.freespace, count=False)
+            g = result.obstacles.ground
+            node.extra["ground_height_m"] = g.height_m if g is not None else 0.0
             node.status = "stale: input too old" if stale else "ok"

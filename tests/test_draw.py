@@ -1,0 +1,153 @@
+"""draw.py: one frame drawn over the rectified left image, checked pixel by pixel on synthetic input."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from ballbot_vision.common import camera
+from ballbot_vision.common.messages import FreeSpace, GroundEstimate, Obstacle, ObstacleList
+from ballbot_vision.services.segmenter import draw as D
+from ballbot_vision.services.segmenter.mount import Mount
+from ballbot_vision.services.segmenter.settings import SegmenterSettings
+
+MODEL = camera.RectifiedModel(320, 240, 200.0, 160.0, 120.0, 0.1)
+GREY = 100
+
+
+def _obstacle(id_: int, bbox, confirmed: bool, distance: float = 2.0) -> Obstacle:
+    return Obstacle(id=id_, position_m=(0.0, 0.0, distance), size_m=(0.3, 0.3, 0.3), distance_m=distance,
+                    bbox_px=bbox, area_px=100, disparity_px=10.0, confidence=1.0, confirmed=confirmed)
+
+
+def _list(obstacles, ground=None) -> ObstacleList:
+    return ObstacleList(robot_id="t", seq=7, stamp_ns=0, publish_ns=0, stale=False, obstacles=obstacles, ground=ground)
+
+
+def _is(px, colour) -> bool:
+    return tuple(int(c) for c in px) == tuple(colour)
+
+
+def test_boxes_are_drawn_where_the_bbox_says_confirmed_solid_unconfirmed_dashed():
+    img = np.full((240, 320), GREY, np.uint8)
+    confirmed = _obstacle(3, (20, 60, 80, 120), True)
+    tentative = _obstacle(9, (150, 80, 250, 200), False, 4.0)
+    out = D.draw_frame(img, _list([confirmed, tentative]), MODEL)
+    assert out.shape == (240, 320, 3) and out.dtype == np.uint8
+    assert img.max() == GREY  # the input is not drawn on
+    # confirmed: every pixel of all four sides, thick
+    assert all(_is(out[60, x], D.CONFIRMED) for x in range(20, 80))
+    assert all(_is(out[119, x], D.CONFIRMED) for x in range(20, 80))
+    assert all(_is(out[y, 20], D.CONFIRMED) and _is(out[y, 79], D.CONFIRMED) for y in range(60, 120))
+    assert _is(out[61, 50], D.CONFIRMED)  # 2 px thick
+    assert _is(out[90, 50], (GREY,) * 3) and _is(out[90, 85], (GREY,) * 3)  # inside and outside untouched
+    # unconfirmed: its own colour, dashed (drawn and gaps along each side), thin
+    left = [_is(out[y, 150], D.UNCONFIRMED) for y in range(80, 200)]
+    top = [_is(out[80, x], D.UNCONFIRMED) for x in range(150, 250)]
+    for side in (left, top):
+        assert 0.3 < np.mean(side) < 0.7
+    assert _is(out[84, 150], D.UNCONFIRMED) and _is(out[80, 154], D.UNCONFIRMED)
+    assert _is(out[150, 152], (GREY,) * 3)
+    assert not np.all(out[80:200, 150:250] == D.CONFIRMED, axis=-1).any()
+    # the labels: text in each box's colour (anti-aliased: near it) just above it
+    def near(a, colour):
+        return (np.abs(a.astype(int) - colour).max(axis=-1) < 90).sum()
+
+    assert near(out[40:59, 20:90], D.CONFIRMED) > 20 and near(out[40:59, 20:90], D.UNCONFIRMED) == 0
+    assert near(out[60:79, 150:250], D.UNCONFIRMED) > 20 and near(out[60:79, 150:250], D.CONFIRMED) == 0
+
+
+def test_caption_band_and_colour_input():
+    img = np.zeros((240, 320, 3), np.uint8)
+    img[..., 2] = 200  # red
+    ground = GroundEstimate(height_m=1.0, pitch_deg=20.0, roll_deg=0.0, source="fitted", inlier_fraction=0.5)
+    lst = _list([_obstacle(1, (100, 100, 140, 140), True)], ground)
+    out = D.draw_frame(img, lst, MODEL)
+    band = out[: D.CAPTION_PX]
+    assert (band == 255).all(axis=-1).sum() > 50  # white text
+    assert band[..., 2].max() <= 255 and np.median(band[..., 2]) < 100  # darkened
+    text = D.caption(lst)
+    assert "seq 7" in text and "1 obstacle" in text and "h 1.00 m" in text and "pitch +20.0" in text and "fitted" in text
+    assert _is(out[200, 10], (0, 0, 200))  # elsewhere the colour image as it was
+
+
+def _project(mount: Mount, p_base) -> tuple[int, int]:
+    """A base-frame point -> its pixel (independent of draw.py: the inverse of Mount.to_base)."""
+    p = mount.R_base_camera.T @ (np.asarray(p_base, float) - mount.origin_base)
+    return int(round(MODEL.focal_px * p[0] / p[2] + MODEL.cx)), int(round(MODEL.focal_px * p[1] / p[2] + MODEL.cy))
+
+
+def test_free_space_cells_project_onto_the_ground_green_free_red_occupied():
+    ground = GroundEstimate(height_m=1.0, pitch_deg=20.0, roll_deg=3.0, source="fitted")
+    mount = D.frame_mount(ground, SegmenterSettings())
+    res, n = 0.5, 20
+    cells = np.full((n, n), -1, np.int8)  # row: y from -5 m, col: x from 0 m
+    cells[:, 2:8] = 0  # x 1..4 m free
+    cells[9:11, 6] = 100  # x 3..3.5 m, y -0.5..0.5 m occupied
+    fs = FreeSpace(robot_id="t", seq=7, stamp_ns=0, publish_ns=0, resolution_m=res, width=n, height=n,
+                   origin_m=(0.0, -5.0), cells=cells.tobytes())
+    img = np.full((240, 320), GREY, np.uint8)
+    out = D.draw_frame(img, _list([], ground), MODEL, fs)
+    assert np.array_equal(out, D.draw_frame(img, _list([], ground), MODEL, fs, mount))
+    free_px = _project(mount, (1.75, 0.25, 0.0))
+    occ_px = _project(mount, (3.25, -0.25, 0.0))
+    unknown_px = _project(mount, (0.9, 0.0, 0.0))  # ahead of the free cells
+    for u, v in (free_px, occ_px, unknown_px):
+        assert 0 <= u < 320 and D.CAPTION_PX < v < 240
+    b, g, r = (int(c) for c in out[free_px[1], free_px[0]])
+    assert g > GREY + 20 and b < GREY and r < GREY
+    b, g, r = (int(c) for c in out[occ_px[1], occ_px[0]])
+    assert r > GREY + 40 and g < GREY and b < GREY
+    assert _is(out[unknown_px[1], unknown_px[0]], (GREY,) * 3)
+    assert _is(out[30, 160], (GREY,) * 3)  # above the horizon: nothing
+    # the same grid with the mount yawed 90 deg left sees none of it (the cells lie to its right)
+    turned = D.draw_frame(img, _list([], ground), MODEL, fs,
+                          D.frame_mount(ground, SegmenterSettings(mount_yaw_deg=90.0, mount_x_m=-6.0)))
+    assert np.all(turned[D.CAPTION_PX:] == GREY)
+    # no ground estimate: no grid
+    plain = D.draw_frame(img, _list([]), MODEL, fs)
+    assert np.all(plain[D.CAPTION_PX:] == GREY)
+
+
+def test_bad_images_are_refused():
+    with pytest.raises(ValueError, match="320x240"):
+        D.draw_frame(np.zeros((100, 100), np.uint8), _list([]), MODEL)
+    with pytest.raises(ValueError, match="8-bit"):
+        D.draw_frame(np.zeros((240, 320), np.float32), _list([]), MODEL)
+
+
+def test_obstacles_command_draws_one_picture_per_pair_and_prints_ground_and_free_space(tmp_path, capsys):
+    import json
+
+    import cv2
+
+    from ballbot_vision.cli import main
+    from ballbot_vision.common.messages import ObstacleList
+    from ballbot_vision.services.capture.synthetic import Scene, SyntheticWorld
+
+    rig = camera.load_calibration("lifecam-studio")
+    world = SyntheticWorld(Scene.builtin("touching"), rig, camera.rectify_rig(rig), seed=0)
+    (tmp_path / "L").mkdir()
+    (tmp_path / "R").mkdir()
+    for k in range(2):
+        left, right = world.render(k / 15)
+        cv2.imwrite(str(tmp_path / "L" / f"left{k}.png"), left)
+        cv2.imwrite(str(tmp_path / "R" / f"right{k}.png"), right)
+    out = tmp_path / "pictures"
+    assert main(["obstacles", str(tmp_path / "L"), str(tmp_path / "R"), "--calibration", "lifecam-studio",
+                 "--draw", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert text.count("  ground: ") == 2 and text.count("  free space: ") == 2
+    pictures = sorted(p.name for p in out.glob("*.png"))
+    assert pictures == ["left0.png", "left1.png"]
+    pic = cv2.imread(str(out / "left1.png"))
+    assert pic.shape == (480, 640, 3)
+    assert (np.all(pic == D.CONFIRMED, axis=-1) | np.all(pic == D.UNCONFIRMED, axis=-1)).sum() > 100
+    # --json stays one ObstacleList per pair
+    assert main(["obstacles", str(tmp_path / "L"), str(tmp_path / "R"), "--calibration", "lifecam-studio",
+                 "--json"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert len(lines) == 2
+    for line in lines:
+        doc = json.loads(line)
+        doc.pop("left"), doc.pop("right")
+        assert len(ObstacleList.model_validate(doc).obstacles) == 2

@@ -1,0 +1,237 @@
+"""eval --real, mount estimate and their parts: the independent road profile, INS odometry, the
+config merge on synthetic input; then a few frames of the real recordings in
+../shared/data/real (skipped with the reason when that folder is absent)."""
+from __future__ import annotations
+
+import json
+import math
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from ballbot_vision.cli import main
+from ballbot_vision.common import camera
+from ballbot_vision.common.errors import BallbotError, ConfigError
+from ballbot_vision.common.messages import GroundEstimate
+from ballbot_vision.common.settings import load_settings
+from ballbot_vision.services.segmenter import draw as D
+from ballbot_vision.services.segmenter import real_eval as R
+from ballbot_vision.services.segmenter.mount import Mount
+from ballbot_vision.services.segmenter.mount_estimate import estimate_from_grounds, merge_into_config
+from ballbot_vision.services.segmenter.settings import SegmenterSettings
+
+def _real_data() -> Path:
+    """../shared/data/real beside the repository (a worktree sits one level deeper), or BALLBOT_REAL_DATA."""
+    if os.environ.get("BALLBOT_REAL_DATA"):
+        return Path(os.environ["BALLBOT_REAL_DATA"])
+    repo = Path(__file__).resolve().parents[1]
+    return next((p / "shared" / "data" / "real" for p in (repo.parent, repo.parent.parent)
+                 if (p / "shared" / "data" / "real").is_dir()), repo.parent / "shared" / "data" / "real")
+
+
+REAL = _real_data()
+KARLSRUHE = REAL / "karlsruhe-0023"
+EUROC = REAL / "euroc-v1-01"
+needs_karlsruhe = pytest.mark.skipif(not (KARLSRUHE / "calibration.yaml").exists(),
+                                     reason=f"real recording {KARLSRUHE} absent (see DESIGN.md: ../shared/data/real)")
+needs_euroc = pytest.mark.skipif(not (EUROC / "cam0_sensor.yaml").exists(),
+                                 reason=f"real recording {EUROC} absent (see DESIGN.md: ../shared/data/real)")
+
+MODEL = camera.RectifiedModel(640, 360, 500.0, 320.0, 180.0, 0.5)
+
+
+def _road_scene(height_m: float, pitch_deg: float) -> tuple[np.ndarray, tuple[int, int, int, int], float]:
+    """Disparity of a flat road seen from `height_m` at `pitch_deg`, with a 1.2 m tall wall standing
+    on it 10 m ahead in the middle third of the image. -> (disparity, the wall's box, its disparity)."""
+    m = Mount(height_m, pitch_deg)
+    v, u = np.mgrid[0:MODEL.height, 0:MODEL.width].astype(np.float64)
+    ray = np.stack([(u - MODEL.cx) / MODEL.focal_px, (v - MODEL.cy) / MODEL.focal_px, np.ones_like(u)], -1)
+    down = ray @ m.down_camera  # > 0: the ray meets the road
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z_road = np.where(down > 1e-6, height_m / down, np.inf)  # depth of the road along each ray
+    d = np.where(np.isfinite(z_road), MODEL.focal_px * MODEL.baseline_m / z_road, np.nan)
+    wall_z = 10.0
+    # the wall stands 1.2 m high on the road at depth 10 m (base x ~ 10 m): rows between its foot and top
+    p_foot = m.R_base_camera.T @ (np.array([wall_z, 0.0, 0.0]) - m.origin_base)
+    p_top = m.R_base_camera.T @ (np.array([wall_z, 0.0, 1.2]) - m.origin_base)
+    v_foot = MODEL.focal_px * p_foot[1] / p_foot[2] + MODEL.cy
+    v_top = MODEL.focal_px * p_top[1] / p_top[2] + MODEL.cy
+    cols = slice(MODEL.width // 3, 2 * MODEL.width // 3)
+    rows = slice(int(math.ceil(v_top)), int(v_foot))
+    wall_d = MODEL.focal_px * MODEL.baseline_m / p_foot[2]
+    d[rows, cols] = wall_d
+    d[d < 0.5] = np.nan
+    return d.astype(np.float32), (cols.start, rows.start, cols.stop, rows.stop), wall_d
+
+
+def test_road_profile_recovers_height_and_pitch_and_judges_heights():
+    d, wall_box, wall_d = _road_scene(1.6, 6.0)
+    road = R.fit_road_profile(d, MODEL)
+    assert road is not None
+    assert road.height_m == pytest.approx(1.6, rel=0.02)
+    assert road.pitch_deg == pytest.approx(6.0, abs=0.2)
+    # the wall's pixels reach 1.2 m (95th percentile: ~1.14 m); a patch of road (a marking) is flat
+    assert R.obstacle_height_p95(d, wall_box, wall_d, road) == pytest.approx(1.14, abs=0.06)
+    mark = (20, 300, 120, 330)
+    assert abs(R.obstacle_height_p95(d, mark, float(np.nanmedian(d[300:330, 20:120])), road)) < 0.05
+    assert R.fit_road_profile(np.full_like(d, np.nan), MODEL) is None
+
+
+def test_odometry_from_poses_is_base_frame_velocity_and_yaw_rate(tmp_path):
+    t = np.arange(20) * 0.1
+    yaw = 0.5 + 0.1 * t  # turning left at 0.1 rad/s, heading ~29 deg from x (east)
+    speed = 10.0
+    x = np.cumsum(np.r_[0, speed * 0.1 * np.cos(yaw[:-1] + 0.005)])
+    y = np.cumsum(np.r_[0, speed * 0.1 * np.sin(yaw[:-1] + 0.005)])
+    poses = np.zeros((20, 10))
+    poses[:, 0] = 1.6e18 + t * 1e9
+    poses[:, 4], poses[:, 5], poses[:, 9] = x, y, yaw
+    poses[:, 8] = 2.07  # the unusable pitch column is not read
+    odo = R.odometry_from_poses(poses)
+    for o in odo[1:-1]:
+        assert o.linear_mps[0] == pytest.approx(speed, rel=0.01)
+        assert abs(o.linear_mps[1]) < 0.2
+        assert o.angular_radps == pytest.approx((0.0, 0.0, 0.1), abs=1e-6)
+    f = tmp_path / "insdata.txt"
+    np.savetxt(f, poses)
+    assert np.allclose(R.read_insdata(f), poses)
+    poses[:, 9] += math.pi / 2  # yaw no longer the direction of travel: another convention
+    np.savetxt(f, poses)
+    with pytest.raises(BallbotError, match="direction of travel"):
+        R.read_insdata(f)
+
+
+def test_figures_count_flat_obstacles_and_track_life():
+    def frame(k, obs):
+        return R.FrameRecord(k, f"{k}.png", [R.ObstacleRecord(i, dist, True, h, None if h is None else h < 0.25)
+                                             for i, dist, h in obs], None, None, 10.0, 20.0, 0.0)
+    # track 1 seen in all 6 frames (near), track 2 in 2 frames (near, flat), track 3 far in 6 frames
+    frames = [frame(k, [(1, 8.0, 1.0), (3, 25.0, None)] + ([(2, 5.0, 0.05)] if k < 2 else [])) for k in range(6)]
+    f = R.figures(frames)
+    assert f["median_obstacles_per_frame"] == 2 and f["max_obstacles_per_frame"] == 3
+    assert f["flat_judged"] == 8 and f["flat_fraction"] == pytest.approx(2 / 8)
+    assert f["near_obstacles"] == 8 and f["near_long_track_fraction"] == pytest.approx(6 / 8)
+    assert f["tracks"] == 3 and f["median_track_frames"] == 6
+    assert f["targets"]["flat_fraction"]["met"] is False and f["targets"]["median_obstacles_per_frame"]["met"] is True
+
+
+def test_merge_into_config_keeps_the_file_and_load_settings_reads_it(tmp_path):
+    cfg = tmp_path / "robot.yaml"
+    cfg.write_text("# my robot\nsegmenter:\n  method: layers  # the default\n  mount_height_m: 1.0\n\n"
+                   "disparity:\n  method: sgbm\n")
+    values = {"mount_height_m": 0.944, "mount_pitch_deg": 22.5, "mount_roll_deg": -1.2}
+    assert merge_into_config(cfg, values) is True
+    text = cfg.read_text()
+    assert "# my robot" in text and "# the default" in text and "mount_height_m: 1.0\n" not in text
+    s = load_settings(SegmenterSettings, str(cfg))
+    assert (s.mount_height_m, s.mount_pitch_deg, s.mount_roll_deg, s.method) == (0.944, 22.5, -1.2, "layers")
+    from ballbot_vision.services.disparity.config import MatcherConfig
+    assert load_settings(MatcherConfig, str(cfg)).method == "sgbm"
+    flow = tmp_path / "flow.yaml"  # a flow-style section: rewritten from its content
+    flow.write_text("segmenter: {method: seed}\nviewer: {port: 8081}\n")
+    assert merge_into_config(flow, values) is False
+    assert load_settings(SegmenterSettings, str(flow)).method == "seed"
+    assert load_settings(SegmenterSettings, str(flow)).mount_pitch_deg == 22.5
+    new = tmp_path / "new.yaml"
+    merge_into_config(new, values)
+    assert load_settings(SegmenterSettings, str(new)).mount_roll_deg == -1.2
+    before = cfg.read_text()
+    with pytest.raises(ConfigError, match="not be valid"):
+        merge_into_config(cfg, {"mount_height_m": -1.0})
+    assert cfg.read_text() == before
+
+
+def test_no_fitted_ground_is_a_clear_error():
+    prior = GroundEstimate(height_m=1.0, pitch_deg=15.0, roll_deg=0.0, source="prior")
+    with pytest.raises(BallbotError, match=r"none of the 3 frame\(s\) gave a fitted ground plane \(got: prior 2, "
+                                           r"no estimate 1\)"):
+        estimate_from_grounds([prior, None, prior])
+    fitted = [GroundEstimate(height_m=h, pitch_deg=5.0 + h, roll_deg=0.5, source="fitted") for h in (1.5, 1.6, 1.7)]
+    e = estimate_from_grounds(fitted + [prior])
+    assert (e.fitted, e.frames) == (3, 4)
+    assert (e.height_m, e.pitch_deg, e.roll_deg) == pytest.approx((1.6, 6.6, 0.5))
+
+
+# --- the real recordings -------------------------------------------------------------------------------
+
+def _box_pixels(picture: np.ndarray) -> int:
+    return int(np.all(picture == D.CONFIRMED, axis=-1).sum() + np.all(picture == D.UNCONFIRMED, axis=-1).sum())
+
+
+@needs_karlsruhe
+def test_karlsruhe_eval_real_gives_figures_and_pictures(tmp_path, capsys):
+    out = tmp_path / "pictures"
+    assert main(["eval", "--real", str(KARLSRUHE), "--frames", "3", "--draw", str(out), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    f = doc["figures"]
+    assert f["frames"] == 3 and doc["odometry"] is True and doc["stamps"] == "insdata.txt"
+    assert doc["settings"]["range_m"] == 30.0 and doc["settings"]["segmenter"]["mount_height_m"] is None
+    assert f["obstacles"] > 0 and f["median_obstacles_per_frame"] > 0
+    assert f["flat_fraction"] is not None and 0 <= f["flat_fraction"] <= 1
+    assert f["segment_ms"]["n"] == 3 and f["road_profile_frames"] == 3
+    # the independent road model sees the car's camera ~1.65 m above the road, pitched a few degrees down
+    assert 1.4 < f["road_height_m"]["median"] < 1.9 and 3 < f["road_pitch_deg"]["median"] < 10
+    for name in ("median_obstacles_per_frame", "flat_fraction", "near_long_track_fraction"):
+        assert name in f["targets"]
+    pictures = sorted(out.glob("*.png"))
+    assert [p.name for p in pictures] == ["I1_000000.png", "I1_000001.png", "I1_000002.png"]
+    for p in pictures:
+        pic = cv2.imread(str(p))
+        assert pic.shape == (372, 1344, 3)
+        assert _box_pixels(pic) > 100
+    # the text report names the targets
+    assert main(["eval", "--real", str(KARLSRUHE), "--frames", "1"]) == 0
+    text = capsys.readouterr().out
+    assert "obstacles per frame" in text and "target <= 25 (Karlsruhe)" in text and "max_range_m 30" in text
+
+
+@needs_karlsruhe
+def test_karlsruhe_insdata_odometry_is_the_car_driving_forward():
+    rec = R.open_recording(KARLSRUHE)
+    assert len(rec.odometry) == len(rec.pairs) == 40
+    fwd = np.array([o.linear_mps[0] for o in rec.odometry])
+    left = np.array([o.linear_mps[1] for o in rec.odometry])
+    rate = np.array([o.angular_radps[2] for o in rec.odometry])
+    assert 11.5 < np.median(fwd[:10]) < 13.0 and np.all(fwd > 8.5)  # ~12 m/s forward, braking to ~9
+    assert np.all(np.abs(left) < 0.5) and np.all(np.abs(rate) < 0.1)
+    assert 0.09 < np.median(np.diff(rec.stamps_s)) < 0.12  # ~10 Hz
+
+
+@needs_euroc
+def test_euroc_is_imported_rectified_and_evaluated(tmp_path, capsys):
+    out = tmp_path / "pictures"
+    assert main(["eval", "--real", str(EUROC), "--frames", "2", "--draw", str(out), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert "EuRoC, imported" in doc["calibration"] and doc["stamps"] == "image names (ns)"
+    assert doc["odometry"] is False and doc["figures"]["frames"] == 2
+    pictures = sorted(out.glob("*.png"))
+    assert len(pictures) == 2 and cv2.imread(str(pictures[0])).shape == (480, 752, 3)
+    rec = R.open_recording(EUROC)
+    assert 0.04 < rec.stamps_s[1] < 0.06  # 20 Hz from the image names
+
+
+@needs_euroc
+def test_mount_estimate_writes_a_config_that_load_settings_reads(tmp_path, capsys):
+    cfg = tmp_path / "drone.yaml"
+    cfg.write_text("# the drone\ndisparity:\n  method: bm\n")
+    assert main(["mount", "estimate", "--real", str(EUROC), "--frames", "3", "--write", str(cfg)]) == 0
+    text = capsys.readouterr().out
+    assert "mount_height_m:" in text and "p10" in text and f"to {cfg}" in text
+    s = load_settings(SegmenterSettings, str(cfg))
+    # the floor ~0.94 m below the camera looking ~22 deg down (the road profile agrees: see eval --real)
+    assert 0.7 < s.mount_height_m < 1.2 and 15 < s.mount_pitch_deg < 30 and abs(s.mount_roll_deg) < 5
+    assert cfg.read_text().startswith("# the drone\ndisparity:\n  method: bm\n")
+
+
+@needs_karlsruhe
+def test_mount_estimate_without_a_fitted_ground_fails_clearly(tmp_path, capsys):
+    # LEFT RIGHT --calibration form; a vision range of 2 m sees no road (it starts ~5 m ahead of the car)
+    rc = main(["mount", "estimate", str(KARLSRUHE / "left" / "I1_00000[01].png"),
+               str(KARLSRUHE / "right" / "I2_00000[01].png"), "--calibration", str(KARLSRUHE / "calibration.yaml"),
+               "--max-range-m", "2", "--write", str(tmp_path / "x.yaml")])
+    assert rc == 2
+    assert "none of the 2 frame(s) gave a fitted ground plane" in capsys.readouterr().err
+    assert not (tmp_path / "x.yaml").exists()
