@@ -235,3 +235,61 @@ def test_mount_estimate_without_a_fitted_ground_fails_clearly(tmp_path, capsys):
     assert rc == 2
     assert "none of the 2 frame(s) gave a fitted ground plane" in capsys.readouterr().err
     assert not (tmp_path / "x.yaml").exists()
+
+
+# --- the issue's acceptance figures on the real recordings (label-free) ---------------------------
+
+@needs_karlsruhe
+def test_karlsruhe_meets_the_real_scene_targets_with_the_default_segmenter():
+    """The street drive, all 40 frames, default segmenter and matcher, the recording's odometry:
+    median obstacles per frame <= 25, <= 5 % flat on the road (the independent road profile's
+    judgement), >= 80 % of obstacles within 20 m in tracks seen in >= 5 frames; the ground is the
+    road (its height and pitch agree with the independent profile)."""
+    from ballbot_vision.services.disparity.config import MatcherConfig
+    from ballbot_vision.services.segmenter.settings import SegmenterSettings
+
+    rec = R.open_recording(KARLSRUHE)
+    report = R.evaluate_recording(rec, SegmenterSettings(max_range_m=30.0), MatcherConfig(num_disparities=128))
+    f = report.figures
+    assert f["median_obstacles_per_frame"] <= 25, f
+    assert f["flat_fraction"] <= 0.05, f
+    assert f["near_long_track_fraction"] >= 0.80, f
+    assert f["ground_sources"] == {"fitted": 40}
+    assert abs(f["ground_height_m"]["median"] - f["road_height_m"]["median"]) < 0.1
+    assert abs(f["ground_pitch_deg"]["median"] - f["road_pitch_deg"]["median"]) < 1.0
+    assert all(fr.freespace_free > 1000 for fr in report.frames)  # the road ahead is free
+
+
+@needs_euroc
+def test_euroc_tape_and_mat_on_the_floor_are_free_the_mattresses_and_chessboard_are_obstacles():
+    """The room: tape strips and a play mat lie on the floor (bottom half of the image), mattresses
+    lean on the walls and a chessboard stands before the right one. Pixel places read off the
+    pictures of the first frames (rectified left image, 752x480)."""
+    from ballbot_vision.services.disparity.config import MatcherConfig
+    from ballbot_vision.services.segmenter.draw import frame_mount
+    from ballbot_vision.services.segmenter.settings import SegmenterSettings
+
+    rec = R.open_recording(EUROC)
+    settings = SegmenterSettings(max_range_m=30.0)
+    for pf in R.process_recording(rec, settings, MatcherConfig(num_disparities=128), frames=3):
+        lst = pf.result.obstacles
+        assert lst.ground.source == "fitted" and 0.8 < lst.ground.height_m < 1.1
+        boxes = [o.bbox_px for o in lst.obstacles]
+
+        def covered(u, v):
+            return any(x0 <= u < x1 and y0 <= v < y1 for x0, y0, x1, y1 in boxes)
+        assert covered(690, 230), "the chessboard"
+        assert covered(400, 180), "the mattress leaning on the back wall"
+        for x0, y0, x1, y1 in boxes:
+            assert y1 < 320, f"an obstacle box {x0, y0, x1, y1} reaches down onto the floor (tape, mat)"
+        # the floor with the tape strips (left, middle) and the mat (right) is free space
+        fs = pf.result.freespace
+        cells = np.frombuffer(fs.cells, np.int8).reshape(fs.height, fs.width)
+        mount = frame_mount(lst.ground, settings)
+        for u, v in ((200, 420), (420, 400), (620, 400)):  # a tape strip, the middle tape, the mat
+            ray = np.array([(u - pf.model.cx) / pf.model.focal_px, (v - pf.model.cy) / pf.model.focal_px, 1.0])
+            n = mount.R_base_camera.T @ np.array([0.0, 0.0, -1.0])  # floor normal (down), camera frame
+            p = ray * (mount.height_m / float(n @ ray))  # where the pixel's ray meets the floor
+            x, y = mount.to_base(p)[:2]
+            cell = cells[int((y - fs.origin_m[1]) / fs.resolution_m), int((x - fs.origin_m[0]) / fs.resolution_m)]
+            assert cell == 0, f"pixel ({u}, {v}) on the floor is {cell}, not free"
