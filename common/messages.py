@@ -13,8 +13,8 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-# 2: ground estimate, track confirmation and base-frame velocities in ObstacleList; FreeSpace;
-#    Odometry; an optional confidence image beside a disparity map.
+# 2: ground estimate, track confirmation, truncation and base-frame velocities in ObstacleList;
+#    FreeSpace; Odometry; an optional confidence image beside a disparity map.
 SCHEMA_VERSION = 2
 
 Vec3 = tuple[float, float, float]
@@ -111,6 +111,10 @@ class Obstacle(BaseModel):
                                            "(relative to what ObstacleList.velocity_reference says)")
     confirmed: bool = Field(True, description="the track was seen in enough recent frames to be trusted")
     track_frames: int = Field(1, ge=0, description="frames this track has been seen in")
+    truncated: bool = Field(False, description="cut at the side by the edge of what the camera measures (the "
+                            "image's side, the matcher's blind band) or by the vision range: position and size "
+                            "describe the visible part; its velocity comes only from sightings that were not "
+                            "cut (zero until one)")
 
 
 class GroundEstimate(BaseModel):

@@ -314,6 +314,8 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
     regions = _absorb_contained(_merge_close(regions, cfg.merge_gap_m), cfg.merge_gap_m, model, step)
     out: list[Detection] = []
     points: list[np.ndarray] = []
+    measured = np.flatnonzero(d0.any(0))  # columns the matcher measured (not its blind left band)
+    left_edge, right_edge = (int(measured[0]), int(measured[-1])) if measured.size else (0, w - 1)
     for r in regions:
         size = r.hi - r.lo
         if max(size[0], size[1]) < cfg.min_size_m or r.area * (float(np.mean(r.pts[:, 2])) / f * step) ** 2 < cfg.min_area_m2:
@@ -326,7 +328,11 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
                              bbox_px=(x0 * step, y0 * step, min(model.width, x1 * step), min(model.height, y1 * step)),
                              area_px=int((r.area + r.filled) * step * step),
                              disparity_px=float(np.median(r.disparities)),
-                             confidence=float(min(1.0, r.valid / max(1, r.area)))))
+                             confidence=float(min(1.0, r.valid / max(1, r.area))),
+                             # cut at the sides or by the range: its footprint is partial (a cut at the
+                             # top or bottom changes its height, not where it stands)
+                             cut=(x0 <= left_edge + 1, x1 - 1 >= right_edge - 1, bool(r.hi[2] >= 0.97 * cfg.range_m)),
+                             edges=_edges(sub, model)))
         points.append(r.pts)
     if cfg.edge_refine and image is not None and out:
         out = [_refine_box(det, image) for det in out]
@@ -363,6 +369,13 @@ def _drivable(floor: FloorPlane, df: np.ndarray, seen_floor: np.ndarray, standin
     # the floor's pixel row at depth z in column u: a u + b v + c = f B / z
     v = (fB / z - floor.a * u - floor.c) / floor.b
     return np.stack([(u - model.cx) * z / f, (v - model.cy) * z / f, z], 1)
+
+
+def _edges(points: np.ndarray, model: camera.RectifiedModel) -> np.ndarray:
+    """(2, 3): the mean of an object's points in its leftmost and its rightmost 5 % of image columns."""
+    u = points[:, 0] / points[:, 2]
+    lo, hi = np.percentile(u, [5, 95])
+    return np.stack([points[u <= lo].mean(0), points[u >= hi].mean(0)])
 
 
 def _points(ys: np.ndarray, xs: np.ndarray, d: np.ndarray, model: camera.RectifiedModel, step: int) -> np.ndarray:

@@ -122,17 +122,16 @@ class ObstacleBuilder:
             return mount_from_ground(ground, self.settings)
         return self.mount
 
-    def _ego_motion(self, odometry: Odometry | None, t_s: float) -> float | None:
+    def _ego_motion(self, odometry: Odometry | None, t_s: float) -> bool:
         """Carry the tracks into this frame's base frame by the robot's own motion since the last
-        frame. -> the distance driven (m), or None without odometry (velocities are then relative
-        to the robot, not over the ground)."""
+        frame. -> True when odometry was used (velocities are then over the ground, not relative to
+        the robot)."""
         dt = None if self._last_t is None else t_s - self._last_t
         if odometry is None or dt is None or not 0 <= dt <= self.settings.odometry_timeout_s * 4:
-            return None
+            return False
         R = _rz(-odometry.angular_radps[2] * dt)
-        step = np.asarray(odometry.linear_mps, float) * dt
-        self.tracker.move(R, -R @ step)
-        return float(np.linalg.norm(step))
+        self.tracker.move(R, -R @ (np.asarray(odometry.linear_mps, float) * dt))
+        return True
 
     def process(self, disparity: np.ndarray, model: camera.RectifiedModel, *, t_s: float, seq: int, stamp_ns: int,
                 robot_id: str = "offline", confidence: np.ndarray | None = None, odometry: Odometry | None = None,
@@ -148,8 +147,7 @@ class ObstacleBuilder:
         if track_frame != self._track_frame:
             self.tracker.clear()  # positions of one frame mean nothing in the other
             self._track_frame = track_frame
-        driven = self._ego_motion(odometry, t_s) if track_frame == "base" else None
-        over_ground = driven is not None
+        over_ground = track_frame == "base" and self._ego_motion(odometry, t_s)
         self._last_t = t_s
         dets = frame.detections
         positions = [mount.to_base(d.position_m) if mount is not None else np.asarray(d.position_m, float)
@@ -161,9 +159,8 @@ class ObstacleBuilder:
             boxes = [_footprint(mount, pts) for pts in frame.points] if len(frame.points) == len(dets) else \
                 [np.array([p[:2] - 0.5 * np.asarray(d.size_m)[[2, 0]], p[:2] + 0.5 * np.asarray(d.size_m)[[2, 0]]])
                  for d, p in zip(dets, positions)]
-        # the faster the robot drives, the more of each object's visible surface changes between two
-        # frames (what the field of view cuts off, what occludes what): its centroid jumps further
-        tracks = self.tracker.update(positions, t_s, boxes, widen_m=1.5 * (driven or 0.0))
+        edges = [None if d.edges is None else (mount.to_base(d.edges) if mount is not None else d.edges) for d in dets]
+        tracks = self.tracker.update(positions, t_s, boxes, cuts=[d.cut for d in dets], edges=edges)
         obstacles = []
         for det, tr, pos in zip(dets, tracks, positions):
             if mount is not None:
@@ -177,7 +174,7 @@ class ObstacleBuilder:
                 distance_m=max(0.0, float(det.distance_m)), velocity_mps=_vec(v_cam), bbox_px=det.bbox_px,
                 area_px=det.area_px, disparity_px=float(det.disparity_px),
                 confidence=float(min(1.0, max(0.0, det.confidence))), position_base_m=base, velocity_base_mps=vbase,
-                confirmed=tr.confirmed, track_frames=tr.hits))
+                confirmed=tr.confirmed, track_frames=tr.hits, truncated=det.truncated))
         obstacles.sort(key=lambda o: o.distance_m)
         now = time.time_ns()
         out = ObstacleList(robot_id=robot_id, seq=seq, stamp_ns=stamp_ns, stages=dict(stages or {}), publish_ns=now,

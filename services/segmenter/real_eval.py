@@ -49,6 +49,7 @@ from ...common.messages import GroundEstimate, Odometry
 FLAT_HEIGHT_M = 0.25  # an obstacle nothing of which stands higher above the road is flat
 NEAR_M = 20.0  # the track-life figure counts obstacles this near
 LONG_TRACK_FRAMES = 5
+JUMP_M, JUMP_NEAR_M = 2.0, 12.0  # a track's ground position moving this far between sightings this near
 REAL_MAX_RANGE_M = 30.0  # vision range for recordings when none is configured (the segmenter's default is a small robot's)
 # Targets of issue 10, set for the Karlsruhe recording: (figure, comparison, value)
 TARGETS = {"median_obstacles_per_frame": ("<=", 25.0), "flat_fraction": ("<=", 0.05),
@@ -298,6 +299,10 @@ class ObstacleRecord:
     confirmed: bool
     height_p95_m: float | None  # above the independent road profile; None: not judged
     flat: bool | None
+    world_xy: tuple[float, float] | None = None  # where it stands, odometry-integrated ground frame (odometry only)
+    speed_mps: float | None = None  # |velocity over the ground| (odometry only)
+    whole: bool = True  # not truncated by the edge of the view
+    track_frames: int = 1
 
 
 @dataclass
@@ -408,6 +413,8 @@ def evaluate_recording(rec: Recording, seg_settings, matcher_cfg, frames: int | 
     report = RealReport(rec.name, rec.calibration_source, rec.stamps_from, rec.odometry is not None, [],
                         pictures=str(out) if out else None)
     report.settings = {"segmenter": seg_settings.model_dump(), "disparity": None, "range_m": seg_settings.range_m}
+    pose = np.zeros(3)  # x, y, yaw of the base frame in the first frame's, from the odometry
+    last_t = None
     for pf in process_recording(rec, seg_settings, matcher_cfg, frames, alpha):
         if report.settings["disparity"] is None:
             report.settings["disparity"] = matcher_cfg.resolved(pf.model.focal_px, pf.model.baseline_m,
@@ -415,10 +422,24 @@ def evaluate_recording(rec: Recording, seg_settings, matcher_cfg, frames: int | 
         result, d = pf.result, pf.disparity
         road = fit_road_profile(d, pf.model)
         obs = []
+        odo = rec.odometry[pf.seq] if rec.odometry is not None else None
+        t_s = rec.stamps_s[pf.seq]
+        if odo is not None and last_t is not None:
+            dt = t_s - last_t
+            pose[2] += odo.angular_radps[2] * dt
+            c, s = np.cos(pose[2]), np.sin(pose[2])
+            pose[:2] += np.array([[c, -s], [s, c]]) @ np.asarray(odo.linear_mps[:2], float) * dt
+        last_t = t_s
+        c, s = np.cos(pose[2]), np.sin(pose[2])
         for o in result.obstacles.obstacles:
             h95 = obstacle_height_p95(d, o.bbox_px, o.disparity_px, road) if road is not None else None
+            world = speed = None
+            if odo is not None and o.position_base_m is not None:
+                w = pose[:2] + np.array([[c, -s], [s, c]]) @ np.asarray(o.position_base_m[:2], float)
+                world, speed = (float(w[0]), float(w[1])), float(np.hypot(*o.velocity_base_mps[:2]))
             obs.append(ObstacleRecord(o.id, o.distance_m, o.confirmed, h95,
-                                      None if h95 is None else bool(h95 < FLAT_HEIGHT_M)))
+                                      None if h95 is None else bool(h95 < FLAT_HEIGHT_M), world, speed,
+                                      not o.truncated, o.track_frames))
         fr = FrameRecord(pf.seq, pf.left_path.name, obs, _ground_dict(result.obstacles.ground),
                          None if road is None else {"height_m": road.height_m, "pitch_deg": road.pitch_deg,
                                                     "support": road.support},
@@ -459,6 +480,20 @@ def figures(frames: list[FrameRecord]) -> dict:
         for i in {o.id for o in f.obstacles}:
             seen[i] = seen.get(i, 0) + 1
     near = [o for o in all_obs if o.distance_m <= NEAR_M]
+    # track quality over the ground (with odometry): how often a track's ground position jumps more
+    # than JUMP_M between consecutive sightings within JUMP_NEAR_M (a different object took its id,
+    # or its detection changed shape), and, on a street that mostly stands still, the speed of whole
+    # confirmed obstacles tracked for LONG_TRACK_FRAMES frames (their velocity error)
+    last: dict[int, ObstacleRecord] = {}
+    steps = []
+    for f in frames:
+        for o in f.obstacles:
+            prev = last.get(o.id)
+            if prev is not None and prev.world_xy and o.world_xy and max(prev.distance_m, o.distance_m) <= JUMP_NEAR_M:
+                steps.append(float(np.hypot(o.world_xy[0] - prev.world_xy[0], o.world_xy[1] - prev.world_xy[1])))
+            last[o.id] = o
+    speeds = [o.speed_mps for o in all_obs if o.speed_mps is not None and o.whole and o.confirmed
+              and o.track_frames >= LONG_TRACK_FRAMES and o.distance_m <= NEAR_M]
     grounds = [f.ground for f in frames if f.ground is not None]
     sources: dict[str, int] = {}
     for g in grounds:
@@ -475,8 +510,13 @@ def figures(frames: list[FrameRecord]) -> dict:
         "flat_judged": len(judged),
         "near_obstacles": len(near),
         "near_long_track_fraction": (sum(seen[o.id] >= LONG_TRACK_FRAMES for o in near) / len(near)) if near else None,
+        "near_confirmed_long_track_fraction": (sum(seen[o.id] >= LONG_TRACK_FRAMES for o in near if o.confirmed)
+                                               / max(1, sum(o.confirmed for o in near))) if near else None,
         "tracks": len(seen),
         "median_track_frames": float(np.median(list(seen.values()))) if seen else None,
+        "track_jump_fraction": (sum(x > JUMP_M for x in steps) / len(steps)) if steps else None,
+        "track_steps": len(steps),
+        "static_speed_mps": _stats(speeds),
         "ground_sources": sources,
         "ground_height_m": _stats([g["height_m"] for g in fitted]),
         "ground_pitch_deg": _stats([g["pitch_deg"] for g in fitted]),
@@ -531,9 +571,14 @@ def format_report(report: RealReport) -> str:
         f"  flat (p95 < {FLAT_HEIGHT_M} m above road) {_pct(f['flat_fraction'])} of {f['flat_judged']} judged "
         f"(of {f['obstacles']})  {target('flat_fraction')}",
         f"  near (<= {NEAR_M:g} m) in tracks seen >= {LONG_TRACK_FRAMES} frames  {_pct(f['near_long_track_fraction'])} "
-        f"of {f['near_obstacles']}  {target('near_long_track_fraction')}",
+        f"of {f['near_obstacles']}  {target('near_long_track_fraction')}; of the confirmed ones "
+        f"{_pct(f['near_confirmed_long_track_fraction'])}",
         f"  tracks {f['tracks']}, median frames per track {f['median_track_frames']}, "
         f"confirmed {_pct(f['confirmed_fraction'])} of sightings",
+        f"  track jumps > {JUMP_M:g} m over the ground (within {JUMP_NEAR_M:g} m)  "
+        f"{_pct(f['track_jump_fraction'])} of {f['track_steps']} steps (odometry needed)",
+        f"  speed over the ground of whole confirmed tracks (a parked street: the velocity error)  "
+        f"{_fmt_stats(f['static_speed_mps'], 'm/s', 1)}",
         f"  ground (segmenter)       sources {f['ground_sources'] or '-'}",
         f"    height {_fmt_stats(f['ground_height_m'], 'm')}",
         f"    pitch  {_fmt_stats(f['ground_pitch_deg'], 'deg')}",

@@ -36,6 +36,14 @@ class Detection:
     area_px: int
     disparity_px: float
     confidence: float
+    # cut by the edge of what the camera measures: (left, right, far): the image's sides or the matcher's
+    # blind left band, the vision range; its centroid describes the visible part only
+    cut: tuple[bool, bool, bool] = (False, False, False)
+    edges: np.ndarray | None = None  # (2, 3) camera-frame points of its left and right edge
+
+    @property
+    def truncated(self) -> bool:
+        return any(self.cut)
 
 
 def floor_mask(disparity: np.ndarray, model: camera.RectifiedModel, height_m: float, pitch_deg: float,
