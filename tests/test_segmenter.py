@@ -213,7 +213,7 @@ def test_builder_on_bad_maps():
     assert b.process_message(msg).obstacles.obstacles == []
     bad = _message(np.zeros((MODEL.height, MODEL.width - 10), np.float32))
     with pytest.raises(DecodeError, match="camera model"):
-        b.detect(bad)
+        b.decode(bad)
 
 
 # --- the offline command -----------------------------------------------------------------------

@@ -86,7 +86,7 @@ class ObstacleBuilder:
         self._track_frame = ""  # "base" or "camera": the frame the tracks are kept in
         self._last_t: float | None = None
 
-    def detect(self, msg: DisparityMap) -> tuple[np.ndarray, camera.RectifiedModel, np.ndarray | None]:
+    def decode(self, msg: DisparityMap) -> tuple[np.ndarray, camera.RectifiedModel, np.ndarray | None]:
         """A disparity message -> (disparity px float32 with NaN invalid, camera model, confidence)."""
         if (msg.image.width, msg.image.height) != (msg.camera.width, msg.camera.height):
             raise DecodeError(f"disparity image is {msg.image.width}x{msg.image.height}, its camera model "
@@ -193,7 +193,7 @@ class ObstacleBuilder:
     def process_message(self, msg: DisparityMap, *, stale: bool = False, t_s: float | None = None,
                         odometry: Odometry | None = None) -> FrameResult:
         """A disparity message -> its FrameResult (t_s: None takes the capture stamp)."""
-        disparity, model, confidence = self.detect(msg)
+        disparity, model, confidence = self.decode(msg)
         return self.process(disparity, model, t_s=msg.stamp_ns / 1e9 if t_s is None else t_s, seq=msg.seq,
                             stamp_ns=msg.stamp_ns, robot_id=msg.robot_id, confidence=confidence, odometry=odometry,
                             stale=stale, stages=msg.stages)
