@@ -9,7 +9,7 @@ z forward), metres. "base" is the robot base frame of ROS REP 103 (x forward, y 
 """
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -18,6 +18,9 @@ from pydantic import BaseModel, ConfigDict, Field
 SCHEMA_VERSION = 2
 
 Vec3 = tuple[float, float, float]
+# A robot's own motion: finite and physical, so one forged message cannot turn every track into NaN
+Speed = Annotated[float, Field(allow_inf_nan=False, ge=-100.0, le=100.0)]  # m/s
+TurnRate = Annotated[float, Field(allow_inf_nan=False, ge=-50.0, le=50.0)]  # rad/s
 
 
 class Message(BaseModel):
@@ -46,7 +49,8 @@ class Image(BaseModel):
 class CameraModel(BaseModel):
     """The rectified camera: Z = focal_px * baseline_m / d; X = (u - cx) Z / f; Y = (v - cy) Z / f."""
 
-    model_config = ConfigDict(extra="forbid")
+    # every number finite: one NaN principal point would turn each obstacle, and then each track, into NaN
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     width: int = Field(gt=0)
     height: int = Field(gt=0)
@@ -165,8 +169,9 @@ class Odometry(Message):
     """The robot's own motion (wheel odometry, IMU, a recording's poses), base frame at `stamp_ns`.
     Optional input: with it, obstacle velocities are given over the ground."""
 
-    linear_mps: Vec3 = Field(description="base-frame linear velocity, m/s")
-    angular_radps: Vec3 = Field((0.0, 0.0, 0.0), description="base-frame angular velocity, rad/s")
+    linear_mps: tuple[Speed, Speed, Speed] = Field(description="base-frame linear velocity, m/s (|v| <= 100)")
+    angular_radps: tuple[TurnRate, TurnRate, TurnRate] = Field((0.0, 0.0, 0.0), description="base-frame angular "
+                                                                 "velocity, rad/s (|w| <= 50)")
     source: str = ""
 
 

@@ -365,3 +365,37 @@ def test_odometry_gives_velocities_over_the_ground():
                             t_s=k / fps, seq=k, stamp_ns=k)
     (o,) = res.obstacles.obstacles
     assert res.obstacles.velocity_reference == "camera" and o.velocity_base_mps[0] == pytest.approx(-speed, abs=0.15)
+
+
+def test_a_forged_odometry_message_cannot_poison_the_tracks():
+    import msgpack
+
+    from ballbot_vision.common import codec
+    from ballbot_vision.common.messages import Odometry
+
+    good = Odometry(robot_id="r", seq=1, stamp_ns=1, linear_mps=(0.5, 0.0, 0.0))
+    for bad in ((float("nan"), 0.0, 0.0), (float("inf"), 0.0, 0.0), (1e300, 0.0, 0.0)):
+        doc = good.model_dump()
+        doc["linear_mps"] = bad
+        with pytest.raises(DecodeError):
+            codec.decode(msgpack.packb(doc, use_bin_type=True), Odometry)
+    # and the builder carries on with the tracks it had
+    b = ObstacleBuilder(SegmenterSettings())
+    d = scene([(250, 390, 2.0, 150)])
+    first = b.process(d, MODEL, t_s=0.0, seq=0, stamp_ns=0, odometry=good)
+    later = b.process(d, MODEL, t_s=0.1, seq=1, stamp_ns=1, odometry=good)
+    assert [o.id for o in later.obstacles.obstacles] == [o.id for o in first.obstacles.obstacles]
+    assert all(np.isfinite(o.velocity_mps).all() for o in later.obstacles.obstacles)
+
+
+def test_a_camera_model_with_a_nan_or_infinite_number_is_refused_at_decode():
+    import msgpack
+
+    from ballbot_vision.common import codec
+
+    msg = _message(scene([(250, 390, 2.0, 150)]))
+    for field, value in (("cx", float("nan")), ("focal_px", float("inf")), ("baseline_m", float("nan"))):
+        doc = msg.model_dump()
+        doc["camera"][field] = value
+        with pytest.raises(DecodeError, match=f"camera.{field}"):
+            codec.decode(msgpack.packb(doc, use_bin_type=True), DisparityMap)
