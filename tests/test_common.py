@@ -160,3 +160,18 @@ def test_freespace_round_trips_on_the_wire_and_as_json():
     doc = json.loads(msg.model_dump_json())  # cells travel as base64 in JSON
     assert FreeSpace.model_validate_json(json.dumps(doc)).cells == msg.cells
     assert "FreeSpace" in json.dumps(FreeSpace.model_json_schema()) or FreeSpace.model_json_schema()["title"] == "FreeSpace"
+
+
+def test_watch_table_says_where_the_ground_is_and_which_tracks_to_trust():
+    from ballbot_vision.common.messages import GroundEstimate, Obstacle, ObstacleList
+    from ballbot_vision.watch import format_table
+
+    o = Obstacle(id=3, position_m=(0.1, 0.2, 2.0), size_m=(0.5, 0.6, 0.3), distance_m=1.9, bbox_px=(1, 2, 3, 4),
+                 area_px=10, disparity_px=30.0, confidence=0.9, confirmed=False, track_frames=2, truncated=True)
+    msg = ObstacleList(robot_id="r", seq=1, stamp_ns=0, publish_ns=0, stale=False, obstacles=[o],
+                       ground=GroundEstimate(height_m=1.0, pitch_deg=15.0, roll_deg=0.5, source="fitted"),
+                       velocity_reference="ground")
+    text = format_table(msg)
+    assert "camera 1.00 m above it, pitch +15.0 deg, roll +0.5 deg (fitted)" in text
+    assert "velocities over the ground" in text and "2 frames, unconfirmed, cut by the view" in text
+    assert "ground: unknown" in format_table(msg.model_copy(update={"ground": None}))
