@@ -181,6 +181,7 @@ def _union(g: list[_Region]) -> _Region:
                    np.concatenate([r.disparities for r in g]), sum(r.filled for r in g))
 
 
+MAX_FLOOR_SAMPLES = 1_000_000  # points of drivable floor per frame, at most
 _STAT_SAMPLES = 1500  # percentiles of a region are taken on at most ~2x this many of its points
 _SQUARE = np.ones((3, 3), np.uint8)
 _CROSS = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
@@ -357,9 +358,11 @@ def _drivable(floor: FloorPlane, df: np.ndarray, seen_floor: np.ndarray, standin
     cols = np.nonzero(np.isfinite(near) & (limit > near))[0]
     if not cols.size:
         return np.zeros((0, 3))
-    # march along each column's ray on the floor in steps of half a free-space cell
-    spacing = 0.5 * cfg.freespace_resolution_m
-    n = int(min(2000, np.ceil(float((limit[cols] - near[cols]).max()) / spacing))) + 1
+    # march along each column's ray on the floor in steps of half a free-space cell (coarser when a
+    # wide image and a long range would make more than MAX_FLOOR_SAMPLES points)
+    longest = float((limit[cols] - near[cols]).max())
+    spacing = max(0.5 * cfg.freespace_resolution_m, longest * cols.size / MAX_FLOOR_SAMPLES)
+    n = int(np.ceil(longest / spacing)) + 1
     z = near[cols][:, None] + spacing * np.arange(n)[None, :]
     z = np.where(z <= limit[cols][:, None], z, np.nan).ravel()
     u = np.repeat(cols.astype(np.float64) * step, n)
