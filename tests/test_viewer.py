@@ -227,13 +227,16 @@ def test_the_page_shows_the_pictures_and_draws_the_boxes_of_the_obstacle_list(tm
                 seqs.add(drawn["seq"])
                 checked += 1
             assert checked == 5 and len(seqs) >= 3, (checked, seqs)
-            # the boxes are on the canvas, not only in the page's state: orange pixels on each box's top edge
+            # the boxes are on the canvas, not only in the page's state: orange pixels along each box's
+            # top edge (all of it for a confirmed track, dashes for one not yet confirmed)
             for b in page.evaluate("window.viewer.drawn.boxes"):
                 x0, y0, x1, y1 = b["bbox_px"]
-                xm = (x0 + x1) // 2
-                rgba = page.evaluate(f"Array.from(document.getElementById('image').getContext('2d')"
-                                     f".getImageData({xm}, {y0}, 1, 1).data)")
-                assert rgba[0] > 200 and 100 < rgba[1] < 180 and rgba[2] < 60, rgba
+                xs = list(range(x0 + (x1 - x0) // 4, x0 + 3 * (x1 - x0) // 4))
+                row = page.evaluate(f"Array.from(document.getElementById('image').getContext('2d')"
+                                    f".getImageData({xs[0]}, {y0}, {len(xs)}, 1).data)")
+                orange = sum(1 for k in range(0, len(row), 4)
+                             if row[k] > 200 and 100 < row[k + 1] < 180 and row[k + 2] < 60)
+                assert orange >= (0.9 if b["confirmed"] else 0.4) * len(xs), (b, orange, len(xs))
             assert page.evaluate("window.viewer.errors") == []
             assert page.locator("#services tbody tr").count() >= 5
             assert page.locator("#obstacles tbody tr").count() == 2

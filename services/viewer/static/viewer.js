@@ -71,11 +71,15 @@ function drawBoxes(ctx, doc) {
     ctx.strokeStyle = ORANGE;
     obs.list.forEach((o, i) => { // nearest first
       const [x0, y0, x1, y1] = o.bbox_px;
+      // a track not yet confirmed (seen in too few of the last frames) is drawn dashed, as `--draw` does
+      ctx.setLineDash(o.confirmed ? [] : [5 * scale, 3 * scale]);
       ctx.strokeRect(x0, y0, x1 - x0, y1 - y0);
       const text = `#${o.id} ${o.distance_m.toFixed(2)} m`;
       if (i < MAX_LABELS) label(ctx, text, x0, y0, ORANGE, 13 * scale);
-      drawn.boxes.push({id: o.id, bbox_px: [x0, y0, x1, y1], text, labelled: i < MAX_LABELS});
+      drawn.boxes.push({id: o.id, bbox_px: [x0, y0, x1, y1], text, labelled: i < MAX_LABELS,
+                        confirmed: o.confirmed});
     });
+    ctx.setLineDash([]);
   }
   return drawn;
 }
