@@ -102,7 +102,8 @@ def cmd_obstacles(args: argparse.Namespace) -> int:
     from .common.files import check_pair, list_images, pair_images
     from .services.disparity.matchers import SCALE
     from .services.rectify.core import Rectifier
-    from .services.segmenter.draw import draw_frame, frame_mount
+    from .services.segmenter.draw import draw_frame
+    from .services.segmenter.ground import frame_mount
     from .services.segmenter.main import ObstacleBuilder
 
     settings = _segmenter_settings(args)

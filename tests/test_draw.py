@@ -7,6 +7,7 @@ import pytest
 from ballbot_vision.common import camera
 from ballbot_vision.common.messages import FreeSpace, GroundEstimate, Obstacle, ObstacleList
 from ballbot_vision.services.segmenter import draw as D
+from ballbot_vision.services.segmenter.ground import frame_mount
 from ballbot_vision.services.segmenter.mount import Mount
 from ballbot_vision.services.segmenter.settings import SegmenterSettings
 
@@ -78,7 +79,7 @@ def _project(mount: Mount, p_base) -> tuple[int, int]:
 
 def test_free_space_cells_project_onto_the_ground_green_free_red_occupied():
     ground = GroundEstimate(height_m=1.0, pitch_deg=20.0, roll_deg=3.0, source="fitted")
-    mount = D.frame_mount(ground, SegmenterSettings())
+    mount = frame_mount(ground, SegmenterSettings())
     res, n = 0.5, 20
     cells = np.full((n, n), -1, np.int8)  # row: y from -5 m, col: x from 0 m
     cells[:, 2:8] = 0  # x 1..4 m free
@@ -101,7 +102,7 @@ def test_free_space_cells_project_onto_the_ground_green_free_red_occupied():
     assert _is(out[30, 160], (GREY,) * 3)  # above the horizon: nothing
     # the same grid with the mount yawed 90 deg left sees none of it (the cells lie to its right)
     turned = D.draw_frame(img, _list([], ground), MODEL, fs,
-                          D.frame_mount(ground, SegmenterSettings(mount_yaw_deg=90.0, mount_x_m=-6.0)))
+                          frame_mount(ground, SegmenterSettings(mount_yaw_deg=90.0, mount_x_m=-6.0)))
     assert np.all(turned[D.CAPTION_PX:] == GREY)
     # no ground estimate: no grid
     plain = D.draw_frame(img, _list([]), MODEL, fs)

@@ -272,7 +272,7 @@ def test_euroc_tape_and_mat_on_the_floor_are_free_the_mattresses_and_chessboard_
     lean on the walls and a chessboard stands before the right one. Pixel places read off the
     pictures of the first frames (rectified left image, 752x480)."""
     from ballbot_vision.services.disparity.config import MatcherConfig
-    from ballbot_vision.services.segmenter.draw import frame_mount
+    from ballbot_vision.services.segmenter.ground import frame_mount
     from ballbot_vision.services.segmenter.settings import SegmenterSettings
 
     rec = R.open_recording(EUROC)

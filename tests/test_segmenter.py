@@ -306,11 +306,11 @@ def test_markings_are_floor_canopy_is_above_the_robot_and_only_standing_things_a
 
 def test_free_space_is_free_up_to_the_obstacle_occupied_at_it_unknown_behind():
     from ballbot_vision.services.segmenter import freespace
-    from ballbot_vision.services.segmenter.ground import mount_from_ground
+    from ballbot_vision.services.segmenter.ground import frame_mount
 
     cfg = SegmenterSettings(freespace_resolution_m=0.1)
     fr = _frame(scene([(250, 390, 2.0, 200)], wall_m=6.0), cfg)
-    m = mount_from_ground(fr.ground, cfg)
+    m = frame_mount(fr.ground, cfg)
     g = freespace.occupancy(fr.floor_points, fr.points, m, MODEL, cfg.range_m, cfg.freespace_resolution_m)
 
     def cell(x, y):

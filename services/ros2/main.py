@@ -35,6 +35,7 @@ from ...common.keys import topic
 from ...common.messages import DisparityMap, ObstacleList
 from ...common.node import Node
 from ..segmenter.settings import MountSettings
+from ..segmenter.ground import frame_mount
 from ..segmenter.mount import Mount
 
 SUBSCRIBES = ["obstacles", "freespace", "frames_rect", "disparity"]
@@ -89,10 +90,7 @@ class Ros2Settings(MountSettings):
 def mount_from(msg: ObstacleList | None, s: Ros2Settings) -> Mount | None:
     """The camera mount: the ground estimate the obstacle list carries, else this service's
     mount_height_m/pitch/roll; yaw and x/y always from the settings. None: not known yet."""
-    g = msg.ground if msg is not None else None
-    if g is not None and g.source != "none":
-        return Mount(g.height_m, g.pitch_deg, s.mount_yaw_deg, g.roll_deg, s.mount_x_m, s.mount_y_m)
-    return s.mount()
+    return frame_mount(msg.ground if msg is not None else None, s)
 
 
 def mount_moved(a: Mount | None, b: Mount, s: Ros2Settings) -> bool:

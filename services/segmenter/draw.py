@@ -5,8 +5,8 @@
 What is drawn:
 - the free-space grid on the ground: every pixel whose viewing ray meets the ground plane inside the
   grid takes its cell's colour, translucent: free (0) green, occupied (100) red, unknown (-1) left
-  as it is. The ground plane is the one of `mount` (frame_mount: the mount the segmenter used for
-  the frame; by default Mount(height, pitch, roll) of the list's ground estimate), so a cell is drawn
+  as it is. The ground plane is the one of `mount` (ground.frame_mount: the mount the segmenter used
+  for the frame; by default the list's ground estimate without yaw or offsets), so a cell is drawn
   where that ground puts it, and no pixel is drawn twice;
 - every obstacle's box (bbox_px: x0, y0 inclusive, x1, y1 exclusive), with "#id distance" above it:
   confirmed tracks solid and thick in CONFIRMED colour, unconfirmed ones thin and dashed in
@@ -22,7 +22,9 @@ import numpy as np
 
 from ...common import camera
 from ...common.messages import FreeSpace, GroundEstimate, ObstacleList
+from .ground import frame_mount
 from .mount import Mount
+from .settings import MountSettings
 
 # BGR
 CONFIRMED = (0, 255, 255)  # yellow
@@ -33,16 +35,6 @@ FREE_ALPHA = 0.35
 OCCUPIED_ALPHA = 0.45
 CAPTION_PX = 18  # height of the caption band
 _FONT = cv2.FONT_HERSHEY_SIMPLEX
-
-
-def frame_mount(ground: GroundEstimate | None, settings) -> Mount | None:
-    """The mount a frame's grid was made with: its ground estimate's (ground.mount_from_ground, with
-    the configured yaw and offsets) when it has one, else the configured mount (None: unknown)."""
-    from .ground import mount_from_ground
-
-    if ground is not None and ground.source != "none":
-        return mount_from_ground(ground, settings)
-    return settings.mount()
 
 
 def to_bgr(image: np.ndarray) -> np.ndarray:
@@ -132,9 +124,8 @@ def draw_frame(image: np.ndarray, obstacles: ObstacleList, model: camera.Rectifi
     h, w = img.shape[:2]
     if (w, h) != (model.width, model.height):
         raise ValueError(f"draw: image is {w}x{h}, the camera model {model.width}x{model.height}")
-    g = obstacles.ground
-    if mount is None and g is not None and g.source != "none":
-        mount = Mount(g.height_m, g.pitch_deg, 0.0, g.roll_deg)
+    if mount is None:
+        mount = frame_mount(obstacles.ground, MountSettings())
     if freespace is not None and mount is not None:
         cells = ground_cells(freespace, mount, model)
         _blend(img, cells == 0, FREE, FREE_ALPHA)

@@ -22,7 +22,7 @@ import numpy as np
 from ...common import camera
 from ...common.messages import GroundEstimate
 from .mount import FloorPlane, Mount
-from .settings import SegmenterSettings
+from .settings import MountSettings, SegmenterSettings
 
 MIN_HEIGHT_M, MAX_HEIGHT_M = 0.05, 20.0
 MAX_PITCH_DEG, MAX_ROLL_DEG = 75.0, 40.0
@@ -46,10 +46,15 @@ def plane_from_mount(mount: Mount, model: camera.RectifiedModel) -> FloorPlane:
                                   model.baseline_m)
 
 
-def mount_from_ground(g: GroundEstimate, cfg: SegmenterSettings) -> Mount:
-    """The camera mount this ground estimate implies, with the configured yaw and offsets (which the
-    ground cannot tell)."""
-    return Mount(g.height_m, g.pitch_deg, cfg.mount_yaw_deg, g.roll_deg, cfg.mount_x_m, cfg.mount_y_m)
+def frame_mount(ground: GroundEstimate | None, settings: MountSettings) -> Mount | None:
+    """Where the camera sat on the robot for one frame: the height, pitch and roll of the frame's
+    ground estimate with the configured yaw and offsets (which the ground cannot tell); without an
+    estimate, the configured mount (None: unknown). The segmenter's base frame, the pictures' and
+    the ROS 2 bridge's /tf_static all come from here."""
+    if ground is not None and ground.source != "none":
+        return Mount(ground.height_m, ground.pitch_deg, settings.mount_yaw_deg, ground.roll_deg, settings.mount_x_m,
+                     settings.mount_y_m)
+    return settings.mount()
 
 
 def ransac_plane(u: np.ndarray, v: np.ndarray, d: np.ndarray, rng: np.random.Generator,
@@ -142,16 +147,13 @@ def _close(n: np.ndarray, h: float, n0: np.ndarray, h0: float, tilt_deg: float) 
 class GroundEstimator:
     """update(dm) -> (the floor plane for this frame or None, the GroundEstimate to publish)."""
 
-    def __init__(self, cfg: SegmenterSettings, model: camera.RectifiedModel | None = None):
+    def __init__(self, cfg: SegmenterSettings):
         self.cfg = cfg
         self.prior = cfg.mount()
         self.smooth_n: np.ndarray | None = None  # smoothed normal and height of the last frames
         self.smooth_h = 0.0
         self.disagree = 0
         self.rng = np.random.default_rng(0)
-
-    def reset(self) -> None:
-        self.smooth_n, self.disagree = None, 0
 
     def _plane(self, n: np.ndarray, h: float, model: camera.RectifiedModel) -> FloorPlane:
         return FloorPlane.from_normal(n, h, model.focal_px, model.cx, model.cy, model.baseline_m)

@@ -259,10 +259,9 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
     if cfg.floor_removal:
         ground = ground or GroundEstimator(cfg)
         floor, estimate = ground.update(dk, model, step)
-    u, v = grid(h, w, step)
-    empty = np.zeros((0, 3))
-    floor_points = empty
+    floor_points = np.zeros((0, 3))
     if floor is not None:
+        u, v = grid(h, w, step)
         df = np.float32(floor.a) * u + (np.float32(floor.b) * v + np.float32(floor.c))
         k = 1.0 / max(1e-3, 1.0 - cfg.floor_margin_m / floor.height_m)
         on_floor = dk <= np.maximum(df * np.float32(k), df + np.float32(cfg.ground_noise_px))

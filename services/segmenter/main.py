@@ -15,7 +15,7 @@ from ...common.keys import topic
 from ...common.node import Node
 from ...common.disparity import to_float
 from . import freespace, layers, seed
-from .ground import GroundEstimator, mount_from_ground, plane_from_mount
+from .ground import GroundEstimator, frame_mount, plane_from_mount
 from .mount import FloorPlane, Mount
 from .seed import Detection
 from .settings import METHODS, SegmenterSettings  # noqa: F401  (SegmenterSettings: cli's service table)
@@ -77,7 +77,6 @@ class ObstacleBuilder:
 
     def __init__(self, settings: SegmenterSettings):
         self.settings = settings
-        self.segmenter = Segmenter(settings)
         self.mount = settings.mount()
         self.ground = GroundEstimator(settings)
         self.tracker = Tracker(settings.track_gate_m, settings.track_timeout_s,
@@ -106,7 +105,7 @@ class ObstacleBuilder:
         cfg = self.settings
         if disparity.size == 0:
             return layers.LayersFrame([], [], None, None, np.zeros((0, 3)))
-        if self.segmenter.method == "seed":
+        if cfg.method == "seed":
             dets = seed.segment(disparity, model, cfg)
             floor = plane_from_mount(self.mount, model) if self.mount is not None and cfg.floor_removal else None
             g = self.mount
@@ -114,13 +113,6 @@ class ObstacleBuilder:
                                        source="prior") if g is not None else None)
             return layers.LayersFrame(dets, [], floor, estimate, np.zeros((0, 3)))
         return layers.segment_frame(disparity, model, cfg, ground=self.ground, confidence=confidence, image=image)
-
-    def _mount_for(self, ground: GroundEstimate | None) -> Mount | None:
-        """Where the camera is on the robot this frame: from the ground estimate when it was measured
-        (fitted or tracked), else the configured mount (None: unknown, no base frame)."""
-        if ground is not None and ground.source in ("fitted", "tracked"):
-            return mount_from_ground(ground, self.settings)
-        return self.mount
 
     def _ego_motion(self, odometry: Odometry | None, t_s: float) -> bool:
         """Carry the tracks into this frame's base frame by the robot's own motion since the last
@@ -142,7 +134,7 @@ class ObstacleBuilder:
         odometry: the robot's motion at this frame, if known (velocities are then over the ground)."""
         cfg = self.settings
         frame = self.segment(disparity, model, confidence, image)
-        mount = self._mount_for(frame.ground)
+        mount = frame_mount(frame.ground, cfg)
         track_frame = "base" if mount is not None else "camera"
         if track_frame != self._track_frame:
             self.tracker.clear()  # positions of one frame mean nothing in the other

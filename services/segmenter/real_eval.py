@@ -399,7 +399,8 @@ def evaluate_recording(rec: Recording, seg_settings, matcher_cfg, frames: int | 
     frame's obstacles; with draw_dir, one picture per pair (draw.draw_frame) named after the left image."""
     import cv2
 
-    from .draw import draw_frame, frame_mount
+    from .draw import draw_frame
+    from .ground import frame_mount
 
     from ...common.errors import path_error
 
