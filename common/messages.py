@@ -15,7 +15,8 @@ from pydantic import BaseModel, ConfigDict, Field
 
 # 2: ground estimate, track confirmation, truncation and base-frame velocities in ObstacleList;
 #    FreeSpace; Odometry; an optional confidence image beside a disparity map.
-SCHEMA_VERSION = 2
+# 3: ObstacleList.degraded and valid_fraction (can this list be trusted); GroundEstimate.confidence.
+SCHEMA_VERSION = 3
 
 Vec3 = tuple[float, float, float]
 # A robot's own motion: finite and physical, so one forged message cannot turn every track into NaN
@@ -133,11 +134,26 @@ class GroundEstimate(BaseModel):
         description="fitted: from this frame's disparity; tracked: fit rejected, the smoothed estimate of the "
                     "last frames; prior: the configured mount; none: unknown (no floor removed)")
     inlier_fraction: float = Field(0.0, ge=0, le=1, description="share of the valid pixels on the plane")
+    confidence: float = Field(0.0, ge=0, le=1, description="how far the ground can be trusted for this frame: 0 = "
+                              "not at all (no floor seen, a guess), 1 = a well-supported fit agreeing with the "
+                              "recent frames")
 
 
 class ObstacleList(Message):
+    """What stands in the robot's way for one captured pair.
+
+    The rule for planners: a list with `stale` false and `degraded` empty is trustworthy, and then
+    an empty `obstacles` means "looked and saw nothing". Anything else (stale, or any reason in
+    `degraded`) means the view could not be checked as it should: slow down or stop, do not take
+    an empty list as a clear way."""
+
     publish_ns: int = Field(ge=0)
     stale: bool = Field(description="true when the input stream stopped or fell behind")
+    degraded: list[str] = Field(default_factory=list, max_length=32, description="short reasons this list cannot be "
+                                "trusted as a full view (empty: trustworthy; e.g. 'no-valid-disparity', "
+                                "'valid-collapse', 'no-ground', 'range-unreachable')")
+    valid_fraction: float = Field(0.0, ge=0, le=1, description="share of the image the disparity map measured "
+                                  "(valid pixels within the vision range gate's search) for this list")
     frame_id: Literal["camera"] = "camera"
     method: str = ""
     obstacles: list[Obstacle] = Field(default_factory=list)

@@ -22,7 +22,7 @@ import zenoh
 
 from ballbot_vision.common import codec
 from ballbot_vision.common.keys import topic
-from ballbot_vision.common.messages import DisparityMap, ObstacleList, ServiceStats
+from ballbot_vision.common.messages import SCHEMA_VERSION, DisparityMap, ObstacleList, ServiceStats
 
 from helpers import Up
 
@@ -276,7 +276,7 @@ def fuzz(session, rid: str, keys: list[str], rounds: int) -> int:
     over = b"\x00" * (90 << 20)  # over every image cap (80 MB), under Zenoh's reassembly cap
     now = time.time_ns()
     img = {"width": 640, "height": 480, "channels": 1, "dtype": "uint8", "encoding": "raw", "data": big}
-    doc = msgpack.packb({"schema_version": 2, "robot_id": rid, "seq": 1, "stamp_ns": now, "left": img, "right": img,
+    doc = msgpack.packb({"schema_version": SCHEMA_VERSION, "robot_id": rid, "seq": 1, "stamp_ns": now, "left": img, "right": img,
                          "image": img, "scale": 16.0}, use_bin_type=True)
     sent = 0
     block = zenoh.CongestionControl.BLOCK

@@ -24,6 +24,8 @@ from .tracking import Tracker
 log = logging.getLogger("ballbot")
 
 SUBSCRIBES = ["disparity", "odometry"]
+# A map measuring less of the image than this saw nothing it could vouch for: the list says so.
+MIN_VALID_FRACTION = 0.01
 PUBLISHES = ["obstacles", "freespace"]
 
 
@@ -169,8 +171,13 @@ class ObstacleBuilder:
                 confirmed=tr.confirmed, track_frames=tr.hits, truncated=det.truncated))
         obstacles.sort(key=lambda o: o.distance_m)
         now = time.time_ns()
+        valid_fraction = float(np.count_nonzero(disparity > 0)) / max(1, disparity.size)  # NaN compares false
+        degraded = []
+        if valid_fraction < MIN_VALID_FRACTION:
+            degraded.append("no-valid-disparity")
         out = ObstacleList(robot_id=robot_id, seq=seq, stamp_ns=stamp_ns, stages=dict(stages or {}), publish_ns=now,
-                           stale=stale, method=cfg.method, obstacles=obstacles, ground=frame.ground,
+                           stale=stale, degraded=degraded, valid_fraction=valid_fraction, method=cfg.method,
+                           obstacles=obstacles, ground=frame.ground,
                            velocity_reference="ground" if over_ground else "camera")
         free = None
         if cfg.freespace and mount is not None and frame.floor is not None and cfg.method == "layers":
