@@ -7,7 +7,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from .common.errors import BallbotError, CalibrationError
+from common.errors import BallbotError, CalibrationError
 
 
 def _out(text: str = "") -> None:
@@ -24,14 +24,14 @@ def _depth_range(v: list[float] | None) -> tuple[float, float] | None:
 
 
 def _pairs_from(left: str, right: str) -> list[tuple[Path, Path]]:
-    from .common.files import list_images, pair_images
+    from common.files import list_images, pair_images
 
     return pair_images(list_images(left, "LEFT"), list_images(right, "RIGHT"))
 
 
 def _read(path: Path, rectifier=None):
     """One image file; with a rectifier, also checked against the calibrated size, naming the file."""
-    from .common.files import read_image
+    from common.files import read_image
 
     img = read_image(path)
     if rectifier is not None:
@@ -42,10 +42,10 @@ def _read(path: Path, rectifier=None):
 # --- calibrate ---------------------------------------------------------------------------------
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
-    from .common import camera
-    from .services.rectify import calibrate as C
-    from .services.rectify.check import row_alignment
-    from .services.rectify.core import Rectifier
+    from cores import camera
+    from cores.calibration import calibrate as C
+    from cores.calibration.check import row_alignment
+    from cores.calibration.rectify import Rectifier
 
     pattern = C.parse_pattern(args.pattern)
     depth = _depth_range(args.depth_range)
@@ -84,20 +84,20 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 def _collect_live(args: argparse.Namespace, pattern: tuple[int, int]) -> list[tuple[Path, Path]]:
     """Collect chessboard views from the raw frames of a running capture until --views are accepted,
     the stream stalls, or Ctrl-C; save each accepted pair as PNG; return the saved pairs. The
-    choice of views is services/rectify/live.py's; this is only the Zenoh loop around it."""
+    choice of views is cores/calibration/views.py's; this is only the Zenoh loop around it."""
     import tempfile
     import time
 
     import cv2
 
-    from .cli import robot_id, zenoh_options
-    from .common import codec
-    from .common.errors import DecodeError
-    from .common.keys import topic
-    from .common.node import Inbox, stamp_of
-    from .common.zenoh_session import open_session
-    from .services.rectify import calibrate as C
-    from .services.rectify.live import Coverage
+    from ballbot_vision.cli import robot_id, zenoh_options
+    from common import codec
+    from common.errors import DecodeError
+    from common.keys import topic
+    from common.node import Inbox, stamp_of
+    from common.zenoh_session import open_session
+    from cores.calibration import calibrate as C
+    from cores.calibration.views import Coverage
 
     if args.views < 1:
         raise CalibrationError(f"--views {args.views}: must be at least 1")
@@ -192,8 +192,8 @@ def _collect_live(args: argparse.Namespace, pattern: tuple[int, int]) -> list[tu
 # --- calibration import / show / check ---------------------------------------------------------
 
 def cmd_import(args: argparse.Namespace) -> int:
-    from .common import camera
-    from .services.rectify import formats as F
+    from cores import camera
+    from cores.calibration import formats as F
 
     size = F.parse_size(args.image_size) if args.image_size else None
     rig = F.import_files(args.files, args.units_m, size, args.name or Path(args.output).stem,
@@ -205,8 +205,8 @@ def cmd_import(args: argparse.Namespace) -> int:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    from .common import camera
-    from .services.rectify import formats as F
+    from cores import camera
+    from cores.calibration import formats as F
 
     cal = camera.load_calibration(args.calibration)
     if not isinstance(cal, camera.RawRig):
@@ -221,8 +221,8 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 
 def cmd_show(args: argparse.Namespace) -> int:
-    from .common import camera
-    from .services.rectify import formats as F
+    from cores import camera
+    from cores.calibration import formats as F
 
     _out(F.describe(camera.load_calibration(args.calibration), _depth_range(args.depth_range), args.alpha))
     return 0
@@ -231,9 +231,9 @@ def cmd_show(args: argparse.Namespace) -> int:
 def cmd_check(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from .common import camera
-    from .services.rectify.check import row_alignment
-    from .services.rectify.core import Rectifier
+    from cores import camera
+    from cores.calibration.check import row_alignment
+    from cores.calibration.rectify import Rectifier
 
     r = Rectifier(camera.load_calibration(args.calibration), args.alpha)
     medians = []
@@ -258,8 +258,8 @@ def cmd_check(args: argparse.Namespace) -> int:
 def cmd_rectify(args: argparse.Namespace) -> int:
     import cv2
 
-    from .common import camera
-    from .services.rectify.core import Rectifier
+    from cores import camera
+    from cores.calibration.rectify import Rectifier
 
     r = Rectifier(camera.load_calibration(args.calibration), args.alpha)
     pairs = _pairs_from(args.left, args.right)

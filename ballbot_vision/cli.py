@@ -8,31 +8,12 @@ import logging
 import os
 import sys
 
-from .common.errors import BallbotError
-from .common.settings import add_settings_arguments, load_settings
-from .common.zenoh_session import DEFAULT_ROUTER, ZenohOptions, add_zenoh_arguments, options_from_args
+from common.errors import BallbotError
+from common.settings import add_settings_arguments, load_settings
+from common.supervisor import PIPELINE, SERVICES, stage_nice
+from common.zenoh_session import DEFAULT_ROUTER, ZenohOptions, add_zenoh_arguments, options_from_args
 
 log = logging.getLogger("ballbot")
-
-# A service folder's name is its process name, its compose service name and its `producer` entry.
-SERVICES = {
-    "capture": ("ballbot_vision.services.capture.main", "CaptureSettings"),
-    "rectify": ("ballbot_vision.services.rectify.main", "RectifySettings"),
-    "disparity": ("ballbot_vision.services.disparity.main", "DisparitySettings"),
-    "segmenter": ("ballbot_vision.services.segmenter.main", "SegmenterSettings"),
-    "ros2": ("ballbot_vision.services.ros2.main", "Ros2Settings"),
-    "viewer": ("ballbot_vision.services.viewer.main", "ViewerSettings"),
-}
-PIPELINE = ["capture", "rectify", "disparity", "segmenter"]
-
-
-def stage_nice(name: str) -> int:
-    """Scheduling priority of a pipeline stage relative to `up --nice`: each stage runs ahead of
-    the ones before it (capture +3 ... segmenter +0). When the CPU is short, a pair already in
-    the pipeline is finished before a new one is started: lower latency, and no CPU spent on pairs
-    that a busy later stage would drop (on a loaded 2-core machine at overload: p50 latency -28 %,
-    CPU per delivered list -13 %, `ballbot-vision bench`). With CPU to spare it changes nothing."""
-    return len(PIPELINE) - 1 - PIPELINE.index(name) if name in PIPELINE else 0
 
 # Modules that add their own subcommands: each has register(sub, common), where `common(parser)`
 # adds --robot-id, --config and the Zenoh options to a parser and returns it.
@@ -74,7 +55,7 @@ def zenoh_options(args: argparse.Namespace, service: str | None = None) -> Zenoh
 # --- run / up ----------------------------------------------------------------------------------
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from .common.node import Node
+    from common.node import Node
 
     if args.service == "router":
         return run_router(zenoh_options(args, "router"), robot_id(args))
@@ -86,7 +67,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def run_router(o: ZenohOptions, rid: str) -> int:
-    from .common.node import Node
+    from common.node import Node
 
     with Node("router", o, rid) as node:
         log.info("zenoh router listening on %s", ", ".join(o.listen) or f"the endpoints of {o.config_file}")
@@ -117,7 +98,7 @@ def up_endpoints(args: argparse.Namespace) -> tuple[list[str], str]:
 
 
 def cmd_up(args: argparse.Namespace) -> int:
-    from .supervisor import Supervisor
+    from common.supervisor import Supervisor
 
     listen, endpoint = up_endpoints(args)
     common = ["--robot-id", robot_id(args)]
@@ -127,7 +108,7 @@ def cmd_up(args: argparse.Namespace) -> int:
         log.warning("up --nice %d needs root (or CAP_SYS_NICE); the services run at the default priority", args.nice)
     import secrets
 
-    from .common.signing import KEY_ENV
+    from common.signing import KEY_ENV
 
     # The services of this run share a calibration key: rectify takes calibrations signed by capture
     # (a ROS camera's CameraInfo, a recording's) and refuses anyone else's jumps.
@@ -148,13 +129,13 @@ def cmd_up(args: argparse.Namespace) -> int:
 # --- watch / status / schema -------------------------------------------------------------------
 
 def cmd_watch(args: argparse.Namespace) -> int:
-    from .watch import watch
+    from ballbot_vision.watch import watch
 
     return watch(zenoh_options(args), args.robot, args.json, args.count, args.timeout)
 
 
 def cmd_status(args: argparse.Namespace) -> int:
-    from .status import status
+    from ballbot_vision.status import status
 
     return status(zenoh_options(args), args.robot or "*", args.wait, args.json)
 
@@ -167,11 +148,11 @@ def cmd_healthcheck(args: argparse.Namespace) -> int:
     import threading
     import time
 
-    from .common import codec
-    from .common.errors import DecodeError
-    from .common.keys import topic
-    from .common.messages import ServiceStats
-    from .common.zenoh_session import open_session
+    from common import codec
+    from common.errors import DecodeError
+    from common.keys import topic
+    from common.messages import ServiceStats
+    from common.zenoh_session import open_session
 
     host = socket.gethostname()
     seen: dict[str, ServiceStats] = {}
@@ -215,7 +196,7 @@ def cmd_healthcheck(args: argparse.Namespace) -> int:
 
 
 def cmd_schema(args: argparse.Namespace) -> int:
-    from .common.messages import PUBLIC_MODELS
+    from common.messages import PUBLIC_MODELS
 
     if args.model:
         if args.model not in PUBLIC_MODELS:
@@ -228,7 +209,7 @@ def cmd_schema(args: argparse.Namespace) -> int:
 
 
 def cmd_keys(args: argparse.Namespace) -> int:
-    from .common.keys import TOPICS
+    from common.keys import TOPICS
 
     rid = robot_id(args)
     print(f"{'key':52} {'message':14} {'producer':14} {'rate':>6}  description")
@@ -239,7 +220,7 @@ def cmd_keys(args: argparse.Namespace) -> int:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from .bench.pipeline import bench_main
+    from bench.pipeline import bench_main
 
     return bench_main(args)
 
@@ -376,7 +357,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
 
     if needed("bench"):
         b = common(sub.add_parser("bench", help="throughput and latency, per stage and end to end"))
-        from .bench.pipeline import add_bench_arguments
+        from bench.pipeline import add_bench_arguments
 
         add_bench_arguments(b)
         b.set_defaults(func=cmd_bench)
@@ -390,7 +371,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from .common.node import setup_logging
+    from common.node import setup_logging
 
     argv = sys.argv[1:] if argv is None else list(argv)
     # OpenCV's own log lines ("[ WARN:0@0.1] global loadsave.cpp ...") repeat what our errors say
@@ -414,7 +395,7 @@ def main(argv: list[str] | None = None) -> int:
         # words its own errors; an OSError without a path is not the user's and keeps its traceback.
         if e.filename is None:
             raise
-        from .common.errors import path_error
+        from common.errors import path_error
 
         print(f"ballbot-vision: error: {e.filename}: {path_error(e)}", file=sys.stderr)
         return 2

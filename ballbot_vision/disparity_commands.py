@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .common.errors import BallbotError
+from common.errors import BallbotError
 
 FORMATS = (".npy", ".pfm", ".png")
 
@@ -54,12 +54,12 @@ def colour(d: np.ndarray, max_disparity: float) -> np.ndarray:
 def cmd_disparity(args: argparse.Namespace) -> int:
     import cv2
 
-    from .common import camera
-    from .common.settings import load_settings
-    from .common.disparity import to_float
-    from .common.files import check_pair, read_image
-    from .services.disparity.matchers import MatcherConfig, gate_for_range, make_matcher
-    from .services.rectify.core import Rectifier
+    from cores import camera
+    from common.settings import load_settings
+    from cores.matching.disparity import to_float
+    from common.files import check_pair, read_image
+    from cores.matching.matchers import MatcherConfig, gate_for_range, make_matcher
+    from cores.calibration.rectify import Rectifier
 
     out = Path(args.output)
     if out.suffix.lower() not in FORMATS:
@@ -115,8 +115,8 @@ def cmd_disparity(args: argparse.Namespace) -> int:
 
 
 def register(sub, common) -> None:
-    from .common.settings import add_settings_arguments
-    from .services.disparity.config import MatcherConfig
+    from common.settings import add_settings_arguments
+    from cores.matching.config import MatcherConfig
 
     p = sub.add_parser("disparity", help="disparity of one stereo pair of image files (offline, in-process)",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)

@@ -9,7 +9,7 @@ import sys
 import time
 from pathlib import Path
 
-from .common.errors import BallbotError
+from common.errors import BallbotError
 
 
 def _need_mcap() -> None:
@@ -22,11 +22,11 @@ def _need_mcap() -> None:
 # --- record ------------------------------------------------------------------------------------
 
 def cmd_record(args: argparse.Namespace) -> int:
-    from .cli import config_file, robot_id, zenoh_options
-    from .common.node import Node
-    from .common.settings import load_settings
-    from .services.recorder.main import RecordSettings, record
-    from .services.rectify.main import RectifySettings
+    from ballbot_vision.cli import config_file, robot_id, zenoh_options
+    from common.node import Node
+    from common.settings import load_settings
+    from services.recorder.main import RecordSettings, record
+    from services.rectify.main import RectifySettings
 
     _need_mcap()
     settings = load_settings(RecordSettings, config_file(args), args)
@@ -46,7 +46,7 @@ def cmd_record(args: argparse.Namespace) -> int:
 # --- mcap info / from-images / to-images -------------------------------------------------------
 
 def cmd_info(args: argparse.Namespace) -> int:
-    from .services.recorder.recording import RecordingReader
+    from cores.recording import RecordingReader
 
     _need_mcap()
     info = RecordingReader(args.recording).info()
@@ -74,12 +74,12 @@ def _stamps_from_names(files: list[Path]) -> list[int] | None:
 
 
 def cmd_from_images(args: argparse.Namespace) -> int:
-    from .common.errors import SourceError
-    from .services.capture.files import ImageSource
-    from .services.recorder.main import calibration_text
-    from .services.recorder.recording import Converter, RecordingWriter, encode_array
-    from .services.recorder import foxglove
-    from .services.recorder.recording import RAW_LEFT, RAW_RIGHT
+    from common.errors import SourceError
+    from services.capture.files import ImageSource
+    from services.recorder.main import calibration_text
+    from cores.recording import Converter, RecordingWriter, encode_array
+    from cores import foxglove
+    from cores.recording import RAW_LEFT, RAW_RIGHT
 
     _need_mcap()
     out = Path(args.output)
@@ -122,7 +122,7 @@ def cmd_from_images(args: argparse.Namespace) -> int:
 def cmd_to_images(args: argparse.Namespace) -> int:
     import cv2
 
-    from .services.recorder.recording import RecordingReader
+    from cores.recording import RecordingReader
 
     _need_mcap()
     reader = RecordingReader(args.recording)
@@ -151,11 +151,11 @@ def cmd_to_images(args: argparse.Namespace) -> int:
 # --- replay play / pause / step ----------------------------------------------------------------
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    from .cli import robot_id, zenoh_options
-    from .common import codec
-    from .common.keys import topic
-    from .common.messages import ReplayControl
-    from .common.zenoh_session import open_session
+    from ballbot_vision.cli import robot_id, zenoh_options
+    from common import codec
+    from common.keys import topic
+    from common.messages import ReplayControl
+    from common.zenoh_session import open_session
 
     from pydantic import ValidationError
 
@@ -187,8 +187,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
 # --- parser ------------------------------------------------------------------------------------
 
 def register(sub: argparse._SubParsersAction, common) -> None:
-    from .common.settings import add_settings_arguments
-    from .services.recorder.main import RecordSettings
+    from common.settings import add_settings_arguments
+    from services.recorder.main import RecordSettings
 
     r = common(sub.add_parser("record", help="record the running pipeline to an MCAP file (Foxglove opens it)",
                               description="Subscribe to the pipeline and write raw and rectified pairs, "

@@ -6,7 +6,7 @@ truth, so that the offline commands have data to run on before there is a real r
     ballbot-vision rectify sample/left.png sample/right.png --calibration sample/calibration.yaml -o sample/rect
     ballbot-vision obstacles sample/left.png sample/right.png --calibration sample/calibration.yaml
 
-Registered through cli.py's COMMAND_MODULES hook; the rendering is services/capture/synthetic.py's.
+Registered through cli.py's COMMAND_MODULES hook; the rendering is sim/synthetic.py's.
 """
 from __future__ import annotations
 
@@ -14,15 +14,15 @@ import argparse
 import json
 from pathlib import Path
 
-from .common.errors import BallbotError
+from common.errors import BallbotError
 
 
 def cmd_sample_pair(args: argparse.Namespace) -> int:
     import cv2
 
-    from .common import camera
-    from .services.capture.main import truth_message
-    from .services.capture.sources import SyntheticSource
+    from cores import camera
+    from services.capture.main import truth_message
+    from services.capture.sources import SyntheticSource
 
     if args.frames < 1:
         raise BallbotError(f"--frames {args.frames}: must be at least 1")

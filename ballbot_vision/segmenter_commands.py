@@ -9,7 +9,7 @@ import json
 import sys
 from pathlib import Path
 
-from .common.errors import BallbotError
+from common.errors import BallbotError
 
 
 def _out(text: str = "") -> None:
@@ -18,7 +18,7 @@ def _out(text: str = "") -> None:
 
 def _read(path: Path, rectifier=None):
     """One image file; with a rectifier, also checked against the calibrated size, naming the file."""
-    from .common.files import read_image
+    from common.files import read_image
 
     img = read_image(path)
     if rectifier is not None:
@@ -27,8 +27,8 @@ def _read(path: Path, rectifier=None):
 
 
 def _segmenter_settings(args: argparse.Namespace):
-    from .common.settings import load_settings
-    from .services.segmenter.main import SegmenterSettings
+    from common.settings import load_settings
+    from cores.segmentation.settings import SegmenterSettings
 
     return load_settings(SegmenterSettings, getattr(args, "config", None), args)
 
@@ -75,7 +75,7 @@ def format_freespace(fs) -> str:
 
 def _make_matcher(mcfg, model):
     """The disparity settings' matcher for this camera (num_disparities auto resolved) and its range gate."""
-    from .services.disparity.matchers import gate_for_range, make_matcher
+    from cores.matching.matchers import gate_for_range, make_matcher
 
     cfg = mcfg.resolved(model.focal_px, model.baseline_m, model.width)
     return cfg, make_matcher(cfg), gate_for_range(cfg.max_range_m, model.focal_px, model.baseline_m)
@@ -84,7 +84,7 @@ def _make_matcher(mcfg, model):
 def _write_picture(path: Path, picture) -> None:
     import cv2
 
-    from .common.errors import path_error
+    from common.errors import path_error
 
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -97,18 +97,18 @@ def _write_picture(path: Path, picture) -> None:
 def cmd_obstacles(args: argparse.Namespace) -> int:
     import time
 
-    from .common import camera
-    from .common.disparity import to_float
-    from .common.files import check_pair, list_images, pair_images
-    from .services.disparity.matchers import SCALE
-    from .services.rectify.core import Rectifier
-    from .services.segmenter.draw import draw_frame
-    from .services.segmenter.ground import frame_mount
-    from .services.segmenter.main import ObstacleBuilder
+    from cores import camera
+    from cores.matching.disparity import to_float
+    from common.files import check_pair, list_images, pair_images
+    from cores.matching.matchers import SCALE
+    from cores.calibration.rectify import Rectifier
+    from cores.segmentation.draw import draw_frame
+    from cores.segmentation.ground import frame_mount
+    from cores.segmentation.builder import ObstacleBuilder
 
     settings = _segmenter_settings(args)
     if args.left.lower().endswith(".mcap"):  # a recording: its pairs, times and (by default) calibration
-        from .services.recorder.recording import offline_pairs
+        from cores.recording import offline_pairs
 
         pairs, cal = offline_pairs(args.left, args.calibration)
     elif args.right is None or args.calibration is None:
@@ -160,8 +160,8 @@ def cmd_obstacles(args: argparse.Namespace) -> int:
 def cmd_eval(args: argparse.Namespace) -> int:
     if args.real:
         return cmd_eval_real(args)
-    from .common.settings import flags_given
-    from .services.segmenter.main import SegmenterSettings
+    from common.settings import flags_given
+    from cores.segmentation.settings import SegmenterSettings
 
     if args.draw:
         raise BallbotError("eval: --draw goes with --real DIR (a recording)")
@@ -169,8 +169,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if given:
         raise BallbotError(f"eval: {', '.join(SegmenterSettings.flag(k) for k in given)}: the segmenter's settings go "
                            "with --real DIR (the synthetic scenarios set their own per method)")
-    from .services.capture.synthetic import list_builtin_scenarios
-    from .services.segmenter import eval as E
+    from sim.synthetic import list_builtin_scenarios
+    from evaluation import synthetic as E
 
     scenarios = args.scenarios or list_builtin_scenarios()
     methods = args.method or E.DEFAULT_METHODS
@@ -204,7 +204,7 @@ def _explicit(cls, args: argparse.Namespace) -> set[str]:
     """Fields of settings model `cls` set by a flag, an environment variable or the --config file."""
     import os
 
-    from .common.settings import flags_given, read_config_section
+    from common.settings import flags_given, read_config_section
 
     keys = set(flags_given(cls, args))
     keys |= {n for n in cls.model_fields if os.environ.get(cls.env_var(n))}
@@ -216,9 +216,9 @@ def _explicit(cls, args: argparse.Namespace) -> set[str]:
 
 def _real_settings(args: argparse.Namespace, **forced):
     """(segmenter settings, disparity settings, {field: note} of the recording defaults applied)."""
-    from .common.settings import load_settings
-    from .services.disparity.config import MatcherConfig
-    from .services.segmenter.main import SegmenterSettings
+    from common.settings import load_settings
+    from cores.matching.config import MatcherConfig
+    from cores.segmentation.settings import SegmenterSettings
 
     seg_over = {k: v for k, v in REAL_SEGMENTER_DEFAULTS.items() if k not in _explicit(SegmenterSettings, args)}
     seg_over.update(forced)
@@ -231,7 +231,7 @@ def _real_settings(args: argparse.Namespace, **forced):
 
 
 def _method_override(args: argparse.Namespace) -> dict:
-    from .services.segmenter.settings import METHODS
+    from cores.segmentation.settings import METHODS
 
     if not args.method:
         return {}
@@ -249,7 +249,7 @@ def _describe_defaults(applied: dict) -> str:
 
 
 def cmd_eval_real(args: argparse.Namespace) -> int:
-    from .services.segmenter import real_eval as R
+    from evaluation import real as R
 
     if args.scenarios:
         raise BallbotError("eval --real DIR runs a recording; leave out the scenario names")
@@ -277,8 +277,8 @@ def cmd_eval_real(args: argparse.Namespace) -> int:
 # --- mount estimate ----------------------------------------------------------------------------
 
 def cmd_mount_estimate(args: argparse.Namespace) -> int:
-    from .services.segmenter import real_eval as R
-    from .services.segmenter.mount_estimate import estimate_from_grounds, format_estimate, merge_into_config
+    from evaluation import real as R
+    from cores.segmentation.mount_estimate import estimate_from_grounds, format_estimate, merge_into_config
 
     if args.real:
         if args.left or args.right:
@@ -316,7 +316,7 @@ def cmd_mount_estimate(args: argparse.Namespace) -> int:
 # --- bench-segmenter ---------------------------------------------------------------------------
 
 def cmd_bench_segmenter(args: argparse.Namespace) -> int:
-    from .bench.segmenter import bench_segmenter, format_bench
+    from bench.segmenter import bench_segmenter, format_bench
 
     result = bench_segmenter(args.scenario, args.method or None, args.repeat, real=args.real,
                              real_pairs=args.real_pairs, real_max_range_m=args.real_max_range)
@@ -329,8 +329,8 @@ def cmd_bench_segmenter(args: argparse.Namespace) -> int:
 def _matcher_args(p: argparse.ArgumentParser) -> None:
     """The disparity stage's settings, named as everywhere else with the stage in front
     (`--disparity-method sgbm`: `disparity --method`, BALLBOT_DISPARITY_METHOD, `disparity: {method}`)."""
-    from .common.settings import add_settings_arguments
-    from .services.disparity.config import MatcherConfig
+    from common.settings import add_settings_arguments
+    from cores.matching.config import MatcherConfig
 
     add_settings_arguments(p, MatcherConfig, prefix="disparity-",
                            title="disparity settings (the 'disparity' section of --config FILE, or the "
@@ -338,15 +338,15 @@ def _matcher_args(p: argparse.ArgumentParser) -> None:
 
 
 def _matcher_settings(args: argparse.Namespace):
-    from .common.settings import load_settings
-    from .services.disparity.config import MatcherConfig
+    from common.settings import load_settings
+    from cores.matching.config import MatcherConfig
 
     return load_settings(MatcherConfig, getattr(args, "config", None), args, prefix="disparity-")
 
 
 def register(sub: argparse._SubParsersAction, common) -> None:
-    from .common.settings import add_settings_arguments
-    from .services.segmenter.main import SegmenterSettings
+    from common.settings import add_settings_arguments
+    from cores.segmentation.settings import SegmenterSettings
 
     o = sub.add_parser("obstacles", help="offline: image pairs -> rectify, disparity, obstacles",
                        description="Rectify, match and segment one image pair or two folders (a sequence, "

@@ -9,11 +9,11 @@ import json
 import threading
 import time
 
-from .common import codec
-from .common.errors import DecodeError
-from .common.keys import topic
-from .common.messages import ServiceStats
-from .common.zenoh_session import ZenohOptions, open_session
+from common import codec
+from common.errors import DecodeError
+from common.keys import topic
+from common.messages import ServiceStats
+from common.zenoh_session import ZenohOptions, open_session
 
 ORDER = {"router": 0, "capture": 1, "rectify": 2, "disparity": 3, "segmenter": 4}
 

@@ -5,11 +5,11 @@ import queue
 import sys
 import time
 
-from .common import codec
-from .common.errors import DecodeError
-from .common.keys import OBSTACLES_ALL, topic
-from .common.messages import ObstacleList
-from .common.zenoh_session import ZenohOptions, open_session
+from common import codec
+from common.errors import DecodeError
+from common.keys import OBSTACLES_ALL, topic
+from common.messages import ObstacleList
+from common.zenoh_session import ZenohOptions, open_session
 
 
 def format_table(msg: ObstacleList) -> str:

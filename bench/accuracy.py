@@ -114,7 +114,7 @@ def available_pairs(names: list[str] | None = None) -> list[Pair]:
 def scores(d: np.ndarray, gt: np.ndarray) -> dict[str, float]:
     """d: (H, W) float32 px, NaN = invalid; gt likewise (NaN = unknown). -> bad-1/2/4 (invalid is
     bad), EPE (invalid filled by background interpolation), invalid, as fractions / px."""
-    from ..services.disparity.dense import background_fill
+    from cores.matching.dense import background_fill
 
     has = np.isfinite(gt)
     n = max(1, int(has.sum()))
@@ -161,8 +161,8 @@ def opencv_baselines(num_disparities: int) -> dict:
 
 def matchers(num_disparities: int) -> dict:
     """name -> run(left_bgr, right_bgr) -> float32 px, NaN invalid."""
-    from ..common.disparity import to_float
-    from ..services.disparity.matchers import MatcherConfig, gray, make_matcher
+    from cores.matching.disparity import to_float
+    from cores.matching.matchers import MatcherConfig, gray, make_matcher
 
     def opencv(m, colour: bool):
         invalid = (m.getMinDisparity() - 1) * 16
@@ -213,9 +213,9 @@ def evaluate_pair(pair: Pair, methods: list[str] | None = None, repeats: int = 1
 
 def timing_pair() -> tuple[np.ndarray, np.ndarray]:
     """One rectified 640x480 pair: the synthetic world for the thesis rig (no package needed)."""
-    from ..common import camera
-    from ..services.capture import synthetic as S
-    from ..services.rectify.core import Rectifier
+    from cores import camera
+    from sim import synthetic as S
+    from cores.calibration.rectify import Rectifier
 
     rig = camera.load_calibration("lifecam-studio")
     world = S.SyntheticWorld(S.Scene.default(), rig, camera.rectify_rig(rig, 0.0), seed=0)

@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import socket
 import sys
 import threading
 import time
@@ -32,6 +31,8 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
+
+from bench.measure import cpu_seconds, free_port, percentiles
 
 STAGES = ["capture", "rectify", "disparity", "segmenter"]
 PARTS = ["pipeline", "sources", "renderer", "segmenter", "scaling", "accuracy", "record"]
@@ -72,31 +73,6 @@ def add_bench_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="one JSON document on stdout")
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def percentiles(values: list[float]) -> dict[str, float]:
-    if not values:
-        return {"p50": float("nan"), "p95": float("nan"), "p99": float("nan")}
-    a = np.asarray(values)
-    return {"p50": float(np.percentile(a, 50)), "p95": float(np.percentile(a, 95)), "p99": float(np.percentile(a, 99))}
-
-
-def cpu_seconds(pid: int, kernel_only: bool = False) -> float:
-    """CPU time (user + system, or system alone) of a process so far, all its threads, in s, from
-    /proc; 0 when gone. System time is mostly page faults and syscalls: copies into fresh memory."""
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            fields = f.read().rsplit(")", 1)[1].split()
-        ticks = int(fields[12]) if kernel_only else int(fields[11]) + int(fields[12])
-        return ticks / os.sysconf("SC_CLK_TCK")
-    except (OSError, IndexError, ValueError):
-        return 0.0
-
-
 # --- the frames and the references ---------------------------------------------------------------
 
 @dataclass
@@ -110,9 +86,9 @@ class Frames:
 
 
 def bench_frames(preload: int) -> Frames:
-    from ..common import camera
-    from ..services.capture.sources import SyntheticSource
-    from ..services.rectify.core import Rectifier
+    from cores import camera
+    from services.capture.sources import SyntheticSource
+    from cores.calibration.rectify import Rectifier
 
     src = SyntheticSource("two-boxes", "lifecam-studio", 30.0, preload=preload)
     rect = Rectifier(camera.load_calibration("lifecam-studio"))
@@ -124,7 +100,7 @@ def opencv_matcher(method: str):
     """OpenCV's matcher object alone, with the settings the disparity service uses by default."""
     import cv2
 
-    from ..services.disparity.matchers import MatcherConfig
+    from cores.matching.matchers import MatcherConfig
 
     c = MatcherConfig(method=method)
     if method == "bm":
@@ -173,9 +149,10 @@ def in_process_compute(frames: Frames, method: str, seconds: float) -> dict:
     """The pipeline's cores serially in this process, no messaging: rectify, disparity (the
     service's matcher, OpenCV's default threads), segmenter and tracking (the service's defaults).
     -> per-stage median ms and their sum, the per-frame compute."""
-    from ..common.disparity import to_float
-    from ..services.disparity.matchers import MatcherConfig, StereoMatcher
-    from ..services.segmenter.main import ObstacleBuilder, SegmenterSettings
+    from cores.matching.disparity import to_float
+    from cores.matching.matchers import MatcherConfig, StereoMatcher
+    from cores.segmentation.builder import ObstacleBuilder
+    from cores.segmentation.settings import SegmenterSettings
 
     cfg = MatcherConfig(method=method)
     matcher = StereoMatcher(cfg)
@@ -331,10 +308,10 @@ class LivePipeline:
         return dict(os.environ, BALLBOT_LOG="WARNING")
 
     def __enter__(self) -> "LivePipeline":
-        from ..cli import stage_nice
-        from ..common.keys import topic
-        from ..common.zenoh_session import ZenohOptions, open_session
-        from ..supervisor import Supervisor
+        from common.supervisor import stage_nice
+        from common.keys import topic
+        from common.zenoh_session import ZenohOptions, open_session
+        from common.supervisor import Supervisor
 
         c = ["--connect", self.endpoint, "--robot-id", self.rid]
         self.sup = sup = Supervisor(env=self._env(), nice=self.nice)  # as `up` runs them
@@ -399,8 +376,8 @@ class LivePipeline:
 
     def offer(self, rate: float, timeout_s: float = 90.0) -> None:
         """(Re)start capture at `rate` pairs/s; returns once its pairs come out as obstacle lists."""
-        from ..cli import stage_nice
-        from ..supervisor import Supervisor
+        from common.supervisor import stage_nice
+        from common.supervisor import Supervisor
 
         self.stop_capture()
         self._want_stamp = time.time_ns()
@@ -626,10 +603,10 @@ def bench_pipeline(args: argparse.Namespace) -> int:
 def bench_part(part: str, args: argparse.Namespace) -> int:
     flags = ["--json"] if args.json else []
     if part == "sources":
-        from .sources import main
+        from bench.sources import main
         return main(flags)
     if part == "scaling":
-        from .scaling import main
+        from bench.scaling import main
         if args.method:
             flags += ["--method", args.method]
         if args.workers:
@@ -640,16 +617,16 @@ def bench_part(part: str, args: argparse.Namespace) -> int:
             flags += ["--nice", str(args.nice)]
         return main(flags)
     if part == "accuracy":
-        from .accuracy import main
+        from bench.accuracy import main
         return main(flags)
     if part == "record":
-        from .record import main
+        from bench.record import main
         return main(flags)
     if part == "segmenter":
-        from .segmenter import bench_segmenter, format_bench
+        from bench.segmenter import bench_segmenter, format_bench
         r = bench_segmenter()
     else:
-        from .renderer import bench_renderer, format_renderer
+        from bench.renderer import bench_renderer, format_renderer
         r = bench_renderer()
     print(json.dumps(r, indent=2) if args.json else (format_bench(r) if part == "segmenter" else format_renderer(r)))
     return 0

@@ -25,14 +25,16 @@ from pathlib import Path
 
 def _pipeline_messages(n: int):
     """n consecutive pairs as the pipeline publishes them: (raw, rectified, disparity, obstacles, truth)."""
-    from ..common import camera, codec
-    from ..common.messages import DisparityMap, StereoFrame
-    from ..services.capture.main import truth_message
-    from ..services.capture.sources import SyntheticSource
-    from ..services.disparity.config import MatcherConfig
-    from ..services.disparity.matchers import StereoMatcher
-    from ..services.rectify.core import Rectifier
-    from ..services.segmenter.main import ObstacleBuilder, SegmenterSettings
+    from common import codec
+    from cores import camera
+    from common.messages import DisparityMap, StereoFrame
+    from services.capture.main import truth_message
+    from services.capture.sources import SyntheticSource
+    from cores.matching.config import MatcherConfig
+    from cores.matching.matchers import StereoMatcher
+    from cores.calibration.rectify import Rectifier
+    from cores.segmentation.builder import ObstacleBuilder
+    from cores.segmentation.settings import SegmenterSettings
 
     src = SyntheticSource("person-walking", "lifecam-studio", 30.0)
     rect = Rectifier(camera.load_calibration("lifecam-studio"))
@@ -59,9 +61,9 @@ def _pipeline_messages(n: int):
 
 def conversion_ceiling(messages, image_format: str, seconds: float = 3.0) -> float:
     """Pairs per CPU-second of the recorder's conversion and writing, on one thread in this process."""
-    from ..common import codec
-    from ..common.messages import DisparityMap, GroundTruth, ObstacleList, StereoFrame
-    from ..services.recorder.recording import Converter, RecordingWriter, RecordOptions
+    from common import codec
+    from common.messages import DisparityMap, GroundTruth, ObstacleList, StereoFrame
+    from cores.recording import Converter, RecordingWriter, RecordOptions
 
     payloads = [tuple(codec.encode(m) for m in msgs) for msgs in messages]
     conv = Converter(RecordOptions(image_format=image_format))
@@ -90,12 +92,12 @@ def _cpu_s(pid: int) -> float:
 def record_run(messages, rate: float, seconds: float, image_format: str, threads: int) -> dict:
     import zenoh
 
-    from ..common import codec
-    from ..common.keys import topic
-    from ..common.messages import ServiceStats
-    from ..common.node import _STAMP
-    from ..common.zenoh_session import ZenohOptions, open_session
-    from .pipeline import free_port
+    from common import codec
+    from common.keys import topic
+    from common.messages import ServiceStats
+    from common.node import _STAMP
+    from common.zenoh_session import ZenohOptions, open_session
+    from bench.measure import free_port
 
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
@@ -106,7 +108,7 @@ def record_run(messages, rate: float, seconds: float, image_format: str, threads
     out = Path(tmp.name) / "bench.mcap"
     log_path = Path(tmp.name) / "record.log"
     recorder = None
-    from ..supervisor import wait_for_tcp
+    from common.supervisor import wait_for_tcp
     try:
         if not wait_for_tcp(endpoint, 30.0, threading.Event()):
             raise RuntimeError(f"the Zenoh router did not listen on {endpoint}")
@@ -155,7 +157,7 @@ def record_run(messages, rate: float, seconds: float, image_format: str, threads
             cpu = _cpu_s(recorder.pid) - cpu0
             recorder.send_signal(signal.SIGINT)
             recorder.wait(120)
-        from ..services.recorder.recording import RAW_LEFT, RecordingReader
+        from cores.recording import RAW_LEFT, RecordingReader
 
         info = RecordingReader(out).info()
         seqs = []

@@ -10,8 +10,8 @@ import numpy as np
 def bench_renderer(scenarios: tuple[str, ...] = ("two-boxes", "person-walking"), frames: int = 30) -> dict:
     import cv2
 
-    from ..common import camera
-    from ..services.capture.synthetic import Scene, SyntheticWorld
+    from cores import camera
+    from sim.synthetic import Scene, SyntheticWorld
 
     cv2.setNumThreads(1)
     rig = camera.load_calibration("lifecam-studio")

@@ -8,7 +8,7 @@ pipeline runs capture and rectify processes instead (on 2 cores they compete wit
 The offered rate is rate_factor x what min(N, cores) single-thread workers can do (from the
 in-process single-thread time); the dispatcher drops what no worker is free for.
 
-    ballbot-vision bench scaling                 # or: python -m ballbot_vision.bench.scaling --workers 1 2 3
+    ballbot-vision bench scaling                 # or: python -m bench.scaling --workers 1 2 3
 
 Targets (issue #14): one worker delivers >= 0.9 x its own in-process one-thread ceiling, two
 workers >= 1.8 x that ceiling (not x one worker, which a slow single worker would flatter). The
@@ -30,9 +30,9 @@ import numpy as np
 
 def rectified_pairs(n: int = 4) -> list[tuple[np.ndarray, np.ndarray]]:
     """n rectified synthetic 640x480 pairs: what the feeder publishes and the ceilings match."""
-    from ..common import camera
-    from ..services.capture.sources import SyntheticSource
-    from ..services.rectify.core import Rectifier
+    from cores import camera
+    from services.capture.sources import SyntheticSource
+    from cores.calibration.rectify import Rectifier
 
     src = SyntheticSource("two-boxes", "lifecam-studio", 30.0, preload=n)
     rect = Rectifier(camera.load_calibration("lifecam-studio"))
@@ -45,7 +45,7 @@ def ceiling(method: str, threads: int, pairs: list, seconds: float = 3.0) -> dic
     maps/s, and the CPU time per frame."""
     import cv2
 
-    from ..services.disparity.matchers import MatcherConfig, StereoMatcher
+    from cores.matching.matchers import MatcherConfig, StereoMatcher
 
     m = StereoMatcher(MatcherConfig(method=method))
     before = cv2.getNumThreads()
@@ -69,9 +69,10 @@ def ceiling(method: str, threads: int, pairs: list, seconds: float = 3.0) -> dic
 
 def rectified_payloads(rid: str, pairs: list) -> list:
     """The rectified pairs as StereoFrame payloads (seq and stamp are patched per send)."""
-    from ..common import camera, codec
-    from ..common.messages import StereoFrame
-    from ..services.rectify.core import Rectifier
+    from common import codec
+    from cores import camera
+    from common.messages import StereoFrame
+    from cores.calibration.rectify import Rectifier
 
     model = Rectifier(camera.load_calibration("lifecam-studio")).model_message
     return [StereoFrame(robot_id=rid, seq=0, stamp_ns=0, left=codec.image_from_array(l),
@@ -81,8 +82,8 @@ def rectified_payloads(rid: str, pairs: list) -> list:
 def _feed(session, rid: str, frames: list, rate: float, stop: threading.Event) -> None:
     import zenoh
 
-    from ..common import codec
-    from ..common.keys import topic
+    from common import codec
+    from common.keys import topic
 
     pub = session.declare_publisher(topic("frames_rect").key(rid), congestion_control=zenoh.CongestionControl.DROP)
     period, seq = 1.0 / rate, 0
@@ -97,7 +98,7 @@ def _feed(session, rid: str, frames: list, rate: float, stop: threading.Event) -
 
 
 def _cpu_all(sup) -> dict[str, float]:
-    from .pipeline import cpu_seconds
+    from bench.measure import cpu_seconds
 
     out = {c.name: cpu_seconds(c.proc.pid) for c in sup.children if c.proc is not None}
     out["bench"] = time.process_time()
@@ -106,12 +107,12 @@ def _cpu_all(sup) -> dict[str, float]:
 
 def pool_run(method: str, workers: int, rate: float, warmup_s: float, seconds: float, max_in_flight: int = 1,
              source: str = "feeder", nice: int = 0, pairs: list | None = None) -> dict:
-    from ..common import codec
-    from ..common.keys import topic
-    from ..common.messages import ServiceStats
-    from ..common.zenoh_session import ZenohOptions, open_session
-    from ..supervisor import Supervisor
-    from .pipeline import free_port, percentiles
+    from common import codec
+    from common.keys import topic
+    from common.messages import ServiceStats
+    from common.zenoh_session import ZenohOptions, open_session
+    from common.supervisor import Supervisor
+    from bench.measure import free_port, percentiles
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     rid = f"scale{os.getpid()}"
@@ -218,7 +219,7 @@ def score_runs(runs: list[dict], ceilings: list[dict], cores: int) -> tuple[dict
 
 
 def main(argv: list[str] | None = None) -> int:
-    from ..services.disparity.main import DisparitySettings
+    from services.disparity.main import DisparitySettings
 
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--method", default="sgbm", choices=["bm", "sgbm"])

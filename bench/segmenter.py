@@ -24,7 +24,7 @@ import numpy as np
 
 def segmenter_methods() -> list[str]:
     """The methods the segmenter's settings accept."""
-    from ..services.segmenter.main import SegmenterSettings
+    from cores.segmentation.settings import SegmenterSettings
 
     return list(typing.get_args(SegmenterSettings.model_fields["method"].annotation))
 
@@ -46,7 +46,7 @@ def time_methods(disparities: list[np.ndarray], model, settings_for: Callable[[s
                  matcher_ms: float, methods: list[str] | None, repeat: int) -> dict:
     """Segmenter(settings_for(method)).detect on the disparity maps in turn -> per method the time
     and its ratio to the matcher's (x_matcher) and the detections on the first map."""
-    from ..services.segmenter.main import Segmenter
+    from cores.segmentation.builder import Segmenter
 
     out = {}
     for method in methods or segmenter_methods():
@@ -63,12 +63,12 @@ def _matcher_ms(stereo, pairs: list, repeat: int) -> float:
 
 
 def bench_synthetic(scenario: str, methods: list[str] | None, repeat: int, frames: int = 1) -> dict:
-    from ..common import camera
-    from ..services.capture.sources import SyntheticSource
-    from ..services.disparity.matchers import MatcherConfig, StereoMatcher
-    from ..services.rectify.core import Rectifier
-    from ..services.segmenter.eval import render_scenario
-    from ..services.segmenter.main import SegmenterSettings
+    from cores import camera
+    from services.capture.sources import SyntheticSource
+    from cores.matching.matchers import MatcherConfig, StereoMatcher
+    from cores.calibration.rectify import Rectifier
+    from evaluation.synthetic import render_scenario
+    from cores.segmentation.settings import SegmenterSettings
 
     data = render_scenario(scenario, frames=frames)
     src = SyntheticSource(scenario, "lifecam-studio", 15.0)
@@ -93,13 +93,13 @@ def bench_real(folder: str | Path, methods: list[str] | None, repeat: int, pairs
                max_range_m: float = REAL_MAX_RANGE_M) -> dict:
     """A recording's folder (left/, right/, calibration.yaml) -> the same report as bench_synthetic,
     segmented out to max_range_m (the robot's few metres would leave a car's view empty)."""
-    from ..common import camera
-    from ..common.disparity import to_float
-    from ..common.errors import FileError
-    from ..common.files import list_images, pair_images, read_image
-    from ..services.disparity.matchers import SCALE, MatcherConfig, StereoMatcher
-    from ..services.rectify.core import Rectifier
-    from ..services.segmenter.main import SegmenterSettings
+    from cores import camera
+    from cores.matching.disparity import to_float
+    from common.errors import FileError
+    from common.files import list_images, pair_images, read_image
+    from cores.matching.matchers import SCALE, MatcherConfig, StereoMatcher
+    from cores.calibration.rectify import Rectifier
+    from cores.segmentation.settings import SegmenterSettings
 
     root = Path(folder).expanduser()
     cal_file = root / "calibration.yaml"

@@ -2,7 +2,7 @@
 decode and split pairs when nothing paces it (pace=max). Encoding for the wire and Zenoh are not
 included (`ballbot-vision bench` measures the pipeline).
 
-    python -m ballbot_vision.bench.sources [--frames 150] [--size 640x480] [--json]
+    python -m bench.sources [--frames 150] [--size 640x480] [--json]
 
 The content is the synthetic world's textured scene (what block matching needs, and harder for
 JPEG/PNG than flat test patterns), rendered once and written by this benchmark to a temporary
@@ -26,7 +26,7 @@ import numpy as np
 
 def _scene_pairs(n: int, width: int, height: int) -> list[tuple[np.ndarray, np.ndarray]]:
     """n distinct BGR pairs of the synthetic scene (resized if another size is asked for)."""
-    from ..services.capture.sources import SyntheticSource
+    from services.capture.sources import SyntheticSource
 
     src = SyntheticSource("two-boxes", "lifecam-studio", 30.0)
     out = []
@@ -72,8 +72,9 @@ def write_files(root: Path, frames: int, width: int = 640, height: int = 480, di
 
 def measure(settings: dict, frames: int) -> dict:
     """Open the source as `capture` would (pace=max) and read every pair; pairs/s and ms/pair."""
-    from ..services.capture.main import CaptureSettings, open_source
-    from ..services.capture.sources import SourceContext
+    from services.capture.main import open_source
+    from services.capture.settings import CaptureSettings
+    from services.capture.sources import SourceContext
 
     s = CaptureSettings(pace="max", **settings)
     opener = (lambda spec: cv2.VideoCapture(str(spec))) if s.source == "cameras" else None
@@ -105,7 +106,7 @@ def bench_sources(frames: int = 150, width: int = 640, height: int = 480, only: 
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m ballbot_vision.bench.sources", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m bench.sources", description=__doc__.split("\n\n")[0])
     p.add_argument("--frames", type=int, default=150, help="pairs per source")
     p.add_argument("--size", default="640x480", help="WIDTHxHEIGHT of one camera image")
     p.add_argument("--only", action="append", default=None, help="one source case (repeatable)")

@@ -7,8 +7,8 @@ from typing import TYPE_CHECKING, TypeVar
 import msgpack
 from pydantic import BaseModel, ValidationError
 
-from .errors import DecodeError
-from .messages import SCHEMA_VERSION, Image
+from common.errors import DecodeError
+from common.messages import SCHEMA_VERSION, Image
 
 if TYPE_CHECKING:  # numpy is imported where images are handled: `run router` and healthcheck never need it
     import numpy as np

@@ -19,7 +19,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterator, Sequence
 
-from .errors import FileError
+from common.errors import FileError
 
 if TYPE_CHECKING:  # numpy is imported where images are decoded: reading a YAML file needs none
     import numpy as np

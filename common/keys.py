@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 from pydantic import BaseModel
 
-from .messages import (CalibrationUpdate, DisparityMap, FreeSpace, GroundTruth, ObstacleList, Odometry, ReplayControl,
+from common.messages import (CalibrationUpdate, DisparityMap, FreeSpace, GroundTruth, ObstacleList, Odometry, ReplayControl,
                        ServiceStats, StereoFrame, WorkDone)
 
 

@@ -241,7 +241,7 @@ class ServiceStats(BaseModel):
 
 class CalibrationUpdate(Message):
     """A new calibration for the rectify service, applied between two frames without a restart.
-    `yaml` is the text of a calibration file (see common/camera.py); a calibration that does not
+    `yaml` is the text of a calibration file (see cores/camera.py); a calibration that does not
     load, or whose image size differs from the stream's, is refused and the old one stays."""
 
     yaml: str = Field(min_length=1, max_length=1_000_000, description="calibration file text (YAML)")

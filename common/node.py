@@ -27,11 +27,11 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any, Callable, Iterator, TypeVar
 
-from . import codec
-from .errors import BallbotError, DecodeError
-from .keys import Topic, topic
-from .messages import Message, ServiceStats
-from .zenoh_session import ZenohOptions, open_session
+from common import codec
+from common.errors import BallbotError, DecodeError
+from common.keys import Topic, topic
+from common.messages import Message, ServiceStats
+from common.zenoh_session import ZenohOptions, open_session
 
 log = logging.getLogger("ballbot")
 M = TypeVar("M", bound=Message)

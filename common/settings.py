@@ -25,7 +25,7 @@ from typing import Any, ClassVar, TypeVar
 
 from pydantic import BaseModel, ConfigDict, TypeAdapter, ValidationError
 
-from .errors import ConfigError
+from common.errors import ConfigError
 
 S = TypeVar("S", bound="ServiceSettings")
 
@@ -141,8 +141,8 @@ def flags_given(cls: type[ServiceSettings], args: argparse.Namespace | None) -> 
 
 def read_config_section(config_file: str, section: str) -> dict[str, Any]:
     """The mapping under `section` in a `--config` YAML file ({} when absent)."""
-    from .errors import FileError
-    from .files import read_yaml
+    from common.errors import FileError
+    from common.files import read_yaml
 
     try:  # missing, empty, binary or hostile files in the wording every command uses
         doc = read_yaml(config_file, "config")

@@ -8,7 +8,7 @@ import hashlib
 import hmac
 import os
 
-from .messages import CalibrationUpdate
+from common.messages import CalibrationUpdate
 
 KEY_ENV = "BALLBOT_CALIBRATION_KEY"
 

@@ -83,7 +83,7 @@ def make_config(o: ZenohOptions):
     """The Zenoh config; a config file or endpoint Zenoh refuses is a ConfigError naming it."""
     import zenoh
 
-    from .errors import ConfigError
+    from common.errors import ConfigError
 
     if o.config_file:
         if not os.path.isfile(o.config_file):
@@ -120,7 +120,7 @@ def open_session(o: ZenohOptions):
     it may work a moment later, so `up` restarts a service that meets it)."""
     import zenoh
 
-    from .errors import ConnectError
+    from common.errors import ConnectError
 
     zenoh.try_init_log_from_env()
     conf = make_config(o)

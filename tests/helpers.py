@@ -12,8 +12,8 @@ import threading
 import time
 from pathlib import Path
 
-from ballbot_vision.common import codec
-from ballbot_vision.common.zenoh_session import ZenohOptions, open_session
+from common import codec
+from common.zenoh_session import ZenohOptions, open_session
 
 REPO = Path(__file__).resolve().parent.parent
 

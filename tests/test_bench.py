@@ -11,8 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from ballbot_vision.bench import pipeline
-from ballbot_vision.bench.pipeline import (MAX_DROPPED, Received, search_rate, seq_gaps, summarize)
+from bench import pipeline
+from bench.pipeline import (MAX_DROPPED, Received, search_rate, seq_gaps, summarize)
 from helpers import REPO, cli
 
 KARLSRUHE = Path("/work/shared/data/real/karlsruhe-0023")
@@ -233,7 +233,7 @@ def test_a_searched_rate_the_measured_run_does_not_sustain_is_stepped_down(monke
 
 
 def test_the_matcher_reference_has_the_services_matcher_settings():
-    from ballbot_vision.services.disparity.matchers import MatcherConfig
+    from cores.matching.matchers import MatcherConfig
 
     c = MatcherConfig(method="bm")
     m = pipeline.opencv_matcher("bm")
@@ -251,7 +251,7 @@ def ceiling_of(fps: float) -> dict:
 
 
 def test_scaling_scores_each_run_against_the_ceilings_measured_around_it():
-    from ballbot_vision.bench.scaling import TARGETS, score_runs
+    from bench.scaling import TARGETS, score_runs
 
     runs = [{"workers": 1, "fps": 18.0}, {"workers": 2, "fps": 27.0}, {"workers": 3, "fps": 30.0}]
     # the machine got busier during the bench: the ceiling fell from 20 to 10 fps
@@ -268,7 +268,7 @@ def test_scaling_scores_each_run_against_the_ceilings_measured_around_it():
 
 
 def test_scaling_repeats_give_medians_and_a_short_ceiling_list_is_refused():
-    from ballbot_vision.bench.scaling import score_runs
+    from bench.scaling import score_runs
 
     runs = [{"workers": 1, "fps": f} for f in (16.0, 19.0, 10.0)]
     by_n, targets = score_runs(runs, [ceiling_of(20.0)] * 4, cores=2)
@@ -281,8 +281,8 @@ def test_scaling_repeats_give_medians_and_a_short_ceiling_list_is_refused():
 # --- accuracy baselines -----------------------------------------------------------------------------
 
 def test_accuracy_compares_with_opencvs_recommended_penalties_and_the_same_bm_block():
-    from ballbot_vision.bench import accuracy
-    from ballbot_vision.services.disparity.matchers import MatcherConfig
+    from bench import accuracy
+    from cores.matching.matchers import MatcherConfig
 
     base = accuracy.opencv_baselines(64)
     assert list(base) == accuracy.OPENCV_METHODS
@@ -301,7 +301,7 @@ def test_accuracy_compares_with_opencvs_recommended_penalties_and_the_same_bm_bl
 # --- bench-segmenter --------------------------------------------------------------------------------
 
 def test_bench_segmenter_times_every_method_beside_the_matcher():
-    from ballbot_vision.bench.segmenter import bench_segmenter, format_bench, segmenter_methods
+    from bench.segmenter import bench_segmenter, format_bench, segmenter_methods
 
     r = bench_segmenter(repeat=2)
     (synthetic,) = r["sets"]

@@ -1,4 +1,4 @@
-"""`calibrate --live`: the view selection and coverage logic (services/rectify/live.py) on projected
+"""`calibrate --live`: the view selection and coverage logic (cores/calibration/views.py) on projected
 board corners, and end to end: a router, a real capture looping rendered chessboard pairs, and
 `ballbot-vision calibrate --live` collecting views from it and writing a calibration."""
 from __future__ import annotations
@@ -15,9 +15,9 @@ import pytest
 from helpers import REPO, cli, free_port, wait_port
 from test_calibration import PATTERN, SIZE, SQUARE, TRUE_LEFT, TRUE_R, TRUE_RIGHT, TRUE_T, _rays, _render, _texture
 
-from ballbot_vision.common import camera
-from ballbot_vision.services.rectify import calibrate as C
-from ballbot_vision.services.rectify import live as L
+from cores import camera
+from cores.calibration import calibrate as C
+from cores.calibration import views as L
 
 CENTRE = np.array([(PATTERN[0] - 1) * SQUARE / 2, (PATTERN[1] - 1) * SQUARE / 2, 0.0])
 OBJ = C.board_points(PATTERN, SQUARE).reshape(-1, 3).astype(np.float64)

@@ -12,10 +12,10 @@ import pytest
 import yaml
 
 from ballbot_vision.cli import main
-from ballbot_vision.common import camera
-from ballbot_vision.common.errors import CalibrationError
-from ballbot_vision.services.rectify import calibrate as C
-from ballbot_vision.services.rectify import formats as F
+from cores import camera
+from common.errors import CalibrationError
+from cores.calibration import calibrate as C
+from cores.calibration import formats as F
 
 PATTERN, SQUARE = (9, 6), 0.03
 SIZE = (640, 480)

@@ -11,9 +11,9 @@ import pytest
 import yaml
 
 from ballbot_vision.cli import main
-from ballbot_vision.common import camera
-from ballbot_vision.common.errors import CalibrationError, FileError
-from ballbot_vision.services.rectify import formats as F
+from cores import camera
+from common.errors import CalibrationError, FileError
+from cores.calibration import formats as F
 
 EUROC = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "real" / "euroc-v1-01"
 if not EUROC.is_dir():

@@ -12,10 +12,11 @@ import cv2
 import numpy as np
 import pytest
 
-from ballbot_vision.common.errors import SourceError
-from ballbot_vision.services.capture import cameras
-from ballbot_vision.services.capture.main import CaptureSettings, open_source
-from ballbot_vision.services.capture.sources import SourceContext
+from common.errors import SourceError
+from services.capture import cameras
+from services.capture.main import open_source
+from services.capture.settings import CaptureSettings
+from services.capture.sources import SourceContext
 
 W, H = 160, 120  # small frames keep the tests fast; the benchmark measures 640x480
 
@@ -390,9 +391,9 @@ def test_cli_missing_camera_exits_2_with_the_message():
 
 def test_run_loop_skips_bad_pairs_converts_to_grey_and_idles_at_end(image_dirs):
     """main.run on a real Node object without a Zenoh session (publishers replaced)."""
-    from ballbot_vision.common.node import Node
-    from ballbot_vision.common.zenoh_session import ZenohOptions
-    from ballbot_vision.services.capture.main import run
+    from common.node import Node
+    from common.zenoh_session import ZenohOptions
+    from services.capture.main import run
 
     left, right = image_dirs
     (left / "f4.png").write_bytes(b"")
@@ -436,7 +437,7 @@ def test_run_loop_skips_bad_pairs_converts_to_grey_and_idles_at_end(image_dirs):
     assert not t.is_alive()
     frames = sent["frames_raw"]
     assert [f.seq for f in frames] == list(range(10)) and node.errors == 1 and not sent["truth"]
-    from ballbot_vision.common import codec
+    from common import codec
 
     for f, i in zip(frames, [0, 1, 2, 3, 5, 6, 7, 8, 9, 10]):
         assert f.left.channels == 1 and f.left.encoding == "jpeg" and f.source == "images"
@@ -446,7 +447,7 @@ def test_run_loop_skips_bad_pairs_converts_to_grey_and_idles_at_end(image_dirs):
 
 
 def test_bench_sources_measures_every_file_source():
-    from ballbot_vision.bench.sources import bench_sources
+    from bench.sources import bench_sources
 
     r = bench_sources(frames=4, width=W, height=H)
     assert set(r["sources"]) == {"images-png", "images-jpeg", "video", "video-sbs", "cameras-on-video"}
@@ -461,10 +462,10 @@ def test_run_capture_images_publishes_pairs_over_zenoh_then_idles_at_end_of_stre
     the files, and one that reaches the end of its 11 pairs and must stay up, idle, then exit 0."""
     from helpers import Collector, cli, free_port
 
-    from ballbot_vision.common import codec
-    from ballbot_vision.common.keys import topic
-    from ballbot_vision.common.messages import ServiceStats, StereoFrame
-    from ballbot_vision.common.zenoh_session import ZenohOptions, open_session
+    from common import codec
+    from common.keys import topic
+    from common.messages import ServiceStats, StereoFrame
+    from common.zenoh_session import ZenohOptions, open_session
 
     left, right = image_dirs
     endpoint = f"tcp/127.0.0.1:{free_port()}"

@@ -8,11 +8,11 @@ import msgpack
 import numpy as np
 import pytest
 
-from ballbot_vision.common import codec, keys
-from ballbot_vision.common.errors import ConfigError, DecodeError
-from ballbot_vision.common.messages import SCHEMA_VERSION, FreeSpace, Image, ObstacleList, StereoFrame
-from ballbot_vision.common.settings import load_settings
-from ballbot_vision.services.segmenter.main import SegmenterSettings
+from common import codec, keys
+from common.errors import ConfigError, DecodeError
+from common.messages import SCHEMA_VERSION, FreeSpace, Image, ObstacleList, StereoFrame
+from common.settings import load_settings
+from cores.segmentation.settings import SegmenterSettings
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -113,7 +113,7 @@ def test_settings_priority_default_file_env_flag(tmp_path, monkeypatch):
     s = load_settings(SegmenterSettings, str(cfg))
     assert s.max_range_m == 2.5 and s.median_ksize == 3 and s.min_area_fraction == 0.03
     import argparse
-    from ballbot_vision.common.settings import add_settings_arguments
+    from common.settings import add_settings_arguments
     parser = argparse.ArgumentParser()
     add_settings_arguments(parser, SegmenterSettings)
     s = load_settings(SegmenterSettings, str(cfg), parser.parse_args(["--max-range-m", "1.5"]))
@@ -132,7 +132,7 @@ def test_bad_settings_name_where_the_value_came_from(tmp_path, monkeypatch):
 
 
 def test_inbox_keeps_the_newest_by_capture_stamp_and_counts_what_it_drops():
-    from ballbot_vision.common.node import Inbox
+    from common.node import Inbox
     inbox = Inbox(keys.topic("disparity"))
     inbox.offer(b"t20", 20)
     inbox.offer(b"t10", 10)  # a slow worker's older result must not replace the newer one
@@ -163,7 +163,7 @@ def test_freespace_round_trips_on_the_wire_and_as_json():
 
 
 def test_watch_table_says_where_the_ground_is_and_which_tracks_to_trust():
-    from ballbot_vision.common.messages import GroundEstimate, Obstacle, ObstacleList
+    from common.messages import GroundEstimate, Obstacle, ObstacleList
     from ballbot_vision.watch import format_table
 
     o = Obstacle(id=3, position_m=(0.1, 0.2, 2.0), size_m=(0.5, 0.6, 0.3), distance_m=1.9, bbox_px=(1, 2, 3, 4),

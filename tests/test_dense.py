@@ -11,16 +11,17 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from ballbot_vision.common import camera, codec
-from ballbot_vision.common.disparity import to_float
-from ballbot_vision.common.errors import BallbotError
-from ballbot_vision.common.messages import DisparityMap, ServiceStats, StereoFrame
-from ballbot_vision.services.capture import synthetic as S
-from ballbot_vision.services.disparity import dense
-from ballbot_vision.services.disparity.config import auto_num_disparities
-from ballbot_vision.services.disparity.matchers import MatcherConfig, make_matcher
-from ballbot_vision.services.disparity.pool import FrameComputer
-from ballbot_vision.services.rectify.core import Rectifier, camera_model_message
+from common import codec
+from cores import camera
+from cores.matching.disparity import to_float
+from common.errors import BallbotError
+from common.messages import DisparityMap, ServiceStats, StereoFrame
+from sim import synthetic as S
+from cores.matching import dense
+from cores.matching.config import auto_num_disparities
+from cores.matching.matchers import MatcherConfig, make_matcher
+from services.disparity.pool import FrameComputer
+from cores.calibration.rectify import Rectifier, camera_model_message
 
 
 @pytest.fixture(scope="module")
@@ -121,7 +122,7 @@ def test_dense_gives_every_pixel_a_value_and_beats_sgbm_on_the_synthetic_world(s
 
 def test_dense_beats_every_opencv_setting_by_a_quarter_on_each_real_pair():
     """The issue's target, on every real pair with ground truth this machine has (bench accuracy)."""
-    from ballbot_vision.bench import accuracy
+    from bench import accuracy
 
     pairs = accuracy.available_pairs()
     if not pairs:
@@ -230,8 +231,8 @@ def test_robot_runs_bm_onboard_and_an_offboard_worker_runs_dense(tmp_path):
     from helpers import Collector
     from test_disparity_pool import Procs, free_port, start_robot
 
-    from ballbot_vision.common.keys import topic
-    from ballbot_vision.common.zenoh_session import ZenohOptions, open_session
+    from common.keys import topic
+    from common.zenoh_session import ZenohOptions, open_session
 
     rid = f"dense{uuid.uuid4().hex[:6]}"
     endpoint = f"tcp/127.0.0.1:{free_port()}"

@@ -15,8 +15,8 @@ import uuid
 
 import pytest
 
-from ballbot_vision.services.disparity.pool import DispatchState, make_attachment, parse_attachment
-from ballbot_vision.common.errors import DecodeError
+from services.disparity.pool import DispatchState, make_attachment, parse_attachment
+from common.errors import DecodeError
 
 
 # --- DispatchState: pure bookkeeping ----------------------------------------------------------------
@@ -146,9 +146,9 @@ def test_receipt_timeouts_adapt_to_a_slow_worker():
 def test_frames_to_workers_png_is_lossless_jpeg_is_smaller():
     import numpy as np
 
-    from ballbot_vision.common import codec
-    from ballbot_vision.common.messages import CameraModel, StereoFrame
-    from ballbot_vision.services.disparity.pool import reencode_frame
+    from common import codec
+    from common.messages import CameraModel, StereoFrame
+    from services.disparity.pool import reencode_frame
 
     rng = np.random.default_rng(0)
     img = cv2_blur(rng.integers(0, 255, (120, 160), dtype=np.uint8))
@@ -181,10 +181,10 @@ PY = sys.executable
 
 COLLECTOR = r"""
 import json, sys, time, threading, zenoh
-from ballbot_vision.common import codec
-from ballbot_vision.common.keys import topic
-from ballbot_vision.common.messages import DisparityMap, ObstacleList, ServiceStats
-from ballbot_vision.common.zenoh_session import ZenohOptions, open_session
+from common import codec
+from common.keys import topic
+from common.messages import DisparityMap, ObstacleList, ServiceStats
+from common.zenoh_session import ZenohOptions, open_session
 rid, endpoint = sys.argv[1], sys.argv[2]
 lock = threading.Lock()
 def emit(**kw):
@@ -214,10 +214,10 @@ with open_session(ZenohOptions(mode="peer", connect=[endpoint], listen=[])) as s
 
 INJECT = r"""
 import sys, time, msgpack
-from ballbot_vision.common import codec
-from ballbot_vision.common.keys import topic
-from ballbot_vision.common.messages import WorkDone
-from ballbot_vision.common.zenoh_session import ZenohOptions, open_session
+from common import codec
+from common.keys import topic
+from common.messages import WorkDone
+from common.zenoh_session import ZenohOptions, open_session
 rid, endpoint, worker = sys.argv[1], sys.argv[2], sys.argv[3]
 with open_session(ZenohOptions(mode="peer", connect=[endpoint], listen=[])) as s:
     time.sleep(0.5)  # let the declarations propagate (a helper process, not the test)
@@ -502,7 +502,7 @@ def test_workers_in_another_network_namespace_survive_a_kill():
 
 
 def test_a_workers_queue_is_bounded_in_items_and_bytes():
-    from ballbot_vision.services.disparity.pool import WorkQueue
+    from services.disparity.pool import WorkQueue
 
     q = WorkQueue(capacity=3, max_bytes=10 << 20)
     for i in range(5):

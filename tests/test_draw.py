@@ -4,12 +4,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ballbot_vision.common import camera
-from ballbot_vision.common.messages import FreeSpace, GroundEstimate, Obstacle, ObstacleList
-from ballbot_vision.services.segmenter import draw as D
-from ballbot_vision.services.segmenter.ground import frame_mount
-from ballbot_vision.services.segmenter.mount import Mount
-from ballbot_vision.services.segmenter.settings import SegmenterSettings
+from cores import camera
+from common.messages import FreeSpace, GroundEstimate, Obstacle, ObstacleList
+from cores.segmentation import draw as D
+from cores.segmentation.ground import frame_mount
+from cores.segmentation.mount import Mount
+from cores.segmentation.settings import SegmenterSettings
 
 MODEL = camera.RectifiedModel(320, 240, 200.0, 160.0, 120.0, 0.1)
 GREY = 100
@@ -122,8 +122,8 @@ def test_obstacles_command_draws_one_picture_per_pair_and_prints_ground_and_free
     import cv2
 
     from ballbot_vision.cli import main
-    from ballbot_vision.common.messages import ObstacleList
-    from ballbot_vision.services.capture.synthetic import Scene, SyntheticWorld
+    from common.messages import ObstacleList
+    from sim.synthetic import Scene, SyntheticWorld
 
     rig = camera.load_calibration("lifecam-studio")
     world = SyntheticWorld(Scene.builtin("touching"), rig, camera.rectify_rig(rig), seed=0)

@@ -1,5 +1,5 @@
 """Acceptance of the segmenter on the real pipeline: every shipped synthetic scenario rendered,
-rectified, block-matched and segmented, scored against ground truth (services/segmenter/eval.py).
+rectified, block-matched and segmented, scored against ground truth (evaluation/synthetic.py).
 The thesis's method (`seed`) passes its one-object scene and shows its known failures; `layers`
 (the default) passes them all."""
 from __future__ import annotations
@@ -9,8 +9,8 @@ import json
 import numpy as np
 import pytest
 
-from ballbot_vision.services.capture.synthetic import list_builtin_scenarios
-from ballbot_vision.services.segmenter import eval as E
+from sim.synthetic import list_builtin_scenarios
+from evaluation import synthetic as E
 
 SCENARIOS = ["two-boxes", "toolbox", "chair", "touching", "border", "person-walking"]
 

@@ -3,8 +3,8 @@ stamps, replays, clock steps and resynchronisation. No network; the same probes 
 processes are in test_reliability.py."""
 from __future__ import annotations
 
-from ballbot_vision.common.keys import topic
-from ballbot_vision.common.node import Clock, FreshnessGate, FreshnessLimits, Inbox, Meta
+from common.keys import topic
+from common.node import Clock, FreshnessGate, FreshnessLimits, Inbox, Meta
 
 S = 1_000_000_000  # ns per s
 T0 = 1_700_000_000 * S
@@ -172,7 +172,7 @@ def test_a_flood_of_forged_stamps_cannot_resync_the_gate_while_real_frames_pass(
 def test_a_starved_tracker_keeps_ids_of_what_it_had_no_frame_to_see():
     """Frames 1.5 s apart (a segmenter starved of CPU): a static obstacle is seen in every frame it
     gets, so it keeps its id; one that is really gone is dropped after timeout_s and 3 frames."""
-    from ballbot_vision.services.segmenter.tracking import Tracker
+    from cores.segmentation.tracking import Tracker
 
     tr = Tracker(timeout_s=1.0)
     box, other = [1.0, 0.0, 3.0], [-1.0, 0.0, 4.0]
@@ -187,9 +187,9 @@ def test_a_starved_tracker_keeps_ids_of_what_it_had_no_frame_to_see():
 
 def test_node_frame_time_is_monotonic_across_a_wall_clock_step():
     """The tracker's time base: the capture moment on the monotonic clock, never going backwards."""
-    from ballbot_vision.common.messages import ObstacleList
-    from ballbot_vision.common.node import Node
-    from ballbot_vision.common.zenoh_session import ZenohOptions
+    from common.messages import ObstacleList
+    from common.node import Node
+    from common.zenoh_session import ZenohOptions
 
     clock = StepClock()
     node = Node("t", ZenohOptions(), "r", clock=clock)
@@ -213,8 +213,8 @@ def test_node_frame_time_is_monotonic_across_a_wall_clock_step():
 
 
 def test_calibrations_are_signed_with_the_robots_key_and_a_forgery_does_not_verify():
-    from ballbot_vision.common.messages import CalibrationUpdate
-    from ballbot_vision.common.signing import sign, signed
+    from common.messages import CalibrationUpdate
+    from common.signing import sign, signed
 
     key = b"robot-secret"
     msg = sign(CalibrationUpdate(robot_id="r", seq=0, stamp_ns=5, yaml="rectified: true\n", source="capture"), key)

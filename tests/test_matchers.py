@@ -6,17 +6,18 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ballbot_vision.common import camera, codec
+from common import codec
+from cores import camera
 from pydantic import ValidationError
 
-from ballbot_vision.common.disparity import to_float
-from ballbot_vision.common.errors import ConfigError
-from ballbot_vision.common.settings import load_settings
-from ballbot_vision.services.capture import synthetic as S
-from ballbot_vision.services.disparity.main import DisparitySettings
-from ballbot_vision.services.disparity.matchers import (HalfResolutionMatcher, MatcherConfig, StereoMatcher,
+from cores.matching.disparity import to_float
+from common.errors import ConfigError
+from common.settings import load_settings
+from sim import synthetic as S
+from services.disparity.main import DisparitySettings
+from cores.matching.matchers import (HalfResolutionMatcher, MatcherConfig, StereoMatcher,
                                                        gate_for_range)
-from ballbot_vision.services.rectify.core import Rectifier
+from cores.calibration.rectify import Rectifier
 
 
 @pytest.fixture(scope="module")
@@ -109,9 +110,9 @@ def test_bad_settings_are_refused():
 
 
 def test_png_results_are_lossless(scene):
-    from ballbot_vision.services.disparity.pool import FrameComputer
-    from ballbot_vision.services.rectify.core import camera_model_message
-    from ballbot_vision.common.messages import StereoFrame
+    from services.disparity.pool import FrameComputer
+    from cores.calibration.rectify import camera_model_message
+    from common.messages import StereoFrame
 
     left, right, _, model = scene
     frame = StereoFrame(robot_id="t", seq=1, stamp_ns=1, left=codec.image_from_array(left),
@@ -128,7 +129,7 @@ def test_png_results_are_lossless(scene):
 
 def test_our_defaults_against_opencv_on_middlebury():
     pytest.importorskip("skimage", reason="scikit-image ships the Middlebury pair (pip install scikit-image)")
-    from ballbot_vision.bench.accuracy import evaluate_pair, motorcycle
+    from bench.accuracy import evaluate_pair, motorcycle
 
     t = evaluate_pair(motorcycle(), ["sgbm", "bm", "opencv-sgbm-default", "opencv-sgbm-sample", "opencv-bm-15"])
     assert t["sgbm"]["bad2"] < t["opencv-sgbm-default"]["bad2"], t  # 18.4 % vs 23.8 % (P1 = P2 = 0)
@@ -139,7 +140,7 @@ def test_our_defaults_against_opencv_on_middlebury():
 def test_bench_accuracy_fails_clearly_without_scikit_image(monkeypatch, capsys):
     import sys
 
-    from ballbot_vision.bench import accuracy
+    from bench import accuracy
 
     monkeypatch.setitem(sys.modules, "skimage", None)  # what `import skimage` sees when it is not installed
     assert accuracy.main(["--pairs", "motorcycle"]) == 2

@@ -1,5 +1,5 @@
 """The occlusion and right-border scenarios through the real pipeline (render -> rectify -> block
-matching -> segmenter -> tracker), scored by services/segmenter/eval.py: a person hidden behind a
+matching -> segmenter -> tracker), scored by evaluation/synthetic.py: a person hidden behind a
 nearer box for ~0.5 s keeps its track id, the hidden frames are not held against the method, and the
 thesis's method (`seed`) shows its failure on an object cut by the right image border."""
 from __future__ import annotations
@@ -7,10 +7,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ballbot_vision.common import camera
-from ballbot_vision.services.capture import synthetic as S
-from ballbot_vision.services.rectify.core import Rectifier
-from ballbot_vision.services.segmenter import eval as E
+from cores import camera
+from sim import synthetic as S
+from cores.calibration.rectify import Rectifier
+from evaluation import synthetic as E
 
 NEW = ["occlusion", "border-right"]
 

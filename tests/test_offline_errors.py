@@ -158,7 +158,7 @@ def test_bad_calibration_files_are_one_line_errors(tmp_path, capfd, command, con
                                         (".tif", []), (".tif", [cv2.IMWRITE_TIFF_COMPRESSION, 1]), (".webp", []),
                                         (".webp", [cv2.IMWRITE_WEBP_QUALITY, 101])])
 def test_image_sizes_are_read_from_every_header_opencv_writes(ext, params):
-    from ballbot_vision.common.files import image_header_size
+    from common.files import image_header_size
 
     img = np.zeros((37, 53, 3) if ext == ".ppm" else (37, 53), np.uint8)
     assert image_header_size(cv2.imencode(ext, img, params)[1].tobytes()) == (53, 37)
@@ -290,7 +290,7 @@ def test_an_output_path_that_cannot_be_written_is_a_one_line_error(tmp_path, cap
 
 def test_a_bad_image_in_the_middle_of_a_conversion_keeps_the_pairs_before_it(tmp_path, capfd):
     pytest.importorskip("mcap")
-    from ballbot_vision.services.recorder.recording import RecordingReader
+    from cores.recording import RecordingReader
 
     left, right = _scene()
     (tmp_path / "L").mkdir(), (tmp_path / "R").mkdir()
@@ -355,7 +355,7 @@ def test_hostile_yaml_is_refused_before_it_is_walked(tmp_path, capfd, command, k
 
 def test_a_hostile_calibration_message_is_refused_by_rectify():
     """The same YAML on the calibration key: refused and logged, the calibration in use stays."""
-    from ballbot_vision.services.rectify.core import CalibrationHolder
+    from cores.calibration.rectify import CalibrationHolder
 
     holder = CalibrationHolder("lifecam-studio")
     before = holder.current()
@@ -371,7 +371,7 @@ def test_a_hostile_calibration_message_is_refused_by_rectify():
 ])
 def test_an_opencv_file_with_broken_fields_is_a_one_line_error(tmp_path, capfd, content, phrase):
     """cv::FileStorage's own assertions (cv2.error) and a NaN size were tracebacks."""
-    from ballbot_vision.common import camera
+    from cores import camera
 
     rig = camera.load_calibration("lifecam-studio")
     mat = lambda m: "!!opencv-matrix\n   rows: {}\n   cols: {}\n   dt: d\n   data: [ {} ]\n".format(  # noqa: E731

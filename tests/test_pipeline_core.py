@@ -4,14 +4,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ballbot_vision.common import camera
-from ballbot_vision.common.errors import BallbotError
-from ballbot_vision.services.capture.sources import SyntheticSource
-from ballbot_vision.common.disparity import to_float
-from ballbot_vision.services.disparity.matchers import MatcherConfig, StereoMatcher
-from ballbot_vision.services.rectify.core import Rectifier
-from ballbot_vision.services.segmenter.seed import segment
-from ballbot_vision.services.segmenter.settings import SegmenterSettings
+from cores import camera
+from common.errors import BallbotError
+from services.capture.sources import SyntheticSource
+from cores.matching.disparity import to_float
+from cores.matching.matchers import MatcherConfig, StereoMatcher
+from cores.calibration.rectify import Rectifier
+from cores.segmentation.seed import segment
+from cores.segmentation.settings import SegmenterSettings
 
 
 @pytest.fixture(scope="module")
@@ -41,7 +41,7 @@ def test_rectified_rows_are_epipolar_lines(chain):
 
 def test_block_matching_agrees_with_true_depth(chain):
     pair, rect, _, _, disparity = chain
-    from ballbot_vision.services.capture.synthetic import Scene, SyntheticWorld
+    from sim.synthetic import Scene, SyntheticWorld
     rig = camera.load_calibration("lifecam-studio")
     world = SyntheticWorld(Scene.default(), rig, rect.rectification, seed=0)
     truth = world.true_disparity(0.0)

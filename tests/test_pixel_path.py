@@ -10,7 +10,7 @@ import sys
 
 PROBE = r"""
 import json, os, resource, sys, threading
-from ballbot_vision.common.node import release_memory_eagerly, trim_memory
+from common.node import release_memory_eagerly, trim_memory
 
 release_memory_eagerly()
 

@@ -13,15 +13,15 @@ import numpy as np
 import pytest
 
 from ballbot_vision.cli import main
-from ballbot_vision.common import camera
-from ballbot_vision.common.errors import BallbotError, ConfigError
-from ballbot_vision.common.messages import GroundEstimate
-from ballbot_vision.common.settings import load_settings
-from ballbot_vision.services.segmenter import draw as D
-from ballbot_vision.services.segmenter import real_eval as R
-from ballbot_vision.services.segmenter.mount import Mount
-from ballbot_vision.services.segmenter.mount_estimate import estimate_from_grounds, merge_into_config
-from ballbot_vision.services.segmenter.settings import SegmenterSettings
+from cores import camera
+from common.errors import BallbotError, ConfigError
+from common.messages import GroundEstimate
+from common.settings import load_settings
+from cores.segmentation import draw as D
+from evaluation import real as R
+from cores.segmentation.mount import Mount
+from cores.segmentation.mount_estimate import estimate_from_grounds, merge_into_config
+from cores.segmentation.settings import SegmenterSettings
 
 def _real_data() -> Path:
     """../shared/data/real beside the repository (a worktree sits one level deeper), or BALLBOT_REAL_DATA."""
@@ -128,7 +128,7 @@ def test_merge_into_config_keeps_the_file_and_load_settings_reads_it(tmp_path):
     assert "# my robot" in text and "# the default" in text and "mount_height_m: 1.0\n" not in text
     s = load_settings(SegmenterSettings, str(cfg))
     assert (s.mount_height_m, s.mount_pitch_deg, s.mount_roll_deg, s.method) == (0.944, 22.5, -1.2, "layers")
-    from ballbot_vision.services.disparity.config import MatcherConfig
+    from cores.matching.config import MatcherConfig
     assert load_settings(MatcherConfig, str(cfg)).method == "sgbm"
     flow = tmp_path / "flow.yaml"  # a flow-style section: rewritten from its content
     flow.write_text("segmenter: {method: seed}\nviewer: {port: 8081}\n")
@@ -248,8 +248,8 @@ def test_karlsruhe_meets_the_real_scene_targets_with_the_default_segmenter():
     the parked street's obstacles come out nearly still over the ground; the ground is the road
     (its height and pitch agree with the independent profile). Of all near obstacles, confirmed
     or not, fewer live 5 frames (the issue's 80 % is not reached: see the README)."""
-    from ballbot_vision.services.disparity.config import MatcherConfig
-    from ballbot_vision.services.segmenter.settings import SegmenterSettings
+    from cores.matching.config import MatcherConfig
+    from cores.segmentation.settings import SegmenterSettings
 
     rec = R.open_recording(KARLSRUHE)
     report = R.evaluate_recording(rec, SegmenterSettings(max_range_m=30.0), MatcherConfig(num_disparities=128))
@@ -271,9 +271,9 @@ def test_euroc_tape_and_mat_on_the_floor_are_free_the_mattresses_and_chessboard_
     """The room: tape strips and a play mat lie on the floor (bottom half of the image), mattresses
     lean on the walls and a chessboard stands before the right one. Pixel places read off the
     pictures of the first frames (rectified left image, 752x480)."""
-    from ballbot_vision.services.disparity.config import MatcherConfig
-    from ballbot_vision.services.segmenter.ground import frame_mount
-    from ballbot_vision.services.segmenter.settings import SegmenterSettings
+    from cores.matching.config import MatcherConfig
+    from cores.segmentation.ground import frame_mount
+    from cores.segmentation.settings import SegmenterSettings
 
     rec = R.open_recording(EUROC)
     settings = SegmenterSettings(max_range_m=30.0)

@@ -16,9 +16,9 @@ pytest.importorskip("mcap", reason="recordings need the `mcap` package (the `rec
 
 from mcap.reader import make_reader
 
-from ballbot_vision.common.keys import topic
-from ballbot_vision.common.messages import GroundTruth, ObstacleList, ServiceStats, StereoFrame
-from ballbot_vision.services.recorder import recording as R
+from common.keys import topic
+from common.messages import GroundTruth, ObstacleList, ServiceStats, StereoFrame
+from cores import recording as R
 
 from helpers import REPO, Collector, Up, cli
 
@@ -136,7 +136,7 @@ def test_a_replay_steps_frame_by_frame(tmp_path):
     right.mkdir()
     import cv2
 
-    from ballbot_vision.services.capture.sources import SyntheticSource
+    from services.capture.sources import SyntheticSource
 
     src = SyntheticSource("two-boxes", "lifecam-studio", 30.0)
     for i in range(3):

@@ -16,14 +16,14 @@ import pytest
 pytest.importorskip("mcap", reason="recordings need the `mcap` package (the `record` extra)")
 jsonschema = pytest.importorskip("jsonschema", reason="schema checks need jsonschema (the `test` extra)")
 
-from ballbot_vision.common import codec
-from ballbot_vision.common.errors import SourceError
-from ballbot_vision.common.messages import (CameraModel, DisparityMap, FreeSpace, GroundEstimate, GroundTruth,
+from common import codec
+from common.errors import SourceError
+from common.messages import (CameraModel, DisparityMap, FreeSpace, GroundEstimate, GroundTruth,
                                             Obstacle, ObstacleList, ReplayControl, ServiceStats, StereoFrame,
                                             TruthObstacle)
-from ballbot_vision.services.capture.mcap_source import McapSource
-from ballbot_vision.services.recorder import recording as R
-from ballbot_vision.services.capture.sources import SourceContext
+from services.capture.mcap_source import McapSource
+from cores import recording as R
+from services.capture.sources import SourceContext
 
 from helpers import cli
 
@@ -328,7 +328,7 @@ def test_karlsruhe_folders_round_trip_with_their_calibration(tmp_path):
 
 
 def test_obstacles_reads_a_recording_like_the_image_folders_it_came_from(tmp_path):
-    from ballbot_vision.services.capture.sources import SyntheticSource
+    from services.capture.sources import SyntheticSource
 
     src = SyntheticSource("two-boxes", "lifecam-studio", 15.0)
     left_dir, right_dir = tmp_path / "L", tmp_path / "R"

@@ -10,9 +10,9 @@ import pytest
 import yaml
 
 from ballbot_vision.cli import main
-from ballbot_vision.common import camera
-from ballbot_vision.common.errors import BallbotError, CalibrationError
-from ballbot_vision.services.rectify.core import CalibrationHolder, Rectifier
+from cores import camera
+from common.errors import BallbotError, CalibrationError
+from cores.calibration.rectify import CalibrationHolder, Rectifier
 
 
 def _doc() -> dict:

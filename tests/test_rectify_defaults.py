@@ -12,13 +12,13 @@ import time
 import numpy as np
 import pytest
 
-from ballbot_vision.common import codec
-from ballbot_vision.common.errors import CalibrationError
-from ballbot_vision.common.keys import topic
-from ballbot_vision.common.messages import CalibrationUpdate, ServiceStats, StereoFrame
-from ballbot_vision.common.zenoh_session import ZenohOptions, open_session
-from ballbot_vision.services.rectify.core import CalibrationHolder
-from ballbot_vision.services.rectify.main import RectifySettings, check_assumed_calibration
+from common import codec
+from common.errors import CalibrationError
+from common.keys import topic
+from common.messages import CalibrationUpdate, ServiceStats, StereoFrame
+from common.zenoh_session import ZenohOptions, open_session
+from cores.calibration.rectify import CalibrationHolder
+from services.rectify.main import RectifySettings, check_assumed_calibration
 
 from helpers import REPO, Collector, cli, free_port, wait_port
 

@@ -20,9 +20,9 @@ import msgpack
 import pytest
 import zenoh
 
-from ballbot_vision.common import codec
-from ballbot_vision.common.keys import topic
-from ballbot_vision.common.messages import SCHEMA_VERSION, DisparityMap, ObstacleList, ServiceStats
+from common import codec
+from common.keys import topic
+from common.messages import SCHEMA_VERSION, DisparityMap, ObstacleList, ServiceStats
 
 from helpers import Up
 
@@ -203,8 +203,8 @@ def test_a_calibration_with_half_the_baseline_published_on_the_key_is_refused(pi
     every distance, silently. Now a jump like that is refused and the distances stay."""
     import yaml
 
-    from ballbot_vision.common import camera
-    from ballbot_vision.common.messages import CalibrationUpdate
+    from cores import camera
+    from common.messages import CalibrationUpdate
 
     st = pipeline.stream
     t0 = time.monotonic()
@@ -224,8 +224,8 @@ def test_a_calibration_with_half_the_baseline_published_on_the_key_is_refused(pi
 
 SLOW_PEER = r"""
 import sys, time
-from ballbot_vision.common.keys import topic
-from ballbot_vision.common.zenoh_session import ZenohOptions, open_session
+from common.keys import topic
+from common.zenoh_session import ZenohOptions, open_session
 rid, endpoint = sys.argv[1], sys.argv[2]
 def slow(sample):
     time.sleep(1.0)  # a stuck consumer: one second per sample
@@ -420,7 +420,7 @@ def test_health_and_healthcheck_report_a_stage_that_makes_no_progress(tmp_path):
         start("capture", "--connect", endpoint, "--rate-hz", "10", "--preload", "4")
         start("rectify", "--connect", endpoint, "--calibration", str(cal))
         stats = Stream()
-        from ballbot_vision.common.zenoh_session import ZenohOptions, open_session
+        from common.zenoh_session import ZenohOptions, open_session
 
         with open_session(ZenohOptions(mode="peer", connect=[endpoint], listen=["tcp/127.0.0.1:0"])) as s:
             s.declare_subscriber(topic("stats").pattern(rid), stats.on_stats)
@@ -446,7 +446,7 @@ def test_health_and_healthcheck_report_a_stage_that_makes_no_progress(tmp_path):
             sub = s.declare_subscriber(topic("frames_raw").key(rid), keep)
             assert raw.wait(60)
             sub.undeclare()
-            from ballbot_vision.common.messages import CameraModel, StereoFrame
+            from common.messages import CameraModel, StereoFrame
 
             msg = codec.decode(frame, StereoFrame)
             msg.camera = CameraModel(width=msg.left.width, height=msg.left.height, focal_px=600, cx=320, cy=240,

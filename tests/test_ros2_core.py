@@ -8,15 +8,17 @@ import pytest
 
 pytest.importorskip("rosbags", reason="the ros2 extra (rosbags) is not installed")
 
-from ballbot_vision.common import camera, codec
-from ballbot_vision.common.errors import CalibrationError, DecodeError
-from ballbot_vision.common.messages import (CameraModel, DisparityMap, FreeSpace, GroundEstimate, Obstacle,
+from common import codec
+from cores import camera
+from common.errors import CalibrationError, DecodeError
+from common.messages import (CameraModel, DisparityMap, FreeSpace, GroundEstimate, Obstacle,
                                             ObstacleList, StereoFrame)
-from ballbot_vision.services.capture.ros2 import StampPairer, camera_info_topic
-from ballbot_vision.services.ros2 import convert, rmw
-from ballbot_vision.services.ros2.main import Ros2Settings, mount_from, mount_moved
-from ballbot_vision.services.ros2.msgs import types_for
-from ballbot_vision.services.segmenter.mount import Mount
+from services.capture.ros2 import StampPairer, camera_info_topic
+from common.ros2 import rmw
+from cores import ros2_convert as convert
+from services.ros2.main import Ros2Settings, mount_from, mount_moved
+from common.ros2.msgs import types_for
+from cores.segmentation.mount import Mount
 
 # RIHS01 hashes as rosidl_generator_c wrote them into a ROS 2 (Jazzy) build's *__description.c
 # (vision_msgs 4.x, sensor_msgs, nav_msgs, visualization_msgs, tf2_msgs, std_msgs).

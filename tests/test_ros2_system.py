@@ -19,10 +19,10 @@ pytest.importorskip("rosbags", reason="the ros2 extra (rosbags) is not installed
 
 from helpers import REPO, Collector, cli, free_port, wait_port
 
-from ballbot_vision.common import codec
-from ballbot_vision.common.keys import topic
-from ballbot_vision.common.messages import FreeSpace, ObstacleList, ServiceStats
-from ballbot_vision.common.zenoh_session import ZenohOptions, open_session
+from common import codec
+from common.keys import topic
+from common.messages import FreeSpace, ObstacleList, ServiceStats
+from common.zenoh_session import ZenohOptions, open_session
 
 pytestmark = pytest.mark.system
 
@@ -293,8 +293,8 @@ def test_capture_from_ros2_camera_topics_gives_obstacles(tmp_path):
     """A ROS 2 'camera driver' (zenoh-ros2-sdk publishers) sends the synthetic scene's raw pairs
     and the rig's CameraInfo; rectify starts with a wrong calibration and must take the
     CameraInfo's; obstacles must come out where the scene's truth puts them."""
-    from ballbot_vision.common import camera
-    from ballbot_vision.services.capture.sources import SyntheticSource
+    from cores import camera
+    from services.capture.sources import SyntheticSource
 
     src = SyntheticSource("two-boxes", "lifecam-studio", 10.0, seed=3, noise_sigma=1.5, preload=0)
     frames = [src.read() for _ in range(6)]

@@ -7,7 +7,7 @@ import json
 import numpy as np
 
 from ballbot_vision.cli import main
-from ballbot_vision.common import camera
+from cores import camera
 
 
 def test_sample_pair_runs_the_offline_commands_as_readme_shows(tmp_path, capsys):

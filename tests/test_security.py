@@ -21,11 +21,11 @@ from pathlib import Path
 
 import pytest
 
-from ballbot_vision.common import codec
-from ballbot_vision.common.errors import ConnectError
-from ballbot_vision.common.keys import topic
-from ballbot_vision.common.messages import ObstacleList
-from ballbot_vision.common.zenoh_session import ZenohOptions, open_session
+from common import codec
+from common.errors import ConnectError
+from common.keys import topic
+from common.messages import ObstacleList
+from common.zenoh_session import ZenohOptions, open_session
 
 from helpers import REPO, free_port, wait_port
 

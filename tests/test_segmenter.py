@@ -8,13 +8,13 @@ import time
 import numpy as np
 import pytest
 
-from ballbot_vision.common import camera
-from ballbot_vision.common.errors import DecodeError
-from ballbot_vision.common.messages import CameraModel, DisparityMap, Image
-from ballbot_vision.services.segmenter import layers, seed
-from ballbot_vision.services.segmenter.main import (ObstacleBuilder, Segmenter, SegmenterSettings,
-                                                    camera_to_base)
-from ballbot_vision.services.segmenter.mount import FloorPlane, Mount
+from cores import camera
+from common.errors import DecodeError
+from common.messages import CameraModel, DisparityMap, Image
+from cores.segmentation import layers, seed
+from cores.segmentation.builder import ObstacleBuilder, Segmenter
+from cores.segmentation.settings import SegmenterSettings
+from cores.segmentation.mount import FloorPlane, Mount
 
 MODEL = camera.RectifiedModel(640, 480, 665.0, 320.0, 240.0, 0.1)
 FB = MODEL.focal_px * MODEL.baseline_m
@@ -138,8 +138,10 @@ def test_edge_refinement_snaps_the_box_to_intensity_edges():
 
 def test_mount_matches_the_height_pitch_transform_and_rep103():
     m = Mount(1.0, 15.0)
-    for p in ([0.3, -0.2, 2.0], [1.0, 2.0, 3.0]):
-        assert np.allclose(m.to_base(np.array(p)), camera_to_base(np.array(p), 1.0, 15.0))
+    c, s = np.cos(np.radians(15.0)), np.sin(np.radians(15.0))
+    for x, y, z in ([0.3, -0.2, 2.0], [1.0, 2.0, 3.0]):
+        # pitched down by 15 degrees: forward is z c - y s, left is -x, up is h - z s - y c
+        assert np.allclose(m.to_base(np.array([x, y, z])), [z * c - y * s, -x, 1.0 - z * s - y * c])
     # straight ahead on the optical axis, camera level: forward in the base frame
     level = Mount(0.5, 0.0)
     assert np.allclose(level.to_base([0, 0, 2.0]), [2.0, 0, 0.5])
@@ -222,7 +224,7 @@ def test_obstacles_command_on_rendered_images(tmp_path, capsys):
     import cv2
 
     from ballbot_vision.cli import main
-    from ballbot_vision.services.capture.synthetic import Scene, SyntheticWorld
+    from sim.synthetic import Scene, SyntheticWorld
 
     rig = camera.load_calibration("lifecam-studio")
     world = SyntheticWorld(Scene.builtin("touching"), rig, camera.rectify_rig(rig), seed=0)
@@ -248,7 +250,7 @@ def test_obstacles_command_on_rendered_images(tmp_path, capsys):
 # --- the ground every frame, the height band, free space (issue: real scenes) ----------------------
 
 def _frame(d, cfg, ground=None):
-    from ballbot_vision.services.segmenter.ground import GroundEstimator
+    from cores.segmentation.ground import GroundEstimator
     return layers.segment_frame(d, MODEL, cfg, ground=ground or GroundEstimator(cfg))
 
 
@@ -263,7 +265,7 @@ def test_ground_is_estimated_without_a_mount(mount):
 
 
 def test_a_wrong_mount_and_a_swaying_camera_still_remove_the_floor():
-    from ballbot_vision.services.segmenter.ground import GroundEstimator
+    from cores.segmentation.ground import GroundEstimator
 
     cfg = SegmenterSettings(mount_height_m=1.0, mount_pitch_deg=20.0)  # told 5 degrees wrong
     ground = GroundEstimator(cfg)
@@ -276,7 +278,7 @@ def test_a_wrong_mount_and_a_swaying_camera_still_remove_the_floor():
 
 
 def test_without_a_floor_in_view_the_last_ground_stands_in_then_none():
-    from ballbot_vision.services.segmenter.ground import GroundEstimator
+    from cores.segmentation.ground import GroundEstimator
 
     cfg = SegmenterSettings()
     ground = GroundEstimator(cfg)
@@ -305,8 +307,8 @@ def test_markings_are_floor_canopy_is_above_the_robot_and_only_standing_things_a
 
 
 def test_free_space_is_free_up_to_the_obstacle_occupied_at_it_unknown_behind():
-    from ballbot_vision.services.segmenter import freespace
-    from ballbot_vision.services.segmenter.ground import frame_mount
+    from cores.segmentation import freespace
+    from cores.segmentation.ground import frame_mount
 
     cfg = SegmenterSettings(freespace_resolution_m=0.1)
     fr = _frame(scene([(250, 390, 2.0, 200)], wall_m=6.0), cfg)
@@ -342,7 +344,7 @@ def test_builder_publishes_ground_free_space_and_confirms_tracks():
 
 
 def test_odometry_gives_velocities_over_the_ground():
-    from ballbot_vision.common.messages import Odometry
+    from common.messages import Odometry
 
     b = ObstacleBuilder(SegmenterSettings(mount_height_m=1.0, mount_pitch_deg=15.0))
     speed, fps = 0.6, 15.0
@@ -370,8 +372,8 @@ def test_odometry_gives_velocities_over_the_ground():
 def test_a_forged_odometry_message_cannot_poison_the_tracks():
     import msgpack
 
-    from ballbot_vision.common import codec
-    from ballbot_vision.common.messages import Odometry
+    from common import codec
+    from common.messages import Odometry
 
     good = Odometry(robot_id="r", seq=1, stamp_ns=1, linear_mps=(0.5, 0.0, 0.0))
     for bad in ((float("nan"), 0.0, 0.0), (float("inf"), 0.0, 0.0), (1e300, 0.0, 0.0)):
@@ -391,7 +393,7 @@ def test_a_forged_odometry_message_cannot_poison_the_tracks():
 def test_a_camera_model_with_a_nan_or_infinite_number_is_refused_at_decode():
     import msgpack
 
-    from ballbot_vision.common import codec
+    from common import codec
 
     msg = _message(scene([(250, 390, 2.0, 150)]))
     for field, value in (("cx", float("nan")), ("focal_px", float("inf")), ("baseline_m", float("nan"))):

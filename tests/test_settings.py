@@ -10,10 +10,10 @@ import sys
 import pytest
 
 from ballbot_vision.cli import build_parser
-from ballbot_vision.common.errors import ConfigError
-from ballbot_vision.common.settings import add_settings_arguments, load_settings
-from ballbot_vision.services.capture.main import CaptureSettings
-from ballbot_vision.services.segmenter.main import SegmenterSettings
+from common.errors import ConfigError
+from common.settings import add_settings_arguments, load_settings
+from services.capture.settings import CaptureSettings
+from cores.segmentation.settings import SegmenterSettings
 
 
 def capture(argv: list[str], config: str | None = None) -> CaptureSettings:
@@ -85,7 +85,7 @@ def test_env_and_config_file_are_named_too(tmp_path, monkeypatch):
 def test_several_stages_in_one_command_keep_their_values_apart():
     """A command that runs two stages names the other stage's settings with its prefix; the
     values of equal field names never mix."""
-    from ballbot_vision.common.settings import ServiceSettings
+    from common.settings import ServiceSettings
 
     class Other(ServiceSettings):
         section = "other"
@@ -110,7 +110,7 @@ def test_router_and_healthcheck_import_neither_opencv_numpy_nor_any_service(argv
     code = ("import sys\nfrom ballbot_vision import cli\n"
             "try:\n    cli.main(sys.argv[1:])\nexcept SystemExit:\n    pass\n"
             "heavy = sorted(m for m in sys.modules if m in ('cv2', 'scipy', 'numpy')"
-            " or m.startswith(('ballbot_vision.services', 'ballbot_vision.bench')))\n"
+            " or m.startswith(('services', 'bench')))\n"
             "print('HEAVY', heavy, file=sys.stderr)\n")
     r = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True, timeout=120)
     assert "HEAVY []" in r.stderr, r.stderr[-2000:]
@@ -128,7 +128,7 @@ def test_run_service_help_still_lists_every_setting():
 _HEAVY_AT_EXIT = ("import atexit, sys\n"
                   "def report():\n"
                   "    heavy = sorted(m for m in sys.modules if m in ('cv2', 'scipy', 'numpy')"
-                  " or m.startswith(('ballbot_vision.services', 'ballbot_vision.bench')))\n"
+                  " or m.startswith(('services', 'bench')))\n"
                   "    print('HEAVY', heavy, file=sys.stderr, flush=True)\n"
                   "atexit.register(report)\n"
                   "from ballbot_vision import cli\n"

@@ -6,8 +6,8 @@ import argparse
 import pytest
 
 from ballbot_vision.cli import build_parser, up_endpoints
-from ballbot_vision.common.errors import BallbotError
-from ballbot_vision.supervisor import INITIAL_BACKOFF_S, Child, Supervisor
+from common.errors import BallbotError
+from common.supervisor import INITIAL_BACKOFF_S, Child, Supervisor
 
 
 class Exited:
@@ -22,7 +22,7 @@ class Exited:
 
 def crash(sup: Supervisor, c: Child, ran_s: float, now: float) -> float:
     """c dies after running ran_s; -> the delay until its restart."""
-    import ballbot_vision.supervisor as S
+    import common.supervisor as S
 
     c.proc, c.started_at = Exited(), now - ran_s
     real = S.time.monotonic

@@ -7,9 +7,9 @@ import cv2
 import numpy as np
 import pytest
 
-from ballbot_vision.common import camera
-from ballbot_vision.common.errors import ConfigError
-from ballbot_vision.services.capture import synthetic as S
+from cores import camera
+from common.errors import ConfigError
+from sim import synthetic as S
 
 
 @pytest.fixture(scope="module")

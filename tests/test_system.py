@@ -9,9 +9,9 @@ import time
 import numpy as np
 import pytest
 
-from ballbot_vision.common import codec
-from ballbot_vision.common.keys import topic
-from ballbot_vision.common.messages import (FreeSpace, GroundTruth, Image, ObstacleList, Odometry, ServiceStats,
+from common import codec
+from common.keys import topic
+from common.messages import (FreeSpace, GroundTruth, Image, ObstacleList, Odometry, ServiceStats,
                                             StereoFrame)
 
 from helpers import Collector, cli, pid_alive

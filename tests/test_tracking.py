@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ballbot_vision.services.segmenter.tracking import Tracker
+from cores.segmentation.tracking import Tracker
 
 
 def _walk(p0, v, t):

@@ -16,11 +16,11 @@ import cv2
 import numpy as np
 import pytest
 
-from ballbot_vision.common import codec
-from ballbot_vision.common.keys import topic
-from ballbot_vision.common.messages import (CameraModel, DisparityMap, FreeSpace, Obstacle, ObstacleList,
+from common import codec
+from common.keys import topic
+from common.messages import (CameraModel, DisparityMap, FreeSpace, Obstacle, ObstacleList,
                                             ReplayControl, StereoFrame)
-from ballbot_vision.services.viewer import core
+from services.viewer import core
 
 from helpers import REPO, Collector, Up, cli, free_port, wait_port
 

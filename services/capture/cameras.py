@@ -30,11 +30,11 @@ from typing import TYPE_CHECKING, Any, Callable
 
 import cv2
 
-from ...common.errors import SourceError
-from .sources import CapturedPair, RollingStats, SourceContext, natural_key, split_sbs
+from common.errors import SourceError
+from services.capture.sources import CapturedPair, RollingStats, SourceContext, natural_key, split_sbs
 
 if TYPE_CHECKING:
-    from .main import CaptureSettings
+    from services.capture.settings import CaptureSettings
 
 log = logging.getLogger("ballbot.capture")
 
@@ -177,7 +177,7 @@ class CameraSource:
     def __init__(self, devices: list[Any], settings: CaptureSettings | None = None, ctx: SourceContext | None = None,
                  opener: Opener | None = None, sbs: bool = False):
         if settings is None:
-            from .main import CaptureSettings
+            from services.capture.settings import CaptureSettings
 
             settings = CaptureSettings(source="sbs" if sbs else "cameras")
         self.settings = settings

@@ -16,9 +16,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ...common import files
-from ...common.errors import FileError, SourceError
-from .sources import CapturedPair, SourceContext, split_sbs
+from common import files
+from common.errors import FileError, SourceError
+from services.capture.sources import CapturedPair, SourceContext, split_sbs
 
 log = logging.getLogger("ballbot.capture")
 

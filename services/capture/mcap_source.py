@@ -15,10 +15,10 @@ import threading
 import time
 from typing import Callable, Iterator
 
-from ...common.errors import SourceError
-from ...common.messages import ReplayControl
-from ..recorder.recording import RecordedPair, RecordingError, RecordingReader
-from .sources import CapturedPair, SourceContext
+from common.errors import SourceError
+from common.messages import ReplayControl
+from cores.recording import RecordedPair, RecordingError, RecordingReader
+from services.capture.sources import CapturedPair, SourceContext
 
 log = logging.getLogger("ballbot.capture")
 
@@ -188,10 +188,10 @@ def connect_replay(node, source: McapSource) -> None:
     """Wire a replay to the service: play/pause/step commands from the replay_control key, and the
     recording's calibration published on the calibration key whenever a rectify instance appears
     (rectify then rectifies the recorded pairs with the calibration they were recorded with)."""
-    from ...common import codec
-    from ...common.keys import topic
-    from ...common.messages import CalibrationUpdate
-    from ...common.signing import sign
+    from common import codec
+    from common.keys import topic
+    from common.messages import CalibrationUpdate
+    from common.signing import sign
 
     def on_control(sample) -> None:
         cmd = node.decode_or_drop(sample.payload.to_bytes(), ReplayControl, "replay command", "control")
@@ -203,7 +203,7 @@ def connect_replay(node, source: McapSource) -> None:
         return
     import zenoh
 
-    from ...common.messages import ServiceStats
+    from common.messages import ServiceStats
 
     source.ready.clear()
     calibration = node.session.declare_publisher(topic("calibration").key(node.robot_id))

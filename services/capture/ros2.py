@@ -21,9 +21,9 @@ from typing import Any
 
 import numpy as np
 
-from ...common import camera
-from ...common.errors import BallbotError, SourceError
-from .sources import CapturedPair, SourceContext
+from cores import camera
+from common.errors import BallbotError, SourceError
+from services.capture.sources import CapturedPair, SourceContext
 
 IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED = "sensor_msgs/msg/CompressedImage"
@@ -96,9 +96,10 @@ class Ros2Source:
     ended = False
 
     def __init__(self, settings: Any, ctx: SourceContext):
-        from ..ros2 import convert, rmw
-        from ..ros2.graph import RosNode
-        from ..ros2.msgs import types_for
+        from common.ros2 import rmw
+        from cores import ros2_convert as convert
+        from common.ros2.graph import RosNode
+        from common.ros2.msgs import types_for
 
         node = getattr(ctx, "node", None)
         if node is None or getattr(node, "session", None) is None:
@@ -144,7 +145,7 @@ class Ros2Source:
             warn("ros2", text)
 
     def _on_image(self, side: str):
-        from ..ros2 import rmw
+        from common.ros2 import rmw
 
         def on_sample(key: str, payload: bytes, attachment: bytes | None) -> None:
             typename = rmw.ros_type_from_dds(key.split("/")[-2])
@@ -186,8 +187,8 @@ class Ros2Source:
     def _send_calibration(self) -> None:
         import yaml
 
-        from ...common.messages import CalibrationUpdate
-        from ...common.signing import sign
+        from common.messages import CalibrationUpdate
+        from common.signing import sign
 
         with self._cond:
             left, right = self._infos.get("left"), self._infos.get("right")

@@ -28,9 +28,9 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ...common import camera
-from ...common.errors import SourceError
-from ...common.files import natural_key  # noqa: F401  (the sources' sort order; re-exported)
+from cores import camera
+from common.errors import SourceError
+from common.files import natural_key  # noqa: F401  (the sources' sort order; re-exported)
 
 
 @dataclass
@@ -88,7 +88,7 @@ class SyntheticSource:
 
     def __init__(self, scenario: str, calibration: str, rate_hz: float, seed: int = 0,
                  noise_sigma: float = 1.5, preload: int = 0, alpha: float = 0.0):
-        from .synthetic import Scene, SyntheticWorld
+        from sim.synthetic import Scene, SyntheticWorld
 
         rig = camera.load_calibration(calibration)
         if not isinstance(rig, camera.RawRig):

@@ -11,8 +11,8 @@ from typing import Literal
 
 from pydantic import Field
 
-from ...common.node import Node
-from .config import MatcherConfig
+from common.node import Node
+from cores.matching.config import MatcherConfig
 
 SUBSCRIBES = ["frames_rect", "work_done", "worker", "work"]  # dispatch: frames_rect, work_done, worker; worker: work
 PUBLISHES = ["disparity", "work", "work_done", "worker"]
@@ -42,7 +42,7 @@ class DisparitySettings(MatcherConfig):
 def run(node: Node, settings: DisparitySettings) -> None:
     import cv2
 
-    from .pool import run_dispatcher, run_worker
+    from services.disparity.pool import run_dispatcher, run_worker
 
     if settings.threads:
         cv2.setNumThreads(settings.threads)

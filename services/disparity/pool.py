@@ -45,12 +45,12 @@ from typing import Any, Callable
 import msgpack
 import numpy as np
 
-from ...common import codec
-from ...common.errors import BallbotError, DecodeError
-from ...common.keys import topic
-from ...common.messages import DisparityMap, StereoFrame, WorkDone
-from ...common.node import Node
-from .matchers import SCALE, MatcherConfig, gate_for_range, make_matcher
+from common import codec
+from common.errors import BallbotError, DecodeError
+from common.keys import topic
+from common.messages import DisparityMap, StereoFrame, WorkDone
+from common.node import Node
+from cores.matching.matchers import SCALE, MatcherConfig, gate_for_range, make_matcher
 
 log = logging.getLogger("ballbot.pool")
 

@@ -18,12 +18,12 @@ from typing import Literal
 
 from pydantic import Field
 
-from ...common.keys import topic
-from ...common.messages import (CalibrationUpdate, DisparityMap, FreeSpace, GroundTruth, ObstacleList, ServiceStats,
+from common.keys import topic
+from common.messages import (CalibrationUpdate, DisparityMap, FreeSpace, GroundTruth, ObstacleList, ServiceStats,
                                 StereoFrame)
-from ...common.node import Node
-from ...common.settings import ServiceSettings
-from .recording import Converter, Recorded, RecordingWriter, RecordOptions
+from common.node import Node
+from common.settings import ServiceSettings
+from cores.recording import Converter, Recorded, RecordingWriter, RecordOptions
 
 log = logging.getLogger("ballbot.record")
 
@@ -92,7 +92,7 @@ def calibration_text(spec: str) -> str:
     """A calibration file's text, or a built-in profile written out as YAML."""
     import yaml
 
-    from ...common import camera
+    from cores import camera
 
     cal = camera.load_calibration(spec)  # raises a CalibrationError naming the file
     if spec in camera.PROFILES:

@@ -27,14 +27,14 @@ from typing import Literal
 
 from pydantic import Field
 
-from ...common import codec
-from ...common.errors import CalibrationError
-from ...common.keys import topic
-from ...common.messages import CalibrationUpdate, StereoFrame
-from ...common.node import Node
-from ...common.settings import ServiceSettings
-from ...common.signing import calibration_key, signed
-from .core import CalibrationHolder
+from common import codec
+from common.errors import CalibrationError
+from common.keys import topic
+from common.messages import CalibrationUpdate, StereoFrame
+from common.node import Node
+from common.settings import ServiceSettings
+from common.signing import calibration_key, signed
+from cores.calibration.rectify import CalibrationHolder
 
 log = logging.getLogger("ballbot")
 

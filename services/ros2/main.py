@@ -30,13 +30,13 @@ from typing import Literal
 import numpy as np
 from pydantic import Field, field_validator
 
-from ...common.errors import ConfigError
-from ...common.keys import topic
-from ...common.messages import DisparityMap, ObstacleList
-from ...common.node import Node
-from ..segmenter.settings import MountSettings
-from ..segmenter.ground import frame_mount
-from ..segmenter.mount import Mount
+from common.errors import ConfigError
+from common.keys import topic
+from common.messages import DisparityMap, ObstacleList
+from common.node import Node
+from cores.segmentation.settings import MountSettings
+from cores.segmentation.ground import frame_mount
+from cores.segmentation.mount import Mount
 
 SUBSCRIBES = ["obstacles", "freespace", "frames_rect", "disparity"]
 PUBLISHES: list[str] = []  # ROS 2 topics on rmw_zenoh keys, listed in the docstring
@@ -79,7 +79,7 @@ class Ros2Settings(MountSettings):
     @field_validator("namespace", "node_name")
     @classmethod
     def _ros_name(cls, v: str, info) -> str:
-        from .rmw import RosNameError, check_namespace, check_node_name
+        from common.ros2.rmw import RosNameError, check_namespace, check_node_name
 
         try:
             return check_namespace(v) if info.field_name == "namespace" else check_node_name(v)
@@ -124,9 +124,10 @@ class DisparityCache:
 
 
 def run(node: Node, settings: Ros2Settings) -> None:
-    from . import convert, rmw
-    from .graph import RosNode
-    from .msgs import types_for
+    from common.ros2 import rmw
+    from cores import ros2_convert as convert
+    from common.ros2.graph import RosNode
+    from common.ros2.msgs import types_for
 
     try:
         types = types_for(settings.distro)
@@ -219,6 +220,6 @@ def run(node: Node, settings: Ros2Settings) -> None:
 
 
 def _stamp(sample) -> int | None:
-    from ...common.node import stamp_of
+    from common.node import stamp_of
 
     return stamp_of(sample.attachment)

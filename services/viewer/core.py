@@ -22,9 +22,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ...common import codec
-from ...common.messages import DisparityMap, FreeSpace, GroundTruth, ObstacleList, ServiceStats, StereoFrame
-from ..recorder.recording import colorize_disparity
+from common import codec
+from common.messages import DisparityMap, FreeSpace, GroundTruth, ObstacleList, ServiceStats, StereoFrame
+from cores.recording import colorize_disparity
 
 STAGES = ("capture", "rectify", "disparity", "segmenter")
 RING = 48  # recent frames, disparity maps and truths kept to pair with a later obstacle list

@@ -24,13 +24,13 @@ from pathlib import Path
 
 from pydantic import Field
 
-from ...common import codec
-from ...common.keys import topic
-from ...common.messages import FreeSpace, ObstacleList, ReplayControl, ServiceStats
-from ...common.errors import BallbotError, DecodeError
-from ...common.node import Node, stamp_of
-from ...common.settings import ServiceSettings
-from .core import Composer, ViewInputs
+from common import codec
+from common.keys import topic
+from common.messages import FreeSpace, ObstacleList, ReplayControl, ServiceStats
+from common.errors import BallbotError, DecodeError
+from common.node import Node, stamp_of
+from common.settings import ServiceSettings
+from services.viewer.core import Composer, ViewInputs
 
 log = logging.getLogger("ballbot.viewer")
 

@@ -1,0 +1,109 @@
+"""Rectification check: after rectification a scene point lies on the same row in both images, so
+the vertical offset |dy| of matched features measures how good the calibration is.
+
+ORB features, brute-force Hamming matching kept only if mutual best (cross-check) and clearly
+better than the second best (Lowe's ratio test). No CLI and no Zenoh here.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from common.errors import BallbotError
+
+
+@dataclass(frozen=True)
+class RowCheck:
+    matches: int
+    median_dy: float  # px
+    p95_dy: float  # px
+    median_disparity: float  # px, x_left - x_right
+    candidates: int = 0  # matches before the epipolar (RANSAC) filter
+
+    def format(self) -> str:
+        return (f"rectification check: {self.matches} ORB matches (of {self.candidates} before RANSAC), "
+                f"vertical offset |dy| median "
+                f"{self.median_dy:.3f} px, 95th percentile {self.p95_dy:.3f} px "
+                f"(median disparity {self.median_disparity:.1f} px)")
+
+
+def _gray(a: np.ndarray) -> np.ndarray:
+    return cv2.cvtColor(a, cv2.COLOR_BGR2GRAY) if a.ndim == 3 else a
+
+
+def _refine_by_correlation(left: np.ndarray, right: np.ndarray, a: np.ndarray, half: int = 5, search: int = 3,
+                           min_score: float = 0.8) -> np.ndarray:
+    """ORB keypoints sit on integer pixels of their pyramid level. Re-measure each match by
+    correlating an 11x11 patch of the left image around the left point over +-3 px around the
+    right point, with a parabola through the peak in x and y; the left point stays where it is.
+    Matches whose patch is flat, ambiguous or at a border are dropped."""
+    L, R = left.astype(np.float32), right.astype(np.float32)
+    h, w = L.shape
+    out = []
+    for (xl, yl), (xr, yr) in a:
+        il, jl, ir, jr = int(round(yl)), int(round(xl)), int(round(yr)), int(round(xr))
+        m = half + search + 1
+        if not (m <= il < h - m and m <= jl < w - m and m <= ir < h - m and m <= jr < w - m):
+            continue
+        tpl = L[il - half:il + half + 1, jl - half:jl + half + 1]
+        if float(tpl.std()) < 2.0:
+            continue
+        win = R[ir - half - search:ir + half + search + 1, jr - half - search:jr + half + search + 1]
+        res = cv2.matchTemplate(win, tpl, cv2.TM_CCOEFF_NORMED)
+        _, score, _, (px, py) = cv2.minMaxLoc(res)
+        if score < min_score or not (0 < px < res.shape[1] - 1 and 0 < py < res.shape[0] - 1):
+            continue
+
+        def vertex(c_m: float, c_0: float, c_p: float) -> float:
+            den = c_m - 2 * c_0 + c_p
+            return 0.0 if den >= 0 else 0.5 * (c_m - c_p) / den
+
+        sx = vertex(res[py, px - 1], res[py, px], res[py, px + 1])
+        sy = vertex(res[py - 1, px], res[py, px], res[py + 1, px])
+        # the patch centre sits at (jl, il) in the left image; in the right image at:
+        out.append(((jl, il), (jr + px - search + sx, ir + py - search + sy)))
+    return np.asarray(out, dtype=np.float64).reshape(-1, 2, 2)
+
+
+def row_alignment(left: np.ndarray, right: np.ndarray, n_features: int = 4000, ratio: float = 0.8,
+                  min_matches: int = 8, ransac_px: float = 2.0,
+                  subpixel: bool = True) -> RowCheck:
+    """left, right: a rectified pair (H, W) or (H, W, 3), uint8 -> |dy| statistics of matches."""
+    orb = cv2.ORB_create(nfeatures=n_features)
+    kl, dl = orb.detectAndCompute(_gray(left), None)
+    kr, dr = orb.detectAndCompute(_gray(right), None)
+    if dl is None or dr is None or len(kl) < 2 or len(kr) < 2:
+        raise BallbotError("rectification check: too few ORB features (a textureless pair?)")
+    bf = cv2.BFMatcher(cv2.NORM_HAMMING)
+    fwd = bf.knnMatch(dl, dr, k=2)
+    back = {m[0].queryIdx: m[0].trainIdx for m in bf.knnMatch(dr, dl, k=2) if m}
+    pts = []
+    for m in fwd:
+        if len(m) < 2:
+            continue
+        best, second = m
+        if best.distance >= ratio * second.distance:
+            continue
+        if back.get(best.trainIdx) != best.queryIdx:
+            continue
+        pts.append((kl[best.queryIdx].pt, kr[best.trainIdx].pt))
+    if len(pts) < min_matches:
+        raise BallbotError(f"rectification check: only {len(pts)} ORB matches survive the cross-check and "
+                           f"ratio test (need {min_matches})")
+    a = np.asarray(pts, dtype=np.float64)
+    # Repetitive texture (a chessboard!) passes both tests with wrong partners; keep the matches
+    # consistent with one epipolar geometry (RANSAC on F). This assumes nothing about rows, so a
+    # bad rectification still shows up in |dy|.
+    F, inl = cv2.findFundamentalMat(a[:, 0], a[:, 1], cv2.FM_RANSAC, ransac_px, 0.999)
+    if F is not None and inl is not None and int(inl.sum()) >= min_matches:
+        a = a[inl.ravel().astype(bool)]
+    if subpixel:
+        a = _refine_by_correlation(_gray(left), _gray(right), a)
+        if len(a) < min_matches:
+            raise BallbotError(f"rectification check: only {len(a)} matches could be refined to sub-pixel "
+                               f"(need {min_matches})")
+    dy = np.abs(a[:, 0, 1] - a[:, 1, 1])
+    return RowCheck(len(a), float(np.median(dy)), float(np.percentile(dy, 95)),
+                    float(np.median(a[:, 0, 0] - a[:, 1, 0])), len(pts))

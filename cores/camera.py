@@ -1,0 +1,320 @@
+"""Calibration files, the built-in rig profiles, and the rectified camera model.
+
+A calibration is either a raw rig (per camera K, distortion, image size; stereo R, T) or an
+already-rectified pair (focal length, principal point, baseline). For a raw rig the rectification
+(R1, R2, P1, P2, Q) is always derived here with OpenCV, never read from a file.
+
+Conventions: OpenCV's. `R`, `T` map a point from the left camera frame to the right one,
+``X_right = R @ X_left + T``, with T in metres. Camera frames are optical (x right, y down, z forward).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from common.errors import CalibrationError
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """One camera: pinhole matrix plus OpenCV's 5-term distortion (k1, k2, p1, p2, k3)."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    skew: float = 0.0
+    dist: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
+
+    @property
+    def K(self) -> np.ndarray:
+        return np.array([[self.fx, self.skew, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    @property
+    def D(self) -> np.ndarray:
+        return np.array(self.dist, dtype=np.float64)
+
+    @classmethod
+    def from_matrix(cls, K: np.ndarray, D: np.ndarray) -> "Intrinsics":
+        D = np.asarray(D, dtype=np.float64).ravel()
+        d5 = np.zeros(5)
+        d5[: min(5, D.size)] = D[:5]
+        return cls(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), float(K[0, 1]),
+                   tuple(float(x) for x in d5))  # type: ignore[arg-type]
+
+
+@dataclass(frozen=True)
+class RectifiedModel:
+    """The rectified left camera, which is the system's camera frame; the right camera sits at
+    +baseline_m along x. Disparity d (px) gives depth Z = focal_px * baseline_m / d."""
+
+    width: int
+    height: int
+    focal_px: float
+    cx: float
+    cy: float
+    baseline_m: float
+
+    @property
+    def Q(self) -> np.ndarray:
+        """Disparity-to-depth matrix as cv2.reprojectImageTo3D expects (right camera at +B)."""
+        f, B = self.focal_px, self.baseline_m
+        return np.array([[1, 0, 0, -self.cx], [0, 1, 0, -self.cy], [0, 0, 0, f], [0, 0, 1.0 / B, 0]])
+
+    def disparity_for_depth(self, z_m: float) -> float:
+        return self.focal_px * self.baseline_m / z_m
+
+
+@dataclass(frozen=True)
+class RawRig:
+    """A stereo pair as calibrated: two cameras and the pose of the right one wrt the left."""
+
+    image_size: tuple[int, int]  # width, height
+    left: Intrinsics
+    right: Intrinsics
+    R: np.ndarray  # 3x3, right wrt left
+    T: np.ndarray  # 3, metres
+    name: str = ""
+
+    def __post_init__(self) -> None:
+        _check_rotation(self.R, "R")
+        T = np.asarray(self.T, dtype=np.float64).ravel()
+        if T.shape != (3,) or not np.all(np.isfinite(T)):
+            raise CalibrationError("T: expected 3 finite numbers (metres)")
+        if np.linalg.norm(T) <= 1e-6:
+            raise CalibrationError("T: the baseline is zero")
+        object.__setattr__(self, "T", T)
+        object.__setattr__(self, "R", np.asarray(self.R, dtype=np.float64))
+
+    @property
+    def rectified(self) -> bool:
+        return False
+
+
+@dataclass(frozen=True)
+class RectifiedRig:
+    """An already-rectified pair (ZED, KITTI, a folder of rectified images)."""
+
+    model: RectifiedModel
+    name: str = ""
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        return (self.model.width, self.model.height)
+
+    @property
+    def rectified(self) -> bool:
+        return True
+
+
+Calibration = RawRig | RectifiedRig
+
+
+@dataclass(frozen=True)
+class Rectification:
+    """What OpenCV's stereoRectify derives from a raw rig; R1/R2 rotate each camera into the
+    common rectified frame, P1/P2 project from it."""
+
+    R1: np.ndarray
+    R2: np.ndarray
+    P1: np.ndarray
+    P2: np.ndarray
+    Q: np.ndarray
+    model: RectifiedModel
+
+
+def _check_rotation(R: Any, field: str) -> None:
+    R = np.asarray(R, dtype=np.float64)
+    if R.shape != (3, 3) or not np.all(np.isfinite(R)):
+        raise CalibrationError(f"{field}: expected a 3x3 matrix of finite numbers")
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or abs(np.linalg.det(R) - 1.0) > 1e-4:
+        raise CalibrationError(f"{field}: not a rotation matrix (R R^T != I or det != 1)")
+
+
+def rectify_rig(rig: RawRig, alpha: float = 0.0) -> Rectification:
+    """Derive the rectification. alpha=0 crops to valid pixels only, 1 keeps every source pixel."""
+    import cv2
+
+    R1, R2, P1, P2, Q, _, _ = cv2.stereoRectify(
+        rig.left.K, rig.left.D, rig.right.K, rig.right.D, rig.image_size, rig.R, rig.T.reshape(3, 1),
+        flags=cv2.CALIB_ZERO_DISPARITY, alpha=alpha,
+    )
+    f = float(P1[0, 0])
+    baseline = float(-P2[0, 3] / P2[0, 0])
+    if baseline <= 0:
+        raise CalibrationError("T: the right camera must sit to the right of the left one (T[0] < 0)")
+    model = RectifiedModel(rig.image_size[0], rig.image_size[1], f, float(P1[0, 2]), float(P1[1, 2]), baseline)
+    return Rectification(R1, R2, P1, P2, Q, model)
+
+
+# --- built-in profiles -------------------------------------------------------------------------
+
+def _lifecam_studio() -> RawRig:
+    import cv2
+
+    om = np.array([0.00026, 0.00426, -0.00106])
+    R, _ = cv2.Rodrigues(om)
+    return RawRig(
+        image_size=(640, 480),
+        left=Intrinsics(644.66377, 643.44653, 299.62051, 238.17653, 0.0, (-0.01557, 0.06445, -0.00456, -0.00842, 0.0)),
+        right=Intrinsics(646.13434, 646.10041, 302.35729, 245.68957, 0.0, (-0.02068, 0.09349, -0.00615, -0.00943, 0.0)),
+        R=R,
+        T=np.array([-99.44854, -0.53398, 2.09170]) / 1000.0,
+        name="lifecam-studio",
+    )
+
+
+PROFILES = {"lifecam-studio": _lifecam_studio}
+
+
+# --- YAML ----------------------------------------------------------------------------------------
+
+def _num(doc: dict, key: str, where: str) -> float:
+    if key not in doc:
+        raise CalibrationError(f"{where}: missing field '{key}'")
+    try:
+        v = float(doc[key])
+    except (TypeError, ValueError):
+        raise CalibrationError(f"{where}: field '{key}' must be a number, got {doc[key]!r}") from None
+    if not np.isfinite(v):
+        raise CalibrationError(f"{where}: field '{key}' must be finite")
+    return v
+
+
+def _vec(doc: dict, key: str, n: int, where: str) -> np.ndarray:
+    if key not in doc:
+        raise CalibrationError(f"{where}: missing field '{key}'")
+    try:
+        a = np.asarray(doc[key], dtype=np.float64).ravel()
+    except (TypeError, ValueError):
+        raise CalibrationError(f"{where}: field '{key}' must be a list of numbers") from None
+    if a.size != n or not np.all(np.isfinite(a)):
+        raise CalibrationError(f"{where}: field '{key}' must hold {n} finite numbers, got {a.size}")
+    return a
+
+
+def _size(doc: dict, where: str) -> tuple[int, int]:
+    from common.errors import FileError
+    from common.files import check_image_size
+
+    s = _vec(doc, "image_size", 2, where)
+    if np.any(s <= 0) or np.any(s != np.round(s)):
+        raise CalibrationError(f"{where}: field 'image_size' must be two positive integers [width, height]")
+    try:  # remap tables for 200000x200000 pixels would ask for ~240 GB
+        check_image_size(int(s[0]), int(s[1]), f"{where}: field 'image_size'")
+    except FileError as e:
+        raise CalibrationError(str(e)) from None
+    return int(s[0]), int(s[1])
+
+
+def calibration_from_dict(doc: Any, where: str = "calibration") -> Calibration:
+    if not isinstance(doc, dict):
+        raise CalibrationError(f"{where}: expected a mapping at the top level")
+    name = str(doc.get("name", ""))
+    if doc.get("rectified", False):
+        w, h = _size(doc, where)
+        pp = _vec(doc, "principal_point", 2, where)
+        f = _num(doc, "focal_px", where)
+        B = _num(doc, "baseline_m", where)
+        if f <= 0:
+            raise CalibrationError(f"{where}: field 'focal_px' must be positive")
+        if B <= 0:
+            raise CalibrationError(f"{where}: field 'baseline_m' must be positive")
+        return RectifiedRig(RectifiedModel(w, h, f, float(pp[0]), float(pp[1]), B), name)
+    size = _size(doc, where)
+    cams = []
+    for side in ("left", "right"):
+        c = doc.get(side)
+        w = f"{where}: {side}"
+        if not isinstance(c, dict):
+            raise CalibrationError(f"{where}: missing section '{side}'")
+        K = _vec(c, "K", 9, w).reshape(3, 3)
+        if not np.allclose(K[2], [0, 0, 1]) or K[1, 0] != 0 or K[0, 0] <= 0 or K[1, 1] <= 0:
+            raise CalibrationError(f"{w}: field 'K' is not a camera matrix [[fx,s,cx],[0,fy,cy],[0,0,1]]")
+        D = _vec(c, "distortion", 5, w)
+        if "image_size" in c and _size(c, w) != size:
+            raise CalibrationError(f"{w}: field 'image_size' {_size(c, w)} differs from the rig's {size}")
+        cams.append(Intrinsics.from_matrix(K, D))
+    R = _vec(doc, "R", 9, where).reshape(3, 3)
+    T = _vec(doc, "T", 3, where)
+    try:
+        return RawRig(size, cams[0], cams[1], R, T, name)
+    except CalibrationError as e:
+        raise CalibrationError(f"{where}: {e}") from None
+
+
+def calibration_to_dict(cal: Calibration) -> dict:
+    if isinstance(cal, RectifiedRig):
+        m = cal.model
+        return {"name": cal.name, "rectified": True, "image_size": [m.width, m.height], "focal_px": m.focal_px,
+                "principal_point": [m.cx, m.cy], "baseline_m": m.baseline_m}
+    out: dict[str, Any] = {"name": cal.name, "rectified": False, "image_size": list(cal.image_size)}
+    for side, c in (("left", cal.left), ("right", cal.right)):
+        out[side] = {"K": [float(x) for x in c.K.ravel()], "distortion": [float(x) for x in c.dist]}
+    out["R"] = [float(x) for x in cal.R.ravel()]
+    out["T"] = [float(x) for x in cal.T]
+    return out
+
+
+# Fields that only other tools' calibration files have: their presence earns a hint to import.
+_FOREIGN_FIELDS = {"M1": "OpenCV stereo_calib", "camera_matrix": "ROS camera_info", "cam0": "Kalibr camchain",
+                   "T_BS": "EuRoC sensor.yaml", "intrinsics": "Kalibr/EuRoC"}
+
+
+def load_calibration(spec: str | Path) -> Calibration:
+    """A built-in profile name (e.g. ``lifecam-studio``) or a path to a calibration YAML. A missing,
+    empty or binary file is a FileError, another tool's format a CalibrationError that says how to
+    import it, both in one line."""
+    from common.errors import FileError
+    from common.files import read_yaml
+
+    s = str(spec)
+    if s in PROFILES:
+        return PROFILES[s]()
+    if not Path(s).expanduser().exists():
+        raise CalibrationError(f"calibration {s}: no such file or folder, nor a built-in profile "
+                               f"(profiles: {', '.join(sorted(PROFILES))})")
+    try:
+        doc = read_yaml(s, "calibration")
+    except FileError as e:
+        if "not valid YAML" in str(e) and _looks_like_opencv(s):
+            raise CalibrationError(f"calibration {s}: an OpenCV FileStorage file, not this program's calibration "
+                                   f"YAML; convert it with: ballbot-vision calibration import {s} ... -o rig.yaml") from None
+        raise
+    if isinstance(doc, dict) and not {"rectified", "left", "K"} & set(doc):
+        foreign = [tool for key, tool in _FOREIGN_FIELDS.items() if key in doc]
+        if foreign:
+            raise CalibrationError(f"calibration {s}: a {foreign[0]} file, not this program's calibration YAML; "
+                                   f"convert it with: ballbot-vision calibration import {s} ... -o rig.yaml")
+    return calibration_from_dict(doc, where=s)
+
+
+def _looks_like_opencv(path: str) -> bool:
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4096)
+    except OSError:
+        return False
+    return head.startswith(b"%YAML:1.0") or b"!!opencv-matrix" in head
+
+
+def validate_calibration(cal: Calibration, where: str) -> Calibration:
+    """Exactly the checks the loader makes (finite positive focal lengths, a rotation, a baseline,
+    a possible image size, ...), on a calibration about to be written: nothing is written that
+    load_calibration would refuse."""
+    return calibration_from_dict(calibration_to_dict(cal), where=where)
+
+
+def save_calibration(cal: Calibration, path: str | Path) -> None:
+    """Write the calibration YAML; refuses (CalibrationError) what the loader would refuse."""
+    import yaml
+
+    validate_calibration(cal, f"refusing to write {path}")
+    Path(path).write_text(yaml.safe_dump(calibration_to_dict(cal), sort_keys=False))
+
+
+def rectified_model(cal: Calibration, alpha: float = 0.0) -> RectifiedModel:
+    return cal.model if isinstance(cal, RectifiedRig) else rectify_rig(cal, alpha).model

@@ -1,0 +1,133 @@
+"""The matching settings: one pydantic model (MatcherConfig) that the cores consume directly and the
+disparity service's settings extend (main.DisparitySettings). Defaults live here and nowhere else.
+No OpenCV import, so reading settings (`--help`, config files) stays light.
+"""
+from __future__ import annotations
+
+import math
+from typing import Annotated, Literal
+
+from pydantic import Field, model_validator
+
+from common.errors import BallbotError
+from common.settings import ServiceSettings
+
+SCALE = 16.0
+
+# Per-method default matching window (block_size = 0 picks these): the thesis's 15 px SAD window for
+# bm; 5 px for sgbm, whose smoothness terms do the aggregation (better than OpenCV's 3 on Middlebury);
+# 3 px for dense, whose edge-aware fill does the rest (3 keeps object edges sharpest).
+DEFAULT_BLOCK = {"bm": 15, "sgbm": 5, "dense": 3}
+# Per-method semi-global variant (sgbm_mode auto): dense uses 3-way, faster than 5 paths and as good
+# on the Middlebury pairs (`bench accuracy`).
+DEFAULT_SGBM_MODE = {"bm": "sgbm", "sgbm": "sgbm", "dense": "3way"}
+# Search-range saturation: valid pixels within TOP_BAND_PX of the largest disparity searched. More
+# than SATURATION_WARN of them means nearer things exist than the range covers (measured: <= 0.3 %
+# with a range covering the scene, 2-20 % with one too small).
+TOP_BAND_PX = 2.0
+SATURATION_WARN = 0.01
+MAX_NUM_DISPARITIES = 512
+
+
+class MatcherConfig(ServiceSettings):
+    """Matching settings (the `disparity` section of a config file). Disparities and windows in px,
+    ranges in metres. Defaults live here and nowhere else."""
+
+    section = "disparity"
+
+    method: Literal["bm", "sgbm", "dense"] = Field(
+        "bm", description="bm: block matching, SAD (the thesis, fast); sgbm: semi-global; dense: semi-global "
+        "+ edge-aware fill, a disparity and a confidence for every pixel (for offboard workers)")
+    num_disparities: Annotated[int, Field(ge=16, le=MAX_NUM_DISPARITIES, multiple_of=16)] | Literal["auto"] = Field(
+        64, description="disparity search range, px (a multiple of 16), or auto: from the calibration, "
+        "covering everything farther than min_range_m")
+    min_range_m: float = Field(0.5, gt=0, description="num_disparities auto: the nearest distance of interest, m "
+                               "(range = f*B/min_range_m)")
+    min_disparity: int = Field(0, ge=-256, le=256, description="smallest disparity searched, px")
+    block_size: int = Field(0, ge=0, le=255, description="matching window, odd, px (0: bm 15, sgbm 5, dense 3)")
+    uniqueness_ratio: int = Field(10, ge=0, le=100, description="reject matches not this percent better than the next")
+    texture_threshold: int = Field(10, ge=0, description="bm: reject windows with less texture")
+    speckle_window: int = Field(100, ge=0, description="max size of speckles removed, px (0: off)")
+    speckle_range: int = Field(2, ge=0, description="max disparity variation within a speckle, px")
+    prefilter: Literal["xsobel", "normalized"] = Field("xsobel", description="bm pre-filter")
+    prefilter_size: int = Field(9, ge=5, le=255, description="bm normalized pre-filter window, odd, px")
+    prefilter_cap: int = Field(31, ge=1, le=63, description="pre-filter clipping")
+    p1: int = Field(0, ge=0, description="sgbm/dense smoothness penalty for +-1 px changes (0: 8*block^2)")
+    p2: int = Field(0, ge=0, description="sgbm/dense penalty for larger changes (0: 32*block^2)")
+    disp12_max_diff: int = Field(1, ge=-1, description="sgbm/dense internal left-right check, px (-1: off)")
+    sgbm_mode: Literal["auto", "sgbm", "hh", "3way", "hh4"] = Field(
+        "auto", description="semi-global variant (auto: sgbm 5 paths, dense 3way; hh: full 8 paths)")
+    lr_check: bool = Field(False, description="bm/sgbm: left-right check on a second, mirrored match (doubles "
+                           "matching time)")
+    lr_max_diff: float = Field(1.0, ge=0, description="max left/right disagreement, px")
+    fill_lambda: float = Field(8000.0, gt=0, description="dense: smoothness of the edge-aware fill (fast global "
+                               "smoother lambda)")
+    fill_sigma_color: float = Field(1.5, gt=0, description="dense: grey-level difference (0..255) at which the "
+                                    "fill stops spreading across an edge")
+    subpixel: bool = Field(True, description="1/16 px output; false rounds to whole px")
+    max_range_m: float = Field(0.0, ge=0, description="vision range gate, m (disparity >= f*B/range; 0: off)")
+    threads: int = Field(0, ge=0, le=64, description="OpenCV threads for matching (0: one per core)")
+
+    @model_validator(mode="after")
+    def _combinations(self) -> "MatcherConfig":
+        b = self.block
+        if b % 2 == 0:
+            raise ValueError(f"block_size: must be odd, got {self.block_size}")
+        if self.method == "bm" and not 5 <= b <= 255:
+            raise ValueError(f"block_size: block matching needs 5..255, got {b}")
+        if self.method == "bm" and self.prefilter_size % 2 == 0:
+            raise ValueError(f"prefilter_size: must be odd, got {self.prefilter_size}")
+        if self.p2 and self.p1 and self.p2 <= self.p1:
+            raise ValueError(f"p2 ({self.p2}) must be greater than p1 ({self.p1})")
+        return self
+
+    @property
+    def block(self) -> int:
+        return self.block_size or DEFAULT_BLOCK[self.method]
+
+    @property
+    def mode(self) -> str:
+        """The semi-global variant in use (sgbm_mode, or the method's default for auto)."""
+        return DEFAULT_SGBM_MODE[self.method] if self.sgbm_mode == "auto" else self.sgbm_mode
+
+    @property
+    def invalid_value(self) -> int:
+        return (self.min_disparity - 1) * int(SCALE)
+
+    @property
+    def max_disparity(self) -> int:
+        """Largest disparity searched, px (needs a resolved num_disparities)."""
+        return self.min_disparity + self.fixed_num_disparities - 1
+
+    @property
+    def fixed_num_disparities(self) -> int:
+        if self.num_disparities == "auto":
+            raise BallbotError("num_disparities auto needs the camera's focal length and baseline: give a "
+                               "calibration (or a rectified camera model), or set num_disparities in px")
+        return self.num_disparities
+
+    def resolved(self, focal_px: float | None, baseline_m: float | None, width: int | None = None) -> "MatcherConfig":
+        """These settings with num_disparities auto turned into px for this camera (self if fixed)."""
+        if self.num_disparities != "auto":
+            return self
+        if not focal_px or not baseline_m:
+            self.fixed_num_disparities  # raises, naming what is missing
+        n = auto_num_disparities(focal_px, baseline_m, self.min_range_m, self.min_disparity, width)
+        return self.model_copy(update={"num_disparities": n})
+
+
+def auto_num_disparities(focal_px: float, baseline_m: float, min_range_m: float, min_disparity: int = 0,
+                         width: int | None = None) -> int:
+    """The search range (px, a multiple of 16) that reaches d = f * B / min_range_m from min_disparity,
+    capped at 512 and, with `width`, below the image width (a match needs its partner in view)."""
+    d_near = focal_px * abs(baseline_m) / min_range_m
+    n = max(16, math.ceil((d_near - min_disparity + 1) / 16) * 16)
+    cap = MAX_NUM_DISPARITIES if width is None else max(16, min(MAX_NUM_DISPARITIES, (width - 1) // 16 * 16))
+    return min(n, cap)
+
+
+def gate_for_range(max_range_m: float | None, focal_px: float, baseline_m: float) -> float:
+    """Smallest disparity (px) inside the vision range: d = f * B / Z. None or <= 0: no gate."""
+    if not max_range_m or max_range_m <= 0:
+        return 0.0
+    return focal_px * baseline_m / max_range_m

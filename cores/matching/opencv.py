@@ -1,0 +1,80 @@
+"""OpenCV's matchers built from the settings (the one place their parameters are set) and the pieces
+every method shares: a pair's Match, grey conversion, the search-range saturation measure."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from common.errors import BallbotError
+from cores.matching.config import SATURATION_WARN, SCALE, TOP_BAND_PX, MatcherConfig
+
+_SGBM_MODES = {"sgbm": cv2.STEREO_SGBM_MODE_SGBM, "hh": cv2.STEREO_SGBM_MODE_HH,
+               "3way": cv2.STEREO_SGBM_MODE_SGBM_3WAY, "hh4": cv2.STEREO_SGBM_MODE_HH4}
+
+
+@dataclass
+class Match:
+    """One pair's result. disparity: (H, W) int16, px * 16, config.invalid_value where invalid;
+    confidence: (H, W) uint8 (0 = no measurement, 255 = certain) or None if the method gives none;
+    saturated: share of the measured pixels within TOP_BAND_PX of the largest disparity searched
+    (above SATURATION_WARN: nearer things exist than the range covers)."""
+
+    disparity: np.ndarray
+    confidence: np.ndarray | None
+    saturated: float
+
+    @property
+    def range_warning(self) -> str:
+        if self.saturated <= SATURATION_WARN:
+            return ""
+        return (f"{self.saturated:.1%} of the matched pixels sit at the top of the disparity search range: "
+                "something is nearer than the range reaches; raise num_disparities (or num_disparities auto "
+                "with a smaller min_range_m)")
+
+
+def saturated_share(raw: np.ndarray, valid: np.ndarray, max_disparity: float) -> float:
+    """Share of `valid` pixels of raw (int16 px * 16) within TOP_BAND_PX of max_disparity (px)."""
+    n = int(np.count_nonzero(valid))
+    if not n:
+        return 0.0
+    return float(np.count_nonzero(valid & (raw >= (max_disparity - TOP_BAND_PX) * SCALE)) / n)
+
+
+def gray(image: np.ndarray) -> np.ndarray:
+    """(H, W) or (H, W, 3) BGR uint8 -> (H, W) uint8."""
+    if image.dtype != np.uint8:
+        raise BallbotError(f"matching needs 8-bit images, got {image.dtype}")
+    if image.ndim == 3:
+        return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    return image
+
+
+def create_sgbm(c: MatcherConfig):
+    """OpenCV's StereoSGBM with these settings (penalties default to the recommended 8 and 32 x block^2)."""
+    b = c.block
+    area = b * b
+    return cv2.StereoSGBM_create(minDisparity=c.min_disparity, numDisparities=c.fixed_num_disparities, blockSize=b,
+                                 P1=c.p1 or 8 * area, P2=c.p2 or 32 * area, disp12MaxDiff=c.disp12_max_diff,
+                                 preFilterCap=c.prefilter_cap, uniquenessRatio=c.uniqueness_ratio,
+                                 speckleWindowSize=c.speckle_window, speckleRange=c.speckle_range,
+                                 mode=_SGBM_MODES[c.mode])
+
+
+def create_opencv_matcher(c: MatcherConfig):
+    """OpenCV's StereoBM or StereoSGBM with these settings: the one place their parameters are set."""
+    if c.method != "bm":
+        return create_sgbm(c)
+    m = cv2.StereoBM_create(numDisparities=c.fixed_num_disparities, blockSize=c.block)
+    m.setMinDisparity(c.min_disparity)
+    m.setUniquenessRatio(c.uniqueness_ratio)
+    m.setTextureThreshold(c.texture_threshold)
+    m.setSpeckleWindowSize(c.speckle_window)
+    m.setSpeckleRange(c.speckle_range)
+    m.setPreFilterType(cv2.StereoBM_PREFILTER_XSOBEL if c.prefilter == "xsobel"
+                       else cv2.StereoBM_PREFILTER_NORMALIZED_RESPONSE)
+    m.setPreFilterSize(c.prefilter_size)
+    m.setPreFilterCap(c.prefilter_cap)
+    m.setDisp12MaxDiff(-1)
+    return m

@@ -1,0 +1,201 @@
+"""One stream of disparity maps -> obstacle lists and free space (the segmenter's core, no Zenoh):
+ObstacleBuilder carries the ground estimate and the tracks from frame to frame; the segmenter
+service (services/segmenter) feeds it the maps it receives, the offline commands, the evaluations
+and the benchmarks feed it theirs."""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from common import codec
+from cores import camera
+from common.errors import DecodeError
+from common.messages import DisparityMap, FreeSpace, GroundEstimate, Obstacle, ObstacleList, Odometry
+from cores.matching.disparity import to_float
+from cores.segmentation import freespace, layers, seed
+from cores.segmentation.ground import GroundEstimator, frame_mount, plane_from_mount
+from cores.segmentation.mount import FloorPlane, Mount
+from cores.segmentation.seed import Detection
+from cores.segmentation.settings import SegmenterSettings
+from cores.segmentation.tracking import Tracker
+
+log = logging.getLogger("ballbot")
+
+# A map measuring less of the image than this saw nothing it could vouch for: the list says so.
+MIN_VALID_FRACTION = 0.01
+
+
+def model_from_message(msg: DisparityMap) -> camera.RectifiedModel:
+    c = msg.camera
+    return camera.RectifiedModel(c.width, c.height, c.focal_px, c.cx, c.cy, c.baseline_m)
+
+
+class Segmenter:
+    """One method with its settings: disparity -> detections (camera frame). Bad input (NaNs, no
+    valid pixels, empty) gives no detections; a map whose size differs from the model raises."""
+
+    def __init__(self, settings: SegmenterSettings):
+        self.settings = settings
+        self.method = settings.method
+
+    def detect(self, disparity: np.ndarray, model: camera.RectifiedModel,
+               image: np.ndarray | None = None) -> list[Detection]:
+        """disparity: (H, W) float px, NaN = invalid, matching `model`."""
+        if disparity.size == 0:
+            return []
+        if self.method == "seed":
+            return seed.segment(disparity, model, self.settings)
+        return layers.segment(disparity, model, self.settings, image=image)
+
+
+@dataclass
+class FrameResult:
+    """One frame's output: the public obstacle list, the free-space grid (None without a ground or
+    for seed) and the disparity-space floor plane used (None: no floor removed)."""
+
+    obstacles: ObstacleList
+    freespace: FreeSpace | None
+    floor: FloorPlane | None
+
+
+def _rz(yaw: float) -> np.ndarray:
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+class ObstacleBuilder:
+    """Disparity -> ground, obstacles, tracks and free space (pure: no Zenoh). Stateful: the ground
+    estimate and the tracks carry over from frame to frame, so feed it one stream in order."""
+
+    def __init__(self, settings: SegmenterSettings):
+        self.settings = settings
+        self.mount = settings.mount()
+        self.ground = GroundEstimator(settings)
+        self.tracker = Tracker(settings.track_gate_m, settings.track_timeout_s,
+                               max_speed_mps=settings.track_max_speed_mps, confirm_m=settings.track_confirm_m,
+                               confirm_n=settings.track_confirm_n)
+        self._track_frame = ""  # "base" or "camera": the frame the tracks are kept in
+        self._last_t: float | None = None
+
+    def decode(self, msg: DisparityMap) -> tuple[np.ndarray, camera.RectifiedModel, np.ndarray | None]:
+        """A disparity message -> (disparity px float32 with NaN invalid, camera model, confidence)."""
+        if (msg.image.width, msg.image.height) != (msg.camera.width, msg.camera.height):
+            raise DecodeError(f"disparity image is {msg.image.width}x{msg.image.height}, its camera model "
+                              f"{msg.camera.width}x{msg.camera.height}")
+        raw = codec.array_from_image(msg.image, "disparity")
+        confidence = None
+        if msg.confidence is not None:
+            confidence = codec.array_from_image(msg.confidence, "disparity confidence")
+            if confidence.shape != raw.shape[:2] or confidence.dtype != np.uint8:
+                raise DecodeError(f"disparity confidence is {msg.confidence.width}x{msg.confidence.height} "
+                                  f"{confidence.dtype}, the map {msg.image.width}x{msg.image.height}: expected uint8 "
+                                  f"of the same size")
+        return to_float(raw, msg.scale, msg.invalid_value), model_from_message(msg), confidence
+
+    def segment(self, disparity: np.ndarray, model: camera.RectifiedModel, confidence: np.ndarray | None = None,
+                image: np.ndarray | None = None) -> layers.LayersFrame:
+        cfg = self.settings
+        if disparity.size == 0:
+            return layers.LayersFrame([], [], None, None, np.zeros((0, 3)))
+        if cfg.method == "seed":
+            dets = seed.segment(disparity, model, cfg)
+            floor = plane_from_mount(self.mount, model) if self.mount is not None and cfg.floor_removal else None
+            g = self.mount
+            estimate = (GroundEstimate(height_m=g.height_m, pitch_deg=g.pitch_deg, roll_deg=g.roll_deg,
+                                       source="prior") if g is not None else None)
+            return layers.LayersFrame(dets, [], floor, estimate, np.zeros((0, 3)))
+        return layers.segment_frame(disparity, model, cfg, ground=self.ground, confidence=confidence, image=image)
+
+    def _ego_motion(self, odometry: Odometry | None, t_s: float) -> bool:
+        """Carry the tracks into this frame's base frame by the robot's own motion since the last
+        frame. -> True when odometry was used (velocities are then over the ground, not relative to
+        the robot)."""
+        dt = None if self._last_t is None else t_s - self._last_t
+        if odometry is None or dt is None or not 0 <= dt <= self.settings.odometry_timeout_s * 4:
+            return False
+        R = _rz(-odometry.angular_radps[2] * dt)
+        self.tracker.move(R, -R @ (np.asarray(odometry.linear_mps, float) * dt))
+        return True
+
+    def process(self, disparity: np.ndarray, model: camera.RectifiedModel, *, t_s: float, seq: int, stamp_ns: int,
+                robot_id: str = "offline", confidence: np.ndarray | None = None, odometry: Odometry | None = None,
+                image: np.ndarray | None = None, stale: bool = False,
+                stages: dict[str, int] | None = None) -> FrameResult:
+        """disparity: (H, W) float32 px, NaN = invalid, matching `model`; t_s: the frame's time on a
+        clock that never goes backwards (the service: Node.frame_time_s; offline: the capture time);
+        odometry: the robot's motion at this frame, if known (velocities are then over the ground)."""
+        cfg = self.settings
+        frame = self.segment(disparity, model, confidence, image)
+        mount = frame_mount(frame.ground, cfg)
+        track_frame = "base" if mount is not None else "camera"
+        if track_frame != self._track_frame:
+            self.tracker.clear()  # positions of one frame mean nothing in the other
+            self._track_frame = track_frame
+        over_ground = track_frame == "base" and self._ego_motion(odometry, t_s)
+        self._last_t = t_s
+        dets = frame.detections
+        positions = [mount.to_base(d.position_m) if mount is not None else np.asarray(d.position_m, float)
+                     for d in dets]
+        self.tracker.depth_scale = model.focal_px * model.baseline_m
+        self.tracker.ground_plane = track_frame == "base"
+        boxes = None
+        if mount is not None:
+            boxes = [_footprint(mount, pts) for pts in frame.points] if len(frame.points) == len(dets) else \
+                [np.array([p[:2] - 0.5 * np.asarray(d.size_m)[[2, 0]], p[:2] + 0.5 * np.asarray(d.size_m)[[2, 0]]])
+                 for d, p in zip(dets, positions)]
+        edges = [None if d.edges is None else (mount.to_base(d.edges) if mount is not None else d.edges) for d in dets]
+        tracks = self.tracker.update(positions, t_s, boxes, cuts=[d.cut for d in dets], edges=edges)
+        obstacles = []
+        for det, tr, pos in zip(dets, tracks, positions):
+            if mount is not None:
+                v_base = tr.velocity
+                v_cam = mount.R_base_camera.T @ v_base
+                base, vbase = _vec(pos), _vec(v_base)
+            else:
+                v_cam, base, vbase = tr.velocity, None, None
+            obstacles.append(Obstacle(
+                id=tr.id, position_m=_vec(det.position_m), size_m=_vec(det.size_m),
+                distance_m=max(0.0, float(det.distance_m)), velocity_mps=_vec(v_cam), bbox_px=det.bbox_px,
+                area_px=det.area_px, disparity_px=float(det.disparity_px),
+                confidence=float(min(1.0, max(0.0, det.confidence))), position_base_m=base, velocity_base_mps=vbase,
+                confirmed=tr.confirmed, track_frames=tr.hits, truncated=det.truncated))
+        obstacles.sort(key=lambda o: o.distance_m)
+        now = time.time_ns()
+        valid_fraction = float(np.count_nonzero(disparity > 0)) / max(1, disparity.size)  # NaN compares false
+        degraded = []
+        if valid_fraction < MIN_VALID_FRACTION:
+            degraded.append("no-valid-disparity")
+        out = ObstacleList(robot_id=robot_id, seq=seq, stamp_ns=stamp_ns, stages=dict(stages or {}), publish_ns=now,
+                           stale=stale, degraded=degraded, valid_fraction=valid_fraction, method=cfg.method,
+                           obstacles=obstacles, ground=frame.ground,
+                           velocity_reference="ground" if over_ground else "camera")
+        free = None
+        if cfg.freespace and mount is not None and frame.floor is not None and cfg.method == "layers":
+            g = freespace.occupancy(frame.floor_points, frame.points, mount, model, cfg.range_m,
+                                    cfg.freespace_resolution_m)
+            free = FreeSpace(robot_id=robot_id, seq=seq, stamp_ns=stamp_ns, stages=dict(stages or {}), publish_ns=now,
+                             resolution_m=g.resolution_m, width=g.width, height=g.height,
+                             origin_m=(float(g.origin_m[0]), float(g.origin_m[1])), cells=g.cells.tobytes(),
+                             ground=frame.ground)
+        return FrameResult(out, free, frame.floor)
+
+    def process_message(self, msg: DisparityMap, *, stale: bool = False, t_s: float | None = None,
+                        odometry: Odometry | None = None) -> FrameResult:
+        """A disparity message -> its FrameResult (t_s: None takes the capture stamp)."""
+        disparity, model, confidence = self.decode(msg)
+        return self.process(disparity, model, t_s=msg.stamp_ns / 1e9 if t_s is None else t_s, seq=msg.seq,
+                            stamp_ns=msg.stamp_ns, robot_id=msg.robot_id, confidence=confidence, odometry=odometry,
+                            stale=stale, stages=msg.stages)
+
+
+def _footprint(mount: Mount, points_camera: np.ndarray) -> np.ndarray:
+    """(2, 2) lo, hi of an obstacle's points on the ground (base x, y; 2nd-98th percentile)."""
+    p = mount.to_base(points_camera[::max(1, len(points_camera) // 1000)])
+    return np.percentile(p[:, :2], [2, 98], axis=0)
+
+
+def _vec(v) -> tuple[float, float, float]:
+    return tuple(float(x) for x in v)  # type: ignore[return-value]

@@ -1,0 +1,64 @@
+"""What the robot may drive on: a 2D occupancy grid on the ground, robot base frame.
+
+    floor points + obstacle points (camera frame) + the camera mount  ->  FreeSpace cells
+
+A cell is free (0) where the camera saw floor in it, occupied (100) where an obstacle's points
+stand in it (obstacles win), unknown (-1) where nothing was seen: behind obstacles, outside the
+field of view, beyond the vision range, below the camera's near edge. The grid covers x from the
+base origin to the vision range ahead and y as far to each side as the field of view reaches there,
+laid out as ROS nav_msgs/OccupancyGrid (see common/messages.py FreeSpace).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from cores import camera
+from cores.segmentation.mount import Mount
+
+MAX_CELLS = 4096  # per side (FreeSpace's bound); a coarser cell is used rather than a larger grid
+
+
+@dataclass
+class Grid:
+    resolution_m: float
+    width: int  # cells along base x
+    height: int  # cells along base y
+    origin_m: tuple[float, float]
+    cells: np.ndarray  # (height, width) int8
+
+
+def layout(model: camera.RectifiedModel, mount: Mount, range_m: float, resolution_m: float
+           ) -> tuple[float, int, int, tuple[float, float]]:
+    """(resolution, width, height, origin) of the grid that covers what the camera can see."""
+    half_fov = np.arctan2(max(model.cx, model.width - model.cx), model.focal_px)
+    half_y = min(range_m, range_m * float(np.tan(half_fov))) + abs(mount.y_m)
+    x0 = min(0.0, mount.x_m)
+    x_len = range_m + max(0.0, mount.x_m) - x0
+    res = max(resolution_m, x_len / MAX_CELLS, 2 * half_y / MAX_CELLS)
+    width = max(1, int(np.ceil(x_len / res)))
+    height = max(1, int(np.ceil(2 * half_y / res)))
+    return res, width, height, (x0, -height * res / 2)
+
+
+def occupancy(floor_points: np.ndarray, obstacle_points: list[np.ndarray], mount: Mount,
+              model: camera.RectifiedModel, range_m: float, resolution_m: float) -> Grid:
+    """floor_points: (k, 3) camera-frame points seen on the floor; obstacle_points: per obstacle,
+    its (n, 3) camera-frame points. -> the grid."""
+    res, width, height, origin = layout(model, mount, range_m, resolution_m)
+    cells = np.full(height * width, -1, np.int8)
+
+    def index(points_camera: np.ndarray) -> np.ndarray:
+        if not len(points_camera):
+            return np.zeros(0, np.int64)
+        p = mount.to_base(points_camera)
+        col = np.floor((p[:, 0] - origin[0]) / res).astype(np.int64)
+        row = np.floor((p[:, 1] - origin[1]) / res).astype(np.int64)
+        ok = (col >= 0) & (col < width) & (row >= 0) & (row < height)
+        return row[ok] * width + col[ok]
+
+    cells[index(floor_points)] = 0
+    if obstacle_points:
+        cells[index(np.concatenate(obstacle_points))] = 100
+    return Grid(res, width, height, origin, cells.reshape(height, width))

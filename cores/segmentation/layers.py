@@ -1,0 +1,423 @@
+"""The default segmenter: things that stand up from the ground, one obstacle per object.
+
+disparity (H, W) float32 px, NaN = invalid  ->  LayersFrame (detections camera frame, metres; the
+floor plane and ground estimate used; the floor the robot may drive on, for free space)
+
+Unlike the thesis's single Otsu threshold (seed.py), the floor is found in the data every frame,
+only what stands on it counts, and objects are grouped where they stand.
+
+ 1. work on every `downsample`-th pixel (2: 320x240 for a 640x480 map), NaN -> 0; pixels whose
+    matcher confidence is below min_confidence are invalid
+ 2. 5x5 median filter (removes block-matching speckle, keeps depth steps sharp)
+ 3. range gate: min_range_m <= Z <= max_range_m
+ 4. the ground: a plane d = a u + b v + c in disparity space, fitted this frame (ground.py: the
+    last frames' estimate, the configured mount or RANSAC as the first guess; checked, smoothed,
+    published as height / pitch / roll)
+ 5. height band: a pixel stands when it is more than floor_margin_m (and ground_noise_px of
+    disparity) above the floor and at most robot_height_m above it; markings, shadows, mats are
+    floor, canopy and ceilings are above the robot
+ 6. a standing pixel with a 4-neighbour nearer by more than step_px + step_rel * d sits on a depth
+    step, where block matching blends two depths into a phantom: it is not grouped
+ 7. grouping on the column-disparity grid (u-disparity): a cell (column, disparity bin) is
+    occupied when its standing pixels cover min_cell_height_m; touching cells are one object.
+    In metres this is a polar grid on the ground as fine as the matcher can see: a car, a wall
+    seen obliquely, a person stay whole; a person in front of a wall stays apart
+ 8. objects smaller than min_size_m / min_area_m2, or whose top is below min_height_m, are dropped
+ 9. per object, its 3D points; where a column ends within floor_margin_m (+4 cm) of the floor the
+    object stands on it and the strip the band cut off is filled back in along the floor normal
+10. objects whose 3D extents come within merge_gap_m are one (a chair's back leg seen between its
+    front legs); a small object mostly inside a larger one's box is part of it (depths meet) or
+    seen through it (wholly behind: a car's windows) and dropped
+11. per object: centroid (mean of the points), extent (2nd-98th percentile), nearest distance
+    (2nd percentile of range), bbox, area, median disparity, confidence (mean matcher confidence,
+    else the fraction of its pixels with a valid raw disparity)
+12. the drivable floor: along each column, from the image's bottom edge to the farthest floor
+    point seen, stopped by anything standing (freespace.py turns it into the grid)
+13. optional boundary refinement (edge_refine): each box side snapped to the strongest intensity
+    edge of the left image within a few pixels (the thesis's hybrid idea)
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from cores import camera
+from common.messages import GroundEstimate
+from cores.segmentation.ground import GroundEstimator, grid
+from cores.segmentation.mount import FloorPlane
+from cores.segmentation.seed import Detection
+from cores.segmentation.settings import SegmenterSettings
+
+
+@dataclass
+class _Region:
+    pts: np.ndarray  # (n, 3) camera-frame points (m) of the region's inlier pixels
+    lo: np.ndarray  # (3,) 2nd percentile of the points
+    hi: np.ndarray  # (3,) 98th percentile
+    bbox: tuple[int, int, int, int]  # working-resolution x0, y0, x1, y1 (exclusive)
+    area: int  # working-resolution pixels
+    valid: int  # of which with a valid raw disparity
+    disparities: np.ndarray  # (n,) px
+    filled: int = 0  # points added by _fill_to_floor (included in pts)
+
+
+def _fill_to_floor(mask: np.ndarray, d_box: np.ndarray, x0: int, y0: int, floor: FloorPlane, cfg: SegmenterSettings,
+                   model: camera.RectifiedModel, step: int) -> np.ndarray | None:
+    """The strip of an object that floor removal cut off: where a column of the region ends less
+    than floor_margin_m (+4 cm) above the floor, the object is taken to stand on it, and points
+    are added straight down (along the floor normal: a vertical face) to the floor, one per
+    working-grid row they cover. -> (k, 3) camera-frame points, or None."""
+    has = mask.any(0)
+    if not has.any():
+        return None
+    f, cx, cy, B = model.focal_px, model.cx, model.cy, model.baseline_m
+    n_down, _ = floor.normal_height(f, cx, cy, B)
+    bh = mask.shape[0]
+    cols = np.nonzero(has)[0]
+    rows = (bh - 1 - np.argmax(mask[::-1], axis=0))[cols]
+    db = d_box[rows, cols].astype(np.float64)
+    ok = db > 0
+    if not ok.any():
+        return None
+    cols, rows, db = cols[ok], rows[ok], db[ok]
+    u = (cols + x0).astype(np.float64) * step
+    v = (rows + y0).astype(np.float64) * step
+    z = f * B / db
+    P = np.stack([(u - cx) * z / f, (v - cy) * z / f, z], 1)
+    height = floor.height_m - P @ n_down  # above the floor
+    reach = cfg.floor_margin_m + 0.04
+    on_floor = (height > -0.02) & (height <= reach)
+    if not on_floor.any():
+        return None
+    P, v, height = P[on_floor], v[on_floor], np.maximum(height[on_floor], 0.0)
+    F = P + height[:, None] * n_down  # the foot of each column on the floor
+    v_foot = np.minimum(F[:, 1] * f / F[:, 2] + cy, model.height - 1)
+    n = np.maximum(np.floor((v_foot - v) / step), 0).astype(np.int64)
+    total = int(n.sum())
+    if total == 0:
+        return None
+    idx = np.repeat(np.arange(len(n)), n)
+    k = np.arange(total) - np.repeat(np.cumsum(n) - n, n) + 1
+    t = (k / n[idx]) * height[idx]
+    return P[idx] + t[:, None] * n_down
+
+
+def _merge_close(regions: list[_Region], gap_m: float) -> list[_Region]:
+    """Merge regions whose 3D extents come within gap_m of each other along every axis: the parts
+    of one object that the image shows apart (a chair's back leg seen between its front legs)."""
+    if len(regions) < 2 or gap_m <= 0:
+        return regions
+    parent = list(range(len(regions)))
+
+    def root(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    lo = np.array([r.lo for r in regions])
+    hi = np.array([r.hi for r in regions])
+    gap = np.maximum(lo[:, None, :] - hi[None, :, :], lo[None, :, :] - hi[:, None, :])  # (n, n, 3)
+    close = np.all(gap <= gap_m, axis=2)
+    for i, j in zip(*np.nonzero(np.triu(close, 1))):
+        parent[root(int(i))] = root(int(j))
+    groups: dict[int, list[_Region]] = {}
+    for i, r in enumerate(regions):
+        groups.setdefault(root(i), []).append(r)
+    out = []
+    for g in groups.values():
+        if len(g) == 1:
+            out.append(g[0])
+            continue
+        out.append(_union(g))
+    return out
+
+
+def _absorb_contained(regions: list[_Region], gap_m: float, model: camera.RectifiedModel, step: int,
+                      inside: float = 0.8) -> list[_Region]:
+    """A region whose image box lies mostly (inside) within a larger region's box is, compared
+    with the larger one's depth in the same image columns: part of it (the depths meet: merged),
+    seen through it (farther: a car's windows, a shelter's glass; dropped, the nearer object is
+    what stands in the way), or in front of it (kept: a chessboard on its stand before a wall)."""
+    if len(regions) < 2:
+        return regions
+    order = sorted(range(len(regions)), key=lambda i: -regions[i].area)
+    alive = [True] * len(regions)
+    for ci in order:
+        if not alive[ci]:
+            continue
+        c = regions[ci]
+        for ri in order:
+            r = regions[ri]
+            if ri == ci or not alive[ri] or r.area >= c.area:
+                continue
+            ix = max(0, min(r.bbox[2], c.bbox[2]) - max(r.bbox[0], c.bbox[0]))
+            iy = max(0, min(r.bbox[3], c.bbox[3]) - max(r.bbox[1], c.bbox[1]))
+            own = (r.bbox[2] - r.bbox[0]) * (r.bbox[3] - r.bbox[1])
+            if ix * iy < inside * own:
+                continue
+            u = c.pts[:, 0] / c.pts[:, 2] * model.focal_px + model.cx  # full-resolution columns
+            there = (u >= r.bbox[0] * step) & (u < r.bbox[2] * step)
+            if not there.any():
+                continue
+            zc = np.percentile(c.pts[there, 2], [10, 90])
+            zr = float(np.median(r.pts[:, 2]))
+            tol = gap_m + 0.02 * zr
+            if zr > zc[1] + tol:
+                alive[ri] = False  # behind it
+            elif zr >= zc[0] - tol:
+                alive[ri] = False
+                c = regions[ci] = _union([c, r])
+    return [r for r, a in zip(regions, alive) if a]
+
+
+def _union(g: list[_Region]) -> _Region:
+    pts = np.concatenate([r.pts for r in g])
+    lo, hi = np.percentile(pts[::max(1, len(pts) // _STAT_SAMPLES)], [2, 98], axis=0)
+    return _Region(pts, lo, hi, (min(r.bbox[0] for r in g), min(r.bbox[1] for r in g), max(r.bbox[2] for r in g),
+                                 max(r.bbox[3] for r in g)), sum(r.area for r in g), sum(r.valid for r in g),
+                   np.concatenate([r.disparities for r in g]), sum(r.filled for r in g))
+
+
+MAX_FLOOR_SAMPLES = 1_000_000  # points of drivable floor per frame, at most
+_STAT_SAMPLES = 1500  # percentiles of a region are taken on at most ~2x this many of its points
+_SQUARE = np.ones((3, 3), np.uint8)
+_CROSS = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
+
+
+@dataclass
+class LayersFrame:
+    """Everything one frame's segmentation found, for the obstacle list and the free-space grid."""
+
+    detections: list[Detection]
+    points: list[np.ndarray]  # per detection, its (n, 3) camera-frame points, m
+    floor: FloorPlane | None  # the disparity-space floor plane used (None: no floor removed)
+    ground: GroundEstimate | None  # what the ground estimator said (None: floor removal off)
+    floor_points: np.ndarray  # (k, 3) camera-frame points of the floor the robot may drive on (see _drivable)
+
+
+def _working_disparity(disparity: np.ndarray, cfg: SegmenterSettings, confidence: np.ndarray | None,
+                       step: int) -> tuple[np.ndarray, np.ndarray]:
+    """(raw, median-filtered) working-resolution disparity, 0 = invalid; pixels whose confidence is
+    below min_confidence are invalid."""
+    d0 = np.nan_to_num(np.asarray(disparity, dtype=np.float32)[::step, ::step], nan=0.0, posinf=0.0, neginf=0.0)
+    np.maximum(d0, 0, out=d0)
+    if confidence is not None and cfg.min_confidence > 0:
+        d0[np.asarray(confidence)[::step, ::step] < cfg.min_confidence] = 0
+    dm = cv2.medianBlur(d0, cfg.median_ksize) if cfg.median_ksize > 1 else d0
+    return d0, dm
+
+
+def _group(dm: np.ndarray, stand: np.ndarray, cfg: SegmenterSettings, model: camera.RectifiedModel,
+           step: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Group standing pixels into objects on the column-disparity grid (u-disparity): a cell
+    (column, disparity bin) is occupied when its standing pixels cover min_cell_height_m of height;
+    occupied cells that touch (one cell of slack) are one object. In metres this is a polar grid
+    on the ground whose depth resolution follows the matcher's (fine near, coarse far), so a car's
+    parts and a wall seen obliquely stay whole while a person in front of a wall stays apart.
+    -> (ys, xs, d, label) of the grouped pixels, sorted by label (labels from 1)."""
+    ys, xs = np.nonzero(stand)
+    dv = dm[ys, xs]
+    w = dm.shape[1]
+    bins = (dv / np.float32(cfg.group_bin_px)).astype(np.int32)
+    nb = int(bins.max()) + 2 if bins.size else 1
+    height = np.float32(step * model.baseline_m) / dv  # metres of height one working pixel covers
+    occ = np.bincount(bins * w + xs, weights=height, minlength=nb * w).reshape(nb, w)
+    cells = (occ >= cfg.min_cell_height_m).astype(np.uint8)
+    _, cc = cv2.connectedComponents(cv2.dilate(cells, _SQUARE), connectivity=8)
+    lab = cc[bins, xs] * cells[bins, xs]
+    order = np.argsort(lab, kind="stable")
+    ys, xs, dv, lab = ys[order], xs[order], dv[order], lab[order]
+    first = int(np.searchsorted(lab, 1))
+    return ys[first:], xs[first:], dv[first:], lab[first:]
+
+
+def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: SegmenterSettings | None = None,
+                  ground: GroundEstimator | None = None, confidence: np.ndarray | None = None,
+                  image: np.ndarray | None = None) -> LayersFrame:
+    """disparity: (H, W) float32 px, NaN = invalid, rectified left camera `model`. ground: the
+    estimator that carries the ground from frame to frame (None: a fresh one, this frame alone).
+    confidence: (H, W) uint8 from the matcher, if it gives one. image: the rectified left image,
+    only for edge_refine."""
+    cfg = cfg or SegmenterSettings()
+    if disparity.shape != (model.height, model.width):
+        raise ValueError(f"disparity is {disparity.shape[1]}x{disparity.shape[0]}, camera model is "
+                         f"{model.width}x{model.height}")
+    if confidence is not None and confidence.shape != disparity.shape:
+        raise ValueError(f"confidence is {confidence.shape[1]}x{confidence.shape[0]}, disparity "
+                         f"{disparity.shape[1]}x{disparity.shape[0]}")
+    step = max(1, int(cfg.downsample))
+    d0, dm = _working_disparity(disparity, cfg, confidence, step)
+    h, w = dm.shape
+    f, B = model.focal_px, model.baseline_m
+    fB = f * B
+    keep = cv2.inRange(dm, fB / cfg.range_m, fB / cfg.min_range_m) > 0
+    dk = np.where(keep, dm, np.float32(0))
+    floor, estimate = None, None
+    if cfg.floor_removal:
+        ground = ground or GroundEstimator(cfg)
+        floor, estimate = ground.update(dk, model, step)
+    floor_points = np.zeros((0, 3))
+    if floor is not None:
+        u, v = grid(h, w, step)
+        df = np.float32(floor.a) * u + (np.float32(floor.b) * v + np.float32(floor.c))
+        k = 1.0 / max(1e-3, 1.0 - cfg.floor_margin_m / floor.height_m)
+        on_floor = dk <= np.maximum(df * np.float32(k), df + np.float32(cfg.ground_noise_px))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            above = np.float32(floor.height_m) * (1 - df / dk)  # height above the floor, m
+        stand = keep & ~on_floor & (above <= cfg.robot_height_m)
+        seen_floor = keep & on_floor & (above > -4 * cfg.floor_margin_m - 0.1)
+        floor_points = _drivable(floor, df, seen_floor, keep & ~on_floor, dk, model, cfg, step)
+    else:
+        above = None
+        stand = keep
+    # A pixel with a 4-neighbour nearer by more than the similarity tolerance sits on a depth step,
+    # where block matching blends the two depths into a phantom between them: it is not grouped.
+    ds = np.where(stand, dm, np.float32(0))
+    stand &= ~(cv2.dilate(ds, _CROSS) > ds * np.float32(1.0 + cfg.step_rel) + np.float32(cfg.step_px))
+    if not stand.any():
+        return LayersFrame([], [], floor, estimate, floor_points)
+
+    ys, xs, dv, lab = _group(dm, stand, cfg, model, step)
+    bounds = np.flatnonzero(np.diff(lab)) + 1
+    regions: list[_Region] = []
+    for gy, gx, gd in zip(np.split(ys, bounds), np.split(xs, bounds), np.split(dv, bounds)):
+        area = gy.size
+        if area < cfg.min_pixels:
+            continue
+        x0, y0, x1, y1 = int(gx.min()), int(gy.min()), int(gx.max()) + 1, int(gy.max()) + 1
+        med = float(np.median(gd))
+        px_m = B / med * step  # metres per working pixel at the region's depth
+        if max(x1 - x0, y1 - y0) * px_m < cfg.min_size_m and area * px_m * px_m < cfg.min_area_m2:
+            continue
+        if area * px_m * px_m < 0.25 * cfg.min_area_m2:
+            continue
+        if above is not None and float(np.percentile(above[gy, gx], 98)) < cfg.min_height_m:
+            continue  # nothing of it stands up: a marking, a shadow, a mat
+        pts = _points(gy, gx, gd, model, step)
+        valid = (int(np.count_nonzero(d0[gy, gx])) if confidence is None
+                 else float(confidence[gy * step, gx * step].astype(np.float32).sum() / 255.0))
+        filled = 0
+        if floor is not None and cfg.fill_to_floor:
+            mask = np.zeros((y1 - y0, x1 - x0), bool)
+            mask[gy - y0, gx - x0] = True
+            extra = _fill_to_floor(mask, np.where(mask, dm[y0:y1, x0:x1], np.float32(0)), x0, y0, floor, cfg,
+                                   model, step)
+            if extra is not None:
+                pts = np.concatenate([pts, extra])
+                filled = len(extra)
+                y1 = max(y1, min(h, int(np.ceil((float(np.max(extra[:, 1] / extra[:, 2])) * f + model.cy) / step)) + 1))
+        lo, hi = np.percentile(pts[::max(1, len(pts) // _STAT_SAMPLES)], [2, 98], axis=0)
+        regions.append(_Region(pts, lo, hi, (x0, y0, x1, y1), area, valid, gd.astype(np.float64), filled))
+    regions = _absorb_contained(_merge_close(regions, cfg.merge_gap_m), cfg.merge_gap_m, model, step)
+    out: list[Detection] = []
+    points: list[np.ndarray] = []
+    measured = np.flatnonzero(d0.any(0))  # columns the matcher measured (not its blind left band)
+    left_edge, right_edge = (int(measured[0]), int(measured[-1])) if measured.size else (0, w - 1)
+    for r in regions:
+        size = r.hi - r.lo
+        if max(size[0], size[1]) < cfg.min_size_m or r.area * (float(np.mean(r.pts[:, 2])) / f * step) ** 2 < cfg.min_area_m2:
+            continue
+        sub = r.pts[::max(1, len(r.pts) // _STAT_SAMPLES)]
+        rng = np.sqrt((sub * sub).sum(1))
+        x0, y0, x1, y1 = r.bbox
+        out.append(Detection(position_m=r.pts.mean(0), size_m=np.maximum(size, 0.0),
+                             distance_m=float(np.percentile(rng, 2)),
+                             bbox_px=(x0 * step, y0 * step, min(model.width, x1 * step), min(model.height, y1 * step)),
+                             area_px=int((r.area + r.filled) * step * step),
+                             disparity_px=float(np.median(r.disparities)),
+                             confidence=float(min(1.0, r.valid / max(1, r.area))),
+                             # cut at the sides or by the range: its footprint is partial (a cut at the
+                             # top or bottom changes its height, not where it stands)
+                             cut=(x0 <= left_edge + 1, x1 - 1 >= right_edge - 1, bool(r.hi[2] >= 0.97 * cfg.range_m)),
+                             edges=_edges(sub, model)))
+        points.append(r.pts)
+    if cfg.edge_refine and image is not None and out:
+        out = [_refine_box(det, image) for det in out]
+    return LayersFrame(out, points, floor, estimate, floor_points)
+
+
+def _drivable(floor: FloorPlane, df: np.ndarray, seen_floor: np.ndarray, standing: np.ndarray, dk: np.ndarray,
+              model: camera.RectifiedModel, cfg: SegmenterSettings, step: int) -> np.ndarray:
+    """Points of the floor plane the robot may drive on, camera frame: along each image column (a
+    ray on the ground), the floor from the image's bottom edge out to the farthest floor point seen
+    in that column, but not beyond anything standing in it (any pixel above the floor margin,
+    obstacle or not) nor beyond the vision range. Block matching sees little of a smooth road, so
+    the floor between seen points counts as seen; an obstacle that left no pixel is not known."""
+    fB = model.focal_px * model.baseline_m
+    with np.errstate(divide="ignore"):
+        zf = np.where(df > 0, fB / np.maximum(df, 1e-6), np.inf).astype(np.float32)  # floor depth per pixel
+        zd = np.where(dk > 0, fB / np.maximum(dk, 1e-6), np.inf).astype(np.float32)
+    far = np.where(seen_floor, zf, 0).max(0)
+    near_standing = np.where(standing, zd, np.inf).min(0)
+    limit = np.minimum(np.minimum(far, near_standing), cfg.range_m)
+    near = zf[-1]  # the floor at the image's bottom edge
+    cols = np.nonzero(np.isfinite(near) & (limit > near))[0]
+    if not cols.size:
+        return np.zeros((0, 3))
+    # march along each column's ray on the floor in steps of half a free-space cell (coarser when a
+    # wide image and a long range would make more than MAX_FLOOR_SAMPLES points)
+    longest = float((limit[cols] - near[cols]).max())
+    spacing = max(0.5 * cfg.freespace_resolution_m, longest * cols.size / MAX_FLOOR_SAMPLES)
+    n = int(np.ceil(longest / spacing)) + 1
+    z = near[cols][:, None] + spacing * np.arange(n)[None, :]
+    z = np.where(z <= limit[cols][:, None], z, np.nan).ravel()
+    u = np.repeat(cols.astype(np.float64) * step, n)
+    ok = np.isfinite(z)
+    z, u = z[ok], u[ok]
+    f = model.focal_px
+    # the floor's pixel row at depth z in column u: a u + b v + c = f B / z
+    v = (fB / z - floor.a * u - floor.c) / floor.b
+    return np.stack([(u - model.cx) * z / f, (v - model.cy) * z / f, z], 1)
+
+
+def _edges(points: np.ndarray, model: camera.RectifiedModel) -> np.ndarray:
+    """(2, 3): the mean of an object's points in its leftmost and its rightmost 5 % of image columns."""
+    u = points[:, 0] / points[:, 2]
+    lo, hi = np.percentile(u, [5, 95])
+    return np.stack([points[u <= lo].mean(0), points[u >= hi].mean(0)])
+
+
+def _points(ys: np.ndarray, xs: np.ndarray, d: np.ndarray, model: camera.RectifiedModel, step: int) -> np.ndarray:
+    """Camera-frame points (n, 3), m, of working-grid pixels (ys, xs) with disparities d."""
+    z = model.focal_px * model.baseline_m / d.astype(np.float64)
+    return np.stack([(xs * step - model.cx) * z / model.focal_px, (ys * step - model.cy) * z / model.focal_px, z], 1)
+
+
+def segment(disparity: np.ndarray, model: camera.RectifiedModel, cfg: SegmenterSettings | None = None,
+            image: np.ndarray | None = None, floor_out: list | None = None) -> list[Detection]:
+    """One frame on its own (a fresh ground estimate): detections, camera frame. floor_out: if a
+    list, the floor plane used (or None) is appended to it."""
+    frame = segment_frame(disparity, model, cfg, image=image)
+    if floor_out is not None:
+        floor_out.append(frame.floor)
+    return frame.detections
+
+
+def _refine_box(det: Detection, image: np.ndarray, reach: int = 4) -> Detection:
+    """Snap each side of the box to the strongest intensity edge within `reach` px (the thesis's
+    hybrid of disparity regions and intensity edges)."""
+    img = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    H, W = img.shape
+    x0, y0, x1, y1 = det.bbox_px
+    gx = np.abs(cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3))
+    gy = np.abs(cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3))
+
+    def snap(pos: int, limit: int, profile) -> int:
+        lo, hi = max(0, pos - reach), min(limit, pos + reach + 1)
+        if hi <= lo:
+            return pos
+        return lo + int(np.argmax([profile(p) for p in range(lo, hi)]))
+
+    ya, yb = max(0, y0), max(y0 + 1, min(H, y1))
+    xa, xb = max(0, x0), max(x0 + 1, min(W, x1))
+    nx0 = snap(x0, W - 1, lambda p: gx[ya:yb, p].mean())
+    nx1 = snap(x1 - 1, W - 1, lambda p: gx[ya:yb, p].mean()) + 1
+    ny0 = snap(y0, H - 1, lambda p: gy[p, xa:xb].mean())
+    ny1 = snap(y1 - 1, H - 1, lambda p: gy[p, xa:xb].mean()) + 1
+    if nx1 <= nx0 or ny1 <= ny0:
+        return det
+    det.bbox_px = (nx0, ny0, nx1, ny1)
+    return det

@@ -1,0 +1,148 @@
+"""The thesis's segmentation (chapter 4), step by step, plus an optional floor removal from the
+camera mount so that a textured floor in range does not swallow the objects standing on it.
+
+disparity (H, W) float32 px, NaN = invalid  ->  list of Detection (camera frame, metres)
+
+ 1. vision-range gate: pixels with d < f*B / max_range_m are removed (3 m -> d >= ~20 px)
+ 2. floor removal (if floor_removal and the mount is known): pixels whose 3D point lies within floor_margin_m of
+    the floor plane are removed
+ 3. 2-D median filter
+ 4. normalise to grey (0..255)
+ 5. Otsu threshold
+ 6. area opening: regions smaller than min_area_fraction of the image are removed
+ 7. close, fill holes, clear border
+ 8. connected regions; per region: centroid (x, y), mode of the disparity, Z = B f / d,
+    X = x Z / f, Y = y Z / f with x, y measured from the principal point
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from cores import camera
+from cores.segmentation.settings import SegmenterSettings
+
+MODE_BIN_PX = 0.25  # histogram bin of the region's disparity mode
+
+
+@dataclass
+class Detection:
+    position_m: np.ndarray  # (3,) camera frame
+    size_m: np.ndarray  # (3,)
+    distance_m: float
+    bbox_px: tuple[int, int, int, int]  # x0, y0, x1, y1 inclusive-exclusive
+    area_px: int
+    disparity_px: float
+    confidence: float
+    # cut by the edge of what the camera measures: (left, right, far): the image's sides or the matcher's
+    # blind left band, the vision range; its centroid describes the visible part only
+    cut: tuple[bool, bool, bool] = (False, False, False)
+    edges: np.ndarray | None = None  # (2, 3) camera-frame points of its left and right edge
+
+    @property
+    def truncated(self) -> bool:
+        return any(self.cut)
+
+
+def floor_mask(disparity: np.ndarray, model: camera.RectifiedModel, height_m: float, pitch_deg: float,
+               margin_m: float) -> np.ndarray:
+    """True where the pixel's 3D point is within margin_m of (or below) the floor plane.
+
+    The camera sits height_m above the floor, pitched down by pitch_deg, no roll. In the camera
+    frame (y down) a point's drop below the camera is y cos(pitch) + z sin(pitch)."""
+    # drop = z * (cos(p) (v - cy) / f + sin(p)) with z = f B / d, so the test
+    # height - drop < margin becomes a per-row threshold on d: d * (height - margin) < f B k(v).
+    h = disparity.shape[0]
+    p = np.deg2rad(pitch_deg)
+    v = np.arange(h, dtype=np.float32)
+    k = (np.cos(p) * (v - model.cy) / model.focal_px + np.sin(p)).astype(np.float32)[:, None]
+    fB = np.float32(model.focal_px * model.baseline_m)
+    with np.errstate(invalid="ignore"):
+        return disparity * np.float32(height_m - margin_m) < fB * k
+
+
+def fill_holes(mask: np.ndarray) -> np.ndarray:
+    """Background not reachable from the image border becomes foreground (MATLAB's imfill 'holes').
+    A flood fill from a padded border is several times faster than scipy's binary_fill_holes."""
+    h, w = mask.shape
+    padded = np.zeros((h + 2, w + 2), np.uint8)
+    padded[1:-1, 1:-1] = mask
+    cv2.floodFill(padded, None, (0, 0), 2)
+    return (padded[1:-1, 1:-1] != 2).astype(np.uint8)
+
+
+def _mode(values: np.ndarray, bin_px: float) -> float:
+    """Mode of the disparities, refined as the median of the values in the modal bin."""
+    lo = values.min()
+    idx = ((values - lo) / bin_px).astype(np.int64)
+    b = np.bincount(idx).argmax()
+    return float(np.median(values[idx == b]))
+
+
+def segment(disparity: np.ndarray, model: camera.RectifiedModel,
+            cfg: SegmenterSettings | None = None) -> list[Detection]:
+    """disparity: (H, W) float32 px, NaN = invalid, rectified left camera `model` -> detections,
+    camera frame. Reads range_m, median_ksize (at least 3), floor_removal, mount_height_m,
+    mount_pitch_deg, floor_margin_m, min_area_fraction, close_radius_px and clear_border."""
+    cfg = cfg or SegmenterSettings(method="seed")
+    if disparity.shape != (model.height, model.width):
+        raise ValueError(f"disparity is {disparity.shape[1]}x{disparity.shape[0]}, camera model is "
+                         f"{model.width}x{model.height}")
+    h, w = disparity.shape
+    d_min = model.disparity_for_depth(cfg.range_m)
+    d = np.asarray(disparity, dtype=np.float32)
+    with np.errstate(invalid="ignore"):
+        keep = np.isfinite(d) & (d >= d_min)
+    if cfg.floor_removal and cfg.mount_height_m is not None:
+        keep &= ~floor_mask(d, model, cfg.mount_height_m, cfg.mount_pitch_deg, cfg.floor_margin_m)
+    if not keep.any():
+        return []
+    gated = np.where(keep, d, 0.0).astype(np.float32)
+    filtered = cv2.medianBlur(gated, max(3, cfg.median_ksize))
+    top = float(filtered.max())
+    if top <= 0:
+        return []
+    grey = np.clip(filtered * (255.0 / top), 0, 255).astype(np.uint8)
+    _, binary = cv2.threshold(grey, 0, 1, cv2.THRESH_BINARY | cv2.THRESH_OTSU)
+
+    min_area = cfg.min_area_fraction * h * w
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(binary, connectivity=8)
+    big = np.zeros(n, bool)
+    big[1:] = stats[1:, cv2.CC_STAT_AREA] >= min_area
+    mask = big[labels].astype(np.uint8)
+
+    r = cfg.close_radius_px
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, kernel)
+    mask = fill_holes(mask)
+
+    n, labels, stats, centroids = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    fB = model.focal_px * model.baseline_m
+    out: list[Detection] = []
+    for i in range(1, n):
+        x0, y0, bw, bh, area = (int(v) for v in stats[i])
+        if cfg.clear_border and (x0 == 0 or y0 == 0 or x0 + bw >= w or y0 + bh >= h):
+            continue
+        region = labels[y0:y0 + bh, x0:x0 + bw] == i
+        dv = d[y0:y0 + bh, x0:x0 + bw][region]
+        valid = dv[np.isfinite(dv) & (dv >= d_min)]
+        if valid.size == 0:
+            continue
+        disp = _mode(valid, MODE_BIN_PX)
+        z = fB / disp
+        cx_px, cy_px = centroids[i]
+        x = (cx_px - model.cx) * z / model.focal_px
+        y = (cy_px - model.cy) * z / model.focal_px
+        # depth spread and nearest point from pixels near the mode (robust to mismatches)
+        near = valid[np.abs(valid - disp) <= max(2.0, 0.15 * disp)]
+        zs = fB / near
+        size = np.array([bw * z / model.focal_px, bh * z / model.focal_px,
+                         float(np.percentile(zs, 95) - np.percentile(zs, 5))])
+        distance = float(np.percentile(zs, 2)) if zs.size else z
+        out.append(Detection(
+            position_m=np.array([x, y, z]), size_m=size, distance_m=distance,
+            bbox_px=(x0, y0, x0 + bw, y0 + bh), area_px=area, disparity_px=disp,
+            confidence=float(valid.size / max(area, 1))))
+    return out

@@ -1,0 +1,108 @@
+"""The segmenter's settings: one pydantic model, the only place its defaults live. The service, the
+offline commands and the cores (seed.py, layers.py) all read this model directly.
+
+Light on purpose (pydantic and the mount only), so that importing the settings does not import
+OpenCV or the cores.
+"""
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field
+
+from common.settings import ServiceSettings
+from cores.segmentation.mount import Mount
+
+METHODS = ("layers", "seed")
+# The thesis's 3 m vision range for seed; the default method's own range.
+DEFAULT_RANGE_M = {"seed": 3.0, "layers": 4.5}
+
+
+class MountSettings(ServiceSettings):
+    """Where the rectified left camera sits on the robot (see mount.py for the frames and angles):
+    one definition for every service that needs it (the segmenter, the ROS 2 bridge's /tf_static)."""
+
+    mount_height_m: float | None = Field(None, gt=0, le=20, description="camera height above the floor, m "
+                                         "(null: unknown: the segmenter estimates the ground from the disparity "
+                                         "every frame, the ROS 2 bridge takes that estimate from the obstacle "
+                                         "lists; set it, or run `mount estimate`, to give the estimate a prior)")
+    mount_pitch_deg: float = Field(0.0, ge=-90, le=90, description="camera pitch, positive looking down")
+    mount_yaw_deg: float = Field(0.0, ge=-180, le=180, description="camera yaw on the robot, positive to the left")
+    mount_roll_deg: float = Field(0.0, ge=-90, le=90, description="camera roll, positive right side down")
+    mount_x_m: float = Field(0.0, ge=-10, le=10, description="camera position ahead of the base origin")
+    mount_y_m: float = Field(0.0, ge=-10, le=10, description="camera position left of the base origin")
+
+    def mount(self) -> Mount | None:
+        """The configured camera mount, or None when its height is unknown."""
+        if self.mount_height_m is None:
+            return None
+        return Mount(self.mount_height_m, self.mount_pitch_deg, self.mount_yaw_deg, self.mount_roll_deg,
+                     self.mount_x_m, self.mount_y_m)
+
+
+class SegmenterSettings(MountSettings):
+    section = "segmenter"
+    method: Literal["layers", "seed"] = Field(
+        "layers", description="layers: depth-aware regions, floor plane, border objects kept; "
+                              "seed: the thesis's Otsu pipeline")
+    max_range_m: float | None = Field(None, gt=0, le=100, description="vision range; farther pixels are ignored "
+                                      "(null: the method's own, seed 3 m as in the thesis, layers 4.5 m)")
+    min_range_m: float = Field(0.3, ge=0, le=10, description="nearer pixels are ignored, m")
+    median_ksize: Literal[1, 3, 5] = Field(5, description="median filter size, px (seed: at least 3)")
+    floor_removal: bool = Field(True, description="remove the floor (false reproduces the thesis with seed)")
+    floor_margin_m: float = Field(0.08, ge=0, le=1, description="points this close to the floor are floor")
+    ground_noise_px: float = Field(0.5, ge=0, le=10, description="layers: a point must stand this much disparity "
+                                   "above the floor's too (matching noise on a far road is metres of height)")
+    robot_height_m: float = Field(2.0, gt=0, le=20, description="layers: points higher above the floor than this "
+                                  "(canopy, ceilings, signs over the road) are not obstacles")
+    min_height_m: float = Field(0.2, ge=0, le=5, description="layers: an obstacle's top must be this far above "
+                                "the floor (lower things: lane markings, shadows, mats)")
+    # seed
+    min_area_fraction: float = Field(0.03, ge=0, le=1, description="seed: area opening, fraction of the image")
+    close_radius_px: int = Field(3, ge=0, le=50, description="seed: morphological closing radius, px")
+    clear_border: bool = Field(True, description="seed: drop regions touching the image border (the thesis)")
+    # layers
+    fit_floor: bool = Field(True, description="layers: fit the floor plane to the disparity (mount as prior/fallback)")
+    max_tilt_deg: float = Field(15.0, ge=0, le=90, description="layers: a fitted floor tilted more than this "
+                                "from the configured mount's is refused")
+    ground_step_deg: float = Field(8.0, ge=0, le=90, description="layers: a fitted floor tilted more than this "
+                                   "from the last frames' is refused (the smoothed estimate stands in)")
+    ground_smoothing: float = Field(0.3, gt=0, le=1, description="layers: weight of a new fit in the smoothed "
+                                    "ground estimate")
+    ground_reinit_frames: int = Field(8, ge=1, le=1000, description="layers: after this many refused or failed "
+                                      "fits in a row the ground is searched afresh")
+    step_px: float = Field(0.6, ge=0, le=50, description="layers: neighbours differing by more than "
+                           "step_px + step_rel * d belong to different objects")
+    step_rel: float = Field(0.03, ge=0, le=1, description="layers: relative part of the similarity tolerance")
+    min_size_m: float = Field(0.08, ge=0, le=10, description="layers: smallest obstacle extent, m")
+    min_area_m2: float = Field(0.006, ge=0, le=100, description="layers: smallest frontal area, m^2")
+    min_pixels: int = Field(12, ge=1, description="layers: smallest region, pixels at the working resolution")
+    merge_gap_m: float = Field(0.12, ge=0, le=10, description="layers: regions whose 3D extents come this close "
+                               "are one object")
+    group_bin_px: float = Field(1.0, gt=0, le=16, description="layers: disparity bin of the column-disparity "
+                                "grid that groups standing points into objects, px")
+    min_cell_height_m: float = Field(0.05, ge=0, le=5, description="layers: a column-disparity cell is occupied "
+                                     "when its standing points cover this much height")
+    min_confidence: int = Field(200, ge=0, le=255, description="pixels whose disparity confidence (when the matcher "
+                                "gives one, e.g. dense) is below this are not used: dense fills every hole "
+                                "smoothly, and filled pixels would join neighbouring objects into one")
+    # free space
+    freespace: bool = Field(True, description="publish the free-space grid (needs a ground estimate)")
+    freespace_resolution_m: float = Field(0.1, gt=0, le=10, description="free-space cell size, m")
+    fill_to_floor: bool = Field(True, description="layers: extend objects standing on the floor down to it")
+    downsample: Literal[1, 2, 4] = Field(2, description="layers: work on every n-th pixel")
+    edge_refine: bool = Field(False, description="layers: snap boxes to intensity edges (needs the image; off in the service)")
+    # tracking
+    track_gate_m: float = Field(0.6, gt=0, description="max distance between a track and its next detection")
+    track_timeout_s: float = Field(1.0, gt=0, description="a track unseen this long is dropped")
+    track_confirm_m: int = Field(3, ge=1, le=100, description="a track is confirmed when seen in M ...")
+    track_confirm_n: int = Field(5, ge=1, le=100, description="... of the last N frames")
+    track_max_speed_mps: float = Field(2.5, gt=0, le=100, description="fastest obstacle over the ground (gates "
+                                       "association across dropouts)")
+    odometry_timeout_s: float = Field(0.5, gt=0, description="odometry older than this is not used")
+    stale_after_s: float = Field(0.5, gt=0, description="input older than this (or none for this long) is stale")
+
+    @property
+    def range_m(self) -> float:
+        return self.max_range_m if self.max_range_m is not None else DEFAULT_RANGE_M[self.method]
+

@@ -1,0 +1,370 @@
+"""Score segmentation methods against the synthetic world's ground truth, through the real cores:
+
+    render (synthetic.SyntheticWorld) -> Rectifier -> StereoMatcher -> Segmenter -> Tracker
+
+Each scenario is rendered once (a few frames for a static scene, a sequence for a moving one), its
+disparity computed once, and every method runs on the same maps with its own tracker.
+
+Matching: per frame, detections and true obstacles are paired one-to-one (Hungarian) by 3D distance
+between the detection's centroid and the centroid of the truth's measurable surface: the surface
+points seen by the left image's pixels (as `visible_centroid_m`) restricted to the columns where
+block matching has a right-image counterpart (x >= min_disparity + num_disparities + block/2 - 1;
+this differs from `visible_centroid_m` only for objects cut by the left border), within a gate of
+max(gate_m, gate_rel * distance). A true obstacle counts (is expected to be detected) when at least
+`min_visible_px` (400) pixels of its measurable surface are visible and it is within `eval_range_m`.
+A true obstacle that is only glimpsed (1 .. min_visible_px - 1 measurable pixels, e.g. the last sliver
+of a person walking behind a box) is neither expected nor held against the method: a detection of it
+is matched after the counted truths and then left out of the detections (not a false positive); one
+that is not visible at all (occluded, out of view) expects nothing. Unmatched detections are
+classified by what the rendered pixels inside their box are: `floor`, `wall`, or `object` (a piece of
+a true obstacle: a split).
+
+Reported per scenario and method: recall, precision, 3D position error (median, 95th percentile; m
+and % of distance), depth error (% , truths 0.5-4 m), errors against the object's box centre and
+against `visible_centroid_m`,
+floor false positives, id switches (a counted true obstacle matched to a different track id than in
+its previous counted, matched frame: across an occlusion, only if the id after reappearance differs
+from the id before), mean velocity error (tracks at least `vel_warmup` frames old), and the
+mean segmentation time per frame.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from typing import Iterable
+
+import numpy as np
+
+from cores import camera
+from sim import synthetic as S
+from cores.matching.disparity import to_float
+from cores.matching.matchers import SCALE, MatcherConfig, StereoMatcher
+from cores.calibration.rectify import Rectifier
+from cores.segmentation.builder import ObstacleBuilder
+from cores.segmentation.settings import SegmenterSettings
+from cores.segmentation.mount import Mount
+
+# eval method name -> settings overrides. `seed` is the thesis as written (no floor removal);
+# `seed+floor` adds the floor removal from the camera mount; `layers` is the default.
+METHODS: dict[str, dict] = {
+    "seed": {"method": "seed", "floor_removal": False},
+    "seed+floor": {"method": "seed", "floor_removal": True},
+    "layers": {"method": "layers"},
+}
+DEFAULT_METHODS = ["seed", "seed+floor", "layers"]
+
+
+@dataclass
+class EvalFrame:
+    t_s: float
+    left: np.ndarray  # (H, W) uint8, rectified left image
+    disparity: np.ndarray  # (H, W) float32 px, NaN invalid
+    truth: list  # synthetic.ObstacleTruth, rectified left frame
+    kind: np.ndarray  # (H, W) int8: -3 nothing, -2 wall, -1 floor, >= 0 obstacle index
+    measurable: list  # per truth: (centroid (3,) m, pixels) of its surface the matcher can see
+
+
+@dataclass
+class ScenarioData:
+    name: str
+    scene: S.Scene
+    model: camera.RectifiedModel
+    mount: Mount
+    frames: list[EvalFrame]
+    render_s: float = 0.0
+
+
+def mount_from_world(world: S.SyntheticWorld) -> Mount:
+    """The exact mount of the rectified left camera in the world (= base) frame: position and the
+    yaw/pitch/roll that Mount composes (Rz Ry Rx times the optical-to-body axes)."""
+    T = world.T_world_rect
+    body = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+    R = T[:3, :3] @ body.T  # = Rz(yaw) Ry(pitch) Rx(roll)
+    pitch = math.asin(max(-1.0, min(1.0, -R[2, 0])))
+    yaw = math.atan2(R[1, 0], R[0, 0])
+    roll = math.atan2(R[2, 1], R[2, 2])
+    return Mount(float(T[2, 3]), math.degrees(pitch), math.degrees(yaw), math.degrees(roll),
+                 float(T[0, 3]), float(T[1, 3]))
+
+
+def _truth_maps(world: S.SyntheticWorld, t: float, x_valid: int) -> tuple[np.ndarray, dict[int, tuple[np.ndarray, int]]]:
+    """(kind map (H, W) int8: -3 nothing, -2 wall, -1 floor, >= 0 obstacle index;
+    {obstacle index: (centroid (3,) m, pixels)} of the obstacle's surface that the matcher can
+    measure: visible in the left image at columns >= x_valid, where block matching has a
+    right-image counterpart)."""
+    ids = world.obstacle_ids(t).astype(np.int8)
+    depth = world.true_depth(t)
+    m = world.rect.model
+    h, w = depth.shape
+    u = (np.arange(w) - m.cx) / m.focal_px
+    v = (np.arange(h) - m.cy) / m.focal_px
+    pts = np.stack([np.broadcast_to(u[None, :], (h, w)), np.broadcast_to(v[:, None], (h, w)), np.ones((h, w))], -1)
+    pts = pts * depth[..., None]
+    T = world.T_world_rect
+    z_world = pts @ T[2, :3] + T[2, 3]
+    kind = np.where(ids >= 0, ids, np.where(np.isfinite(depth), np.where(z_world < 0.02, -1, -2), -3)).astype(np.int8)
+    seen = {}
+    cols = np.arange(w)[None, :] >= x_valid
+    for i in range(len(world.scene.boxes)):
+        mask = (ids == i) & cols
+        n = int(mask.sum())
+        seen[i] = (pts[mask].mean(0) if n else np.full(3, np.nan), n)
+    return kind, seen
+
+
+def default_sequence(scene: S.Scene) -> tuple[int, float]:
+    """(frames, fps): 3 frames of a static scene (sensor noise differs), 3 s at 15 fps of a moving one."""
+    return (3, 15.0) if scene.is_static() else (45, 15.0)
+
+
+def render_scenario(name: str, frames: int | None = None, fps: float | None = None, seed: int = 0,
+                    calibration: str = "lifecam-studio", matcher: MatcherConfig = MatcherConfig()) -> ScenarioData:
+    """Render `frames` pairs at `fps` (scene time), rectify and match them."""
+    t0 = time.perf_counter()
+    scene = S.Scene.builtin(name)
+    rig = camera.load_calibration(calibration)
+    rectifier = Rectifier(rig)
+    world = S.SyntheticWorld(scene, rig, rectifier.rectification, seed=seed)
+    n_def, fps_def = default_sequence(scene)
+    frames = frames or n_def
+    fps = fps or fps_def
+    stereo = StereoMatcher(matcher)
+    out = []
+    x_valid = matcher.min_disparity + matcher.num_disparities + matcher.block // 2 - 1
+    static = _truth_maps(world, 0.0, x_valid) if scene.is_static() else None
+    for k in range(frames):
+        t = k / fps
+        left, right = rectifier.rectify(*world.render(t))
+        d = to_float(stereo.compute(left, right), SCALE, matcher.invalid_value)
+        kind, seen = static if static is not None else _truth_maps(world, t, x_valid)
+        out.append(EvalFrame(t, left, d, world.truth(t), kind, [seen[i] for i in range(len(scene.boxes))]))
+    return ScenarioData(scene.name, scene, rectifier.model, mount_from_world(world), out, time.perf_counter() - t0)
+
+
+@dataclass
+class Score:
+    scenario: str
+    method: str
+    frames: int = 0
+    truths: int = 0
+    detections: int = 0
+    matched: int = 0
+    recall: float = float("nan")
+    precision: float = float("nan")
+    pos_err_med_m: float = float("nan")
+    pos_err_p95_m: float = float("nan")
+    pos_err_med_pct: float = float("nan")
+    pos_err_p95_pct: float = float("nan")
+    depth_err_med_pct: float = float("nan")  # truths with 0.5 <= z <= 4 m
+    center_err_med_m: float = float("nan")
+    visible_err_med_m: float = float("nan")  # against visible_centroid_m, measurable or not
+    floor_fp: int = 0
+    wall_fp: int = 0
+    split_fp: int = 0
+    id_switches: int = 0
+    vel_err_mps: float = float("nan")
+    seg_ms: float = float("nan")
+    per_truth: dict = field(default_factory=dict)  # name -> {"seen", "matched", "ids", "hidden", "gaps"}
+    _pos: list = field(default_factory=list, repr=False)
+    _pct: list = field(default_factory=list, repr=False)
+    _depth: list = field(default_factory=list, repr=False)
+    _center: list = field(default_factory=list, repr=False)
+    _visible: list = field(default_factory=list, repr=False)
+    _vel: list = field(default_factory=list, repr=False)
+    _ms: list = field(default_factory=list, repr=False)
+
+    def finish(self) -> "Score":
+        self.recall = self.matched / self.truths if self.truths else float("nan")
+        self.precision = self.matched / self.detections if self.detections else (1.0 if self.truths == 0 else float("nan"))
+        med = lambda a: float(np.median(a)) if len(a) else float("nan")  # noqa: E731
+        p95 = lambda a: float(np.percentile(a, 95)) if len(a) else float("nan")  # noqa: E731
+        self.pos_err_med_m, self.pos_err_p95_m = med(self._pos), p95(self._pos)
+        self.pos_err_med_pct, self.pos_err_p95_pct = med(self._pct), p95(self._pct)
+        self.depth_err_med_pct = med(self._depth)
+        self.center_err_med_m = med(self._center)
+        self.visible_err_med_m = med(self._visible)
+        self.vel_err_mps = float(np.mean(self._vel)) if self._vel else float("nan")
+        self.seg_ms = float(np.mean(self._ms)) if self._ms else float("nan")
+        return self
+
+    def to_dict(self) -> dict:
+        return {k: v for k, v in asdict(self).items() if not k.startswith("_")}
+
+    @classmethod
+    def pooled(cls, scores: Iterable["Score"], scenario: str = "overall") -> "Score":
+        scores = list(scores)
+        out = cls(scenario, scores[0].method if scores else "")
+        for s in scores:
+            for k in ("frames", "truths", "detections", "matched", "floor_fp", "wall_fp", "split_fp", "id_switches"):
+                setattr(out, k, getattr(out, k) + getattr(s, k))
+            for k in ("_pos", "_pct", "_depth", "_center", "_visible", "_vel", "_ms"):
+                getattr(out, k).extend(getattr(s, k))
+        return out.finish()
+
+
+def _match(obstacles, centroids: list[np.ndarray], gate_m: float, gate_rel: float) -> list[tuple[int, int]]:
+    from scipy.optimize import linear_sum_assignment
+
+    if not obstacles or not centroids:
+        return []
+    P = np.array([o.position_m for o in obstacles])
+    C = np.array(centroids)
+    D = np.linalg.norm(P[:, None] - C[None], axis=2)
+    gate = np.maximum(gate_m, gate_rel * np.linalg.norm(C, axis=1))[None, :]
+    cost = np.where(D <= gate, D, 1e6)
+    rows, cols = linear_sum_assignment(cost)
+    return [(int(r), int(c)) for r, c in zip(rows, cols) if cost[r, c] < 1e6]
+
+
+def score_method(data: ScenarioData, method: str, overrides: dict | None = None, min_visible_px: int = 400,
+                 eval_range_m: float = 4.5, gate_m: float = 0.3, gate_rel: float = 0.15,
+                 vel_warmup: int = 4, mount_error: dict | None = None) -> Score:
+    """mount_error: added to the true mount the segmenter is told, e.g. {"pitch_deg": 5,
+    "height_m": 0.1} (a balancing robot leans; the floor fit should absorb it)."""
+    m = data.mount
+    err = {"height_m": 0.0, "pitch_deg": 0.0, "roll_deg": 0.0, **(mount_error or {})}
+    cfg = dict(METHODS[method])
+    cfg.update(mount_height_m=m.height_m + err["height_m"], mount_pitch_deg=m.pitch_deg + err["pitch_deg"],
+               mount_yaw_deg=m.yaw_deg, mount_roll_deg=m.roll_deg + err["roll_deg"], mount_x_m=m.x_m,
+               mount_y_m=m.y_m)
+    cfg.update(overrides or {})
+    builder = ObstacleBuilder(SegmenterSettings(**cfg))
+    sc = Score(data.name, method, frames=len(data.frames))
+    first_seen: dict[int, int] = {}
+    last_id: dict[str, int] = {}
+    for k, fr in enumerate(data.frames):
+        t0 = time.perf_counter()
+        res = builder.process(fr.disparity, data.model, t_s=fr.t_s, seq=k, stamp_ns=int(fr.t_s * 1e9), image=fr.left)
+        sc._ms.append((time.perf_counter() - t0) * 1e3)
+        obs = res.obstacles.obstacles
+        for o in obs:
+            first_seen.setdefault(o.id, k)
+        in_range = [i for i, (c, n) in enumerate(fr.measurable) if n > 0 and 0 < c[2] <= eval_range_m]
+        keep = [i for i in in_range if fr.measurable[i][1] >= min_visible_px]
+        glimpsed = [i for i in in_range if fr.measurable[i][1] < min_visible_px]
+        truths = [fr.truth[i] for i in keep]
+        centroids = [fr.measurable[i][0] for i in keep]
+        pairs = _match(obs, centroids, gate_m, gate_rel)
+        # detections of a barely visible truth: neither a hit nor a false positive
+        rest = [oi for oi in range(len(obs)) if oi not in {p[0] for p in pairs}]
+        ignored = {rest[r] for r, _ in _match([obs[oi] for oi in rest], [fr.measurable[i][0] for i in glimpsed],
+                                              gate_m, gate_rel)}
+        sc.truths += len(truths)
+        sc.detections += len(obs) - len(ignored)
+        sc.matched += len(pairs)
+        for i, t in enumerate(fr.truth):
+            rec = sc.per_truth.setdefault(t.name, {"seen": 0, "matched": 0, "ids": [], "hidden": 0, "gaps": 0})
+            if i in keep:
+                rec["seen"] += 1
+                if rec.get("_gone"):
+                    rec["gaps"] += 1  # counted again after frames without: a reappearance
+                rec["_gone"] = False
+            else:
+                rec["hidden"] += 1  # occluded, out of view or range, or only glimpsed
+                rec["_gone"] = rec["seen"] > 0
+        matched_obs = set(ignored)
+        for oi, ti in pairs:
+            o, t = obs[oi], truths[ti]
+            matched_obs.add(oi)
+            p = np.array(o.position_m)
+            c = centroids[ti]
+            err = float(np.linalg.norm(p - c))
+            sc._visible.append(float(np.linalg.norm(p - np.asarray(t.visible_centroid_m, float))))
+            dist = float(np.linalg.norm(c))
+            sc._pos.append(err)
+            sc._pct.append(100.0 * err / dist)
+            if 0.5 <= c[2] <= 4.0:
+                sc._depth.append(100.0 * abs(p[2] - c[2]) / c[2])
+            sc._center.append(float(np.linalg.norm(p - np.asarray(t.center_m, float))))
+            rec = sc.per_truth[t.name]
+            rec["matched"] += 1
+            if t.name in last_id and last_id[t.name] != o.id:
+                sc.id_switches += 1
+            last_id[t.name] = o.id
+            if not rec["ids"] or rec["ids"][-1] != o.id:
+                rec["ids"].append(o.id)
+            if k - first_seen[o.id] >= vel_warmup:
+                sc._vel.append(float(np.linalg.norm(np.array(o.velocity_mps) - np.asarray(t.velocity_mps, float))))
+        for oi, o in enumerate(obs):
+            if oi in matched_obs:
+                continue
+            x0, y0, x1, y1 = o.bbox_px
+            kinds = fr.kind[y0:y1, x0:x1]
+            counts = {"floor": int((kinds == -1).sum()), "wall": int((kinds == -2).sum()),
+                      "object": int((kinds >= 0).sum())}
+            what = max(counts, key=counts.get)
+            if what == "floor":
+                sc.floor_fp += 1
+            elif what == "wall":
+                sc.wall_fp += 1
+            else:
+                sc.split_fp += 1
+    for rec in sc.per_truth.values():
+        rec.pop("_gone", None)
+    return sc.finish()
+
+
+def evaluate(scenarios: list[str] | None = None, methods: list[str] | None = None, frames: int | None = None,
+             fps: float | None = None, seed: int = 0, matcher: MatcherConfig = MatcherConfig(),
+             overrides: dict | None = None, data: dict[str, ScenarioData] | None = None,
+             mount_error: dict | None = None) -> dict:
+    """-> {"scenarios": {name: {method: Score}}, "overall": {method: Score}, "render_s": {name: s}}.
+    `data` may hold already-rendered scenarios (reused, e.g. by tests)."""
+    scenarios = scenarios or S.list_builtin_scenarios()
+    methods = methods or DEFAULT_METHODS
+    for m in methods:
+        if m not in METHODS:
+            raise ValueError(f"unknown method {m!r} (known: {', '.join(METHODS)})")
+    result: dict = {"scenarios": {}, "overall": {}, "render_s": {}}
+    for name in scenarios:
+        d = (data or {}).get(name) or render_scenario(name, frames, fps, seed, matcher=matcher)
+        if data is not None:
+            data[name] = d
+        result["render_s"][name] = d.render_s
+        result["scenarios"][name] = {m: score_method(d, m, overrides, mount_error=mount_error) for m in methods}
+    for m in methods:
+        result["overall"][m] = Score.pooled([result["scenarios"][n][m] for n in scenarios])
+    return result
+
+
+COLUMNS = [("recall", "recall", "{:.0%}"), ("precision", "prec", "{:.0%}"), ("pos_err_med_m", "err med m", "{:.3f}"),
+           ("pos_err_p95_m", "err p95 m", "{:.3f}"), ("pos_err_med_pct", "err med %", "{:.1f}"),
+           ("pos_err_p95_pct", "err p95 %", "{:.1f}"), ("depth_err_med_pct", "depth med %", "{:.1f}"),
+           ("center_err_med_m", "vs centre m", "{:.3f}"), ("visible_err_med_m", "vs visib. m", "{:.3f}"), ("floor_fp", "floor FP", "{}"), ("wall_fp", "wall FP", "{}"),
+           ("split_fp", "split FP", "{}"), ("id_switches", "id sw", "{}"), ("vel_err_mps", "vel err m/s", "{:.2f}"),
+           ("seg_ms", "seg ms", "{:.1f}")]
+
+
+def format_table(result: dict) -> str:
+    head = f"{'scenario':15} {'method':11} {'truth':>5} {'det':>5} " + " ".join(f"{c[1]:>11}" for c in COLUMNS)
+    lines = [head, "-" * len(head)]
+    rows = [(n, s) for n, by in result["scenarios"].items() for s in by.values()]
+    rows += [("overall", s) for s in result["overall"].values()]
+    prev = None
+    for name, s in rows:
+        if prev is not None and name != prev:
+            lines.append("")
+        prev = name
+        cells = []
+        for key, _, fmt in COLUMNS:
+            v = getattr(s, key)
+            cells.append(f"{('-' if isinstance(v, float) and math.isnan(v) else fmt.format(v)):>11}")
+        lines.append(f"{name:15} {s.method:11} {s.truths:>5} {s.detections:>5} " + " ".join(cells))
+    return "\n".join(lines)
+
+
+def result_to_json(result: dict) -> dict:
+    def clean(x):
+        if isinstance(x, float) and not math.isfinite(x):
+            return None
+        if isinstance(x, dict):
+            return {k: clean(v) for k, v in x.items()}
+        if isinstance(x, list):
+            return [clean(v) for v in x]
+        return x
+
+    return clean({
+        "scenarios": {n: {m: s.to_dict() for m, s in by.items()} for n, by in result["scenarios"].items()},
+        "overall": {m: s.to_dict() for m, s in result["overall"].items()},
+    })
