@@ -190,14 +190,16 @@ def test_bridge_topics_read_by_raw_zenoh_rosbags_and_zenoh_ros2_sdk(tmp_path):
             wait_until(lambda: late, 30, "/tf_static at a late transient-local subscriber")
 
             # the SDK's graph query gathers liveliness tokens for `timeout`; on a loaded machine one
-            # query can come back before the publisher's token: ask again until it is seen (deadline)
+            # query can come back before the publisher's token, and get_topic_info then returns None
+            # (a topic it found no entity of), not an empty info: ask again until it is seen (deadline)
             graph: dict = {}
 
             def graph_seen() -> bool:
                 graph["names"] = dict(get_topic_names_and_types(domain_id=0, router_port=port, timeout=2.0))
                 graph["info"] = get_topic_info("/obstacles/detections", domain_id=0, router_port=port, timeout=2.0,
                                                verbose=True)
-                return graph["info"].publisher_count >= 1 and "/freespace" in graph["names"]
+                info = graph["info"]
+                return info is not None and info.publisher_count >= 1 and "/freespace" in graph["names"]
             wait_until(graph_seen, 60, "the bridge's publishers in the SDK's graph query")
             names, info = graph["names"], graph["info"]
             sdk.close()
