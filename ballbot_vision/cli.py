@@ -209,8 +209,11 @@ def cmd_schema(args: argparse.Namespace) -> int:
 
 
 def cmd_keys(args: argparse.Namespace) -> int:
-    from common.keys import TOPICS
+    from common.keys import TOPICS, markdown_table
 
+    if args.markdown:
+        print(markdown_table(), end="")
+        return 0
     rid = robot_id(args)
     print(f"{'key':52} {'message':14} {'producer':14} {'rate':>6}  description")
     for t in TOPICS.values():
@@ -351,6 +354,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     if needed("keys"):
         k = sub.add_parser("keys", help="the Zenoh key table")
         k.add_argument("--robot-id", default=None)
+        k.add_argument("--markdown", action="store_true", help="the table as Markdown (docs/keys.md)")
         k.set_defaults(func=cmd_keys)
     else:
         stub("keys")

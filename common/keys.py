@@ -79,3 +79,38 @@ FREESPACE_ALL = "ballbot/freespace/**"
 
 def topic(name: str) -> Topic:
     return TOPICS[name]
+
+
+def markdown_table() -> str:
+    """The key table as Markdown (docs/keys.md is this text; a test holds it to the table)."""
+    rows = ["| key | message | producer | consumers | rate | what |", "|---|---|---|---|---|---|"]
+    for t in TOPICS.values():
+        model = t.model.__name__ if t.model else "liveliness token"
+        rate = f"{t.rate_hz:g} Hz" if t.rate_hz else "event"
+        key = t.template.replace("{", "<").replace("}", ">")
+        rows.append(f"| `{key}` | {model} | {t.producer} | {', '.join(t.consumers)} | {rate} | "
+                    f"{t.description} |")
+    return "\n".join(rows) + "\n"
+
+
+def _chunks_meet(a: list[str], b: list[str]) -> bool:
+    """Do two key expressions (chunks split on '/'; '*' one chunk, '**' any number) share a key?"""
+    if not a or not b:
+        return (not a or a == ["**"]) and (not b or b == ["**"])
+    if a[0] == "**":
+        return _chunks_meet(a[1:], b) or _chunks_meet(a, b[1:])
+    if b[0] == "**":
+        return _chunks_meet(a, b[1:]) or _chunks_meet(a[1:], b)
+    return (a[0] == b[0] or "*" in (a[0], b[0])) and _chunks_meet(a[1:], b[1:])
+
+
+def topics_of(key_expr: str) -> list[str]:
+    """The names of the table's topics a key expression is meant for: of those it reaches (any
+    robot), the ones whose literal chunks it names most (`ballbot/obstacles/**` would also reach
+    `ballbot/*/frames/raw` for a robot called "obstacles": it means the obstacle lists)."""
+    chunks = key_expr.split("/")
+    literal = {c for c in chunks if "*" not in c}
+    scored = [(len(literal & {c for c in t.pattern("*").split("/") if c != "*"}), t.name) for t in TOPICS.values()
+              if _chunks_meet(chunks, t.pattern("*").split("/"))]
+    best = max((n for n, _ in scored), default=0)
+    return [name for n, name in scored if n == best]

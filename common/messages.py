@@ -237,6 +237,10 @@ class ServiceStats(BaseModel):
         "ok", description="progress, not liveness: degraded/failed when input arrives but nothing is "
                           "published, or every input fails (the reason is in status)")
     extra: dict[str, float] = Field(default_factory=dict)
+    subscribes: list[str] = Field(default_factory=list, max_length=64, description="the key table's topics this "
+                                  "instance subscribes to (recorded by its Node, not declared by hand)")
+    publishes: list[str] = Field(default_factory=list, max_length=64, description="the key table's topics this "
+                                 "instance publishes on")
 
 
 class CalibrationUpdate(Message):

@@ -29,7 +29,7 @@ from typing import Any, Callable, Iterator, TypeVar
 
 from common import codec
 from common.errors import BallbotError, DecodeError
-from common.keys import Topic, topic
+from common.keys import Topic, topic, topics_of
 from common.messages import Message, ServiceStats
 from common.zenoh_session import ZenohOptions, open_session
 
@@ -464,6 +464,8 @@ class Node:
         self.processed = self.published = self.decode_errors = self.errors = 0
         self.inputs = 0  # inputs that arrive outside an inbox (count_input())
         self._inboxes: list[Inbox] = []
+        self._subscribes: set[str] = set()  # topic names, see uses()
+        self._publishes: set[str] = {"stats", "alive"}
         self._publishers: list[Publisher] = []
         self._subscribers: list[Any] = []
         self._started = time.monotonic()
@@ -515,15 +517,27 @@ class Node:
             f"refused-{verdict}", f"dropped input on {name}: capture stamp {meta.stamp_ns} is "
                                   f"{'in the future' if verdict == 'future' else 'too old'} for this clock "
                                   f"(counted in in_{name}_{verdict})")
-        sub = self.session.declare_subscriber(key or t.key(self.robot_id), inbox.offer_sample)
+        key = key or t.key(self.robot_id)
+        self.uses("subscribes", key)
+        sub = self.session.declare_subscriber(key, inbox.offer_sample)
         self._subscribers.append(sub)
         self._inboxes.append(inbox)
         return inbox
 
     def subscribe(self, key: str, callback: Callable[[Any], None]) -> Any:
+        self.uses("subscribes", key)
         sub = self.session.declare_subscriber(key, callback)
         self._subscribers.append(sub)
         return sub
+
+    def uses(self, how: str, key_expr: str) -> None:
+        """Record that this instance subscribes to or publishes on a key expression: its stats
+        carry the key table's topics it really uses (tests hold them against the table)."""
+        found = topics_of(key_expr)
+        if not found:
+            raise ValueError(f"{self.service}: {key_expr} is not a key of common/keys.py's table")
+        with self._lock:
+            getattr(self, "_" + how).update(found)
 
     def count_input(self) -> None:
         """An input that arrived outside an inbox (health: input arrives, is anything published?)."""
@@ -632,6 +646,8 @@ class Node:
     def publisher(self, name: str, **fields: str) -> Publisher:
         t = topic(name)
         p = Publisher(self, t, t.key(self.robot_id, **fields))
+        with self._lock:
+            self._publishes.add(name)
         self._publishers.append(p)
         return p
 
@@ -687,7 +703,8 @@ class Node:
             rate_hz=published / window, proc_ms_p50=self._proc.median_and_clear(),
             age_ms_p50=self._age.median_and_clear(), processed=self.processed, published=self.published,
             drops=sum(i.overwritten + i.late + i.oversized for i in self._inboxes),
-            decode_errors=self.decode_errors, errors=self.errors, status=status, health=health, extra=extra)
+            decode_errors=self.decode_errors, errors=self.errors, status=status, health=health, extra=extra,
+            subscribes=sorted(self._subscribes), publishes=sorted(self._publishes))
 
     def _rate(self, extra: dict[str, float], name: str, total: float, window: float) -> None:
         """Byte total and per-second rate of one link: '<name>_bytes', 'rate_<name>_Bps'."""

@@ -15,3 +15,11 @@ def test_import_contracts_hold():
                          text=True, timeout=300)
     assert out.returncode == 0, out.stdout + out.stderr
     assert "0 broken" in out.stdout
+
+
+def test_docs_key_table_is_the_key_table():
+    from common.keys import TOPICS, markdown_table
+
+    text = (ROOT / "docs" / "keys.md").read_text()
+    assert text.endswith(markdown_table()), "docs/keys.md is stale: regenerate it with `ballbot-vision keys --markdown`"
+    assert all(f"`{t.template.replace('{', '<').replace('}', '>')}`" in text for t in TOPICS.values())

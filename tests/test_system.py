@@ -10,13 +10,27 @@ import numpy as np
 import pytest
 
 from common import codec
-from common.keys import topic
+from common.keys import TOPICS, topic
 from common.messages import (FreeSpace, GroundTruth, Image, ObstacleList, Odometry, ServiceStats,
                                             StereoFrame)
 
 from helpers import Collector, cli, pid_alive
 
 pytestmark = pytest.mark.system
+
+
+def table_disagrees(service: str, subscribes: list[str], publishes: list[str]) -> list[str]:
+    """Where a service's real subscriptions and publications disagree with common/keys.py's table."""
+    out = []
+    for name in publishes:
+        producers = TOPICS[name].producer.split(", ")
+        if service not in producers and "every service" not in producers:
+            out.append(f"{service} publishes {name}, whose producer is {TOPICS[name].producer}")
+    for name in subscribes:
+        consumers = TOPICS[name].consumers
+        if service not in consumers and "anyone" not in consumers:
+            out.append(f"{service} subscribes to {name}, whose consumers are {', '.join(consumers)}")
+    return out
 
 
 def match_truth(obstacles, truth: GroundTruth):
@@ -95,6 +109,13 @@ def test_up_publishes_obstacles_matching_ground_truth_and_stops_cleanly(up):
         dispatcher = next(i for i in doc["instances"] if i["name"] == "dispatcher")
         assert dispatcher["status"].startswith("ok"), "one host computing onboard is the normal case"
         assert all(i["in_Bps"] > 0 for i in doc["instances"] if i["name"] in ("rectify", "dispatcher", "segmenter"))
+        # what each process really subscribes to and publishes (its Node records it) is what the key
+        # table says it does
+        uses = {i["service"]: i for i in doc["instances"]}
+        assert set(uses["segmenter"]["subscribes"]) >= {"disparity", "odometry"}
+        assert set(uses["segmenter"]["publishes"]) >= {"obstacles", "freespace"}
+        for inst in doc["instances"]:
+            assert not table_disagrees(inst["service"], inst["subscribes"], inst["publishes"]), inst
 
     pids = up.child_pids()
     assert set(pids) == {"router", "capture", "rectify", "disparity", "segmenter"}
