@@ -2,7 +2,9 @@
 
 Docker tests (`-m docker`, tests/test_docker.py) build images for minutes: they run with
 `--run-docker` (what .ci/run passes) or BALLBOT_DOCKER_TESTS=1, and are skipped with that reason
-otherwise, so README's test command stays quick and needs no Docker.
+otherwise, so README's test command stays quick and needs no Docker. Slow tests (`-m slow`: long
+system runs, attacks that last tens of seconds, the real-recording matrix) likewise run with
+`--run-slow` (CI passes it) or BALLBOT_SLOW_TESTS=1.
 
 Signals: a shell that starts a job in the background, nohup-style wrappers and some CI runners
 start the tests with SIGINT ignored, and an ignored disposition is inherited by every child
@@ -23,6 +25,9 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     parser.addoption("--run-docker", action="store_true", default=False,
                      help="run the docker-marked tests (build the images, docker-compose up); "
                           "also BALLBOT_DOCKER_TESTS=1")
+    parser.addoption("--run-slow", action="store_true", default=False,
+                     help="run the slow-marked tests (long system runs, attacks, the real-recording matrix); "
+                          "also BALLBOT_SLOW_TESTS=1")
 
 
 def pytest_configure(config: pytest.Config) -> None:
@@ -33,18 +38,22 @@ def pytest_configure(config: pytest.Config) -> None:
             signal.signal(sig, signal.SIG_DFL)
 
 
-def docker_tests_enabled(config: pytest.Config) -> bool:
-    return bool(config.getoption("--run-docker")) or os.environ.get("BALLBOT_DOCKER_TESTS", "") in ("1", "true", "yes")
+def _enabled(config: pytest.Config, option: str, env: str) -> bool:
+    return bool(config.getoption(option)) or os.environ.get(env, "") in ("1", "true", "yes")
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    if docker_tests_enabled(config):
-        return
-    skip = pytest.mark.skip(reason="docker test: builds images for minutes; run with --run-docker "
-                                   "(CI does, see .ci/run) or BALLBOT_DOCKER_TESTS=1")
+    skips = {}
+    if not _enabled(config, "--run-docker", "BALLBOT_DOCKER_TESTS"):
+        skips["docker"] = pytest.mark.skip(reason="docker test: builds images for minutes; run with --run-docker "
+                                                  "(CI does, see .ci/run) or BALLBOT_DOCKER_TESTS=1")
+    if not _enabled(config, "--run-slow", "BALLBOT_SLOW_TESTS"):
+        skips["slow"] = pytest.mark.skip(reason="slow test: run with --run-slow (CI does, see .ci/run) or "
+                                                "BALLBOT_SLOW_TESTS=1")
     for item in items:
-        if "docker" in item.keywords:
-            item.add_marker(skip)
+        for marker, skip in skips.items():
+            if marker in item.keywords:
+                item.add_marker(skip)
 
 
 @pytest.fixture
