@@ -13,7 +13,8 @@ from ...common.errors import DecodeError
 from ...common.messages import DisparityMap, FreeSpace, GroundEstimate, Obstacle, ObstacleList, Odometry
 from ...common.keys import topic
 from ...common.node import Node
-from ...common.disparity import to_float
+from ...common.disparity import RecentValid, searched_range, to_float
+from ...common.signing import KEY_ENV, calibration_key
 from . import freespace, layers, seed
 from .ground import GroundEstimator, frame_mount, plane_from_mount
 from .mount import FloorPlane, Mount
@@ -26,6 +27,9 @@ log = logging.getLogger("ballbot")
 SUBSCRIBES = ["disparity", "odometry"]
 # A map measuring less of the image than this saw nothing it could vouch for: the list says so.
 MIN_VALID_FRACTION = 0.01
+# A map measuring less than half of what the maps of the last 2 s measured (a covered lens, glare, a
+# broken matcher) is flagged "valid-collapse" until it is no longer a sudden change (common/disparity.py).
+COLLAPSE_FACTOR, COLLAPSE_WINDOW_S, COLLAPSE_WARMUP_FRAMES = 0.5, 2.0, 5
 PUBLISHES = ["obstacles", "freespace"]
 
 
@@ -86,9 +90,11 @@ class ObstacleBuilder:
                                confirm_n=settings.track_confirm_n)
         self._track_frame = ""  # "base" or "camera": the frame the tracks are kept in
         self._last_t: float | None = None
+        self.recent_valid = RecentValid(COLLAPSE_WINDOW_S, COLLAPSE_FACTOR, COLLAPSE_WARMUP_FRAMES)
 
     def decode(self, msg: DisparityMap) -> tuple[np.ndarray, camera.RectifiedModel, np.ndarray | None]:
-        """A disparity message -> (disparity px float32 with NaN invalid, camera model, confidence)."""
+        """A disparity message -> (disparity px float32 with NaN invalid, camera model, confidence).
+        Values outside the range the map says was searched, NaN and inf are invalid, never depth."""
         if (msg.image.width, msg.image.height) != (msg.camera.width, msg.camera.height):
             raise DecodeError(f"disparity image is {msg.image.width}x{msg.image.height}, its camera model "
                               f"{msg.camera.width}x{msg.camera.height}")
@@ -100,7 +106,8 @@ class ObstacleBuilder:
                 raise DecodeError(f"disparity confidence is {msg.confidence.width}x{msg.confidence.height} "
                                   f"{confidence.dtype}, the map {msg.image.width}x{msg.image.height}: expected uint8 "
                                   f"of the same size")
-        return to_float(raw, msg.scale, msg.invalid_value), model_from_message(msg), confidence
+        d = to_float(raw, msg.scale, msg.invalid_value, searched_range(msg.min_disparity, msg.num_disparities))
+        return d, model_from_message(msg), confidence
 
     def segment(self, disparity: np.ndarray, model: camera.RectifiedModel, confidence: np.ndarray | None = None,
                 image: np.ndarray | None = None) -> layers.LayersFrame:
@@ -133,8 +140,17 @@ class ObstacleBuilder:
                 stages: dict[str, int] | None = None) -> FrameResult:
         """disparity: (H, W) float32 px, NaN = invalid, matching `model`; t_s: the frame's time on a
         clock that never goes backwards (the service: Node.frame_time_s; offline: the capture time);
-        odometry: the robot's motion at this frame, if known (velocities are then over the ground)."""
+        odometry: the robot's motion at this frame, if known (velocities are then over the ground).
+
+        The list says how far it can be trusted: valid_fraction is the share of the image with a
+        measurement; degraded names why an empty list would not mean "nothing there"
+        ("no-valid-disparity": under 1 % measured; "valid-collapse": under half of what the
+        frames of the last 2 s measured)."""
         cfg = self.settings
+        if disparity.dtype.kind == "f":
+            inf = np.isinf(disparity)
+            if inf.any():  # an infinite disparity is no measurement (nor a point at zero distance)
+                disparity = np.where(inf, np.float32(np.nan), disparity)
         frame = self.segment(disparity, model, confidence, image)
         mount = frame_mount(frame.ground, cfg)
         track_frame = "base" if mount is not None else "camera"
@@ -175,6 +191,9 @@ class ObstacleBuilder:
         degraded = []
         if valid_fraction < MIN_VALID_FRACTION:
             degraded.append("no-valid-disparity")
+        elif self.recent_valid.collapsed(valid_fraction, t_s):
+            degraded.append("valid-collapse")
+        self.recent_valid.add(valid_fraction, t_s)
         out = ObstacleList(robot_id=robot_id, seq=seq, stamp_ns=stamp_ns, stages=dict(stages or {}), publish_ns=now,
                            stale=stale, degraded=degraded, valid_fraction=valid_fraction, method=cfg.method,
                            obstacles=obstacles, ground=frame.ground,
@@ -210,7 +229,15 @@ def _vec(v) -> tuple[float, float, float]:
 
 def run(node: Node, settings: SegmenterSettings) -> None:
     builder = ObstacleBuilder(settings)
-    inbox = node.latest("disparity")
+    # Only the robot's dispatcher signs maps (with the key the robot's services share): anyone else's
+    # are refused before their stamp reaches the freshness gate, so they cannot become the ordering
+    # reference nor feed the list. Without a key (a bare `run segmenter`) any peer's map is taken.
+    sign_key = calibration_key()
+    unsigned_note = "" if sign_key else f" (disparity maps unauthenticated: no {KEY_ENV})"
+    if sign_key is None:
+        log.warning("segmenter: no %s: disparity maps are taken from anyone on the network, signed or not; "
+                    "`up` and the compose files set one for the robot's services", KEY_ENV)
+    inbox = node.latest("disparity", sign_key=sign_key)
     out = node.publisher("obstacles")
     free_out = node.publisher("freespace")
     lock = threading.Lock()
@@ -245,7 +272,7 @@ def run(node: Node, settings: SegmenterSettings) -> None:
                 prev = last["list"]
                 quiet = time.monotonic() - last["time"] > settings.stale_after_s
                 if quiet:
-                    node.status = "stale: no disparity input"
+                    node.status = "stale: no disparity input" + unsigned_note
                     if prev is not None:
                         prev.stale = True
                         prev.publish_ns = time.time_ns()
@@ -265,4 +292,4 @@ def run(node: Node, settings: SegmenterSettings) -> None:
                 free_out.put(result.freespace, count=False)
             g = result.obstacles.ground
             node.extra["ground_height_m"] = g.height_m if g is not None else 0.0
-            node.status = "stale: input too old" if stale else "ok"
+            node.status = ("stale: input too old" if stale else "ok") + unsigned_note
