@@ -770,8 +770,6 @@ class Dispatcher:
         self.node.extra["workers_quarantined"] = float(len(quarantined))
         notes = ([f"quarantined: {', '.join(quarantined)}"] if quarantined else []) + \
                 ([f"on probation: {', '.join(probation)}"] if probation else [])
-        if self.sign_key is None:
-            notes.append("maps unsigned (no BALLBOT_CALIBRATION_KEY)")
         note = f"; {'; '.join(notes)}" if notes else ""
         if trusted:
             methods = sorted({m for w, m in list(self.methods.items())
