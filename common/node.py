@@ -277,8 +277,8 @@ class Inbox:
         self._waiting: Delivery | None = None
         self._taken_stamp = -1  # without a gate
         self.on_refused: Callable[[str, Meta], None] | None = None  # (verdict, meta): the node logs it
-        self.sign_key: bytes | None = None  # set: only payloads signed with it for `sign_key_expr` pass
-        self.sign_key_expr = ""
+        self.sign_key: bytes | None = None  # set: only payloads signed with it for their key pass
+        self.sign_key_expr = ""  # the key, for a sample that does not name its own
         self.unauthenticated = {"unsigned": 0, "forged": 0}
         self.received = 0
         self.overwritten = 0
@@ -302,7 +302,9 @@ class Inbox:
                 att = sample.attachment.to_bytes() if sample.attachment is not None else None
             except Exception:  # a foreign attachment: unsigned
                 att = None
-            verdict = signed_payload.check(self.sign_key, self.sign_key_expr, att, payload, _META.size)
+            # the key it came on (a wildcard subscription still checks each sample's own key)
+            key_expr = str(sample.key_expr) if getattr(sample, "key_expr", None) is not None else self.sign_key_expr
+            verdict = signed_payload.check(self.sign_key, key_expr, att, payload, _META.size)
             if verdict != "ok":
                 with self._cond:
                     self.received += 1

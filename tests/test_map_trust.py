@@ -30,9 +30,9 @@ CAM = CameraModel(width=64, height=48, focal_px=60.0, cx=32.0, cy=24.0, baseline
 
 # --- the signature on `disparity` ----------------------------------------------------------------
 
-def sample(payload: bytes, attachment: bytes | None):
-    """What a Zenoh subscriber callback gets: payload and attachment as Zenoh bytes."""
-    return types.SimpleNamespace(payload=zenoh.ZBytes(payload),
+def sample(payload: bytes, attachment: bytes | None, key_expr: str | None = None):
+    """What a Zenoh subscriber callback gets: payload and attachment as Zenoh bytes, the key."""
+    return types.SimpleNamespace(payload=zenoh.ZBytes(payload), key_expr=key_expr and zenoh.KeyExpr(key_expr),
                                  attachment=None if attachment is None else zenoh.ZBytes(attachment))
 
 
@@ -65,10 +65,13 @@ def test_an_unsigned_map_stamped_ahead_never_reaches_the_gate():
     assert refused == ["unsigned", "forged"] and inbox.take(0) is None
     assert inbox.gate.reference is None and inbox.gate.counts["future"] == 0
     real = _META.pack(now - 50_000_000, 5, 1)
-    inbox.offer_sample(sample(b"real", signed_payload.seal(KEY, key_expr, real, b"real")))
+    other_robot = topic("disparity").key("other")  # signed for another key: no good on this one
+    inbox.offer_sample(sample(b"real", signed_payload.seal(KEY, other_robot, real, b"real"), key_expr))
+    assert refused == ["unsigned", "forged", "forged"]
+    inbox.offer_sample(sample(b"real", signed_payload.seal(KEY, key_expr, real, b"real"), key_expr))
     d = inbox.take_delivery(0)
     assert d.payload == b"real" and d.meta.stamp_ns == now - 50_000_000
-    assert inbox.refusals()["unsigned"] == 1 and inbox.refusals()["forged"] == 1
+    assert inbox.refusals()["unsigned"] == 1 and inbox.refusals()["forged"] == 2
 
 
 # --- invalid pixels --------------------------------------------------------------------------------
