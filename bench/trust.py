@@ -152,8 +152,8 @@ def main(argv: list[str] | None = None) -> int:
     if "live" in report:
         lv = report["live"]
         h = lv["hop_ms"]
-        print(f"live at {lv['offered_hz']:g} Hz, {lv['seconds']:g} s: {lv['worker_maps']} worker maps, {lv['republished']} "
-              f"republished; hop (worker's map -> republished map) p50 {h['p50']:.2f} ms, p95 {h['p95']:.2f} ms; "
+        print(f"live at {lv['offered_hz']:g} Hz, {lv['seconds']:g} s: {lv['worker_maps']} worker maps, "
+              f"{lv['republished']} republished; hop (worker's map -> republished map) p50 {h['p50']:.2f} ms, p95 {h['p95']:.2f} ms; "
               f"dispatcher CPU {lv['dispatcher_cpu_ms_per_map']:.2f} ms per map (all it does); load avg "
               f"{lv['load_avg_1min']:.1f} on {report['cores']} cores")
     return 0

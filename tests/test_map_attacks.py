@@ -290,9 +290,9 @@ def test_up_maps_stamped_ahead_on_the_disparity_key_are_refused_unsigned(up_robo
     run_forgery(up_robot, "forge-disparity")
     obs.wait(lambda: obs.extra("segmenter", "in_disparity_unsigned") >= 1
              and obs.extra("segmenter", "in_disparity_forged") >= 1, 30, "the segmenter to count the forgeries")
-    refused = obs.extra("segmenter", "in_disparity_unsigned") + obs.extra("segmenter", "in_disparity_forged") - before
-    print(f"    segmenter refused {refused:.0f} (unsigned {obs.extra('segmenter', 'in_disparity_unsigned'):.0f}, "
-          f"bad signature {obs.extra('segmenter', 'in_disparity_forged'):.0f}); future {obs.extra('segmenter', 'in_disparity_future'):.0f}")
+    unsigned, forged = obs.extra("segmenter", "in_disparity_unsigned"), obs.extra("segmenter", "in_disparity_forged")
+    print(f"    segmenter refused {unsigned + forged - before:.0f} (unsigned {unsigned:.0f}, bad signature {forged:.0f}); "
+          f"future {obs.extra('segmenter', 'in_disparity_future'):.0f}")
     assert obs.extra("segmenter", "in_disparity_future") == 0, "a forged stamp reached the freshness gate"
 
 
@@ -335,7 +335,8 @@ def gateway_robot(tmp_path_factory):
         pytest.skip(f"deploy/make-certs.sh could not make certificates here (openssl?): {e}")
     internal, external = free_port(), free_port()
     text = ((REPO / "deploy/zenoh/gateway.json5").read_text().replace("/etc/zenoh-certs", str(certs))
-            .replace("tcp/router:7447", f"tcp/127.0.0.1:{internal}").replace("tls/0.0.0.0:7448", f"tls/127.0.0.1:{external}"))
+            .replace("tcp/router:7447", f"tcp/127.0.0.1:{internal}")
+            .replace("tls/0.0.0.0:7448", f"tls/127.0.0.1:{external}"))
     (tmp / "gateway.json5").write_text(text)
     cfg = tmp / "10hz.yaml"
     cfg.write_text("capture: {rate_hz: 10}\n")

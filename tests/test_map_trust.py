@@ -320,7 +320,8 @@ def test_the_list_says_when_the_map_collapsed_against_the_last_frames():
     assert o.degraded == ["no-valid-disparity"] and o.obstacles == [] and o.valid_fraction == 0.0
     inf = full.copy()
     inf[:, 200:] = np.inf
-    o = b.process(inf, camera.RectifiedModel(640, 480, 665.0, 320.0, 240.0, 0.1), t_s=1.0, seq=10, stamp_ns=10).obstacles
+    model = camera.RectifiedModel(640, 480, 665.0, 320.0, 240.0, 0.1)
+    o = b.process(inf, model, t_s=1.0, seq=10, stamp_ns=10).obstacles
     assert o.degraded == ["valid-collapse"] and all(ob.distance_m > 0.5 for ob in o.obstacles)
 
 

@@ -708,10 +708,11 @@ class Dispatcher:
             robot = self.recent.median(now)
             own = self.recent_by_worker.get(name)
             own_median = own.median(now) if own is not None else None
+        last = f"of the last {self.recent.window_s:g} s"
         if robot is not None and vf < MIN_MEASURED and robot >= 10 * MIN_MEASURED:
-            return f"it measured {vf:.1%} of the image, the robot's maps of the last {self.recent.window_s:g} s {robot:.1%}"
+            return f"it measured {vf:.1%} of the image, the robot's maps {last} {robot:.1%}"
         if own_median is not None and vf < self.recent.factor * own_median:
-            return f"it measured {vf:.1%} of the image, its own maps of the last {self.recent.window_s:g} s {own_median:.1%}"
+            return f"it measured {vf:.1%} of the image, its own maps {last} {own_median:.1%}"
         return ""
 
     def _settle(self, name: str, ticket: Any, m: DisparityMap, valid_fraction: float) -> None:
