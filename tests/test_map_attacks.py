@@ -279,7 +279,9 @@ def run_forgery(robot: Robot, mode: str, victim: str = "") -> dict:
     sent = atk.wait("answered", 30)["count"]
     out = judge(robot, t_attack, t_end, f"{mode} ({sent} forged maps at 5/s)")
     assert_safe(out, mode)
-    assert out["max_gap_s"] < RESUME_S, f"{mode}: the stream stopped for {out['max_gap_s']:.2f} s"
+    # nothing to quarantine here: the stream just goes on (2 s: what a loaded machine costs without
+    # any attack, as in test_reliability.py)
+    assert out["max_gap_s"] < 2.0, f"{mode}: the stream stopped for {out['max_gap_s']:.2f} s"
     return out
 
 
