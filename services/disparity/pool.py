@@ -35,8 +35,8 @@ One mechanism, push with checked answers:
   quarantined: no work but a single probe after a backoff (1 s, doubling to 30 s), until it
   answers again. One that answers wrongly (a map that does not fit its item, a receipt claiming a
   map it never sent) is quarantined at once.
-* While no worker is trusted the dispatcher computes in-process with the onboard fallback matcher
-  (full or half resolution), or, with fallback none, says "no worker reachable" in its status while
+* While no worker is trusted (or every trusted one is paused after a missed answer) the
+  dispatcher computes in-process with the onboard fallback matcher (full or half resolution), or, with fallback none, says "no worker reachable" in its status while
   the segmenter's heartbeat marks the obstacle stream stale. The fallback is also what makes
   `ballbot-vision up` a single process per stage: no extra hop when everything runs on one host.
 
