@@ -88,8 +88,9 @@ class DisparityMap(Message):
 
 
 class WorkDone(Message):
-    """A disparity worker's receipt for one work item (seq): it frees the worker's slot at the
-    dispatcher. The disparity map itself goes straight to the `disparity` key."""
+    """A disparity worker's receipt for a work item (seq) it dropped: it frees the worker's slot at
+    the dispatcher. A computed item is answered by its map on the worker's `work_result` key; the
+    dispatcher takes either only with the item's nonce in the attachment."""
 
     worker: str = Field(min_length=1, description="instance name of the worker")
     ok: bool = Field(description="false: the item was dropped (too old, undecodable, failed)")

@@ -27,7 +27,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any, Callable, Iterator, TypeVar
 
-from common import codec
+from common import codec, signed_payload
 from common.errors import BallbotError, DecodeError
 from common.keys import Topic, topic, topics_of
 from common.messages import Message, ServiceStats
@@ -64,8 +64,8 @@ def meta_of(attachment: Any) -> Meta | None:
         return None
     if raw is None:
         return None
-    if len(raw) == _META.size:
-        return Meta(*_META.unpack(raw))
+    if len(raw) in (_META.size, _META.size + signed_payload.TAG_BYTES):  # signed: the tag follows
+        return Meta(*_META.unpack(raw[:_META.size]))
     if len(raw) == _STAMP.size:
         return Meta(_STAMP.unpack(raw)[0])
     return None
@@ -277,6 +277,9 @@ class Inbox:
         self._waiting: Delivery | None = None
         self._taken_stamp = -1  # without a gate
         self.on_refused: Callable[[str, Meta], None] | None = None  # (verdict, meta): the node logs it
+        self.sign_key: bytes | None = None  # set: only payloads signed with it for their key pass
+        self.sign_key_expr = ""  # the key, for a sample that does not name its own
+        self.unauthenticated = {"unsigned": 0, "forged": 0}
         self.received = 0
         self.overwritten = 0
         self.late = 0  # every refusal (future, old, late; without a gate: late only)
@@ -284,7 +287,8 @@ class Inbox:
         self.bytes = 0
 
     def offer_sample(self, sample: Any) -> None:
-        """The Zenoh callback: size cap first (nothing copied), then offer()."""
+        """The Zenoh callback: size cap first (nothing copied), then the signature (with a sign_key:
+        before the stamp may touch the freshness gate), then offer()."""
         n = len(sample.payload)
         if n > self.max_bytes:
             with self._cond:
@@ -292,7 +296,25 @@ class Inbox:
                 self.oversized += 1
                 self.bytes += n
             return
-        self.offer(sample.payload.to_bytes(), meta_of(sample.attachment))
+        payload = sample.payload.to_bytes()
+        if self.sign_key is not None:
+            try:
+                att = sample.attachment.to_bytes() if sample.attachment is not None else None
+            except Exception:  # a foreign attachment: unsigned
+                att = None
+            # the key it came on (a wildcard subscription still checks each sample's own key)
+            key_expr = str(sample.key_expr) if getattr(sample, "key_expr", None) is not None else self.sign_key_expr
+            verdict = signed_payload.check(self.sign_key, key_expr, att, payload, _META.size)
+            if verdict != "ok":
+                with self._cond:
+                    self.received += 1
+                    self.bytes += n
+                    self.late += 1
+                    self.unauthenticated[verdict] += 1
+                if self.on_refused is not None:
+                    self.on_refused(verdict, meta_of(sample.attachment) or Meta(0))
+                return
+        self.offer(payload, meta_of(sample.attachment))
 
     def offer(self, payload: bytes, meta: Meta | int | None = None) -> None:
         if isinstance(meta, int):
@@ -346,7 +368,10 @@ class Inbox:
                 self.gate.commit(stamp_ns)
 
     def refusals(self) -> dict[str, int]:
-        return dict(self.gate.counts) if self.gate is not None else {"late": self.late}
+        out = dict(self.gate.counts) if self.gate is not None else {"late": self.late}
+        if self.sign_key is not None:
+            out.update(self.unauthenticated)
+        return out
 
 
 class _Window:
@@ -392,8 +417,9 @@ def qos(t: Topic) -> dict[str, Any]:
 
 
 class Publisher:
-    def __init__(self, node: "Node", topic: Topic, key: str):
+    def __init__(self, node: "Node", topic: Topic, key: str, sign_key: bytes | None = None):
         self.node, self.topic, self.key = node, topic, key
+        self.sign_key = sign_key  # set: every payload is signed (common/signed_payload.py)
         self._pub = node.session.declare_publisher(key, **qos(topic))
         self.source = int.from_bytes(os.urandom(8), "big") or 1  # this publisher's id in every attachment
         self.seq = 0
@@ -407,7 +433,10 @@ class Publisher:
         payload = codec.encode(msg)
         with self._lock:  # a heartbeat thread and the main loop may share a publisher
             self.seq += 1
-            self._pub.put(payload, attachment=_META.pack(msg.stamp_ns, self.source, self.seq))
+            attachment = _META.pack(msg.stamp_ns, self.source, self.seq)
+            if self.sign_key is not None:
+                attachment = signed_payload.seal(self.sign_key, self.key, attachment, payload)
+            self._pub.put(payload, attachment=attachment)
         self.bytes += len(payload)
         if count:
             self.node._published(self.node.age_ns(msg))
@@ -508,17 +537,31 @@ class Node:
         return not self.stop_event.is_set()
 
     # -- inputs ---------------------------------------------------------------------------------
-    def latest(self, name: str, key: str | None = None, max_bytes: int | None = None) -> Inbox:
+    def latest(self, name: str, key: str | None = None, max_bytes: int | None = None,
+               sign_key: bytes | None = None) -> Inbox:
         """A newest-wins inbox on a topic, with a freshness gate and a size cap (the topic's
-        max_bytes unless a tighter one is known, e.g. from the calibrated image size)."""
+        max_bytes unless a tighter one is known, e.g. from the calibrated image size). With
+        sign_key, only payloads signed with it pass (common/signed_payload.py), checked before
+        their stamp reaches the gate."""
         t = topic(name)
-        inbox = Inbox(t, FreshnessGate(self.clock, self.limits), max_bytes, self.clock)
-        inbox.on_refused = lambda verdict, meta: self.warn(
-            f"refused-{verdict}", f"dropped input on {name}: capture stamp {meta.stamp_ns} is "
-                                  f"{'in the future' if verdict == 'future' else 'too old'} for this clock "
-                                  f"(counted in in_{name}_{verdict})")
         key = key or t.key(self.robot_id)
+        inbox = Inbox(t, FreshnessGate(self.clock, self.limits), max_bytes, self.clock)
         self.uses("subscribes", key)
+        if sign_key is not None:
+            inbox.sign_key, inbox.sign_key_expr = sign_key, key
+
+        def refused(verdict: str, meta: Meta) -> None:
+            if verdict in inbox.unauthenticated:
+                self.warn(f"refused-{verdict}", f"dropped input on {name}: "
+                          + ("not signed with this robot's key" if verdict == "unsigned"
+                             else "its signature does not match (another key, or changed on the way)")
+                          + f" (counted in in_{name}_{verdict})")
+            else:
+                self.warn(f"refused-{verdict}", f"dropped input on {name}: capture stamp {meta.stamp_ns} is "
+                                                f"{'in the future' if verdict == 'future' else 'too old'} for this "
+                                                f"clock (counted in in_{name}_{verdict})")
+
+        inbox.on_refused = refused
         sub = self.session.declare_subscriber(key, inbox.offer_sample)
         self._subscribers.append(sub)
         self._inboxes.append(inbox)
@@ -643,9 +686,9 @@ class Node:
             self._proc.add((time.perf_counter() - t0) * 1e3)
 
     # -- outputs --------------------------------------------------------------------------------
-    def publisher(self, name: str, **fields: str) -> Publisher:
+    def publisher(self, name: str, sign_key: bytes | None = None, **fields: str) -> Publisher:
         t = topic(name)
-        p = Publisher(self, t, t.key(self.robot_id, **fields))
+        p = Publisher(self, t, t.key(self.robot_id, **fields), sign_key)
         with self._lock:
             self._publishes.add(name)
         self._publishers.append(p)
@@ -680,8 +723,9 @@ class Node:
         inputs = self.inputs
         refused: dict[str, int] = {}
         for inbox in self._inboxes:
-            # repeats of what was already handed on (a heartbeat's stale copy) are not new input
-            inputs += inbox.received - inbox.refusals().get("late", 0)
+            # repeats of what was already handed on (a heartbeat's stale copy) are not new input,
+            # nor is anyone's payload without the robot's signature
+            inputs += inbox.received - inbox.refusals().get("late", 0) - sum(inbox.unauthenticated.values())
             name = inbox.topic.name
             self._rate(extra, f"in_{name}", inbox.bytes, window)
             extra[f"in_{name}_oversized"] = float(inbox.oversized)

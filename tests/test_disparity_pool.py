@@ -169,10 +169,13 @@ def cv2_blur(a):
 
 
 def test_attachment_round_trip_and_garbage():
-    assert parse_attachment(make_attachment(12.5, 500)) == (12.5, 500.0)
-    assert parse_attachment(None) == (0.0, float("inf"))
+    nonce = os.urandom(16)
+    assert parse_attachment(make_attachment(12.5, 500, nonce)) == (12.5, 500.0, nonce)
+    assert parse_attachment(None) == (0.0, float("inf"), b"")
     with pytest.raises(DecodeError):
         parse_attachment(b"\xc1garbage")
+    with pytest.raises(DecodeError, match="nonce"):
+        parse_attachment(make_attachment(1, 2, b"x" * 1000))
 
 
 # --- real processes ------------------------------------------------------------------------------

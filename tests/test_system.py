@@ -160,8 +160,11 @@ def test_bad_messages_are_logged_counted_and_dropped(up):
             latest = {}
             for st in items:
                 latest[st.service] = st
+            # the segmenter takes only maps signed by `up`'s dispatcher: anyone else's are refused
+            # before decoding, counted as unsigned
             return {svc for svc in inputs
-                    if svc in latest and latest[svc].decode_errors + latest[svc].errors > 0}
+                    if svc in latest and latest[svc].decode_errors + latest[svc].errors
+                    + latest[svc].extra.get("in_disparity_unsigned", 0) > 0}
 
         # Inputs are newest-wins: a real frame may overwrite a bad one before it is read, so keep
         # offering bad payloads until each service has counted some.

@@ -3,14 +3,61 @@
 A map is (H, W) integers with disparity_px = value / scale, and one explicit `invalid_value` for
 pixels without a measurement. Consumers turn it into float px with NaN where invalid, so invalid
 pixels are masked explicitly rather than hidden behind an epsilon.
+
+A map also states the range its matcher searched (min_disparity, num_disparities). A value outside
+it, and a NaN or an infinity, is no measurement a matcher made: it is an invalid pixel, never a
+depth (a buggy or hostile producer must not turn "unmeasured" into "far away" or "right here").
 """
 from __future__ import annotations
 
 import numpy as np
 
 
-def to_float(raw: np.ndarray, scale: float, invalid_value: float) -> np.ndarray:
-    """(H, W) fixed-point disparity -> (H, W) float32 px, NaN where raw == invalid_value."""
-    d = raw.astype(np.float32) / np.float32(scale)
-    d[raw == invalid_value] = np.nan
+def searched_range(min_disparity: float, num_disparities: float) -> tuple[float, float]:
+    """(lowest, highest) disparity in px a matcher searching this range can give, subpixel included."""
+    return float(min_disparity), float(min_disparity + num_disparities)
+
+
+def to_float(raw: np.ndarray, scale: float, invalid_value: float,
+             valid_range: tuple[float, float] | None = None) -> np.ndarray:
+    """(H, W) fixed-point disparity -> (H, W) float32 px, NaN where raw == invalid_value, where
+    it is not finite and, with valid_range (lo, hi) px, where it lies outside [lo, hi]."""
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        d = raw.astype(np.float32) / np.float32(scale)  # a scale too small for float32 gives inf: masked
+    bad = (raw == invalid_value) | ~np.isfinite(d)
+    if valid_range is not None:
+        with np.errstate(invalid="ignore"):
+            bad |= (d < valid_range[0]) | (d > valid_range[1])
+    d[bad] = np.nan
     return d
+
+
+class RecentValid:
+    """The valid fraction of the maps of the last `window_s` seconds, to tell a map that measured
+    far less than the ones before it ("collapsed": below `factor` x their median) from a scene that
+    simply offers less. Judged only once `min_frames` maps are known (warm-up); a lasting change
+    becomes the new normal once it fills half the window. Times in s on any clock that does not go
+    backwards (older entries are dropped by it)."""
+
+    def __init__(self, window_s: float = 2.0, factor: float = 0.5, min_frames: int = 5):
+        from collections import deque
+
+        self.window_s, self.factor, self.min_frames = window_s, factor, min_frames
+        self._recent: deque[tuple[float, float]] = deque()
+
+    def median(self, now_s: float) -> float | None:
+        """Median valid fraction of the window ending at now_s; None during the warm-up."""
+        while self._recent and self._recent[0][0] < now_s - self.window_s:
+            self._recent.popleft()
+        if len(self._recent) < self.min_frames:
+            return None
+        return float(np.median([v for _, v in self._recent]))
+
+    def collapsed(self, valid_fraction: float, now_s: float) -> bool:
+        m = self.median(now_s)
+        return m is not None and valid_fraction < self.factor * m
+
+    def add(self, valid_fraction: float, now_s: float) -> None:
+        if self._recent and now_s < self._recent[-1][0]:
+            self._recent.clear()  # a clock that went back (a replayed sequence starting over)
+        self._recent.append((now_s, valid_fraction))

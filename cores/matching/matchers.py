@@ -95,6 +95,13 @@ class HalfResolutionMatcher:
         self.config = config
         self._inner = make_matcher(half_resolution(config))
 
+    @property
+    def output_range(self) -> tuple[int, int]:
+        """(min_disparity, num_disparities) its values span, full-resolution px: the half-size search
+        doubled, which can reach beyond the full-size settings' range (80 px searched as 48 -> 96)."""
+        c = self._inner.config
+        return 2 * c.min_disparity, 2 * c.fixed_num_disparities
+
     def compute(self, left: np.ndarray, right: np.ndarray, min_valid_disparity: float = 0.0) -> np.ndarray:
         return self.match(left, right, min_valid_disparity).disparity
 

@@ -14,7 +14,7 @@ from common import codec
 from cores import camera
 from common.errors import DecodeError
 from common.messages import DisparityMap, FreeSpace, GroundEstimate, Obstacle, ObstacleList, Odometry
-from cores.matching.disparity import to_float
+from cores.matching.disparity import RecentValid, searched_range, to_float
 from cores.segmentation import freespace, layers, seed
 from cores.segmentation.ground import GroundEstimator, frame_mount, plane_from_mount
 from cores.segmentation.mount import FloorPlane, Mount
@@ -26,6 +26,9 @@ log = logging.getLogger("ballbot")
 
 # A map measuring less of the image than this saw nothing it could vouch for: the list says so.
 MIN_VALID_FRACTION = 0.01
+# A map measuring less than half of what the maps of the last 2 s measured (a covered lens, glare, a
+# broken matcher) is flagged "valid-collapse" until it is no longer a sudden change (cores/matching/disparity.py).
+COLLAPSE_FACTOR, COLLAPSE_WINDOW_S, COLLAPSE_WARMUP_FRAMES = 0.5, 2.0, 5
 
 
 def model_from_message(msg: DisparityMap) -> camera.RectifiedModel:
@@ -79,9 +82,11 @@ class ObstacleBuilder:
                                confirm_n=settings.track_confirm_n)
         self._track_frame = ""  # "base" or "camera": the frame the tracks are kept in
         self._last_t: float | None = None
+        self.recent_valid = RecentValid(COLLAPSE_WINDOW_S, COLLAPSE_FACTOR, COLLAPSE_WARMUP_FRAMES)
 
     def decode(self, msg: DisparityMap) -> tuple[np.ndarray, camera.RectifiedModel, np.ndarray | None]:
-        """A disparity message -> (disparity px float32 with NaN invalid, camera model, confidence)."""
+        """A disparity message -> (disparity px float32 with NaN invalid, camera model, confidence).
+        Values outside the range the map says was searched, NaN and inf are invalid, never depth."""
         if (msg.image.width, msg.image.height) != (msg.camera.width, msg.camera.height):
             raise DecodeError(f"disparity image is {msg.image.width}x{msg.image.height}, its camera model "
                               f"{msg.camera.width}x{msg.camera.height}")
@@ -93,7 +98,8 @@ class ObstacleBuilder:
                 raise DecodeError(f"disparity confidence is {msg.confidence.width}x{msg.confidence.height} "
                                   f"{confidence.dtype}, the map {msg.image.width}x{msg.image.height}: expected uint8 "
                                   f"of the same size")
-        return to_float(raw, msg.scale, msg.invalid_value), model_from_message(msg), confidence
+        d = to_float(raw, msg.scale, msg.invalid_value, searched_range(msg.min_disparity, msg.num_disparities))
+        return d, model_from_message(msg), confidence
 
     def segment(self, disparity: np.ndarray, model: camera.RectifiedModel, confidence: np.ndarray | None = None,
                 image: np.ndarray | None = None) -> layers.LayersFrame:
@@ -126,8 +132,17 @@ class ObstacleBuilder:
                 stages: dict[str, int] | None = None) -> FrameResult:
         """disparity: (H, W) float32 px, NaN = invalid, matching `model`; t_s: the frame's time on a
         clock that never goes backwards (the service: Node.frame_time_s; offline: the capture time);
-        odometry: the robot's motion at this frame, if known (velocities are then over the ground)."""
+        odometry: the robot's motion at this frame, if known (velocities are then over the ground).
+
+        The list says how far it can be trusted: valid_fraction is the share of the image with a
+        measurement; degraded names why an empty list would not mean "nothing there"
+        ("no-valid-disparity": under 1 % measured; "valid-collapse": under half of what the
+        frames of the last 2 s measured)."""
         cfg = self.settings
+        if disparity.dtype.kind == "f":
+            inf = np.isinf(disparity)
+            if inf.any():  # an infinite disparity is no measurement (nor a point at zero distance)
+                disparity = np.where(inf, np.float32(np.nan), disparity)
         frame = self.segment(disparity, model, confidence, image)
         mount = frame_mount(frame.ground, cfg)
         track_frame = "base" if mount is not None else "camera"
@@ -168,6 +183,9 @@ class ObstacleBuilder:
         degraded = []
         if valid_fraction < MIN_VALID_FRACTION:
             degraded.append("no-valid-disparity")
+        elif self.recent_valid.collapsed(valid_fraction, t_s):
+            degraded.append("valid-collapse")
+        self.recent_valid.add(valid_fraction, t_s)
         out = ObstacleList(robot_id=robot_id, seq=seq, stamp_ns=stamp_ns, stages=dict(stages or {}), publish_ns=now,
                            stale=stale, degraded=degraded, valid_fraction=valid_fraction, method=cfg.method,
                            obstacles=obstacles, ground=frame.ground,

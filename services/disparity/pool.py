@@ -1,32 +1,42 @@
 """The disparity worker pool: a dispatcher on the robot and any number of workers on any host.
 
-One mechanism, push with receipts:
+One mechanism, push with checked answers:
 
-    rectify --frames_rect--> dispatcher --work/<w>--> worker w --disparity--> segmenter
-                                 ^                        |
-                                 +------work_done/<w>-----+   (small receipt: frees w's slot)
+    rectify --frames_rect--> dispatcher --work/<w>--> worker w
+                                 ^    |                   |
+                                 |    +--disparity-->  segmenter   (signed with the robot's key)
+                                 +--work_result/<w>-------+   (w's map, answering one item)
 
 * A worker declares a liveliness token `workers/<instance>` once it listens on its own
   `work/<instance>` key (queryables and subscribers do not load-balance, so each has its own key).
   The dispatcher follows the tokens: a killed process's token vanishes in milliseconds, a frozen
   or cut-off host's after the Zenoh lease (2 s by default, see zenoh_session.py).
 * The dispatcher holds only the newest rectified frame (newest-wins inbox). When a worker has a free
-  slot (fewer than max_in_flight items without a receipt) it takes the newest frame, drops it if it
-  is older than max_age_ms, and puts it on that one worker's key: each frame goes to exactly one
-  worker, is never retried, and a slow worker simply gets fewer frames.
-* The worker publishes the DisparityMap straight on `disparity` (no relay hop) and then its receipt.
-  Results may arrive out of order; the segmenter never publishes an older seq after a newer one.
-* A slot without a receipt in time is freed (counted as a timeout), so a lost work item or a frozen
-  worker costs its in-flight frames and nothing stalls. "In time" adapts to each worker's measured
-  send-to-receipt times (3x their 90th percentile, at least result_timeout_s), so a slow machine
-  or a loaded robot is not taken for a dead one. Receipts from unknown workers, for frames not in
-  flight, or twice for one frame are logged, counted and dropped.
+  slot (fewer than max_in_flight items unanswered) it takes the newest frame, drops it if it is
+  older than max_age_ms, and puts it on that one worker's key with a random nonce in the
+  attachment: each frame goes to exactly one worker, is never retried, and a slow worker simply
+  gets fewer frames.
+* The worker publishes its DisparityMap only on its own `work_result/<instance>` key, the nonce
+  echoed in a small header (results.py). The dispatcher takes it only as the answer to an item
+  outstanding at that worker, checks it against the frame (size, format, range, pixels) cheapest
+  first, and republishes it on `disparity` with the frame's stamp, stages and camera, signed
+  (common/signed_payload.py): nothing a worker sends moves the segmenter's ordering reference or
+  freshness clock. Results may arrive out of order; the segmenter never publishes an older seq
+  after a newer one. A worker that drops an item says so with a receipt (work_done, nonce in the
+  attachment).
+* An item without an answer in time is freed (counted as a timeout), so a lost work item or a
+  frozen worker costs its in-flight frames and nothing stalls. "In time" adapts to each worker's
+  measured send-to-answer times (3x their 90th percentile, at least result_timeout_s), so a slow
+  machine or a loaded robot is not taken for a dead one. Answers from unknown workers, without the
+  item's nonce, or twice for one frame are logged, counted and dropped, and cost the worker the
+  key names nothing (anyone may put on its key).
 * A token alone is not a worker: a new one is on probation (one probe frame at a time) until its
-  first good receipt. One that takes work and returns nothing good (timeouts, failed receipts) is
+  first accepted map. One that takes work and returns nothing (timeouts, failed receipts) is
   quarantined: no work but a single probe after a backoff (1 s, doubling to 30 s), until it
-  answers again.
-* While no worker is trusted the dispatcher computes in-process with the onboard fallback matcher
-  (full or half resolution), or, with fallback none, says "no worker reachable" in its status while
+  answers again. One that answers wrongly (a map that does not fit its item, a receipt claiming a
+  map it never sent) is quarantined at once.
+* While no worker is trusted (or every trusted one is paused after a missed answer) the
+  dispatcher computes in-process with the onboard fallback matcher (full or half resolution), or, with fallback none, says "no worker reachable" in its status while
   the segmenter's heartbeat marks the obstacle stream stale. The fallback is also what makes
   `ballbot-vision up` a single process per stage: no extra hop when everything runs on one host.
 
@@ -36,6 +46,7 @@ Zenoh shells.
 from __future__ import annotations
 
 import logging
+import queue
 import threading
 import time
 from collections import deque
@@ -49,8 +60,11 @@ from common import codec
 from common.errors import BallbotError, DecodeError
 from common.keys import topic
 from common.messages import DisparityMap, StereoFrame, WorkDone
-from common.node import Node
+from common.node import Node, qos
+from common.signing import calibration_key
+from cores.matching.disparity import RecentValid
 from cores.matching.matchers import SCALE, MatcherConfig, gate_for_range, make_matcher
+from services.disparity.results import MIN_MEASURED, Ticket, measure, parse_header, result_header, vet_header, vet_map
 
 log = logging.getLogger("ballbot.pool")
 
@@ -113,9 +127,11 @@ class FrameComputer:
         confidence = None
         if result.confidence is not None:
             confidence = codec.image_from_array(result.confidence, self.result_encoding)
+        # the range its values span (consumers treat anything outside it as invalid)
+        lo, num = getattr(matcher, "output_range", (c.min_disparity, c.fixed_num_disparities))
         return DisparityMap(robot_id=msg.robot_id, seq=msg.seq, stamp_ns=msg.stamp_ns, stages=msg.stages,
-                            image=image, scale=SCALE, invalid_value=invalid, min_disparity=c.min_disparity,
-                            num_disparities=c.num_disparities, camera=msg.camera, method=self.method,
+                            image=image, scale=SCALE, invalid_value=invalid, min_disparity=lo,
+                            num_disparities=num, camera=msg.camera, method=self.method,
                             worker=worker, confidence=confidence)
 
     def report(self, node: Node) -> None:
@@ -180,19 +196,22 @@ class Rates:
 class WorkerSlot:
     name: str
     in_flight: dict[int, float] = field(default_factory=dict)  # seq -> monotonic send time
+    tickets: dict[int, Any] = field(default_factory=dict)  # seq -> results.Ticket of the item in flight
+    answering: set[int] = field(default_factory=set)  # in-flight seqs whose map is being checked
     assigned: int = 0
     completed: int = 0
     failed: int = 0
     timeouts: int = 0
     last_assigned: float = 0.0
     paused_until: float = 0.0  # after a timeout: no new work for a while unless it answers
-    recent: deque = field(default_factory=lambda: deque(maxlen=512))  # (seq, outcome) finished lately
+    recent: deque = field(default_factory=lambda: deque(maxlen=512))  # (seq, (outcome, t, ticket)) finished lately
     # trust: a liveliness token alone is not a worker
     trust: str = "probation"  # probation (not proven yet) | trusted | quarantined
     strikes: int = 0  # consecutive work items without a good receipt
     next_probe: float = 0.0  # probation/quarantine: when it may get its next (single) probe frame
     probe_backoff_s: float = 1.0
     why: str = ""  # why it is quarantined
+    quarantined_at: float = -1.0  # only an item sent after this (a probe) can bring it back
     rtt: deque = field(default_factory=lambda: deque(maxlen=32))  # s from send to receipt, recent items
 
 
@@ -228,7 +247,8 @@ class DispatchState:
         self.workers: dict[str, WorkerSlot] = {}
         self.counters: dict[str, int] = {k: 0 for k in (
             "dispatched", "completed", "failed", "timeouts", "lost_in_flight", "unknown_worker",
-            "unknown_frame", "duplicate", "late", "workers_joined", "workers_left", "quarantined", "probes")}
+            "unknown_frame", "duplicate", "late", "workers_joined", "workers_left", "quarantined", "probes",
+            "rejected")}
 
     # membership
     def add_worker(self, name: str) -> bool:
@@ -260,6 +280,13 @@ class DispatchState:
         """Workers that proved themselves and are not quarantined: only these replace the fallback."""
         with self.cond:
             return sum(1 for w in self.workers.values() if w.trust == "trusted")
+
+    def available(self) -> int:
+        """Trusted workers not paused after a missed answer: while there is none, the onboard
+        fallback computes (a worker that went quiet costs the robot its timeout, not its strikes)."""
+        with self.cond:
+            now = self.clock()
+            return sum(1 for w in self.workers.values() if w.trust == "trusted" and w.paused_until <= now)
 
     def timeout_for(self, w: WorkerSlot) -> float:
         if not w.rtt:
@@ -293,9 +320,10 @@ class DispatchState:
             self.cond.wait(timeout)
             return bool(self._free(self.clock()))
 
-    def claim(self, seq: int) -> str | None:
+    def claim(self, seq: int, ticket: Any = None) -> str | None:
         """Assign frame `seq` to a worker due for a probe, else to the free trusted worker with the
-        fewest items in flight (then the one idle longest). -> its name, or None if none is free."""
+        fewest items in flight (then the one idle longest). -> its name, or None if none is free.
+        ticket (results.Ticket): what its answer must match (ticket_for())."""
         with self.cond:
             now = self.clock()
             free = self._free(now)
@@ -305,6 +333,7 @@ class DispatchState:
             if w.trust != "trusted":
                 self.counters["probes"] += 1
             w.in_flight[seq] = now
+            w.tickets[seq] = ticket
             w.assigned += 1
             w.last_assigned = now
             self.counters["dispatched"] += 1
@@ -315,12 +344,15 @@ class DispatchState:
         with self.cond:
             w = self.workers.get(name)
             if w is not None and w.in_flight.pop(seq, None) is not None:
+                w.tickets.pop(seq, None)
                 w.assigned -= 1
                 self.counters["dispatched"] -= 1
                 self.cond.notify_all()
 
     # trust
-    def _good(self, w: WorkerSlot) -> None:
+    def _good(self, w: WorkerSlot, sent: float) -> None:
+        if w.trust == "quarantined" and sent <= w.quarantined_at:
+            return  # an item it had before its quarantine: only an answered probe brings it back
         w.strikes = 0
         w.paused_until = 0.0
         if w.trust != "trusted":
@@ -334,19 +366,25 @@ class DispatchState:
             if pause:  # silent: no new work for a while unless it answers
                 w.paused_until = now + self.timeout_for(w)
             return
+        self._quarantine(w, now, why)
+
+    def _quarantine(self, w: WorkerSlot, now: float, why: str) -> None:
         if w.trust != "quarantined":
             self.counters["quarantined"] += 1
-            log.warning("worker %s quarantined: %s; the onboard fallback covers for it until it answers a probe",
-                        w.name, why)
+            log.warning("worker %s quarantined: %s; the onboard fallback or the other workers cover for it "
+                        "until it answers a probe", w.name, why)
         else:
             w.probe_backoff_s = min(w.probe_backoff_s * 2, self.max_probe_backoff_s)
         w.trust, w.why = "quarantined", why
+        w.quarantined_at = now
         w.next_probe = now + w.probe_backoff_s
 
     # receipts
     def done(self, name: str, seq: int, ok: bool = True) -> str:
-        """A receipt. -> 'ok' | 'failed' (the worker dropped it) | 'unknown_worker' |
-        'duplicate' | 'late' (after its timeout) | 'unknown_frame'. Only ok/failed free a slot."""
+        """An answer: ok (its map was accepted) or not (the worker says it dropped the item). ->
+        'ok' | 'failed' | 'unknown_worker' | 'duplicate' | 'late' (after its timeout) |
+        'unknown_frame'. Only ok/failed free a slot. A late answer teaches the worker's timeout
+        and lifts its pause, but is no map for the robot and no way out of quarantine."""
         with self.cond:
             now = self.clock()
             w = self.workers.get(name)
@@ -354,26 +392,28 @@ class DispatchState:
                 self.counters["unknown_worker"] += 1
                 return "unknown_worker"
             sent = w.in_flight.pop(seq, None)
+            w.tickets.pop(seq, None)
+            w.answering.discard(seq)
             if sent is None:
-                prior = next(((s, o) for s, o in reversed(w.recent) if s == seq), None)
-                if prior is not None and prior[1][0] == "timeout":
+                prior = self._prior(w, seq)
+                if prior is not None and prior[0] == "timeout":
                     kind = "late"
-                    w.rtt.append(now - prior[1][1])  # its real time: the timeout adapts to it
-                    if ok:
-                        self._good(w)  # it answers again: back in the rotation
+                    w.rtt.append(now - prior[1])  # its real time: the timeout adapts to it
+                    if ok and w.trust == "trusted":
+                        w.paused_until = 0.0  # it is alive after all: back in the rotation
                     self.cond.notify_all()
-                    w.recent.append((seq, ("late", now)))
+                    w.recent.append((seq, ("late", now, None)))
                 else:
                     kind = "duplicate" if prior is not None else "unknown_frame"
                 self.counters[kind] += 1
                 return kind
             outcome = "ok" if ok else "failed"
-            w.recent.append((seq, (outcome, sent)))
+            w.recent.append((seq, (outcome, sent, None)))
             w.rtt.append(now - sent)
             if ok:
                 w.completed += 1
                 self.counters["completed"] += 1
-                self._good(w)
+                self._good(w, sent)
             else:
                 w.failed += 1
                 self.counters["failed"] += 1
@@ -390,9 +430,9 @@ class DispatchState:
             for w in self.workers.values():
                 timeout = self.timeout_for(w)
                 for seq, sent in list(w.in_flight.items()):
-                    if now - sent > timeout:
+                    if now - sent > timeout and seq not in w.answering:
                         del w.in_flight[seq]
-                        w.recent.append((seq, ("timeout", sent)))
+                        w.recent.append((seq, ("timeout", sent, w.tickets.pop(seq, None))))
                         w.timeouts += 1
                         self.counters["timeouts"] += 1
                         self._strike(w, now, f"no receipt within {timeout:.1f} s "
@@ -401,6 +441,64 @@ class DispatchState:
             if out:
                 self.cond.notify_all()
         return out
+
+    @staticmethod
+    def _prior(w: WorkerSlot, seq: int) -> tuple | None:
+        """(outcome, time, ticket) of a recently finished item of w, or None."""
+        return next((o for s, o in reversed(w.recent) if s == seq), None)
+
+    def answer(self, name: str, seq: int, nonce: bytes) -> tuple[str, Any]:
+        """A map (or a receipt) from worker `name` for item `seq`, carrying `nonce`. -> ('outstanding',
+        ticket) for the first answer to an item in flight at that worker whose nonce matches (its map
+        is then checked; done() or reject() settle it); ('late', ticket) for one that timed out lately;
+        else (why it is dropped, None): 'unknown_worker', 'unknown_frame' (never sent to it, or the
+        nonce does not match: someone else's forgery, which costs the named worker nothing) or
+        'duplicate'. Nothing here moves the worker's trust."""
+        import hmac
+
+        with self.cond:
+            w = self.workers.get(name)
+            if w is None:
+                self.counters["unknown_worker"] += 1
+                return "unknown_worker", None
+            t = w.tickets.get(seq) if seq in w.in_flight else None
+            kind = "outstanding"
+            if t is None:
+                prior = self._prior(w, seq)
+                t = prior[2] if prior is not None and prior[0] == "timeout" else None
+                kind = "late"
+                if t is None and prior is not None:
+                    self.counters["duplicate"] += 1
+                    return "duplicate", None
+            if t is None or not hmac.compare_digest(t.nonce, nonce):
+                self.counters["unknown_frame"] += 1
+                return "unknown_frame", None
+            if kind == "outstanding":
+                if seq in w.answering:
+                    self.counters["duplicate"] += 1
+                    return "duplicate", None
+                w.answering.add(seq)
+            return kind, t
+
+    def reject(self, name: str, seq: int, why: str) -> None:
+        """A wrong answer to an item of this worker (a map that does not fit the item, a receipt
+        claiming a map it never sent): the item is settled and the worker quarantined at once. An
+        honest worker never sends one, so there is no second chance as for a lost item."""
+        with self.cond:
+            w = self.workers.get(name)
+            if w is None:
+                return
+            now = self.clock()
+            sent = w.in_flight.pop(seq, None)
+            w.tickets.pop(seq, None)
+            w.answering.discard(seq)
+            if sent is not None:
+                w.recent.append((seq, ("rejected", sent, None)))
+            w.failed += 1
+            w.strikes += 1
+            self.counters["rejected"] += 1
+            self._quarantine(w, now, why)
+            self.cond.notify_all()
 
     def snapshot(self) -> dict[str, Any]:
         with self.cond:
@@ -413,81 +511,241 @@ class DispatchState:
 
 # --- work item envelope ---------------------------------------------------------------------------
 
-def make_attachment(age_ms: float, max_age_ms: float) -> bytes:
+def make_attachment(age_ms: float, max_age_ms: float, nonce: bytes = b"") -> bytes:
     """Sent beside the (unchanged) StereoFrame payload: its age when sent and the max age, so a
-    worker on another host can tell its age without synchronised clocks."""
-    return msgpack.packb({"age_ms": float(age_ms), "max_age_ms": float(max_age_ms)})
+    worker on another host can tell its age without synchronised clocks, and the item's random
+    nonce, which the worker's answer must carry back (results.py)."""
+    return msgpack.packb({"age_ms": float(age_ms), "max_age_ms": float(max_age_ms), "nonce": nonce},
+                         use_bin_type=True)
 
 
-def parse_attachment(raw: bytes | None) -> tuple[float, float]:
-    """-> (age_ms when sent, max_age_ms); (0, inf) without one. Garbage raises DecodeError."""
+def parse_attachment(raw: bytes | None) -> tuple[float, float, bytes]:
+    """-> (age_ms when sent, max_age_ms, nonce); (0, inf, b"") without one. Garbage raises DecodeError."""
     if raw is None:
-        return 0.0, float("inf")
+        return 0.0, float("inf"), b""
     try:
         doc = msgpack.unpackb(raw)
-        return float(doc["age_ms"]), float(doc["max_age_ms"])
+        nonce = doc.get("nonce", b"")
+        if not isinstance(nonce, bytes) or len(nonce) > 64:
+            raise ValueError(f"nonce: {len(nonce) if isinstance(nonce, bytes) else type(nonce).__name__}")
+        return float(doc["age_ms"]), float(doc["max_age_ms"]), nonce
     except Exception as e:
         raise DecodeError(f"work item attachment: {type(e).__name__}: {e}") from None
+
+
+def receipt_attachment(nonce: bytes) -> bytes:
+    """A receipt's attachment: the nonce of the item it is about (no nonce, no effect)."""
+    return msgpack.packb({"nonce": nonce}, use_bin_type=True)
+
+
+def receipt_nonce(raw: bytes | None) -> bytes:
+    try:
+        doc = msgpack.unpackb(raw) if raw is not None and len(raw) <= 256 else None
+        nonce = doc.get("nonce") if isinstance(doc, dict) else None
+        return nonce if isinstance(nonce, bytes) else b""
+    except Exception:
+        return b""
+
+
+def _attachment_bytes(sample) -> bytes | None:
+    try:
+        return sample.attachment.to_bytes() if sample.attachment is not None else None
+    except Exception:
+        return None
 
 
 # --- the dispatcher (robot side) --------------------------------------------------------------------
 
 class Dispatcher:
-    """frames_rect -> one worker's work key, following the workers' liveliness tokens."""
+    """frames_rect -> one worker's work key, following the workers' liveliness tokens; each
+    worker's map from its result key, checked against the item (results.py), -> `disparity`,
+    signed with the robot's key (the segmenter refuses anything else)."""
 
     def __init__(self, node: Node, state: DispatchState, max_age_ms: float, transport: str = "raw",
-                 jpeg_quality: int = 90, fallback: FrameComputer | None = None):
+                 jpeg_quality: int = 90, fallback: FrameComputer | None = None, sign_key: bytes | None = None):
         if transport not in ("raw", "png", "jpeg"):
             raise BallbotError(f"transport: raw, png or jpeg, got {transport!r}")
         self.node, self.state = node, state
         self.max_age_ms = max_age_ms
         self.transport, self.jpeg_quality = transport, jpeg_quality
         self.fallback = fallback
+        self.sign_key = sign_key
         self.rates = Rates(node)
         self.rid = node.robot_id
         self._work = topic("work")
         self._subs: list[Any] = []
         self.methods: dict[str, str] = {}  # worker -> the method its last map was made with
+        # Maps that passed the cheap checks, waiting for the full ones: at most one per item in
+        # flight (DispatchState.answer lets only the first answer to an item through).
+        self._results: queue.Queue = queue.Queue()
+        self.recent = RecentValid()  # valid fractions of the maps published lately (any source)
+        self.recent_by_worker: dict[str, RecentValid] = {}  # ... and of each worker's own
+        self._recent_lock = threading.Lock()
+        self.out: Any = None
 
-    # callbacks (Zenoh threads: bookkeeping only)
+    def _count(self, key: str, n: float = 1) -> None:
+        self.node.extra[key] = self.node.extra.get(key, 0) + n
+
+    # callbacks (Zenoh threads: bookkeeping and small checks only)
     def _on_token(self, sample) -> None:
         import zenoh
 
         name = str(sample.key_expr).rsplit("/", 1)[-1]
         if sample.kind == zenoh.SampleKind.PUT:
             if self.state.add_worker(name):
-                log.info("worker %s joined (%d alive); on probation until its first good receipt", name,
+                log.info("worker %s joined (%d alive); on probation until its first good map", name,
                          self.state.alive())
         else:
             lost = self.state.remove_worker(name)
             self.methods.pop(name, None)
+            with self._recent_lock:
+                self.recent_by_worker.pop(name, None)
             self.rates.forget(f"out_work_{name}")
             log.warning("worker %s left (%d alive, %d trusted); %d in-flight frame(s) lost", name, self.state.alive(),
                         self.state.trusted(), lost)
 
     def _on_done(self, sample) -> None:
+        """A receipt: a worker says it dropped an item (too old, undecodable, failed). Taken only
+        with the item's nonce; one claiming success is a lie (the map is the answer)."""
         payload = sample.payload.to_bytes()
         self.rates.add("in_work_done", len(payload))
+        name = str(sample.key_expr).rsplit("/", 1)[-1]
         msg = self.node.decode_or_drop(payload, WorkDone, "receipt", "receipt")
         if msg is None:
             return
-        verdict = self.state.done(msg.worker, msg.seq, msg.ok)
-        if verdict == "ok" and msg.method:  # which matcher produced each map, per method
-            key = f"maps_{msg.method}"
-            self.node.extra[key] = self.node.extra.get(key, 0) + 1
-            self.methods[msg.worker] = msg.method
-        if verdict not in ("ok", "failed"):
-            self.node.warn(f"receipt-{verdict}", f"dropped receipt from {msg.worker} for seq {msg.seq}: {verdict}")
-        elif verdict == "failed":
-            self.node.warn("receipt-failed", f"worker {msg.worker} dropped seq {msg.seq}: {msg.reason}")
+        if msg.worker != name:
+            self._count("receipts_misnamed")
+            self.node.warn("receipt-misnamed", f"dropped a receipt on {name}'s key naming worker {msg.worker}")
+            return
+        kind, ticket = self.state.answer(name, msg.seq, receipt_nonce(_attachment_bytes(sample)))
+        if kind not in ("outstanding", "late"):
+            self.node.warn(f"receipt-{kind}", f"dropped receipt from {name} for seq {msg.seq}: {kind}")
+            return
+        if msg.ok:
+            self._refuse(name, msg.seq, "a receipt claiming a map that never came on its result key "
+                                        "(a worker of an older version publishes maps elsewhere)")
+            return
+        if self.state.done(name, msg.seq, False) == "failed":
+            self.node.warn("receipt-failed", f"worker {name} dropped seq {msg.seq}: {msg.reason}")
+
+    def _on_result(self, sample) -> None:
+        """A worker's map: everything that can be checked without copying or decoding the payload
+        is checked here; what passes waits for the results thread."""
+        name = str(sample.key_expr).rsplit("/", 1)[-1]
+        n = len(sample.payload)
+        self.rates.add("in_work_result", n)
+        try:
+            header = parse_header(_attachment_bytes(sample))
+        except DecodeError as e:
+            # anyone can put on a worker's key: costs the named worker nothing
+            self._count("results_unmatched")
+            self.node.warn("result-header", f"dropped a map on {name}'s result key: {e}")
+            return
+        kind, ticket = self.state.answer(name, header.seq, header.nonce)
+        if ticket is None:
+            self._count("results_unmatched")
+            self.node.warn(f"result-{kind}", f"dropped a map on {name}'s result key for seq {header.seq}: {kind} "
+                                             f"(no item in flight there with its nonce)")
+            return
+        why = vet_header(header, ticket, n)
+        if why:
+            self._refuse(name, header.seq, why)
+            return
+        if kind == "late":
+            self.state.done(name, header.seq, True)
+            self.node.warn("result-late", f"worker {name}: map for seq {header.seq} came after its timeout; "
+                                          f"not published")
+            return
+        self._results.put((name, header, ticket, sample.payload.to_bytes()))
+
+    def _refuse(self, name: str, seq: int, why: str) -> None:
+        self.state.reject(name, seq, why)
+        self._count("results_rejected")
+        self.node.warn("result-rejected", f"refused worker {name}'s answer for seq {seq}: {why}; worker quarantined")
+
+    # the results thread: full checks, then republish
+    def _results_loop(self) -> None:
+        while self.node.running:
+            try:
+                name, header, ticket, payload = self._results.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            try:
+                checked = self._check(name, header, ticket, payload)
+            except Exception:  # never leave an item half-settled, never die on a worker's map
+                self.node.errors += 1
+                checked = None
+                self._refuse(name, header.seq, "its map could not be checked (see the dispatcher's log)")
+                if self.node._should_log("result-exception"):
+                    log.exception("dispatcher: checking worker %s's map for seq %s failed", name, header.seq)
+            if checked is not None:
+                with self.node.processing(checked[0]):
+                    self._settle(name, ticket, *checked)
+
+    def _check(self, name: str, header: Any, ticket: Any, payload: bytes) -> tuple[DisparityMap, float] | None:
+        """-> (the map, its valid fraction) when it may reach the robot; else None, the worker refused."""
+        try:
+            m = codec.decode(payload, DisparityMap)
+        except DecodeError as e:
+            self._refuse(name, ticket.seq, str(e))
+            return None
+        why, check = vet_map(m, header, ticket)
+        if not why:
+            why = self._collapsed(name, check.valid_fraction)
+        if why:
+            self._refuse(name, ticket.seq, why)
+            return None
+        return m, check.valid_fraction
+
+    def _collapsed(self, name: str, vf: float) -> str:
+        """Why a worker's map that measured far less than expected is refused ("" if it is not):
+        nothing measured while the robot's maps of the last 2 s (any source) measured plenty, or
+        under half of what that worker's own maps of the last 2 s measured. A scene that really
+        goes blank shows in the fallback's maps too, and the worker's next probe is judged on them;
+        a worker whose method simply measures less than another's is judged on its own."""
+        now = time.monotonic()
+        with self._recent_lock:
+            robot = self.recent.median(now)
+            own = self.recent_by_worker.get(name)
+            own_median = own.median(now) if own is not None else None
+        last = f"of the last {self.recent.window_s:g} s"
+        if robot is not None and vf < MIN_MEASURED and robot >= 10 * MIN_MEASURED:
+            return f"it measured {vf:.1%} of the image, the robot's maps {last} {robot:.1%}"
+        if own_median is not None and vf < self.recent.factor * own_median:
+            return f"it measured {vf:.1%} of the image, its own maps {last} {own_median:.1%}"
+        return ""
+
+    def _settle(self, name: str, ticket: Any, m: DisparityMap, valid_fraction: float) -> None:
+        if self.state.done(name, ticket.seq, True) != "ok":
+            self._count("results_late")  # timed out while being checked
+            return
+        # The frame's own stamp, stages and camera: nothing the worker says moves the robot's clock.
+        out = m.model_copy(update={"robot_id": ticket.robot_id, "seq": ticket.seq, "stamp_ns": ticket.stamp_ns,
+                                   "stages": dict(ticket.stages), "camera": ticket.camera, "worker": name,
+                                   "method": m.method[:64]})
+        self._publish(out, valid_fraction, time.monotonic())
+        with self._recent_lock:
+            self.recent_by_worker.setdefault(name, RecentValid()).add(valid_fraction, time.monotonic())
+        key = f"maps_{out.method}"
+        if key not in self.node.extra and sum(k.startswith("maps_") for k in list(self.node.extra)) >= 16:
+            key = "maps_other"  # a worker naming every map differently must not grow the stats without bound
+        self.node.extra[key] = self.node.extra.get(key, 0) + 1
+        self.methods[name] = out.method
+
+    def _publish(self, m: DisparityMap, valid_fraction: float, now: float) -> None:
+        self.out.put(m)
+        with self._recent_lock:
+            self.recent.add(valid_fraction, now)
 
     def start(self) -> None:
         s = self.node.session
         self._subs.append(self.node.subscribe(topic("work_done").pattern(self.rid), self._on_done))
+        self._subs.append(self.node.subscribe(topic("work_result").pattern(self.rid), self._on_result))
         self._subs.append(s.liveliness().declare_subscriber(topic("worker").pattern(self.rid), self._on_token,
                                                            history=True))
+        threading.Thread(target=self._results_loop, name="results", daemon=True).start()
 
-    def _send(self, name: str, msg: StereoFrame, payload: bytes) -> None:
+    def _send(self, name: str, msg: StereoFrame, payload: bytes, nonce: bytes) -> None:
         import zenoh
 
         if self.transport != "raw" or msg.left.encoding != "raw":
@@ -495,12 +753,12 @@ class Dispatcher:
         age_ms = self.node.age_s(msg) * 1e3
         self.node.session.put(self._work.key(self.rid, instance=name), payload,
                               congestion_control=zenoh.CongestionControl.DROP, priority=zenoh.Priority.DATA,
-                              attachment=make_attachment(age_ms, self.max_age_ms))
+                              attachment=make_attachment(age_ms, self.max_age_ms, nonce))
         self.rates.add(f"out_work_{name}", len(payload))
 
     def _housekeeping(self, out) -> None:
         for name, seq in self.state.expire():
-            self.node.warn("timeout", f"worker {name}: no receipt for seq {seq} in time; slot freed")
+            self.node.warn("timeout", f"worker {name}: no map for seq {seq} in time; slot freed")
         alive, trusted = self.state.alive(), self.state.trusted()
         snap = self.state.snapshot()
         self.node.extra.update({f"pool_{k}": float(v) for k, v in snap["counters"].items()})
@@ -533,21 +791,45 @@ class Dispatcher:
             return True
         return False
 
+    def _compute_onboard(self, msg: StereoFrame) -> None:
+        node = self.node
+        with node.processing(msg):
+            m = self.fallback.compute(msg, node.instance)
+            raw = codec.array_from_image(m.image, "disparity")
+            vf = measure(raw, m.invalid_value, m.scale, m.min_disparity, m.num_disparities).valid_fraction
+            self._publish(m, vf, time.monotonic())
+            self.fallback.report(node)
+            node.extra["fallback_frames"] = node.extra.get("fallback_frames", 0) + 1
+
+    def _claim(self, msg: StereoFrame) -> tuple[str | None, bytes]:
+        """-> (worker the frame goes to, or None; the item's nonce)."""
+        try:
+            ticket = Ticket.for_frame(msg)
+        except DecodeError as e:
+            self.node.decode_errors += 1
+            self.node.warn("decode", f"dropped frame seq {msg.seq}: {e}")
+            return None, b""
+        return self.state.claim(msg.seq, ticket), ticket.nonce
+
     def run(self) -> None:
         node = self.node
         inbox = node.latest("frames_rect")
-        out = node.publisher("disparity")
+        self.out = node.publisher("disparity", sign_key=self.sign_key)
+        if self.sign_key is None:
+            log.warning("dispatcher: no BALLBOT_CALIBRATION_KEY: the disparity maps are published unsigned, so the "
+                        "segmenter cannot tell them from anyone else's (`up` and the compose files set one)")
         self.start()
         pending: tuple[StereoFrame, bytes] | None = None
         next_house = 0.0
         while node.running:
             now = time.monotonic()
             if now >= next_house:
-                self._housekeeping(out)
+                self._housekeeping(self.out)
                 next_house = now + 0.1
-            if self.state.trusted() == 0:
-                # No proven worker: the onboard fallback computes, except for a frame that goes to a
-                # worker due for a probe (a new one, or one back from quarantine).
+            if self.state.available() == 0:
+                # No proven worker (or every one paused after a missed answer): the onboard fallback
+                # computes, except for a frame that goes to a worker due for a probe (a new one, or
+                # one back from quarantine).
                 pending = None
                 if self.fallback is None and not self.state.probe_due():
                     inbox.take(0.1)  # drain: overwritten frames count as drops; nothing to do
@@ -556,14 +838,11 @@ class Dispatcher:
                 if got is None or self._too_old(got[0]):
                     continue
                 msg, payload = got
-                name = self.state.claim(msg.seq)
+                name, nonce = self._claim(msg)
                 if name is not None:
-                    self._dispatch(name, msg, payload)
+                    self._dispatch(name, msg, payload, nonce)
                 elif self.fallback is not None:
-                    with node.processing(msg):
-                        out.put(self.fallback.compute(msg, node.instance))
-                        self.fallback.report(node)
-                        self.node.extra["fallback_frames"] = self.node.extra.get("fallback_frames", 0) + 1
+                    self._compute_onboard(msg)
                 continue
             if not self.state.wait_free(0.1):
                 continue
@@ -578,20 +857,21 @@ class Dispatcher:
             if self._too_old(msg):
                 pending = None
                 continue
-            name = self.state.claim(msg.seq)
+            name, nonce = self._claim(msg)
             if name is None:
+                if not nonce:
+                    pending = None  # not a frame a worker can answer
                 continue  # the free worker vanished meanwhile; keep the frame for the next one
             pending = None
-            self._dispatch(name, msg, payload)
+            self._dispatch(name, msg, payload, nonce)
 
-    def _dispatch(self, name: str, msg: StereoFrame, payload: bytes) -> None:
+    def _dispatch(self, name: str, msg: StereoFrame, payload: bytes, nonce: bytes) -> None:
         with self.node.processing(msg):
             try:
-                self._send(name, msg, payload)
+                self._send(name, msg, payload, nonce)
             except BaseException:
                 self.state.unclaim(name, msg.seq)
                 raise
-            self.node._published(self.node.age_ns(msg))
 
 
 def run_dispatcher(node: Node, settings: Any) -> None:
@@ -600,7 +880,8 @@ def run_dispatcher(node: Node, settings: Any) -> None:
         scale = 0.5 if settings.fallback == "half" else 1.0
         fallback = FrameComputer(settings, scale, "raw", label="onboard")
     state = DispatchState(settings.max_in_flight, settings.result_timeout_s)
-    Dispatcher(node, state, settings.max_age_ms, settings.transport, settings.jpeg_quality, fallback).run()
+    Dispatcher(node, state, settings.max_age_ms, settings.transport, settings.jpeg_quality, fallback,
+               calibration_key()).run()
 
 
 # --- the worker (any host) ------------------------------------------------------------------------
@@ -642,7 +923,7 @@ class WorkQueue:
 def run_worker(node: Node, settings: Any) -> None:
     computer = FrameComputer(settings, 1.0, settings.result_encoding)
     rid, me = node.robot_id, node.instance
-    queue = WorkQueue()
+    queue_ = WorkQueue()
     rates = Rates(node)
 
     def on_work(sample) -> None:
@@ -653,31 +934,34 @@ def run_worker(node: Node, settings: Any) -> None:
             return
         payload = sample.payload.to_bytes()
         rates.add("in_work", len(payload))
-        queue.offer(payload, att.to_bytes() if att is not None else None)
+        queue_.offer(payload, att.to_bytes() if att is not None else None)
 
     node.subscribe(topic("work").key(rid, instance=me), on_work)
-    out = node.publisher("disparity")
-    receipts = node.publisher("work_done", instance=me)
+    # Maps go only to this worker's own result key: the dispatcher checks each against the item it
+    # sent and republishes it on `disparity`; receipts only for items dropped.
+    results = node.session.declare_publisher(topic("work_result").key(rid, instance=me), **qos(topic("work_result")))
+    receipts = node.session.declare_publisher(topic("work_done").key(rid, instance=me), **qos(topic("work_done")))
     # Announce only once the work key is subscribed: the dispatcher sends as soon as it sees this.
     token = node.session.liveliness().declare_token(topic("worker").key(rid, instance=me))
     node.status = f"ok: {computer.method}, waiting for work"
     log.info("disparity worker %s ready on %s", me, topic("work").key(rid, instance=me))
 
-    def receipt(msg: Any, ok: bool, reason: str = "", proc_ms: float = 0.0) -> None:
-        receipts.put(WorkDone(robot_id=rid, seq=msg.seq, stamp_ns=msg.stamp_ns, worker=me, ok=ok,
-                              reason=reason, proc_ms=proc_ms, method=computer.method if ok else ""), count=False)
+    def dropped(msg: Any, nonce: bytes, reason: str, proc_ms: float = 0.0) -> None:
+        receipts.put(codec.encode(WorkDone(robot_id=rid, seq=msg.seq, stamp_ns=msg.stamp_ns, worker=me, ok=False,
+                                           reason=reason, proc_ms=proc_ms)),
+                     attachment=receipt_attachment(nonce))
 
     try:
         while node.running:
             rates.tick()
-            node.extra["queue_overflowed"] = float(queue.overflowed)
-            item = queue.take(0.2)
+            node.extra["queue_overflowed"] = float(queue_.overflowed)
+            item = queue_.take(0.2)
             if item is None:
                 continue
             payload, attachment, received = item
             try:
                 msg = node.decode(payload, StereoFrame)
-                age_ms, max_age_ms = parse_attachment(attachment)
+                age_ms, max_age_ms, nonce = parse_attachment(attachment)
             except DecodeError as e:
                 node.decode_errors += 1
                 node.warn("decode", f"dropped work item: {e}")
@@ -685,17 +969,21 @@ def run_worker(node: Node, settings: Any) -> None:
             age_now = age_ms + (time.monotonic() - received) * 1e3
             if age_now > max_age_ms:
                 node.extra["too_old"] = node.extra.get("too_old", 0) + 1
-                receipt(msg, False, f"too old: {age_now:.0f} ms > {max_age_ms:.0f} ms")
+                dropped(msg, nonce, f"too old: {age_now:.0f} ms > {max_age_ms:.0f} ms")
                 continue
             ok = False
             with node.processing(msg):
                 result = computer.compute(msg, me)
-                out.put(result)
-                rates.add("out_disparity", len(result.image.data))
+                result.stages[node.service] = node.clock.wall_ns()
+                data = codec.encode(result)
+                results.put(data, attachment=result_header(result, nonce))
+                node._published(node.age_ns(msg))
+                rates.add("out_work_result", len(data))
                 computer.report(node)
                 ok = True
                 node.status = f"ok: {computer.method}"
-            receipt(msg, ok, "" if ok else "failed (see worker log)", (time.monotonic() - received) * 1e3)
+            if not ok:
+                dropped(msg, nonce, "failed (see worker log)", (time.monotonic() - received) * 1e3)
     finally:
         try:
             token.undeclare()

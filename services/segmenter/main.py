@@ -10,6 +10,7 @@ import time
 from common.keys import topic
 from common.messages import ObstacleList, Odometry
 from common.node import Node
+from common.signing import KEY_ENV, calibration_key
 from cores.segmentation.builder import ObstacleBuilder
 from cores.segmentation.settings import SegmenterSettings
 
@@ -20,7 +21,15 @@ __all__ = ["SegmenterSettings", "run"]
 
 def run(node: Node, settings: SegmenterSettings) -> None:
     builder = ObstacleBuilder(settings)
-    inbox = node.latest("disparity")
+    # Only the robot's dispatcher signs maps (with the key the robot's services share): anyone else's
+    # are refused before their stamp reaches the freshness gate, so they cannot become the ordering
+    # reference nor feed the list. Without a key (a bare `run segmenter`) any peer's map is taken.
+    sign_key = calibration_key()
+    unsigned_note = "" if sign_key else f" (disparity maps unauthenticated: no {KEY_ENV})"
+    if sign_key is None:
+        log.warning("segmenter: no %s: disparity maps are taken from anyone on the network, signed or not; "
+                    "`up` and the compose files set one for the robot's services", KEY_ENV)
+    inbox = node.latest("disparity", sign_key=sign_key)
     out = node.publisher("obstacles")
     free_out = node.publisher("freespace")
     lock = threading.Lock()
@@ -55,7 +64,7 @@ def run(node: Node, settings: SegmenterSettings) -> None:
                 prev = last["list"]
                 quiet = time.monotonic() - last["time"] > settings.stale_after_s
                 if quiet:
-                    node.status = "stale: no disparity input"
+                    node.status = "stale: no disparity input" + unsigned_note
                     if prev is not None:
                         prev.stale = True
                         prev.publish_ns = time.time_ns()
@@ -75,4 +84,4 @@ def run(node: Node, settings: SegmenterSettings) -> None:
                 free_out.put(result.freespace, count=False)
             g = result.obstacles.ground
             node.extra["ground_height_m"] = g.height_m if g is not None else 0.0
-            node.status = "stale: input too old" if stale else "ok"
+            node.status = ("stale: input too old" if stale else "ok") + unsigned_note
