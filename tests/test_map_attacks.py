@@ -317,7 +317,12 @@ def test_up_maps_stamped_ahead_on_a_workers_result_key_cost_it_nothing(up_robot)
         p.wait(30)
 
 
-@pytest.mark.parametrize("mode", ["nan", "inf", "uint8", "invalid", "small", "huge", "future", "liar", "silent"])
+# One attack of each kind runs by default; the rest with --run-slow (CI), each ~10 s of a running pipeline.
+SLOW = pytest.mark.slow
+
+
+@pytest.mark.parametrize("mode", ["nan", *(pytest.param(m, marks=SLOW) for m in
+                                            ("inf", "uint8", "invalid", "small", "huge", "future", "liar", "silent"))])
 def test_up_a_lying_worker_is_quarantined_and_costs_the_robot_nothing(up_robot, mode):
     out = run_worker_attack(up_robot, mode)
     if mode == "silent":  # no answer at all: three missed items (max_in_flight 2), the fallback meanwhile
@@ -399,7 +404,8 @@ def test_gateway_forgeries_on_a_workers_result_key_cost_it_nothing(gateway_robot
     assert "quarantined" not in obs.status("dispatcher") and "1 worker" in obs.status("dispatcher")
 
 
-@pytest.mark.parametrize("mode", ["nan", "uint8", "small", "huge", "future", "liar"])
+@pytest.mark.parametrize("mode", ["liar", *(pytest.param(m, marks=SLOW) for m in
+                                             ("nan", "uint8", "small", "huge", "future"))])
 def test_gateway_a_lying_worker_behind_tls_is_quarantined_and_the_other_worker_carries_on(gateway_robot, mode):
     run_worker_attack(gateway_robot, mode)
     assert "pc1" not in gateway_robot.obs.status("dispatcher").split("quarantined")[-1]
