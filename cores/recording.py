@@ -1,13 +1,18 @@
 """The recording format: which MCAP topics hold what, a writer, a converter from pipeline messages
 to recorded messages, and a reader that gives stereo pairs back. Pure: no Zenoh.
 
+Layout 2 (metadata `ballbot.layout` = "2"): the foxglove.* channels are Foxglove's own protobuf
+schemas and messages, made by Foxglove's SDK (cores/foxglove.py), so images are their JPEG or PNG
+bytes as they are; the ballbot.* channels are JSON with the JSON Schema of our pydantic models.
+Layout 1 (before: every channel JSON, images base64 inside it, no `layout` entry) is still read.
+
 Topics (schema; log time = the pair's capture stamp, so a frame, its disparity and its boxes line
 up in Foxglove; MCAP `sequence` = the capture seq):
 
 | topic | schema | what |
 |---|---|---|
 | /frames/raw/left, /frames/raw/right | foxglove.CompressedImage | the pairs as captured (what replay publishes) |
-| /frames/rectified/left, .../right | foxglove.CompressedImage | rectified pairs |
+| /frames/rectified/left, .../right | foxglove.CompressedImage | rectified left (what Foxglove draws the boxes on); the right only with `rectified_right` (replay re-rectifies the raw pairs) |
 | /frames/rectified/camera_info | foxglove.CameraCalibration | the rectified left camera (Foxglove projects 3D boxes with it) |
 | /disparity/color | foxglove.CompressedImage | disparity in colour (near = warm, no measurement = black) |
 | /obstacles | ballbot.ObstacleList (JSON Schema) | the public obstacle list, as published |
@@ -41,6 +46,9 @@ from cores import foxglove
 
 log = logging.getLogger("ballbot.recording")
 
+# What this writer writes and the newest this reader reads (metadata "ballbot", key "layout").
+LAYOUT = 2
+
 RAW_LEFT, RAW_RIGHT = "/frames/raw/left", "/frames/raw/right"
 RECT_LEFT, RECT_RIGHT = "/frames/rectified/left", "/frames/rectified/right"
 CAMERA_INFO = "/frames/rectified/camera_info"
@@ -70,8 +78,7 @@ TOPIC_SCHEMAS: dict[str, str] = {
 
 
 def schema_document(name: str) -> dict:
-    if name in foxglove.SCHEMAS:
-        return foxglove.SCHEMAS[name]
+    """The JSON Schema of one of our own (ballbot.*) channels."""
     if name == "ballbot.Calibration":
         return _CALIBRATION_SCHEMA
     model = {"ballbot.ObstacleList": ObstacleList, "ballbot.FreeSpace": FreeSpace,
@@ -112,22 +119,35 @@ class RecordingWriter:
         self.counts: dict[str, int] = {}
         self.bytes = 0
         self.closed = False
-        if metadata:
-            self._writer.add_metadata("ballbot", {k: str(v) for k, v in metadata.items()})
+        self._writer.add_metadata("ballbot", {"layout": str(LAYOUT),
+                                              **{k: str(v) for k, v in (metadata or {}).items()}})
 
     def _channel(self, topic: str) -> int:
         if topic not in self._channels:
             name = TOPIC_SCHEMAS[topic]
+            sdk_type = foxglove.TYPES.get(name)
             if name not in self._schemas:
-                self._schemas[name] = self._writer.register_schema(
-                    name=name, encoding="jsonschema", data=json.dumps(schema_document(name)).encode())
-            self._channels[topic] = self._writer.register_channel(topic=topic, message_encoding="json",
-                                                                  schema_id=self._schemas[name])
+                if sdk_type is not None:  # the SDK's own schema: protobuf, a FileDescriptorSet
+                    schema = sdk_type.get_schema()
+                    self._schemas[name] = self._writer.register_schema(name=schema.name, encoding=schema.encoding,
+                                                                       data=bytes(schema.data))
+                else:
+                    self._schemas[name] = self._writer.register_schema(
+                        name=name, encoding="jsonschema", data=json.dumps(schema_document(name)).encode())
+            self._channels[topic] = self._writer.register_channel(
+                topic=topic, message_encoding="protobuf" if sdk_type is not None else "json",
+                schema_id=self._schemas[name])
         return self._channels[topic]
 
-    def write(self, topic: str, doc: dict | str, log_time_ns: int, sequence: int = 0,
+    def write(self, topic: str, doc: Any, log_time_ns: int, sequence: int = 0,
               publish_time_ns: int | None = None) -> None:
-        data = (doc if isinstance(doc, str) else json.dumps(doc, separators=(",", ":"))).encode()
+        """doc: an SDK message (foxglove.* topics), or a JSON text or mapping (ballbot.* topics)."""
+        if isinstance(doc, str):
+            data = doc.encode()
+        elif isinstance(doc, dict):
+            data = json.dumps(doc, separators=(",", ":")).encode()
+        else:
+            data = doc.encode()
         with self._lock:
             if self.closed:
                 return
@@ -163,9 +183,10 @@ def compress_image(img: Image, fmt: str, jpeg_quality: int = 90) -> tuple[bytes,
 
 
 def encode_array(a: np.ndarray, fmt: str, jpeg_quality: int = 90) -> bytes:
-    """(H, W) grey or (H, W, 3) BGR uint8 -> jpeg or png bytes."""
+    """(H, W) grey or (H, W, 3) BGR uint8 -> jpeg or png bytes. JPEGs get optimised Huffman tables:
+    the same pixels in 4-5 % fewer bytes, for about 1 ms more per 640x480 image."""
     if fmt == "jpeg":
-        ok, buf = cv2.imencode(".jpg", a, [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)])
+        ok, buf = cv2.imencode(".jpg", a, [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality), cv2.IMWRITE_JPEG_OPTIMIZE, 1])
     elif fmt == "png":
         ok, buf = cv2.imencode(".png", a, [cv2.IMWRITE_PNG_COMPRESSION, 1])
     else:
@@ -201,7 +222,7 @@ class Recorded:
     """One message ready for the writer."""
 
     topic: str
-    doc: dict | str
+    doc: Any  # an SDK message (foxglove.*), or JSON text or a mapping (ballbot.*)
     log_time_ns: int
     sequence: int = 0
 
@@ -212,6 +233,7 @@ class RecordOptions:
     jpeg_quality: int = 90
     raw: bool = True
     rectified: bool = True
+    rectified_right: bool = False  # derivable: replay re-rectifies the raw pairs; nothing shows it
     disparity: bool = True
 
 
@@ -245,7 +267,10 @@ class Converter:
         lt, rt = (RECT_LEFT, RECT_RIGHT) if rectified else (RAW_LEFT, RAW_RIGHT)
         frame_id = "camera" if rectified else "camera_raw"
         out = []
-        for topic, img in ((lt, msg.left), (rt, msg.right)):
+        halves = [(lt, msg.left), (rt, msg.right)]
+        if rectified and not self.options.rectified_right:
+            halves = halves[:1]
+        for topic, img in halves:
             data, fmt = self._image(img)
             out.append(Recorded(topic, foxglove.compressed_image(msg.stamp_ns, frame_id, data, fmt),
                                 msg.stamp_ns, msg.seq))
@@ -304,6 +329,7 @@ class RecordedPair:
     truth: list[TruthObstacle] | None = None
     scenario: str = ""
     calibration_yaml: str | None = None  # raw pairs: the latest calibration recorded at or before this pair
+    calibration_source: str = ""  # where that calibration came from, as recorded (a file, a profile, ...)
 
 
 @dataclass
@@ -324,31 +350,60 @@ class RecordingInfo:
         return min(self.channels.get(left, 0), self.channels.get(right, 0))
 
 
-def decode_image(doc: dict, where: str, strict: bool = True) -> np.ndarray:
-    """A recorded image (Foxglove CompressedImage doc) -> array. strict: a JPEG or PNG that libjpeg
-    or libpng reports damaged is refused (their warnings on stderr are captured for it, see
-    common/files.py); else only an image that does not decode at all is."""
+def image_payload(topic: str, message_encoding: str, schema_name: str, schema_data: bytes, data: bytes,
+                  decoder: "foxglove.ProtobufDecoder", where: str) -> tuple[bytes, str]:
+    """A recorded foxglove.CompressedImage -> (its image bytes, format). Layout 2: protobuf, by the
+    schema the file carries; layout 1: JSON with the bytes in base64."""
+    if message_encoding == "protobuf":
+        try:
+            msg = decoder.decode(schema_name, schema_data, data)
+            return bytes(msg.data), str(msg.format)
+        except Exception as e:  # protobuf's DecodeError, a schema that is not a FileDescriptorSet, ...
+            raise RecordingError(f"{where}: not a {schema_name} protobuf message ({type(e).__name__})") from None
     import base64
 
+    try:
+        doc = json.loads(data)
+        return base64.b64decode(doc["data"]), str(doc.get("format", "?"))
+    except (KeyError, TypeError, ValueError) as e:
+        raise RecordingError(f"{where}: no base64 image data ({type(e).__name__})") from None
+
+
+def decode_image(data: bytes, fmt: str, where: str, strict: bool = True) -> np.ndarray:
+    """Recorded image bytes -> array. strict: a JPEG or PNG that libjpeg or libpng reports damaged
+    is refused (their warnings on stderr are captured for it, see common/files.py); else only an
+    image that does not decode at all is."""
     from common.errors import FileError
     from common.files import imdecode_checked
 
-    try:
-        data = base64.b64decode(doc["data"])
-    except (KeyError, TypeError, ValueError) as e:
-        raise RecordingError(f"{where}: no base64 image data ({type(e).__name__})") from None
     if strict:  # a damaged JPEG or PNG is refused, not decoded grey with libjpeg's warning on stderr
         try:
             a = imdecode_checked(data, where, cv2.IMREAD_UNCHANGED)
         except FileError as e:
             raise RecordingError(str(e)) from None
     else:
-        a = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+        a = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED) if data else None
         if a is None:
-            raise RecordingError(f"{where}: {doc.get('format', '?')} image of {len(data)} bytes does not decode")
+            raise RecordingError(f"{where}: {fmt} image of {len(data)} bytes does not decode")
     if a.ndim == 3 and a.shape[2] == 4:
         a = cv2.cvtColor(a, cv2.COLOR_BGRA2BGR)
     return a
+
+
+def named_calibration(yaml_text: str, name: str) -> str:
+    """A calibration's YAML with `name` set where it has none, so that whoever loads it (rectify,
+    in its log and status) can say which calibration it is."""
+    import yaml as pyyaml
+
+    from common.files import parse_yaml
+
+    try:
+        doc = parse_yaml(yaml_text, "calibration")
+    except Exception:
+        return yaml_text  # whoever loads it says what is wrong with it
+    if not isinstance(doc, dict) or doc.get("name") or not name:
+        return yaml_text
+    return pyyaml.safe_dump({"name": name, **doc}, sort_keys=False)
 
 
 class RecordingReader:
@@ -370,8 +425,9 @@ class RecordingReader:
         self.truncated = False
         self._info: RecordingInfo | None = None
 
-    def _messages(self, topics: list[str] | None = None) -> Iterator[tuple[str, Any]]:
-        """(topic, mcap message) in log-time order where the file has an index, else file order."""
+    def _messages(self, topics: list[str] | None = None) -> Iterator[tuple[str, Any, Any, Any]]:
+        """(topic, mcap message, channel, schema) in log-time order where the file has an index,
+        else file order."""
         from mcap.reader import make_reader
 
         with open(self.path, "rb") as f:
@@ -387,9 +443,9 @@ class RecordingReader:
                 reader = NonSeekingReader(f, validate_crcs=False)
             n = 0
             try:
-                for _, channel, message in reader.iter_messages(topics=topics, log_time_order=indexed):
+                for schema, channel, message in reader.iter_messages(topics=topics, log_time_order=indexed):
                     n += 1
-                    yield channel.topic, message
+                    yield channel.topic, message, channel, schema
             except Exception as e:  # the mcap reader raises several types at a cut-off end
                 if indexed:
                     raise RecordingError(f"{self.path}: damaged after {n} messages: {e}") from None
@@ -420,11 +476,15 @@ class RecordingReader:
         else:
             info.complete = False
             times = []
-            for topic, m in self._messages():
+            for topic, m, _, _ in self._messages():
                 info.channels[topic] = info.channels.get(topic, 0) + 1
                 times.append(m.log_time)
             if times:
                 info.start_ns, info.end_ns = min(times), max(times)
+        layout = info.metadata.get("layout", "1")
+        if not layout.isdigit() or int(layout) > LAYOUT:
+            raise RecordingError(f"{self.path}: recording layout {layout}, newer than this version of ballbot-vision "
+                                 f"reads (layouts 1 to {LAYOUT}); update ballbot-vision to read it")
         self._info = info
         return info
 
@@ -439,13 +499,18 @@ class RecordingReader:
         left_t, right_t = (RAW_LEFT, RAW_RIGHT) if kind == "raw" else (RECT_LEFT, RECT_RIGHT)
         if not info.pairs(kind):
             have = ", ".join(sorted(info.channels)) or "no messages"
-            raise RecordingError(f"{self.path}: no {kind} stereo pairs ({left_t} and {right_t}); it holds {have}")
+            hint = (" (recorded without the rectified right image: `record --rectified-right true` keeps it; "
+                    "the raw pairs hold the same, rectified with the recording's calibration)"
+                    if kind == "rectified" and info.channels.get(RECT_LEFT) and info.pairs("raw") else "")
+            raise RecordingError(f"{self.path}: no {kind} stereo pairs ({left_t} and {right_t}){hint}; it holds {have}")
         self.kind = kind
         self.unpaired = 0
         self.damaged = 0
         halves: dict[int, dict[str, Any]] = {}
         truths: dict[int, GroundTruth] = {}
         calibration: str | None = None
+        calibration_source = ""
+        decoder = foxglove.ProtobufDecoder()
         pending: tuple[int, int, dict] | None = None  # a complete pair waits for its truth (same log time)
 
         def finish(seq: int, t: int, half: dict) -> RecordedPair | None:
@@ -454,8 +519,8 @@ class RecordingReader:
             for old in [s for s in truths if s < seq]:
                 del truths[old]
             try:
-                left = decode_image(half[left_t][0], f"{where} left", self.strict_images)
-                right = decode_image(half[right_t][0], f"{where} right", self.strict_images)
+                left = decode_image(*half[left_t][0], f"{where} left", self.strict_images)
+                right = decode_image(*half[right_t][0], f"{where} right", self.strict_images)
             except RecordingError as e:
                 self.damaged += 1
                 log.warning("%s; pair skipped", e)
@@ -463,20 +528,23 @@ class RecordingReader:
             return RecordedPair(seq=seq, stamp_ns=t, left=left, right=right,
                                 truth=None if truth is None else truth.obstacles,
                                 scenario="" if truth is None else truth.scenario,
-                                calibration_yaml=calibration if kind == "raw" else None)
+                                calibration_yaml=calibration if kind == "raw" else None,
+                                calibration_source=calibration_source if kind == "raw" else "")
 
-        for topic, m in self._messages([left_t, right_t, TRUTH, CALIBRATION]):
+        for topic, m, channel, schema in self._messages([left_t, right_t, TRUTH, CALIBRATION]):
             if pending is not None and m.log_time > pending[1]:
                 if (pair := finish(*pending)) is not None:
                     yield pair
                 pending = None
-            try:
-                doc = json.loads(m.data)
-            except ValueError:
-                log.warning("%s: a %s message is not JSON; skipped", self.path, topic)
-                continue
+            if topic in (CALIBRATION, TRUTH):
+                try:
+                    doc = json.loads(m.data)
+                except ValueError:
+                    log.warning("%s: a %s message is not JSON; skipped", self.path, topic)
+                    continue
             if topic == CALIBRATION:
                 calibration = doc.get("yaml") if isinstance(doc, dict) else None
+                calibration_source = str(doc.get("source") or "") if isinstance(doc, dict) else ""
                 continue
             if topic == TRUTH:
                 try:
@@ -484,8 +552,16 @@ class RecordingReader:
                 except Exception:
                     log.warning("%s: a %s message does not validate; skipped", self.path, topic)
                 continue
+            try:
+                image = image_payload(topic, channel.message_encoding, schema.name if schema else "",
+                                      schema.data if schema else b"", m.data, decoder,
+                                      f"{self.path}: {topic} seq {m.sequence}")
+            except RecordingError as e:
+                self.damaged += 1
+                log.warning("%s; skipped", e)
+                continue
             half = halves.setdefault(m.sequence, {})
-            half[topic] = (doc, m.log_time)
+            half[topic] = (image, m.log_time)
             if len(half) < 2:
                 continue
             del halves[m.sequence]
