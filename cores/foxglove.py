@@ -151,3 +151,23 @@ class ProtobufDecoder:
 
     def decode(self, name: str, schema_data: bytes, data: bytes):
         return self.message_class(name, schema_data).FromString(bytes(data))
+
+
+def ground_scene(msg: ObstacleList, size_m: float = 10.0) -> fm.SceneUpdate:
+    """The ground the segmenter found for this list: a translucent square on the floor plane of the
+    base frame (z = 0, in front of the robot), labelled with the camera's height, pitch and roll over
+    it and where they came from; an empty update (delete-all only) when no ground is known."""
+    stamp = timestamp(msg.stamp_ns)
+    deletions = [fm.SceneEntityDeletion(timestamp=stamp, type=fm.SceneEntityDeletionType.All)]
+    g = msg.ground
+    if g is None or g.source == "none":
+        return fm.SceneUpdate(deletions=deletions)
+    floor = fm.CubePrimitive(pose=fm.Pose(position=fm.Vector3(x=size_m / 2, y=0.0, z=-0.005), orientation=_identity()),
+                             size=fm.Vector3(x=size_m, y=size_m, z=0.01), color=color((0.3, 0.6, 1.0, 0.25)))
+    label = fm.TextPrimitive(pose=fm.Pose(position=fm.Vector3(x=1.0, y=0.0, z=0.05), orientation=_identity()),
+                             billboard=True, font_size=14.0, scale_invariant=True, color=color((1, 1, 1, 1)),
+                             text=f"ground ({g.source}): camera {g.height_m:.2f} m above, pitch {g.pitch_deg:+.1f} deg, "
+                                  f"roll {g.roll_deg:+.1f} deg")
+    return fm.SceneUpdate(deletions=deletions, entities=[
+        fm.SceneEntity(timestamp=stamp, frame_id="base", id="ground", lifetime=fm.Duration(0, 0), cubes=[floor],
+                       texts=[label])])
