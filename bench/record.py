@@ -66,7 +66,7 @@ def conversion_ceiling(messages, image_format: str, seconds: float = 3.0) -> flo
     from cores.recording import Converter, RecordingWriter, RecordOptions
 
     payloads = [tuple(codec.encode(m) for m in msgs) for msgs in messages]
-    conv = Converter(RecordOptions(image_format=image_format))
+    conv = Converter(RecordOptions(image_format=image_format, raw=True))
     with tempfile.TemporaryDirectory() as tmp:
         sink = RecordingWriter(Path(tmp) / "ceiling.mcap")
         # CPU time, not wall time: what one core allows, whatever else the machine runs
@@ -126,7 +126,7 @@ def record_run(messages, rate: float, seconds: float, image_format: str, threads
             session.declare_subscriber(topic("stats").key("bench", service="record", instance="*"), on_stats)
             with open(log_path, "w") as log:
                 recorder = subprocess.Popen(cli + ["record", str(out), "--connect", endpoint, "--robot-id", "bench",
-                                                   "--image-format", image_format, "--threads", str(threads)],
+                                                   "--image-format", image_format, "--threads", str(threads), "--raw", "true"],
                                             stdout=log, stderr=subprocess.STDOUT)
             if not ready.wait(60):
                 raise RuntimeError(f"record did not start: {log_path.read_text()[-2000:]}")

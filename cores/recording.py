@@ -11,9 +11,10 @@ up in Foxglove; MCAP `sequence` = the capture seq):
 
 | topic | schema | what |
 |---|---|---|
-| /frames/raw/left, /frames/raw/right | foxglove.CompressedImage | the pairs as captured (what replay publishes) |
-| /frames/rectified/left, .../right | foxglove.CompressedImage | rectified left (what Foxglove draws the boxes on); the right only with `rectified_right` (replay re-rectifies the raw pairs) |
+| /frames/rectified/left, .../right | foxglove.CompressedImage | the rectified pairs: what the pipeline matched, what replay publishes |
 | /frames/rectified/camera_info | foxglove.CameraCalibration | the rectified left camera (Foxglove projects 3D boxes with it) |
+| /frames/rectified/calibration | ballbot.Calibration | the rectified rig as a `rectified: true` calibration (replay hands it to rectify, which passes the pairs through) |
+| /frames/raw/left, /frames/raw/right | foxglove.CompressedImage | the pairs as captured, only when asked (`record --raw true`; `mcap from-images` writes these) |
 | /disparity/color | foxglove.CompressedImage | disparity in colour (near = warm, no measurement = black) |
 | /obstacles | ballbot.ObstacleList (JSON Schema) | the public obstacle list, as published |
 | /obstacles/boxes | foxglove.ImageAnnotations | each obstacle's box, id and distance on the rectified left image |
@@ -22,7 +23,7 @@ up in Foxglove; MCAP `sequence` = the capture seq):
 | /tf | foxglove.FrameTransform | base -> camera from the segmenter's ground estimate |
 | /truth, /truth/boxes | ballbot.GroundTruth, foxglove.ImageAnnotations | the synthetic scene's truth |
 | /stats | ballbot.ServiceStats | every service's stats, once a second each |
-| /calibration | ballbot.Calibration | the calibration YAML the raw pairs need (replay hands it to rectify) |
+| /calibration | ballbot.Calibration | the calibration YAML the raw pairs need (replay of raw pairs hands it to rectify) |
 """
 from __future__ import annotations
 
@@ -52,6 +53,7 @@ LAYOUT = 2
 RAW_LEFT, RAW_RIGHT = "/frames/raw/left", "/frames/raw/right"
 RECT_LEFT, RECT_RIGHT = "/frames/rectified/left", "/frames/rectified/right"
 CAMERA_INFO = "/frames/rectified/camera_info"
+RECT_CALIBRATION = "/frames/rectified/calibration"
 DISPARITY_COLOR = "/disparity/color"
 OBSTACLES, OBSTACLE_BOXES, OBSTACLE_SCENE = "/obstacles", "/obstacles/boxes", "/obstacles/scene"
 FREESPACE, FREESPACE_GRID = "/freespace", "/freespace/grid"
@@ -69,7 +71,8 @@ _CALIBRATION_SCHEMA = {"title": "ballbot.Calibration", "type": "object",
 TOPIC_SCHEMAS: dict[str, str] = {
     RAW_LEFT: "foxglove.CompressedImage", RAW_RIGHT: "foxglove.CompressedImage",
     RECT_LEFT: "foxglove.CompressedImage", RECT_RIGHT: "foxglove.CompressedImage",
-    CAMERA_INFO: "foxglove.CameraCalibration", DISPARITY_COLOR: "foxglove.CompressedImage",
+    CAMERA_INFO: "foxglove.CameraCalibration", RECT_CALIBRATION: "ballbot.Calibration",
+    DISPARITY_COLOR: "foxglove.CompressedImage",
     OBSTACLES: "ballbot.ObstacleList", OBSTACLE_BOXES: "foxglove.ImageAnnotations",
     OBSTACLE_SCENE: "foxglove.SceneUpdate", FREESPACE: "ballbot.FreeSpace", FREESPACE_GRID: "foxglove.Grid",
     TF: "foxglove.FrameTransform", TRUTH: "ballbot.GroundTruth", TRUTH_BOXES: "foxglove.ImageAnnotations",
@@ -230,10 +233,9 @@ class Recorded:
 @dataclass
 class RecordOptions:
     image_format: str = "jpeg"  # jpeg, png or keep (as on the wire; raw payloads become jpeg)
-    jpeg_quality: int = 90
-    raw: bool = True
+    jpeg_quality: int = 75
+    raw: bool = False  # the rectified pairs are what the pipeline matched; raw ones only when asked
     rectified: bool = True
-    rectified_right: bool = False  # derivable: replay re-rectifies the raw pairs; nothing shows it
     disparity: bool = True
 
 
@@ -267,16 +269,16 @@ class Converter:
         lt, rt = (RECT_LEFT, RECT_RIGHT) if rectified else (RAW_LEFT, RAW_RIGHT)
         frame_id = "camera" if rectified else "camera_raw"
         out = []
-        halves = [(lt, msg.left), (rt, msg.right)]
-        if rectified and not self.options.rectified_right:
-            halves = halves[:1]
-        for topic, img in halves:
+        for topic, img in ((lt, msg.left), (rt, msg.right)):
             data, fmt = self._image(img)
             out.append(Recorded(topic, foxglove.compressed_image(msg.stamp_ns, frame_id, data, fmt),
                                 msg.stamp_ns, msg.seq))
         if rectified and self._camera_info_due(msg.camera, msg.stamp_ns):
             out.append(Recorded(CAMERA_INFO, foxglove.camera_calibration(msg.stamp_ns, msg.camera),
                                 msg.stamp_ns, msg.seq))
+            # log time just before the pair's, so that a reader has it when the pair comes
+            out.append(Recorded(RECT_CALIBRATION, {"yaml": rectified_calibration_yaml(msg.camera),
+                                                   "source": "the rectified camera"}, msg.stamp_ns - 1, msg.seq))
         return out
 
     def disparity(self, msg: DisparityMap) -> list[Recorded]:
@@ -316,6 +318,15 @@ class Converter:
         return [Recorded(CALIBRATION, {"yaml": yaml_text, "source": source}, t)]
 
 
+def rectified_calibration_yaml(cam: CameraModel) -> str:
+    """The rectified rig a frame was rectified for, as a calibration file (`rectified: true`)."""
+    import yaml as pyyaml
+
+    return pyyaml.safe_dump({"name": "rectified camera", "rectified": True, "image_size": [cam.width, cam.height],
+                             "focal_px": float(cam.focal_px), "principal_point": [float(cam.cx), float(cam.cy)],
+                             "baseline_m": float(cam.baseline_m)}, sort_keys=False)
+
+
 # -- reading -------------------------------------------------------------------------------------
 
 @dataclass
@@ -328,7 +339,7 @@ class RecordedPair:
     right: np.ndarray
     truth: list[TruthObstacle] | None = None
     scenario: str = ""
-    calibration_yaml: str | None = None  # raw pairs: the latest calibration recorded at or before this pair
+    calibration_yaml: str | None = None  # the latest calibration for these pairs recorded at or before this pair
     calibration_source: str = ""  # where that calibration came from, as recorded (a file, a profile, ...)
 
 
@@ -499,9 +510,7 @@ class RecordingReader:
         left_t, right_t = (RAW_LEFT, RAW_RIGHT) if kind == "raw" else (RECT_LEFT, RECT_RIGHT)
         if not info.pairs(kind):
             have = ", ".join(sorted(info.channels)) or "no messages"
-            hint = (" (recorded without the rectified right image: `record --rectified-right true` keeps it; "
-                    "the raw pairs hold the same, rectified with the recording's calibration)"
-                    if kind == "rectified" and info.channels.get(RECT_LEFT) and info.pairs("raw") else "")
+            hint = (" (`record` keeps them with --raw true)" if kind == "raw" and info.pairs("rectified") else "")
             raise RecordingError(f"{self.path}: no {kind} stereo pairs ({left_t} and {right_t}){hint}; it holds {have}")
         self.kind = kind
         self.unpaired = 0
@@ -528,21 +537,21 @@ class RecordingReader:
             return RecordedPair(seq=seq, stamp_ns=t, left=left, right=right,
                                 truth=None if truth is None else truth.obstacles,
                                 scenario="" if truth is None else truth.scenario,
-                                calibration_yaml=calibration if kind == "raw" else None,
-                                calibration_source=calibration_source if kind == "raw" else "")
+                                calibration_yaml=calibration, calibration_source=calibration_source)
 
-        for topic, m, channel, schema in self._messages([left_t, right_t, TRUTH, CALIBRATION]):
+        calibration_topic = CALIBRATION if kind == "raw" else RECT_CALIBRATION
+        for topic, m, channel, schema in self._messages([left_t, right_t, TRUTH, calibration_topic]):
             if pending is not None and m.log_time > pending[1]:
                 if (pair := finish(*pending)) is not None:
                     yield pair
                 pending = None
-            if topic in (CALIBRATION, TRUTH):
+            if topic in (calibration_topic, TRUTH):
                 try:
                     doc = json.loads(m.data)
                 except ValueError:
                     log.warning("%s: a %s message is not JSON; skipped", self.path, topic)
                     continue
-            if topic == CALIBRATION:
+            if topic == calibration_topic:
                 calibration = doc.get("yaml") if isinstance(doc, dict) else None
                 calibration_source = str(doc.get("source") or "") if isinstance(doc, dict) else ""
                 continue
@@ -586,15 +595,18 @@ def offline_pairs(path: str | Path, calibration: str | None = None):
     from common.files import parse_yaml
 
     reader = RecordingReader(path)
-    pairs = reader.pairs("raw")
+    pairs = reader.pairs("auto")  # raw pairs where recorded (they need a calibration), else the rectified ones
     first = next(pairs, None)
     if first is None:
         raise RecordingError(f"{path}: no stereo pair could be read")
+    where = f"{path}: {CALIBRATION if reader.kind == 'raw' else RECT_CALIBRATION}"
+    if calibration and reader.kind == "rectified":
+        raise RecordingError(f"{path}: holds rectified pairs, recorded with their rectified camera: they need no "
+                             f"--calibration")
     if calibration:
         cal = camera.load_calibration(calibration)
     elif first.calibration_yaml:
-        cal = camera.calibration_from_dict(parse_yaml(first.calibration_yaml, f"{path}: /calibration"),
-                                           where=f"{path}: /calibration")
+        cal = camera.calibration_from_dict(parse_yaml(first.calibration_yaml, where), where=where)
     else:
         raise RecordingError(f"{path}: the recording holds no calibration; give one with --calibration")
 

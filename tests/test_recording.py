@@ -25,7 +25,7 @@ from services.capture.mcap_source import McapSource
 from cores import recording as R
 from services.capture.sources import SourceContext
 
-from helpers import cli
+from helpers import cli, read_mcap
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
 if not REAL.is_dir():
@@ -66,7 +66,7 @@ def write_recording(path: Path, n: int = 5, image_format: str = "png", chunk_siz
                                               "principal_point: [32, 24]\nbaseline_m: 0.1\n",
                     close: bool = True) -> R.RecordingWriter:
     w = R.RecordingWriter(path, chunk_size=chunk_size)
-    conv = R.Converter(R.RecordOptions(image_format=image_format))
+    conv = R.Converter(R.RecordOptions(image_format=image_format, raw=True))
     if calibration:
         for r in conv.calibration(calibration, "test", 10**18 - 1):
             w.write(r.topic, r.doc, r.log_time_ns)
@@ -80,39 +80,8 @@ def write_recording(path: Path, n: int = 5, image_format: str = "png", chunk_siz
 
 # --- format ------------------------------------------------------------------------------------------
 
-def decode_file(path: Path) -> tuple[dict, dict, list[tuple[str, object]]]:
-    """What the Foxglove app reads: every channel's schema and encoding from the file, and every
-    message decoded by that schema alone (protobuf with Google's runtime from the file's
-    FileDescriptorSet, JSON checked against the file's JSON Schema)."""
-    from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
-    from mcap.reader import make_reader
-
-    with open(path, "rb") as f:
-        reader = make_reader(f)
-        summary = reader.get_summary()
-        channels = {c.topic: (summary.schemas[c.schema_id].name, summary.schemas[c.schema_id].encoding,
-                              c.message_encoding) for c in summary.channels.values()}
-        counts = {summary.channels[cid].topic: n for cid, n in summary.statistics.channel_message_counts.items()}
-        classes: dict[int, object] = {}
-        decoded = []
-        for schema, channel, message in reader.iter_messages():
-            if schema.encoding == "protobuf":
-                if schema.id not in classes:
-                    pool = descriptor_pool.DescriptorPool()
-                    for fd in descriptor_pb2.FileDescriptorSet.FromString(schema.data).file:
-                        pool.Add(fd)
-                    classes[schema.id] = message_factory.GetMessageClass(pool.FindMessageTypeByName(schema.name))
-                decoded.append((channel.topic, classes[schema.id].FromString(message.data)))
-            else:
-                assert (schema.encoding, channel.message_encoding) == ("jsonschema", "json")
-                doc = json.loads(message.data)
-                jsonschema.validate(doc, json.loads(schema.data))
-                decoded.append((channel.topic, doc))
-    return channels, counts, decoded
-
-
 def test_every_recorded_message_decodes_by_the_schema_in_the_file(tmp_path):
-    conv = R.Converter(R.RecordOptions(rectified_right=True))
+    conv = R.Converter(R.RecordOptions(raw=True))
     disparity = DisparityMap(robot_id="r", seq=1, stamp_ns=10**18, scale=16.0, invalid_value=-16, min_disparity=0,
                              num_disparities=64, camera=CAMERA, method="bm",
                              image=codec.image_from_array(np.full((48, 64), 320, np.int16)))
@@ -133,7 +102,7 @@ def test_every_recorded_message_decodes_by_the_schema_in_the_file(tmp_path):
     for r in records:
         w.write(r.topic, r.doc, r.log_time_ns, r.sequence)
     w.close()
-    channels, counts, decoded = decode_file(path)
+    channels, counts, decoded = read_mcap(path)
     for topic, name in R.TOPIC_SCHEMAS.items():
         encoding = ("protobuf", "protobuf") if name.startswith("foxglove.") else ("jsonschema", "json")
         assert channels[topic] == (name, *encoding), topic
@@ -167,12 +136,37 @@ def test_every_recorded_message_decodes_by_the_schema_in_the_file(tmp_path):
     assert got[R.OBSTACLES]["obstacles"][0]["id"] == 3
 
 
-def test_the_rectified_right_image_is_recorded_only_when_asked():
-    """It holds nothing the raw pair and the calibration do not (replay re-rectifies the raw pairs)
-    and nothing shows it; the left is what Foxglove draws the boxes on."""
-    assert [r.topic for r in R.Converter().frame(frame(1, rectified=True))] == [R.RECT_LEFT, R.CAMERA_INFO]
-    assert [r.topic for r in R.Converter(R.RecordOptions(rectified_right=True)).frame(frame(1, rectified=True))] \
-        == [R.RECT_LEFT, R.RECT_RIGHT, R.CAMERA_INFO]
+def test_rectified_pairs_replay_with_their_rectified_camera_and_raw_ones_only_when_asked(tmp_path):
+    """By default a recording holds the rectified pairs (what the pipeline matched) and the rectified
+    camera as a `rectified: true` calibration: replay hands rectify that, and it passes the pairs
+    through unchanged. The raw pairs are recorded with `raw`."""
+    assert [r.topic for r in R.Converter().frame(frame(1))] == []
+    assert [r.topic for r in R.Converter(R.RecordOptions(raw=True)).frame(frame(1))] == [R.RAW_LEFT, R.RAW_RIGHT]
+    path = tmp_path / "rect.mcap"
+    w = R.RecordingWriter(path)
+    conv = R.Converter(R.RecordOptions(image_format="png"))
+    for k in range(4):
+        for r in conv.frame(frame(k)) + conv.frame(frame(k, rectified=True)) + conv.truth(truth(k)):
+            w.write(r.topic, r.doc, r.log_time_ns, r.sequence)
+    w.close()
+    reader = R.RecordingReader(path)
+    assert reader.info().pairs("raw") == 0 and reader.info().pairs("rectified") == 4
+    got = list(reader.pairs())
+    assert reader.kind == "rectified" and [p.seq for p in got] == [0, 1, 2, 3]
+    from cores import camera
+    from common.files import parse_yaml
+
+    cal = camera.calibration_from_dict(parse_yaml(got[0].calibration_yaml, "rectified calibration"))
+    assert isinstance(cal, camera.RectifiedRig) and cal.name == "rectified camera"
+    assert (cal.model.width, cal.model.height, cal.model.focal_px, cal.model.baseline_m) == (64, 48, 60.0, 0.1)
+    from cores.calibration.rectify import Rectifier
+
+    for p in got:
+        left, right = pair_images(p.seq)
+        assert np.array_equal(p.left, left) and np.array_equal(p.right, right)
+        assert [np.array_equal(a, b) for a, b in zip(Rectifier(cal).rectify(p.left, p.right), (left, right))] == [True, True]
+    with pytest.raises(R.RecordingError, match=r"no raw stereo pairs .*\(`record` keeps them with --raw true\)"):
+        list(reader.pairs("raw"))
 
 
 def write_layout1(path: Path, n: int) -> None:
@@ -239,7 +233,7 @@ def test_pairs_read_back_as_written(tmp_path):
 def test_jpeg_recording_is_close_to_the_original(tmp_path):
     path = tmp_path / "j.mcap"
     w = R.RecordingWriter(path)
-    conv = R.Converter(R.RecordOptions(image_format="jpeg", jpeg_quality=95))
+    conv = R.Converter(R.RecordOptions(image_format="jpeg", jpeg_quality=95, raw=True))
     img = cv2.GaussianBlur(pair_images(0)[0], (7, 7), 2)
     msg = StereoFrame(robot_id="r", seq=0, stamp_ns=1, left=codec.image_from_array(img), right=codec.image_from_array(img))
     for r in conv.frame(msg):
@@ -283,6 +277,21 @@ def test_unreadable_recordings_are_named(tmp_path, content, error):
         R.RecordingReader(path).info()
     with pytest.raises(SourceError, match="mcap: .*" + error):
         McapSource(str(path))
+
+
+def test_a_replay_names_its_calibration(tmp_path, caplog):
+    """A recorded calibration without a name is named after where it came from, so rectify's log
+    says which calibration a replay runs with (it used to say '?')."""
+    path = tmp_path / "r.mcap"
+    write_recording(path, n=2)  # its calibration has no `name:`; recorded from "test"
+    with caplog.at_level("INFO", logger="ballbot.capture"):
+        src = McapSource(str(path))
+    assert src.calibration_name == "test" and "name: test" in src.calibration_yaml
+    assert "2 raw pairs, calibration 'test'" in caplog.text
+    from cores import camera
+    from common.files import parse_yaml
+
+    assert camera.calibration_from_dict(parse_yaml(src.calibration_yaml, "x")).model.baseline_m == 0.1
 
 
 def test_a_recording_without_pairs_says_what_it_holds(tmp_path):
