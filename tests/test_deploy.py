@@ -143,12 +143,12 @@ def test_compose_refuses_to_start_without_the_key_and_reads_it_from_env_file(tmp
     r = subprocess.run(compose + ["config"], cwd=tmp_path, capture_output=True, text=True, env=env, timeout=120)
     assert r.returncode != 0 and "calibration-key.sh" in r.stdout + r.stderr, r.stdout + r.stderr
     (tmp_path / ".env").write_text("BALLBOT_CALIBRATION_KEY=k123\n")
-    r = subprocess.run(compose + ["--profile", "viewer", "--profile", "ros2", "config"], cwd=tmp_path,
+    r = subprocess.run(compose + ["--profile", "viewer", "--profile", "ros2", "--profile", "foxglove", "config"], cwd=tmp_path,
                        capture_output=True, text=True, env=env, timeout=120)
     assert r.returncode == 0, r.stderr
     services = yaml.safe_load(r.stdout)["services"]
     with_key = {n for n, s in services.items() if (s.get("environment") or {}).get("BALLBOT_CALIBRATION_KEY") == "k123"}
-    assert with_key == {"capture", "rectify", "dispatch", "segmenter", "ros2", "viewer"}, with_key
+    assert with_key == {"capture", "rectify", "dispatch", "segmenter", "ros2", "viewer", "foxglove"}, with_key
 
 
 def _readme_docker_lines() -> list[str]:
