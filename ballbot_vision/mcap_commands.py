@@ -43,10 +43,8 @@ def cmd_record(args: argparse.Namespace) -> int:
     out = Path(args.output) if args.output else default_recording_path(robot_id(args))
     if out.suffix.lower() != ".mcap":
         raise BallbotError(f"{out}: a recording's name ends in .mcap")
-    if not args.output:
-        out.parent.mkdir(parents=True, exist_ok=True)
-    if not out.parent.is_dir():
-        raise BallbotError(f"{out}: folder {out.parent} does not exist")
+    if not out.parent.exists():  # recordings/ the first time (a file in the way: the writer's one-line error)
+        out.parent.mkdir(parents=True)
     with Node("record", zenoh_options(args), robot_id(args)) as node:
         print(f"recording to {out} (Ctrl-C to stop)", file=sys.stderr, flush=True)
         result = record(node, settings, out, calibration)
@@ -97,6 +95,8 @@ def cmd_from_images(args: argparse.Namespace) -> int:
     if out.suffix.lower() != ".mcap":
         raise BallbotError(f"{out}: a recording's name ends in .mcap")
     src = ImageSource(args.left, args.right, max_rate=True, labels=("LEFT", "RIGHT"))  # names what is wrong
+    if not out.parent.exists():  # e.g. recordings/, where `record` writes too
+        out.parent.mkdir(parents=True)
     cal = calibration_text(args.calibration) if args.calibration else None
     stamps = None if args.fps else _stamps_from_names(src.left_files)
     fps = args.fps or 30.0
