@@ -252,3 +252,34 @@ def test_readme_compose_profiles_line_gives_the_viewer_and_ros2_services_with_th
         pytest.skip(r.stderr.strip())
     assert r.returncode == 0, r.stderr
     assert {"router", "capture", "segmenter", "viewer", "ros2"} <= set(r.stdout.split())
+
+
+def test_the_first_readme_command_installs_what_viewer_record_replay_and_foxglove_import():
+    """README's first command is `pip install -e .`: every third-party module the viewer, the
+    recorder, replay and the Foxglove server import must come with the main dependencies, not an
+    extra (only the ROS 2 bridge has one)."""
+    import ast
+    from importlib.metadata import packages_distributions
+
+    ours = {"ballbot_vision", "bench", "services", "evaluation", "sim", "cores", "common"}
+    files = [*(REPO / "services" / "viewer").glob("*.py"), *(REPO / "services" / "recorder").glob("*.py"),
+             *(REPO / "services" / "foxglove").glob("*.py"), REPO / "services" / "capture" / "mcap_source.py",
+             REPO / "cores" / "recording.py", REPO / "cores" / "foxglove.py", REPO / "ballbot_vision" / "mcap_commands.py"]
+    modules = set()
+    for f in files:
+        for node in ast.walk(ast.parse(f.read_text())):
+            if isinstance(node, ast.Import):
+                modules |= {a.name for a in node.names}
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                modules.add(node.module)
+    third_party = {m for m in modules if m.split(".")[0] not in ours | set(sys.stdlib_module_names)}
+    assert {"aiohttp", "foxglove", "mcap.writer", "google.protobuf"} <= third_party, third_party
+    dists = packages_distributions()
+    main = {canonicalize_name(Requirement(r).name)
+            for r in tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["dependencies"]}
+    missing = {m: dists.get(m.split(".")[0]) for m in third_party
+               if not {canonicalize_name(d) for d in dists.get(m.split(".")[0], [])} & main}
+    # google.protobuf's top-level package `google` is shared: name the distribution that ships it
+    if "google.protobuf" in missing and "protobuf" in main:
+        del missing["google.protobuf"]
+    assert not missing, f"imported but not in [project].dependencies: {missing}"
