@@ -16,7 +16,8 @@ def _need_mcap() -> None:
     try:
         import mcap  # noqa: F401
     except ImportError:
-        raise BallbotError("recordings need the `mcap` package: pip install 'ballbot-vision[record]'") from None
+        raise BallbotError("recordings need the `mcap` package, a dependency of ballbot-vision: install it again "
+                           "(pip install -e . in the checkout)") from None
 
 
 # --- record ------------------------------------------------------------------------------------
