@@ -173,6 +173,27 @@ def test_a_foxglove_client_subscribes_and_decodes_the_live_pipeline():
             image_times = {t for t, _ in got["/frames/rectified/left"]}
             assert all(t > 1.6e18 for t in image_times)
 
+            # a malformed obstacle list while a client watches: logged, counted, dropped; the lists go on
+            import threading
+
+            stop = threading.Event()
+
+            def garbage() -> None:
+                pub = s.declare_publisher(topic("obstacles").key("fox"))
+                while not stop.wait(0.005):
+                    pub.put(b"\x00not msgpack\xff")
+
+            t = threading.Thread(target=garbage, daemon=True)
+            t.start()
+            try:
+                _, more = asyncio.run(_watch(port, ["/obstacles"], lambda g: len(g["/obstacles"]) >= 5, 120))
+            finally:
+                stop.set()
+                t.join(10)
+            assert len(more["/obstacles"]) >= 5
+            assert stats.wait_for(lambda items: items[-1].decode_errors >= 1, 30), \
+                [(st.decode_errors, st.status) for st in stats.items[-3:]]
+
             # watched: subscribed; the client gone: unsubscribed again (idle 0.5 s)
             n = len(stats.items)
             assert stats.wait_for(lambda items: len(items) > n and items[-1].extra.get("image_streams") == 0.0, 60), \

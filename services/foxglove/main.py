@@ -215,6 +215,8 @@ class Bridge:
                 self.node.stop_event.wait(delay)
             next_t = max(next_t + period, time.monotonic())
             for kind, payload in self.slots.take_all().items():
+                if not any(self.watched(t) for t in FEEDS[kind]):
+                    continue  # nobody watches its channels: not even decoded
                 msg = self.node.decode_or_drop(payload, MODELS[kind], f"{kind} message")
                 if msg is None:
                     continue
