@@ -118,6 +118,7 @@ def cmd_up(args: argparse.Namespace) -> int:
     sup.add("router", ["run", "router"] + [a for e in listen for a in ("--listen", e)] + common)
     services = PIPELINE + (["ros2"] if getattr(args, "ros2", False) else [])
     services += ["viewer"] if getattr(args, "viewer", False) else []
+    services += ["foxglove"] if getattr(args, "foxglove", False) else []
     for name in services:
         sup.add(name, ["run", name, "--connect", endpoint] + common, nice_offset=stage_nice(name))
     print(f"ballbot-vision: starting {', '.join(['router'] + services)}; router on {', '.join(listen)}", flush=True)
@@ -294,6 +295,8 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
                         "rmw_zenoh; settings in the config's ros2 section)")
         up.add_argument("--viewer", action="store_true", help="also start the web viewer (default "
                         "http://127.0.0.1:8080; settings in the config's viewer section or BALLBOT_VIEWER_*)")
+        up.add_argument("--foxglove", action="store_true", help="also start the live Foxglove server (default "
+                        "ws://127.0.0.1:8765; settings in the config's foxglove section or BALLBOT_FOXGLOVE_*)")
         up.set_defaults(func=cmd_up)
     else:
         stub("up")

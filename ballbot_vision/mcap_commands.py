@@ -16,10 +16,20 @@ def _need_mcap() -> None:
     try:
         import mcap  # noqa: F401
     except ImportError:
-        raise BallbotError("recordings need the `mcap` package: pip install 'ballbot-vision[record]'") from None
+        raise BallbotError("recordings need the `mcap` package, a dependency of ballbot-vision: install it again "
+                           "(pip install -e . in the checkout)") from None
 
 
 # --- record ------------------------------------------------------------------------------------
+
+RECORDINGS = "recordings"  # where `record` without a name writes (git-ignored, as is every *.mcap)
+
+
+def default_recording_path(robot: str, now: float | None = None) -> Path:
+    """recordings/<robot>-<local date and time>.mcap: one predictable folder, names that sort by time."""
+    stamp = time.strftime("%Y%m%d-%H%M%S", time.localtime(now))
+    return Path(RECORDINGS) / f"{robot}-{stamp}.mcap"
+
 
 def cmd_record(args: argparse.Namespace) -> int:
     from ballbot_vision.cli import config_file, robot_id, zenoh_options
@@ -31,11 +41,11 @@ def cmd_record(args: argparse.Namespace) -> int:
     _need_mcap()
     settings = load_settings(RecordSettings, config_file(args), args)
     calibration = settings.calibration or load_settings(RectifySettings, config_file(args)).calibration
-    out = Path(args.output)
+    out = Path(args.output) if args.output else default_recording_path(robot_id(args))
     if out.suffix.lower() != ".mcap":
         raise BallbotError(f"{out}: a recording's name ends in .mcap")
-    if not out.parent.is_dir():
-        raise BallbotError(f"{out}: folder {out.parent} does not exist")
+    if not out.parent.exists():  # recordings/ the first time (a file in the way: the writer's one-line error)
+        out.parent.mkdir(parents=True)
     with Node("record", zenoh_options(args), robot_id(args)) as node:
         print(f"recording to {out} (Ctrl-C to stop)", file=sys.stderr, flush=True)
         result = record(node, settings, out, calibration)
@@ -86,6 +96,8 @@ def cmd_from_images(args: argparse.Namespace) -> int:
     if out.suffix.lower() != ".mcap":
         raise BallbotError(f"{out}: a recording's name ends in .mcap")
     src = ImageSource(args.left, args.right, max_rate=True, labels=("LEFT", "RIGHT"))  # names what is wrong
+    if not out.parent.exists():  # e.g. recordings/, where `record` writes too
+        out.parent.mkdir(parents=True)
     cal = calibration_text(args.calibration) if args.calibration else None
     stamps = None if args.fps else _stamps_from_names(src.left_files)
     fps = args.fps or 30.0
@@ -190,12 +202,14 @@ def register(sub: argparse._SubParsersAction, common) -> None:
     from common.settings import add_settings_arguments
     from services.recorder.main import RecordSettings
 
-    r = common(sub.add_parser("record", help="record the running pipeline to an MCAP file (Foxglove opens it)",
+    r = common(sub.add_parser("record", help="record the running pipeline to an MCAP file (Foxglove opens it; "
+                                            "default: recordings/<robot>-<date>-<time>.mcap)",
                               description="Subscribe to the pipeline and write raw and rectified pairs, "
                                           "disparity, obstacles (lists, image boxes, 3D boxes), free space, "
                                           "stats, the calibration and the synthetic truth to an MCAP file. "
                                           "Ctrl-C (or SIGTERM) stops it and closes the file."))
-    r.add_argument("output", metavar="OUT.mcap")
+    r.add_argument("output", metavar="OUT.mcap", nargs="?", default=None,
+                   help=f"the file to write (default: {RECORDINGS}/<robot id>-<date>-<time>.mcap)")
     add_settings_arguments(r, RecordSettings)
     r.set_defaults(func=cmd_record)
 

@@ -9,7 +9,7 @@ from common import codec
 from common.errors import DecodeError
 from common.keys import OBSTACLES_ALL, topic
 from common.messages import ObstacleList
-from common.zenoh_session import ZenohOptions, open_session
+from common.zenoh_session import DEFAULT_ROUTER, ZenohOptions, open_session
 
 
 def format_table(msg: ObstacleList) -> str:
@@ -33,7 +33,16 @@ def format_table(msg: ObstacleList) -> str:
     return "\n".join(lines)
 
 
-def watch(opts: ZenohOptions, robot: str | None, as_json: bool, count: int, timeout_s: float) -> int:
+def quiet_hint(key: str, waited_s: float, opts: ZenohOptions) -> str:
+    """What to do when nothing arrives: whether anything runs is what `status` tells."""
+    where = " ".join(f"--connect {e}" for e in opts.connect) if opts.connect and opts.connect != [DEFAULT_ROUTER] else ""
+    return (f"nothing published on {key} for {waited_s:.0f} s; still waiting. Is the pipeline running "
+            f"(`ballbot-vision up`)? `ballbot-vision status{(' ' + where) if where else ''}` shows every running "
+            f"service and what is wrong.")
+
+
+def watch(opts: ZenohOptions, robot: str | None, as_json: bool, count: int, timeout_s: float,
+          hint_after_s: float = 5.0) -> int:
     inbox: queue.Queue[bytes] = queue.Queue(maxsize=256)
 
     def on_sample(sample) -> None:
@@ -55,13 +64,19 @@ def watch(opts: ZenohOptions, robot: str | None, as_json: bool, count: int, time
         if not as_json:
             print(f"watching {key} (Ctrl-C to stop)", file=sys.stderr, flush=True)
         last = time.monotonic()
+        hinted = False
         while count <= 0 or seen < count:
             try:
                 payload = inbox.get(timeout=0.2)
             except queue.Empty:
-                if timeout_s and time.monotonic() - last > timeout_s:
+                quiet = time.monotonic() - last
+                if timeout_s and quiet > timeout_s:
                     print(f"no obstacle list on {key} within {timeout_s:g} s", file=sys.stderr)
                     return 1
+                if not hinted and seen == 0 and quiet >= hint_after_s:
+                    # once, on stderr: a planner reading --json from stdout is not disturbed
+                    print(quiet_hint(key, quiet, opts), file=sys.stderr, flush=True)
+                    hinted = True
                 continue
             try:
                 msg = codec.decode(payload, ObstacleList)

@@ -66,7 +66,8 @@ def conversion_ceiling(messages, image_format: str, seconds: float = 3.0) -> flo
     from cores.recording import Converter, RecordingWriter, RecordOptions
 
     payloads = [tuple(codec.encode(m) for m in msgs) for msgs in messages]
-    conv = Converter(RecordOptions(image_format=image_format))
+    # raw and rectified pairs at quality 90: the heaviest recording, as this benchmark measured it before
+    conv = Converter(RecordOptions(image_format=image_format, raw=True, jpeg_quality=90))
     with tempfile.TemporaryDirectory() as tmp:
         sink = RecordingWriter(Path(tmp) / "ceiling.mcap")
         # CPU time, not wall time: what one core allows, whatever else the machine runs
@@ -126,7 +127,8 @@ def record_run(messages, rate: float, seconds: float, image_format: str, threads
             session.declare_subscriber(topic("stats").key("bench", service="record", instance="*"), on_stats)
             with open(log_path, "w") as log:
                 recorder = subprocess.Popen(cli + ["record", str(out), "--connect", endpoint, "--robot-id", "bench",
-                                                   "--image-format", image_format, "--threads", str(threads)],
+                                                   "--image-format", image_format, "--threads", str(threads), "--raw", "true",
+                                                   "--jpeg-quality", "90"],
                                             stdout=log, stderr=subprocess.STDOUT)
             if not ready.wait(60):
                 raise RuntimeError(f"record did not start: {log_path.read_text()[-2000:]}")

@@ -139,8 +139,31 @@ def flags_given(cls: type[ServiceSettings], args: argparse.Namespace | None) -> 
     return out
 
 
+# Every top-level section a `--config` file may have: each service's (its settings' `section`) and the
+# camera mount every service reads (DESIGN: one top-level `mount:` section). A section not in this
+# list is a typo (`captur:`) that would otherwise be ignored in silence; tests/test_settings.py checks
+# that every settings model's section is here.
+KNOWN_SECTIONS = ("capture", "rectify", "disparity", "segmenter", "mount", "record", "viewer", "foxglove", "ros2")
+
+
+def check_sections(config_file: str, doc: dict) -> None:
+    """Raise a ConfigError naming each unknown top-level section, the closest known one and the known ones."""
+    import difflib
+
+    unknown = [str(k) for k in doc if str(k) not in KNOWN_SECTIONS]
+    if not unknown:
+        return
+    parts = []
+    for k in unknown:
+        close = difflib.get_close_matches(k, KNOWN_SECTIONS, n=1)
+        parts.append(f"'{k}'" + (f" (did you mean '{close[0]}'?)" if close else ""))
+    raise ConfigError(f"{config_file}: unknown section{'s' if len(parts) > 1 else ''} {', '.join(parts)}; "
+                      f"the known sections are {', '.join(KNOWN_SECTIONS)}")
+
+
 def read_config_section(config_file: str, section: str) -> dict[str, Any]:
-    """The mapping under `section` in a `--config` YAML file ({} when absent)."""
+    """The mapping under `section` in a `--config` YAML file ({} when absent). A file with a section
+    no service reads (a misspelled `captur:`) is refused, naming the known ones."""
     from common.errors import FileError
     from common.files import read_yaml
 
@@ -153,6 +176,7 @@ def read_config_section(config_file: str, section: str) -> dict[str, Any]:
     doc = doc or {}
     if not isinstance(doc, dict):
         raise ConfigError(f"{config_file}: expected a mapping of service sections (capture:, rectify:, ...)")
+    check_sections(config_file, doc)
     sec = doc.get(section) or {}
     if not isinstance(sec, dict):
         raise ConfigError(f"{config_file}: section '{section}' must be a mapping")

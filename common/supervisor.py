@@ -26,6 +26,7 @@ SERVICES = {
     "segmenter": ("services.segmenter.main", "SegmenterSettings"),
     "ros2": ("services.ros2.main", "Ros2Settings"),
     "viewer": ("services.viewer.main", "ViewerSettings"),
+    "foxglove": ("services.foxglove.main", "FoxgloveSettings"),
 }
 PIPELINE = ["capture", "rectify", "disparity", "segmenter"]
 

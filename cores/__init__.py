@@ -7,7 +7,7 @@ usable in-process by the services, the offline commands, the evaluations and the
     calibration/    chessboard calibration, calibration files, rectification, checks
     matching/       disparity matchers (bm, sgbm, dense) and the disparity map helpers
     segmentation/   ground, obstacles, tracking, free space, the camera mount, pictures
-    recording       the MCAP recording format;  foxglove: Foxglove schemas for it
+    recording       the MCAP recording format;  foxglove: Foxglove messages (Foxglove's SDK), recorded and live
     ros2_convert    our messages as ROS 2 messages and back
 """
 import common  # noqa: F401,E402  (first: OpenCV's image size limits, before anything loads cv2)

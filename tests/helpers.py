@@ -119,3 +119,38 @@ def wait_port(port: int, proc: subprocess.Popen, timeout: float = 30.0) -> None:
                 proc.wait(0.1)  # polling a port: there is no event to wait on
             except subprocess.TimeoutExpired:
                 pass
+
+
+def read_mcap(path) -> tuple[dict, dict, list[tuple[str, object]]]:
+    """What the Foxglove app reads: every channel's schema and encoding from the file, and every
+    message decoded by that schema alone (protobuf with Google's runtime from the file's
+    FileDescriptorSet, JSON checked against the file's JSON Schema)."""
+    import json
+
+    import jsonschema
+    from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        assert summary is not None and summary.statistics.message_count > 0, f"{path}: no index: not a complete file"
+        channels = {c.topic: (summary.schemas[c.schema_id].name, summary.schemas[c.schema_id].encoding,
+                              c.message_encoding) for c in summary.channels.values()}
+        counts = {summary.channels[cid].topic: n for cid, n in summary.statistics.channel_message_counts.items()}
+        classes: dict[int, object] = {}
+        decoded = []
+        for schema, channel, message in reader.iter_messages():
+            if schema.encoding == "protobuf":
+                if schema.id not in classes:
+                    pool = descriptor_pool.DescriptorPool()
+                    for fd in descriptor_pb2.FileDescriptorSet.FromString(schema.data).file:
+                        pool.Add(fd)
+                    classes[schema.id] = message_factory.GetMessageClass(pool.FindMessageTypeByName(schema.name))
+                decoded.append((channel.topic, classes[schema.id].FromString(message.data)))
+            else:
+                assert (schema.encoding, channel.message_encoding) == ("jsonschema", "json")
+                doc = json.loads(message.data)
+                jsonschema.validate(doc, json.loads(schema.data))
+                decoded.append((channel.topic, doc))
+    return channels, counts, decoded

@@ -9,7 +9,9 @@ import re
 import shutil
 import subprocess
 import sys
+import tempfile
 import tomllib
+from pathlib import Path
 
 import pytest
 import yaml
@@ -141,9 +143,143 @@ def test_compose_refuses_to_start_without_the_key_and_reads_it_from_env_file(tmp
     r = subprocess.run(compose + ["config"], cwd=tmp_path, capture_output=True, text=True, env=env, timeout=120)
     assert r.returncode != 0 and "calibration-key.sh" in r.stdout + r.stderr, r.stdout + r.stderr
     (tmp_path / ".env").write_text("BALLBOT_CALIBRATION_KEY=k123\n")
-    r = subprocess.run(compose + ["--profile", "viewer", "--profile", "ros2", "config"], cwd=tmp_path,
+    r = subprocess.run(compose + ["--profile", "viewer", "--profile", "ros2", "--profile", "foxglove", "config"], cwd=tmp_path,
                        capture_output=True, text=True, env=env, timeout=120)
     assert r.returncode == 0, r.stderr
     services = yaml.safe_load(r.stdout)["services"]
     with_key = {n for n, s in services.items() if (s.get("environment") or {}).get("BALLBOT_CALIBRATION_KEY") == "k123"}
-    assert with_key == {"capture", "rectify", "dispatch", "segmenter", "ros2", "viewer"}, with_key
+    assert with_key == {"capture", "rectify", "dispatch", "segmenter", "ros2", "viewer", "foxglove"}, with_key
+
+
+def _readme_docker_lines() -> list[str]:
+    """README's Docker commands as a user copies them: the lines of its sh blocks and the inline
+    commands that run Docker or Compose (comments cut)."""
+    text = (REPO / "README.md").read_text()
+    lines = []
+    for block in re.findall(r"```sh\n(.*?)```", text, re.S):
+        for line in block.splitlines():
+            cmd = line.split("  #")[0].strip()
+            if re.search(r"docker|compose", cmd):
+                lines.append(cmd)
+    lines += [c for c in re.findall(r"`([^`\n]*(?:compose\.sh|docker-up\.sh)[^`\n]*)`", text) if " " in c]
+    return lines
+
+
+def test_readme_docker_lines_need_neither_sudo_nor_one_compose_version():
+    lines = _readme_docker_lines()
+    assert any("deploy/compose.sh up -d --scale disparity=3" in l for l in lines), lines
+    for line in lines:
+        assert not line.startswith("sudo "), f"README: {line!r} needs sudo, which a root machine may not have"
+        assert not re.match(r"(\w+=\S+ )*docker[ -]compose\b", line), \
+            f"README: {line!r} runs one compose version; deploy/compose.sh runs whichever the machine has"
+
+
+def _fake_docker(bindir, v2: bool, status: int = 0) -> None:
+    """A `docker` (with or without the compose plugin) and, for v1, a `docker-compose` that record
+    their arguments, working directory and COMPOSE_PROFILES instead of running anything."""
+    record = 'printf "%s\\n" "$PWD" "${COMPOSE_PROFILES:-}" "$*" >"$FAKE_LOG"; exit ' + str(status)
+    docker = ('#!/bin/sh\nif [ "$1" = compose ]; then shift; ' + ('[ "$1" = version ] && exit 0; ' + record
+              if v2 else 'echo "docker: unknown command: docker compose" >&2; exit 1') + '; fi\nexit 0\n')
+    (bindir / "docker").write_text(docker)
+    if not v2:
+        (bindir / "docker-compose").write_text('#!/bin/sh\n[ "$1" = version ] && { echo 1.29.2; exit 0; }\n'
+                                               + record + "\n")
+    for f in bindir.iterdir():
+        f.chmod(0o755)
+
+
+@pytest.mark.parametrize("v2", [False, True], ids=["docker-compose-v1", "docker-compose-plugin-v2"])
+def test_readme_compose_lines_run_as_written_with_either_compose(tmp_path, v2):
+    """Each README line that runs deploy/compose.sh, through bash as written from the repository,
+    reaches the machine's compose with exactly its arguments (and its COMPOSE_PROFILES), from the
+    repository root where docker-compose.yml is; with a fake docker: nothing is built or started."""
+    bindir = tmp_path / "bin"
+    bindir.mkdir()
+    _fake_docker(bindir, v2)
+    lines = [l for l in _readme_docker_lines() if "deploy/compose.sh" in l]
+    assert len(lines) >= 3, lines
+    env = {**os.environ, "PATH": f"{bindir}:/usr/bin:/bin", "FAKE_LOG": str(tmp_path / "argv")}
+    env.pop("COMPOSE_PROFILES", None)
+    for line in lines:
+        r = subprocess.run(["bash", "-c", line], cwd=REPO, env=env, capture_output=True, text=True, timeout=60)
+        assert r.returncode == 0, (line, r.stderr)
+        cwd, profiles, argv = (tmp_path / "argv").read_text().splitlines()
+        prefix = re.match(r"((?:\w+=\S+ )*)deploy/compose\.sh (.*)", line)
+        assert cwd == str(REPO) and argv == prefix.group(2), (line, argv)
+        assert profiles == (re.search(r"COMPOSE_PROFILES=(\S+)", prefix.group(1)) or [None, ""])[1]
+    which = subprocess.run(["deploy/compose.sh", "--which"], cwd=REPO, env=env, capture_output=True, text=True)
+    assert which.stdout.strip() == ("docker compose" if v2 else "docker-compose")
+
+
+def test_compose_wrapper_names_what_is_missing_and_what_a_non_root_user_needs(tmp_path):
+    bindir = tmp_path / "bin"
+    bindir.mkdir()
+    (bindir / "docker").write_text("#!/bin/sh\nexit 1\n")
+    (bindir / "docker").chmod(0o755)
+    for tool in ("dirname", "id"):  # what the script needs besides Docker; no docker-compose on this PATH
+        (bindir / tool).symlink_to(shutil.which(tool))
+    env = {**os.environ, "PATH": str(bindir)}
+    r = subprocess.run(["/bin/bash", "deploy/compose.sh", "up", "-d"], cwd=REPO, env=env, capture_output=True,
+                       text=True)
+    assert r.returncode == 127 and "neither 'docker compose' nor 'docker-compose' is installed" in r.stderr
+    setpriv = shutil.which("setpriv")
+    if os.geteuid() != 0 or setpriv is None or not os.path.exists("/var/run/docker.sock") \
+            or os.stat("/var/run/docker.sock").st_mode & 0o002:
+        pytest.skip("the non-root case needs root (to drop to nobody), setpriv and a docker socket nobody may not use")
+    shared = Path(tempfile.mkdtemp(prefix="compose-nobody-"))
+    try:
+        shared.chmod(0o755)
+        _fake_docker(shared, v2=False, status=1)
+        env = {**os.environ, "PATH": f"{shared}:/usr/bin:/bin", "FAKE_LOG": "/dev/null"}
+        env.pop("DOCKER_HOST", None)
+        r = subprocess.run([setpriv, "--reuid=65534", "--regid=65534", "--clear-groups", "bash",
+                            str(REPO / "deploy" / "compose.sh"), "down"], env=env, capture_output=True, text=True,
+                           cwd="/")
+        assert r.returncode == 1 and "needs root or the docker group: sudo deploy/compose.sh down" in r.stderr, r.stderr
+    finally:
+        shutil.rmtree(shared)
+
+
+def test_readme_compose_profiles_line_gives_the_viewer_and_ros2_services_with_this_machines_compose():
+    """The real compose of this machine (v1 or v2) reads the compose file through the wrapper, with
+    README's COMPOSE_PROFILES; `config` only: nothing is built or run."""
+    if not (shutil.which("docker-compose") or shutil.which("docker")):
+        pytest.skip("neither docker-compose nor docker is installed")
+    env = {**os.environ, "BALLBOT_CALIBRATION_KEY": "k", "COMPOSE_PROFILES": "viewer,ros2"}
+    r = subprocess.run(["deploy/compose.sh", "config", "--services"], cwd=REPO, env=env, capture_output=True,
+                       text=True, timeout=120)
+    if r.returncode == 127:
+        pytest.skip(r.stderr.strip())
+    assert r.returncode == 0, r.stderr
+    assert {"router", "capture", "segmenter", "viewer", "ros2"} <= set(r.stdout.split())
+
+
+def test_the_first_readme_command_installs_what_viewer_record_replay_and_foxglove_import():
+    """README's first command is `pip install -e .`: every third-party module the viewer, the
+    recorder, replay and the Foxglove server import must come with the main dependencies, not an
+    extra (only the ROS 2 bridge has one)."""
+    import ast
+    from importlib.metadata import packages_distributions
+
+    ours = {"ballbot_vision", "bench", "services", "evaluation", "sim", "cores", "common"}
+    files = [*(REPO / "services" / "viewer").glob("*.py"), *(REPO / "services" / "recorder").glob("*.py"),
+             *(REPO / "services" / "foxglove").glob("*.py"), REPO / "services" / "capture" / "mcap_source.py",
+             REPO / "cores" / "recording.py", REPO / "cores" / "foxglove.py", REPO / "ballbot_vision" / "mcap_commands.py"]
+    modules = set()
+    for f in files:
+        for node in ast.walk(ast.parse(f.read_text())):
+            if isinstance(node, ast.Import):
+                modules |= {a.name for a in node.names}
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                modules.add(node.module)
+    third_party = {m for m in modules if m.split(".")[0] not in ours | set(sys.stdlib_module_names)}
+    assert {"aiohttp", "foxglove", "mcap.writer", "google.protobuf"} <= third_party, third_party
+    dists = packages_distributions()
+    main = {canonicalize_name(Requirement(r).name)
+            for r in tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["dependencies"]}
+    missing = {m: dists.get(m.split(".")[0]) for m in third_party
+               if not {canonicalize_name(d) for d in dists.get(m.split(".")[0], [])} & main}
+    # google.protobuf's top-level package `google` is shared: name the distribution that ships it
+    if "google.protobuf" in missing and "protobuf" in main:
+        del missing["google.protobuf"]
+    assert not missing, f"imported but not in [project].dependencies: {missing}"

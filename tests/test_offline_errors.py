@@ -407,10 +407,10 @@ def test_a_damaged_jpeg_inside_a_recording_is_skipped_with_its_reason(tmp_path, 
     assert main(["mcap", "from-images", str(tmp_path / "L"), str(tmp_path / "R"), "-o", str(rec), "--format", "jpeg",
                  "--compression", "none", "--calibration", "lifecam-studio"]) == 0
     data = bytearray(rec.read_bytes())
-    starts = [m.start() for m in re.finditer(rb"/9j/", data)]  # base64 of a JPEG's first bytes
+    starts = [m.start() for m in re.finditer(rb"\xff\xd8\xff", data)]  # each JPEG's first bytes (binary payloads)
     assert len(starts) == 6
-    middle = starts[2] + (data.index(b'"', starts[2]) - starts[2]) // 2  # pair 1's left image, mid-scan
-    data[middle:middle + 2000] = b"A" * 2000  # still valid base64 and JSON: zeros inside the JPEG
+    middle = starts[2] + (data.index(b"\xff\xd9", starts[2]) - starts[2]) // 2  # pair 1's left image, mid-scan
+    data[middle:middle + 2000] = bytes(2000)  # the message keeps its length: zeros inside the JPEG
     rec.write_bytes(bytes(data))
     capfd.readouterr()
 

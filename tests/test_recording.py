@@ -25,7 +25,7 @@ from services.capture.mcap_source import McapSource
 from cores import recording as R
 from services.capture.sources import SourceContext
 
-from helpers import cli
+from helpers import cli, read_mcap
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
 if not REAL.is_dir():
@@ -66,7 +66,7 @@ def write_recording(path: Path, n: int = 5, image_format: str = "png", chunk_siz
                                               "principal_point: [32, 24]\nbaseline_m: 0.1\n",
                     close: bool = True) -> R.RecordingWriter:
     w = R.RecordingWriter(path, chunk_size=chunk_size)
-    conv = R.Converter(R.RecordOptions(image_format=image_format))
+    conv = R.Converter(R.RecordOptions(image_format=image_format, raw=True))
     if calibration:
         for r in conv.calibration(calibration, "test", 10**18 - 1):
             w.write(r.topic, r.doc, r.log_time_ns)
@@ -80,8 +80,8 @@ def write_recording(path: Path, n: int = 5, image_format: str = "png", chunk_siz
 
 # --- format ------------------------------------------------------------------------------------------
 
-def test_every_recorded_message_validates_against_its_channel_schema():
-    conv = R.Converter()
+def test_every_recorded_message_decodes_by_the_schema_in_the_file(tmp_path):
+    conv = R.Converter(R.RecordOptions(raw=True))
     disparity = DisparityMap(robot_id="r", seq=1, stamp_ns=10**18, scale=16.0, invalid_value=-16, min_disparity=0,
                              num_disparities=64, camera=CAMERA, method="bm",
                              image=codec.image_from_array(np.full((48, 64), 320, np.int16)))
@@ -96,30 +96,122 @@ def test_every_recorded_message_validates_against_its_channel_schema():
     records = (conv.frame(frame(1)) + conv.frame(frame(1, rectified=True)) + conv.disparity(disparity)
                + conv.obstacles(obstacles(1)) + conv.freespace(free) + conv.truth(truth(1)) + conv.stats(stats)
                + conv.calibration("rectified: true", "x"))
-    topics = {r.topic for r in records}
-    assert topics == set(R.TOPIC_SCHEMAS), set(R.TOPIC_SCHEMAS) - topics
+    assert {r.topic for r in records} == set(R.TOPIC_SCHEMAS)
+    path = tmp_path / "all.mcap"
+    w = R.RecordingWriter(path)
     for r in records:
-        doc = json.loads(r.doc) if isinstance(r.doc, str) else json.loads(json.dumps(r.doc))
-        schema = R.schema_document(R.TOPIC_SCHEMAS[r.topic])
-        jsonschema.validate(doc, schema)
-        assert schema["title"] == R.TOPIC_SCHEMAS[r.topic]
-    boxes = next(r.doc for r in records if r.topic == R.OBSTACLE_BOXES)
-    pts = boxes["points"][0]["points"]
-    assert (pts[0]["x"], pts[0]["y"], pts[2]["x"], pts[2]["y"]) == (5, 6, 30, 40)
-    assert boxes["texts"][0]["text"] == "#3 1.90 m"
-    scene = next(r.doc for r in records if r.topic == R.OBSTACLE_SCENE)
-    cube = scene["entities"][0]["cubes"][0]
-    assert cube["pose"]["position"] == {"x": 0.1, "y": 0.2, "z": 2.0} and cube["size"] == {"x": 0.4, "y": 0.5, "z": 0.3}
-    tf = next(r.doc for r in records if r.topic == R.TF)
-    assert tf["translation"]["z"] == pytest.approx(1.0)
+        w.write(r.topic, r.doc, r.log_time_ns, r.sequence)
+    w.close()
+    channels, counts, decoded = read_mcap(path)
+    for topic, name in R.TOPIC_SCHEMAS.items():
+        encoding = ("protobuf", "protobuf") if name.startswith("foxglove.") else ("jsonschema", "json")
+        assert channels[topic] == (name, *encoding), topic
+        assert counts[topic] == sum(r.topic == topic for r in records), topic
+    got = dict(decoded)
+    boxes = got[R.OBSTACLE_BOXES]
+    pts = boxes.points[0].points
+    assert (pts[0].x, pts[0].y, pts[2].x, pts[2].y) == (5, 6, 30, 40)
+    assert boxes.texts[0].text == "#3 1.90 m" and boxes.timestamp.seconds == 10**9
+    cube = got[R.OBSTACLE_SCENE].entities[0].cubes[0]
+    assert (cube.pose.position.x, cube.pose.position.y, cube.pose.position.z) == pytest.approx((0.1, 0.2, 2.0))
+    assert (cube.size.x, cube.size.y, cube.size.z) == pytest.approx((0.4, 0.5, 0.3))
+    tf = got[R.TF]
+    assert tf.translation.z == pytest.approx(1.0) and (tf.parent_frame_id, tf.child_frame_id) == ("base", "camera")
     # the camera's optical axis (z) points forward and pitched 15 deg down in the base frame
     from scipy.spatial.transform import Rotation
-    q = tf["rotation"]
-    axis = Rotation.from_quat([q["x"], q["y"], q["z"], q["w"]]).apply([0, 0, 1])
+    q = tf.rotation
+    axis = Rotation.from_quat([q.x, q.y, q.z, q.w]).apply([0, 0, 1])
     assert axis[0] > 0.9 and axis[2] == pytest.approx(-np.sin(np.deg2rad(15)), abs=0.02)
-    colour = next(r.doc for r in records if r.topic == R.DISPARITY_COLOR)
-    picture = R.decode_image(colour, "disparity")
+    grid = got[R.FREESPACE_GRID]
+    assert grid.column_count == 20 and grid.data == cells.tobytes() and grid.fields[0].name == "occupancy"
+    info = got[R.CAMERA_INFO]
+    assert (info.width, info.height, info.K[0], info.P[2]) == (64, 48, 60.0, 32.0)
+    colour = got[R.DISPARITY_COLOR]
+    assert colour.format == "jpeg" and colour.data[:2] == b"\xff\xd8"  # the JPEG's own bytes, not base64
+    picture = R.decode_image(colour.data, colour.format, "disparity")
     assert picture.shape == (48, 64, 3) and picture.mean() > 20  # 20 px of 64: a colour, not black
+    raw = got[R.RAW_LEFT]
+    assert raw.frame_id == "camera_raw" and raw.data[:2] == b"\xff\xd8"
+    assert R.decode_image(raw.data, raw.format, "raw").shape == (48, 64)
+    assert got[R.OBSTACLES]["obstacles"][0]["id"] == 3
+
+
+def test_rectified_pairs_replay_with_their_rectified_camera_and_raw_ones_only_when_asked(tmp_path):
+    """By default a recording holds the rectified pairs (what the pipeline matched) and the rectified
+    camera as a `rectified: true` calibration: replay hands rectify that, and it passes the pairs
+    through unchanged. The raw pairs are recorded with `raw`."""
+    assert [r.topic for r in R.Converter().frame(frame(1))] == []
+    assert [r.topic for r in R.Converter(R.RecordOptions(raw=True)).frame(frame(1))] == [R.RAW_LEFT, R.RAW_RIGHT]
+    path = tmp_path / "rect.mcap"
+    w = R.RecordingWriter(path)
+    conv = R.Converter(R.RecordOptions(image_format="png"))
+    for k in range(4):
+        for r in conv.frame(frame(k)) + conv.frame(frame(k, rectified=True)) + conv.truth(truth(k)):
+            w.write(r.topic, r.doc, r.log_time_ns, r.sequence)
+    w.close()
+    reader = R.RecordingReader(path)
+    assert reader.info().pairs("raw") == 0 and reader.info().pairs("rectified") == 4
+    got = list(reader.pairs())
+    assert reader.kind == "rectified" and [p.seq for p in got] == [0, 1, 2, 3]
+    from cores import camera
+    from common.files import parse_yaml
+
+    cal = camera.calibration_from_dict(parse_yaml(got[0].calibration_yaml, "rectified calibration"))
+    assert isinstance(cal, camera.RectifiedRig) and cal.name == "rectified camera"
+    assert (cal.model.width, cal.model.height, cal.model.focal_px, cal.model.baseline_m) == (64, 48, 60.0, 0.1)
+    from cores.calibration.rectify import Rectifier
+
+    for p in got:
+        left, right = pair_images(p.seq)
+        assert np.array_equal(p.left, left) and np.array_equal(p.right, right)
+        assert [np.array_equal(a, b) for a, b in zip(Rectifier(cal).rectify(p.left, p.right), (left, right))] == [True, True]
+    with pytest.raises(R.RecordingError, match=r"no raw stereo pairs .*\(`record` keeps them with --raw true\)"):
+        list(reader.pairs("raw"))
+
+
+def write_layout1(path: Path, n: int) -> None:
+    """A recording as ballbot-vision wrote them before layout 2: every channel JSON, images base64."""
+    import base64
+
+    from mcap.writer import Writer
+
+    with open(path, "wb") as f:
+        w = Writer(f)
+        w.start(profile="", library="ballbot-vision")
+        sid = w.register_schema(name="foxglove.CompressedImage", encoding="jsonschema",
+                                data=json.dumps({"title": "foxglove.CompressedImage", "type": "object"}).encode())
+        cal = w.register_schema(name="ballbot.Calibration", encoding="jsonschema", data=b"{}")
+        ids = {t: w.register_channel(topic=t, message_encoding="json", schema_id=sid) for t in (R.RAW_LEFT, R.RAW_RIGHT)}
+        c = w.register_channel(topic=R.CALIBRATION, message_encoding="json", schema_id=cal)
+        w.add_message(c, log_time=1, publish_time=1, data=json.dumps({"yaml": "rectified: true", "source": "x"}).encode())
+        for k in range(n):
+            for t, img in zip((R.RAW_LEFT, R.RAW_RIGHT), pair_images(k)):
+                data = cv2.imencode(".png", img)[1].tobytes()
+                doc = {"timestamp": {"sec": 1, "nsec": k}, "frame_id": "camera_raw",
+                       "data": base64.b64encode(data).decode(), "format": "png"}
+                w.add_message(ids[t], log_time=10 + k, publish_time=10 + k, sequence=k, data=json.dumps(doc).encode())
+        w.add_metadata("ballbot", {"robot_id": "r"})
+        w.finish()
+
+
+def test_layout_1_recordings_are_still_read_and_a_newer_layout_is_refused_by_name(tmp_path):
+    old = tmp_path / "old.mcap"
+    write_layout1(old, 4)
+    got = list(R.RecordingReader(old).pairs())
+    assert [p.seq for p in got] == [0, 1, 2, 3] and got[0].calibration_yaml == "rectified: true"
+    for p in got:
+        assert np.array_equal(p.left, pair_images(p.seq)[0]) and np.array_equal(p.right, pair_images(p.seq)[1])
+    new = tmp_path / "new.mcap"
+    write_recording(new, n=2)
+    assert R.RecordingReader(new).info().metadata["layout"] == "2"
+    future = tmp_path / "future.mcap"
+    w = R.RecordingWriter(future, metadata={"layout": "3"})
+    w.close()
+    with pytest.raises(R.RecordingError, match=r"future\.mcap: recording layout 3, newer than this version of "
+                                               r"ballbot-vision reads \(layouts 1 to 2\)"):
+        R.RecordingReader(future).info()
+    with pytest.raises(SourceError, match="recording layout 3"):
+        McapSource(str(future))
 
 
 def test_pairs_read_back_as_written(tmp_path):
@@ -141,7 +233,7 @@ def test_pairs_read_back_as_written(tmp_path):
 def test_jpeg_recording_is_close_to_the_original(tmp_path):
     path = tmp_path / "j.mcap"
     w = R.RecordingWriter(path)
-    conv = R.Converter(R.RecordOptions(image_format="jpeg", jpeg_quality=95))
+    conv = R.Converter(R.RecordOptions(image_format="jpeg", jpeg_quality=95, raw=True))
     img = cv2.GaussianBlur(pair_images(0)[0], (7, 7), 2)
     msg = StereoFrame(robot_id="r", seq=0, stamp_ns=1, left=codec.image_from_array(img), right=codec.image_from_array(img))
     for r in conv.frame(msg):
@@ -185,6 +277,21 @@ def test_unreadable_recordings_are_named(tmp_path, content, error):
         R.RecordingReader(path).info()
     with pytest.raises(SourceError, match="mcap: .*" + error):
         McapSource(str(path))
+
+
+def test_a_replay_names_its_calibration(tmp_path, caplog):
+    """A recorded calibration without a name is named after where it came from, so rectify's log
+    says which calibration a replay runs with (it used to say '?')."""
+    path = tmp_path / "r.mcap"
+    write_recording(path, n=2)  # its calibration has no `name:`; recorded from "test"
+    with caplog.at_level("INFO", logger="ballbot.capture"):
+        src = McapSource(str(path))
+    assert src.calibration_name == "test" and "name: test" in src.calibration_yaml
+    assert "2 raw pairs, calibration 'test'" in caplog.text
+    from cores import camera
+    from common.files import parse_yaml
+
+    assert camera.calibration_from_dict(parse_yaml(src.calibration_yaml, "x")).model.baseline_m == 0.1
 
 
 def test_a_recording_without_pairs_says_what_it_holds(tmp_path):

@@ -82,6 +82,45 @@ def test_env_and_config_file_are_named_too(tmp_path, monkeypatch):
     assert capture([], str(cfg)).rate_hz == capture([]).rate_hz
 
 
+def test_a_misspelled_config_section_is_an_error_naming_the_known_ones(tmp_path):
+    """`captur:` used to be ignored in silence: the pipeline ran on the defaults."""
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("captur: {rate_hz: 15}\nrectify: {}\nsegmentr: {}\nnonsense: 1\n")
+    with pytest.raises(ConfigError) as e:
+        capture([], str(cfg))
+    msg = str(e.value)
+    assert (f"{cfg}: unknown sections 'captur' (did you mean 'capture'?), 'segmentr' (did you mean 'segmenter'?), "
+            f"'nonsense'; the known sections are capture, rectify, ") in msg, msg
+    r = subprocess.run([sys.executable, "-m", "ballbot_vision.cli", "obstacles", "a.png", "b.png", "--config", str(cfg)],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "unknown sections 'captur'" in r.stderr and "Traceback" not in r.stderr, r.stderr
+    cfg.write_text("capture: {rate_hz: 15}\nmount: {}\nforxglove: {}\n")
+    with pytest.raises(ConfigError, match=r"unknown section 'forxglove' \(did you mean 'foxglove'\?\)"):
+        capture([], str(cfg))
+
+
+def test_every_settings_section_is_a_known_one():
+    """The known sections are the settings models' own (and the shared `mount:`)."""
+    import importlib
+
+    from common.settings import KNOWN_SECTIONS, ServiceSettings
+    from common.supervisor import SERVICES
+
+    for module, _ in SERVICES.values():
+        importlib.import_module(module)
+    importlib.import_module("services.recorder.main")
+
+    def subclasses(cls):
+        for c in cls.__subclasses__():
+            yield c
+            yield from subclasses(c)
+
+    sections = {c.section for c in subclasses(ServiceSettings) if c.section and c.__module__.split(".")[0] != "tests"
+                and not c.__module__.startswith("test_")}
+    assert sections and sections <= set(KNOWN_SECTIONS), sections - set(KNOWN_SECTIONS)
+    assert set(KNOWN_SECTIONS) - sections <= {"mount"}
+
+
 def test_several_stages_in_one_command_keep_their_values_apart():
     """A command that runs two stages names the other stage's settings with its prefix; the
     values of equal field names never mix."""

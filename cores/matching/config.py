@@ -99,6 +99,18 @@ class MatcherConfig(ServiceSettings):
         """Largest disparity searched, px (needs a resolved num_disparities)."""
         return self.min_disparity + self.fixed_num_disparities - 1
 
+    def check_width(self, width: int) -> None:
+        """An image must be wider than the search range plus the block: narrower, OpenCV's SGBM stops
+        with an assertion and BM and dense return a map of nothing but guesses. Raises a BallbotError
+        in one line saying what to change."""
+        need = self.max_disparity + self.block
+        if width <= need:
+            raise BallbotError(
+                f"the image is {width} px wide, too narrow for the search range: {self.method} searches disparities "
+                f"{self.min_disparity}..{self.max_disparity} px with a {self.block} px block, so the image must be "
+                f"wider than {need} px (set --num-disparities to at most "
+                f"{max(16, (width - self.block - self.min_disparity) // 16 * 16)}, or auto with a calibration)")
+
     @property
     def fixed_num_disparities(self) -> int:
         if self.num_disparities == "auto":
@@ -112,7 +124,9 @@ class MatcherConfig(ServiceSettings):
             return self
         if not focal_px or not baseline_m:
             self.fixed_num_disparities  # raises, naming what is missing
-        n = auto_num_disparities(focal_px, baseline_m, self.min_range_m, self.min_disparity, width)
+        # capped so that the image stays wider than the search range plus the block (check_width)
+        room = None if width is None else width - self.block - self.min_disparity + 1
+        n = auto_num_disparities(focal_px, baseline_m, self.min_range_m, self.min_disparity, room)
         return self.model_copy(update={"num_disparities": n})
 
 

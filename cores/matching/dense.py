@@ -177,6 +177,7 @@ class DenseMatcher:
         if left.shape != right.shape:
             raise BallbotError(f"left {left.shape} and right {right.shape} images differ in size")
         c = self.config
+        c.check_width(left.shape[1])
         gl = gray(left)
         raw = self.measure(gl, gray(right))
         tex = texture(gl, c.block + 2)

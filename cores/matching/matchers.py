@@ -49,6 +49,7 @@ class StereoMatcher:
     def match(self, left: np.ndarray, right: np.ndarray, min_valid_disparity: float = 0.0) -> Match:
         _check_pair(left, right)
         c = self.config
+        c.check_width(left.shape[1])
         gl, gr = gray(left), gray(right)
         d = self._m.compute(gl, gr)
         invalid = d < c.min_disparity * SCALE  # OpenCV marks failures below min_disparity*16

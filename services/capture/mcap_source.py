@@ -17,7 +17,7 @@ from typing import Callable, Iterator
 
 from common.errors import SourceError
 from common.messages import ReplayControl
-from cores.recording import RecordedPair, RecordingError, RecordingReader
+from cores.recording import RecordedPair, RecordingError, RecordingReader, named_calibration
 from services.capture.sources import CapturedPair, SourceContext
 
 log = logging.getLogger("ballbot.capture")
@@ -64,12 +64,33 @@ class McapSource:
         self._first = self._next_pair()  # fail at start on an undecodable first pair
         if self._first is None:
             raise SourceError(f"mcap: {path}: no complete stereo pair could be read")
-        self.calibration_yaml = self._first.calibration_yaml
+        self.calibration_yaml = self._named(self._first)
+        self.calibration_name = self._name_of(self.calibration_yaml)
+        log.info("mcap: replaying %s: %d %s pairs, calibration %s", path, self.total, self.reader.kind,
+                 f"'{self.calibration_name}'" if self.calibration_yaml else
+                 "none recorded (rectify keeps its own: set rectify.calibration)")
         self._t0_rec: int | None = None
         self._t0_wall = 0.0
         self.ctx.extra.update({"replay_total": float(self.total), "replay_index": 0.0,
                                "replay_paused": float(self._paused), "replay_speed": float(speed)})
         self._report()
+
+    def _named(self, pair: RecordedPair) -> str | None:
+        """The pair's calibration with a name (the recorded source where the file has none), so
+        that rectify's log and status say which calibration the replay runs with."""
+        if not pair.calibration_yaml:
+            return None
+        return named_calibration(pair.calibration_yaml, pair.calibration_source or f"recorded in {self.path}")
+
+    @staticmethod
+    def _name_of(yaml_text: str | None) -> str:
+        from common.files import parse_yaml
+
+        try:
+            doc = parse_yaml(yaml_text or "", "calibration")
+        except Exception:
+            return "?"
+        return str(doc.get("name") or "?") if isinstance(doc, dict) else "?"
 
     def _open(self) -> Iterator[RecordedPair]:
         return self.reader.pairs("auto")
@@ -169,10 +190,12 @@ class McapSource:
                     return None
         if not self._wait_turn(pair.stamp_ns):
             return None
-        if pair.calibration_yaml and pair.calibration_yaml != self.calibration_yaml:
-            self.calibration_yaml = pair.calibration_yaml  # the calibration changed during the recording
+        named = self._named(pair)
+        if named and named != self.calibration_yaml:
+            self.calibration_yaml = named  # the calibration changed during the recording
+            self.calibration_name = self._name_of(named)
             if self.on_calibration is not None:
-                self.on_calibration(pair.calibration_yaml)
+                self.on_calibration(named)
         self.scenario = pair.scenario
         self.index += 1
         self._report()
