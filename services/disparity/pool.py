@@ -63,7 +63,8 @@ from common.messages import DisparityMap, StereoFrame, WorkDone
 from common.node import Node, qos
 from common.signing import calibration_key
 from cores.matching.disparity import RecentValid
-from cores.matching.matchers import SCALE, MatcherConfig, gate_for_range, make_matcher
+from cores.matching.matchers import SCALE, MatcherConfig
+from cores.matching.stage import MatchStage
 from services.disparity.results import MIN_MEASURED, Ticket, measure, parse_header, result_header, vet_header, vet_map
 
 log = logging.getLogger("ballbot.pool")
@@ -85,23 +86,11 @@ class FrameComputer:
             raise BallbotError("result_encoding png needs min_disparity >= 0")
         self.config = config
         self.scale = scale
-        self._matchers: dict[tuple, Any] = {}
-        if config.num_disparities != "auto":  # bad settings fail now, not on the first frame
-            self._matchers[()] = make_matcher(config, scale)
+        self.stage = MatchStage(config, scale)  # the matcher and gate the in-process pipeline runs too
         self.result_encoding = result_encoding
         self.method = config.method + ("" if scale == 1.0 else f"@{scale:g}") + (label and f"/{label}")
         self.saturated = 0.0
         self.range_warning = ""
-
-    def _matcher(self, cam) -> Any:
-        if () in self._matchers:
-            return self._matchers[()]
-        key = (cam.focal_px, cam.baseline_m, cam.width)
-        if key not in self._matchers:
-            if len(self._matchers) >= 4:  # calibrations come and go; keep a few, never grow without bound
-                self._matchers.clear()
-            self._matchers[key] = make_matcher(self.config.resolved(*key), self.scale)
-        return self._matchers[key]
 
     def compute(self, msg: StereoFrame, worker: str) -> DisparityMap:
         if msg.camera is None:
@@ -111,27 +100,24 @@ class FrameComputer:
                               f"{msg.camera.width}x{msg.camera.height}")
         left = codec.array_from_image(msg.left, "left")
         right = codec.array_from_image(msg.right, "right")
-        matcher = self._matcher(msg.camera)
-        gate = gate_for_range(self.config.max_range_m, msg.camera.focal_px, msg.camera.baseline_m)
-        result = matcher.match(left, right, gate)
+        out = self.stage.compute(left, right, msg.camera.focal_px, msg.camera.baseline_m)
+        result = out.match
         self.saturated, self.range_warning = result.saturated, result.range_warning
-        c = matcher.config
         disp = result.disparity
         if self.result_encoding == "png":
             invalid = 0.0
             disp = np.where(disp > 0, disp, 0).astype(np.uint16)
             image = codec.image_from_array(disp, "png")
         else:
-            invalid = float(c.invalid_value)
+            invalid = float(out.invalid_value)
             image = codec.image_from_array(disp)
         confidence = None
         if result.confidence is not None:
             confidence = codec.image_from_array(result.confidence, self.result_encoding)
         # the range its values span (consumers treat anything outside it as invalid)
-        lo, num = getattr(matcher, "output_range", (c.min_disparity, c.fixed_num_disparities))
         return DisparityMap(robot_id=msg.robot_id, seq=msg.seq, stamp_ns=msg.stamp_ns, stages=msg.stages,
-                            image=image, scale=SCALE, invalid_value=invalid, min_disparity=lo,
-                            num_disparities=num, camera=msg.camera, method=self.method,
+                            image=image, scale=SCALE, invalid_value=invalid, min_disparity=out.min_disparity,
+                            num_disparities=out.num_disparities, camera=msg.camera, method=self.method,
                             worker=worker, confidence=confidence)
 
     def report(self, node: Node) -> None:

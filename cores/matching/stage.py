@@ -1,0 +1,71 @@
+"""The disparity stage as the disparity service runs it, for one rectified pair: the matcher of the
+settings (num_disparities `auto` resolved for the camera), the vision-range gate, and the range its
+values span. The service (services/disparity: onboard fallback and workers) and the in-process
+pipeline (cores/pipeline.py: offline commands, evaluations, benchmarks) both compute through
+MatchStage, so what is evaluated is what runs.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from cores.matching.config import SCALE, MatcherConfig, gate_for_range
+from cores.matching.disparity import searched_range, to_float
+from cores.matching.matchers import make_matcher
+from cores.matching.opencv import Match
+
+
+@dataclass
+class StageResult:
+    """One pair's disparity. match.disparity: (H, W) int16, px * SCALE, `invalid_value` where no
+    match; (min_disparity, num_disparities): the range the values span (what a DisparityMap
+    states); config: the settings it was computed with (num_disparities resolved)."""
+
+    match: Match
+    config: MatcherConfig
+    min_disparity: int
+    num_disparities: int
+
+    @property
+    def invalid_value(self) -> int:
+        return self.config.invalid_value
+
+    def disparity_px(self) -> np.ndarray:
+        """(H, W) float32 px, NaN where invalid or outside the stated range: what a consumer of the
+        DisparityMap gets (cores/segmentation/builder.py decodes it the same way)."""
+        return to_float(self.match.disparity, SCALE, self.invalid_value,
+                        searched_range(self.min_disparity, self.num_disparities))
+
+
+class MatchStage:
+    """Rectified pairs of any camera -> StageResult. scale 1: full resolution; 0.5: the
+    half-resolution matcher (the onboard fallback's `half`). Matchers are built once per camera
+    (focal length, baseline, width), a few kept: calibrations come and go."""
+
+    def __init__(self, config: MatcherConfig, scale: float = 1.0):
+        self.config = config
+        self.scale = scale
+        self._matchers: dict[tuple, Any] = {}
+        if config.num_disparities != "auto":  # bad settings fail now, not on the first frame
+            self._matchers[()] = make_matcher(config, scale)
+
+    def matcher(self, focal_px: float, baseline_m: float, width: int) -> Any:
+        if () in self._matchers:
+            return self._matchers[()]
+        key = (focal_px, baseline_m, width)
+        if key not in self._matchers:
+            if len(self._matchers) >= 4:
+                self._matchers.clear()
+            self._matchers[key] = make_matcher(self.config.resolved(*key), self.scale)
+        return self._matchers[key]
+
+    def compute(self, left: np.ndarray, right: np.ndarray, focal_px: float, baseline_m: float) -> StageResult:
+        """left, right: (H, W) or (H, W, 3) uint8, rectified, of a camera with this focal length (px)
+        and baseline (m)."""
+        matcher = self.matcher(focal_px, baseline_m, left.shape[1])
+        result = matcher.match(left, right, gate_for_range(self.config.max_range_m, focal_px, baseline_m))
+        c = matcher.config
+        lo, num = getattr(matcher, "output_range", (c.min_disparity, c.fixed_num_disparities))
+        return StageResult(result, c, int(lo), int(num))

@@ -1,0 +1,109 @@
+"""The pipeline in one process: rectify -> match -> segment, with the services' settings and gates.
+
+This is the one composition of the cores. The services run the same three steps in three
+processes (services/rectify: Rectifier; services/disparity: MatchStage; services/segmenter:
+ObstacleBuilder); the offline commands (`rectify`, `disparity`, `obstacles`), the evaluations
+(`eval`, `eval --real`) and every benchmark's in-process reference run them here, so what is
+evaluated and benchmarked is what runs:
+
+    pipe = Pipeline(calibration, MatcherConfig(), SegmenterSettings())
+    frame = pipe.process(left, right, t_s=0.0, seq=0)   # raw pair -> rectified, disparity, obstacles
+    frame.result.obstacles                              # the ObstacleList the segmenter would publish
+
+Stateful like the segmenter: the ground estimate and the tracks carry over from pair to pair, so
+feed one stream in order (a new Pipeline, or `fork()`, for another stream).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from common.messages import Odometry
+from cores import camera
+from cores.calibration.rectify import Rectifier
+from cores.matching.config import MatcherConfig
+from cores.matching.stage import MatchStage, StageResult
+from cores.segmentation.builder import FrameResult, ObstacleBuilder
+from cores.segmentation.settings import SegmenterSettings
+
+
+@dataclass
+class PipelineFrame:
+    """One pair through the pipeline: the rectified pair, the disparity stage's result, the float
+    disparity the segmenter saw (px, NaN invalid), its FrameResult, and the time each step took."""
+
+    seq: int
+    left: np.ndarray
+    right: np.ndarray
+    stage: StageResult
+    disparity: np.ndarray
+    result: FrameResult
+    rectify_ms: float
+    match_ms: float
+    segment_ms: float
+
+
+class Pipeline:
+    """calibration: a raw rig (rectified here) or an already-rectified model (pairs pass as they
+    are); matcher: the disparity settings; segmenter: the segmenter's settings; alpha: rectify's."""
+
+    def __init__(self, calibration: camera.Calibration, matcher: MatcherConfig | None = None,
+                 segmenter: SegmenterSettings | None = None, alpha: float = 0.0):
+        self.rectifier = Rectifier(calibration, alpha)
+        self.model: camera.RectifiedModel = self.rectifier.model
+        self.matching = MatchStage(matcher or MatcherConfig())
+        self.segmenter_settings = segmenter or SegmenterSettings()
+        self.builder = ObstacleBuilder(self.segmenter_settings)
+
+    def fork(self, segmenter: SegmenterSettings | None = None) -> "Pipeline":
+        """Another stream through the same rectification and matcher (shared: they keep no state
+        between pairs), with a segmenter of its own (fresh ground and tracks)."""
+        other = object.__new__(Pipeline)
+        other.rectifier, other.model, other.matching = self.rectifier, self.model, self.matching
+        other.segmenter_settings = segmenter or self.segmenter_settings
+        other.builder = ObstacleBuilder(other.segmenter_settings)
+        return other
+
+    def rectify(self, left: np.ndarray, right: np.ndarray, names: tuple[str, str] = ("left", "right")
+                ) -> tuple[np.ndarray, np.ndarray]:
+        """A raw pair of this calibration's size -> the rectified pair (sizes checked, named)."""
+        self.rectifier.check_size(left, names[0])
+        self.rectifier.check_size(right, names[1])
+        return self.rectifier.rectify(left, right)
+
+    def match(self, left: np.ndarray, right: np.ndarray) -> StageResult:
+        """A rectified pair -> the disparity stage's result, as the disparity service computes it."""
+        return self.matching.compute(left, right, self.model.focal_px, self.model.baseline_m)
+
+    def segment(self, stage: StageResult | np.ndarray, *, t_s: float, seq: int = 0, stamp_ns: int | None = None,
+                odometry: Odometry | None = None, image: np.ndarray | None = None,
+                confidence: np.ndarray | None = None) -> FrameResult:
+        """A disparity (the stage's result, or a float px map with NaN invalid) -> the segmenter's
+        FrameResult. t_s: the pair's time (s, never going backwards)."""
+        if isinstance(stage, StageResult):
+            disparity, confidence = stage.disparity_px(), stage.match.confidence
+        else:
+            disparity = stage
+        return self.builder.process(disparity, self.model, t_s=t_s, seq=seq,
+                                    stamp_ns=int(round(t_s * 1e9)) if stamp_ns is None else stamp_ns,
+                                    confidence=confidence, odometry=odometry, image=image)
+
+    def process(self, left: np.ndarray, right: np.ndarray, *, t_s: float, seq: int = 0, stamp_ns: int | None = None,
+                odometry: Odometry | None = None, names: tuple[str, str] = ("left", "right"),
+                rectified: bool = False) -> PipelineFrame:
+        """One pair, raw (rectified=False) or already rectified, through the three steps."""
+        t0 = time.perf_counter()
+        if not rectified:
+            left, right = self.rectify(left, right, names)
+        t1 = time.perf_counter()
+        stage = self.match(left, right)
+        t2 = time.perf_counter()
+        disparity = stage.disparity_px()
+        result = self.builder.process(disparity, self.model, t_s=t_s, seq=seq,
+                                      stamp_ns=int(round(t_s * 1e9)) if stamp_ns is None else stamp_ns,
+                                      confidence=stage.match.confidence, odometry=odometry, image=left)
+        t3 = time.perf_counter()
+        return PipelineFrame(seq, left, right, stage, disparity, result, (t1 - t0) * 1e3, (t2 - t1) * 1e3,
+                             (t3 - t2) * 1e3)

@@ -1,0 +1,60 @@
+"""The one in-process composition (cores/pipeline.py) gives what the services compute: the same pair
+through the disparity service's FrameComputer and the segmenter's message decoding gives the same
+disparity and the same obstacle list as Pipeline.process (which the offline commands, the evaluations
+and the benchmarks run)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from common import codec
+from common.messages import DisparityMap, StereoFrame
+from cores import camera
+from cores.matching.config import MatcherConfig
+from cores.pipeline import Pipeline
+from cores.segmentation.builder import ObstacleBuilder
+from cores.segmentation.settings import SegmenterSettings
+from services.capture.sources import SyntheticSource
+from services.disparity.pool import FrameComputer
+
+
+@pytest.fixture(scope="module")
+def pairs():
+    src = SyntheticSource("two-boxes", "lifecam-studio", 30.0)
+    return [src.read() for _ in range(3)]
+
+
+@pytest.mark.parametrize("method", ["bm", "sgbm"])
+def test_the_pipeline_computes_what_the_services_compute(pairs, method):
+    cal = camera.load_calibration("lifecam-studio")
+    matcher, segmenter = MatcherConfig(method=method), SegmenterSettings()
+    pipe = Pipeline(cal, matcher, segmenter)
+    computer, builder = FrameComputer(matcher), ObstacleBuilder(segmenter)
+    for k, pair in enumerate(pairs):
+        t_s = k / 30.0
+        frame = pipe.process(pair.left, pair.right, t_s=t_s, seq=k)
+        # the services' path: rectify's frame, the disparity service's map over the wire, the segmenter's decoding
+        msg = StereoFrame(robot_id="r", seq=k, stamp_ns=int(round(t_s * 1e9)), camera=pipe.rectifier.model_message,
+                          left=codec.image_from_array(frame.left), right=codec.image_from_array(frame.right))
+        wire = codec.decode(codec.encode(computer.compute(msg, "w")), DisparityMap)
+        served = builder.process_message(wire, t_s=t_s)
+        np.testing.assert_array_equal(np.isnan(served_disparity(builder, wire)), np.isnan(frame.disparity))
+        assert np.nanmax(np.abs(served_disparity(builder, wire) - frame.disparity)) == 0
+        a, b = frame.result.obstacles, served.obstacles
+        assert len(a.obstacles) == len(b.obstacles) == 2, a.model_dump_json()
+        for x, y in zip(a.obstacles, b.obstacles):
+            assert x.position_m == y.position_m and x.bbox_px == y.bbox_px and x.id == y.id
+        assert a.ground == b.ground and a.degraded == b.degraded and a.valid_fraction == b.valid_fraction
+
+
+def served_disparity(builder: ObstacleBuilder, wire: DisparityMap) -> np.ndarray:
+    return builder.decode(wire)[0]
+
+
+def test_fork_shares_the_matcher_and_keeps_its_own_tracks(pairs):
+    pipe = Pipeline(camera.load_calibration("lifecam-studio"))
+    other = pipe.fork(SegmenterSettings(method="seed"))
+    assert other.matching is pipe.matching and other.builder is not pipe.builder
+    stage = pipe.match(*pipe.rectify(pairs[0].left, pairs[0].right))
+    assert other.segment(stage, t_s=0.0).obstacles.method == "seed"
+    assert pipe.segment(stage, t_s=0.0).obstacles.method == "layers"
