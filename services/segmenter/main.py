@@ -127,6 +127,50 @@ class ObstacleBuilder:
         self.tracker.move(R, -R @ (np.asarray(odometry.linear_mps, float) * dt))
         return True
 
+    def _merge_fragments(self, dets: list[Detection], points: list[np.ndarray], mount: Mount,
+                         model: camera.RectifiedModel, t_s: float) -> tuple[list[Detection], list[np.ndarray]]:
+        """Pieces of one tracked object put back together: a confirmed track that stood somewhere
+        in the last frame still stands there, so detections whose footprints lie (mostly) inside
+        its predicted footprint are its parts, seen apart this frame because the matcher lost a
+        texture-poor stretch of it (a fence along the road, a hedge). One object each frame keeps
+        its id and its centroid, where its pieces would be tracks that flicker. Only what lies
+        inside the footprint is joined: a person stepping up beside a tracked one, or standing
+        behind them, is outside it."""
+        fps = [_footprint(mount, pts) for pts in points]
+        owner = [-1] * len(dets)
+        best = [np.inf] * len(dets)
+        for ti, tr in enumerate(self.tracker.tracks):
+            if not tr.confirmed or tr.box is None or t_s - tr.last_seen_s > 0.25:
+                continue
+            tb = tr.predicted_box(t_s)
+            pad = np.sqrt(self.tracker.measurement_var(tr.position))  # the stereo noise where it stands
+            lo, hi = tb[0] - pad, tb[1] + pad
+            size = float(np.prod(hi - lo))
+            for di, fp in enumerate(fps):
+                ext = np.maximum(fp[1] - fp[0], 0.05)
+                inside = float(np.prod(np.clip(np.minimum(hi, fp[1]) - np.maximum(lo, fp[0]), 0, None) / ext))
+                # a piece belongs to the tightest confirmed track around it: a table with a track of
+                # its own is not a piece of a person who stood behind it in one frame
+                if inside >= 0.7 and size < best[di]:
+                    owner[di], best[di] = ti, size
+        groups: dict[int, list[int]] = {}
+        for di, ti in enumerate(owner):
+            if ti >= 0:
+                groups.setdefault(ti, []).append(di)
+        merged = {g[0]: g for g in groups.values() if len(g) > 1}
+        if not merged:
+            return dets, points
+        drop = {di for g in merged.values() for di in g[1:]}
+        out_d, out_p = [], []
+        for di, (d, p) in enumerate(zip(dets, points)):
+            if di in drop:
+                continue
+            if di in merged:
+                d, p = layers.merge_detections([dets[k] for k in merged[di]], [points[k] for k in merged[di]], model)
+            out_d.append(d)
+            out_p.append(p)
+        return out_d, out_p
+
     def process(self, disparity: np.ndarray, model: camera.RectifiedModel, *, t_s: float, seq: int, stamp_ns: int,
                 robot_id: str = "offline", confidence: np.ndarray | None = None, odometry: Odometry | None = None,
                 image: np.ndarray | None = None, stale: bool = False,
@@ -143,14 +187,16 @@ class ObstacleBuilder:
             self._track_frame = track_frame
         over_ground = track_frame == "base" and self._ego_motion(odometry, t_s)
         self._last_t = t_s
-        dets = frame.detections
+        dets, points = frame.detections, frame.points
+        if mount is not None and len(points) == len(dets) and cfg.track_merge_fragments:
+            dets, points = self._merge_fragments(dets, points, mount, model, t_s)
         positions = [mount.to_base(d.position_m) if mount is not None else np.asarray(d.position_m, float)
                      for d in dets]
         self.tracker.depth_scale = model.focal_px * model.baseline_m
         self.tracker.ground_plane = track_frame == "base"
         boxes = None
         if mount is not None:
-            boxes = [_footprint(mount, pts) for pts in frame.points] if len(frame.points) == len(dets) else \
+            boxes = [_footprint(mount, pts) for pts in points] if len(points) == len(dets) else \
                 [np.array([p[:2] - 0.5 * np.asarray(d.size_m)[[2, 0]], p[:2] + 0.5 * np.asarray(d.size_m)[[2, 0]]])
                  for d, p in zip(dets, positions)]
         edges = [None if d.edges is None else (mount.to_base(d.edges) if mount is not None else d.edges) for d in dets]
