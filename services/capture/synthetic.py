@@ -394,6 +394,7 @@ class Scene:
     description: str = ""
     camera_motion: CameraMotion | None = None  # None: the camera stands still at its mount
     range_m: float | None = None  # the vision range the scenario is meant for (None: the segmenter's own)
+    default_eval: bool = True  # part of `eval` without scenario names (false: run it by name)
 
     @classmethod
     def default(cls) -> "Scene":
@@ -442,7 +443,7 @@ class Scene:
                     noise_sigma=d.noise_sigma, floor_texture_seed=d.floor_texture_seed,
                     wall_texture_seed=d.wall_texture_seed, boxes=[o.box() for o in d.objects],
                     camera_motion=d.camera_motion.motion() if d.camera_motion is not None else None,
-                    range_m=d.range_m)
+                    range_m=d.range_m, default_eval=d.default_eval)
         for b in scene.boxes:
             if b.center[0] - b.size[2] / 2 >= scene.wall_distance_m:
                 raise ConfigError(f"{where}: object '{b.name}' stands behind the wall")
@@ -575,6 +576,8 @@ class SceneDoc(_Doc):
     # the vision range the scenario is meant for: eval runs the segmenter with it and expects what
     # it holds (None: the segmenter's own range)
     range_m: Annotated[float, Strict(), Field(ge=0.5, le=100, allow_inf_nan=False)] | None = None
+    # part of `eval` without scenario names; false for one too slow to render for every run
+    default_eval: Annotated[bool, Strict()] = True
 
     @model_validator(mode="after")
     def _unique(self) -> "SceneDoc":

@@ -53,7 +53,8 @@ from ..capture import synthetic as S
 from ...common.disparity import to_float
 from ..disparity.matchers import SCALE, MatcherConfig, StereoMatcher
 from ..rectify.core import Rectifier
-from ...common.messages import Odometry
+from ...common.messages import GroundEstimate, Odometry
+from .ground import plane_from_mount
 from .main import ObstacleBuilder, SegmenterSettings
 from .mount import Mount
 
@@ -211,7 +212,7 @@ class Score:
     border_truths: int = 0  # matched truths cut by the image's left or right side
     border_flagged: int = 0  # of which the detection says truncated
     border_edge_err_px: float = float("nan")  # median error of the box side away from the border, px
-    per_truth: dict = field(default_factory=dict)  # name -> {"seen", "matched", "ids", "hidden", "gaps"}
+    per_truth: dict = field(default_factory=dict)  # name -> {"seen", "matched", "ids", "hidden", "gaps"[, "wobble_p95_m"]}
     ground: list = field(default_factory=list)  # per frame: {"frame", "source", "true": (h, p, r), "est": (h, p, r)}
     _pos: list = field(default_factory=list, repr=False)
     _pct: list = field(default_factory=list, repr=False)
@@ -238,10 +239,13 @@ class Score:
         self.visible_err_med_m = med(self._visible)
         self.vel_err_mps = float(np.mean(self._vel)) if self._vel else float("nan")
         self.seg_ms = float(np.mean(self._ms)) if self._ms else float("nan")
-        for vecs in self._base_vec.values():
+        for name, vecs in self._base_vec.items():
             if len(vecs) >= 3:
                 e = np.asarray(vecs)
-                self._wobble.extend(np.linalg.norm(e - np.median(e, axis=0), axis=1).tolist())
+                wobble = np.linalg.norm(e - np.median(e, axis=0), axis=1)
+                self._wobble.extend(wobble.tolist())
+                if name in self.per_truth:
+                    self.per_truth[name]["wobble_p95_m"] = float(np.percentile(wobble, 95))
         self._base_vec = {}
         self.base_err_med_m, self.base_err_p95_m = med(self._base), p95(self._base)
         self.near_err_med_m, self.near_err_p95_m = med(self._near), p95(self._near)
@@ -290,13 +294,29 @@ def _match(obstacles, centroids: list[np.ndarray], gate_m: float, gate_rel: floa
     return [(int(r), int(c)) for r, c in zip(rows, cols) if cost[r, c] < 1e6]
 
 
+class _TrueGround:
+    """Stands in for the segmenter's ground estimator when eval is asked for the true ground
+    (--true-ground): each frame's floor comes from the camera's true mount in that frame, so the
+    figures show what segmentation and tracking do when the ground is right, apart from how well
+    the ground is found."""
+
+    def __init__(self) -> None:
+        self.mount: Mount | None = None
+
+    def update(self, dm: np.ndarray, model: camera.RectifiedModel, step: int):
+        m = self.mount
+        return plane_from_mount(m, model), GroundEstimate(height_m=m.height_m, pitch_deg=m.pitch_deg,
+                                                          roll_deg=m.roll_deg, source="fitted", inlier_fraction=1.0,
+                                                          confidence=1.0)
+
+
 def score_method(data: ScenarioData, method: str, overrides: dict | None = None, min_visible_px: int = 400,
                  eval_range_m: float | None = None, gate_m: float = 0.3, gate_rel: float = 0.15,
-                 vel_warmup: int = 4, mount_error: dict | None = None) -> Score:
+                 vel_warmup: int = 4, mount_error: dict | None = None, true_ground: bool = False) -> Score:
     """mount_error: added to the true mount the segmenter is told, e.g. {"pitch_deg": 5,
     "height_m": 0.1} (a balancing robot leans; the floor fit should absorb it). eval_range_m: truths
     nearer than this count (None: the scenario's range_m, which the segmenter then runs with too,
-    else 4.5 m)."""
+    else 4.5 m). true_ground: the floor each frame is the true one (see _TrueGround)."""
     if eval_range_m is None:
         eval_range_m = data.scene.range_m or 4.5
     m = data.mount
@@ -309,11 +329,16 @@ def score_method(data: ScenarioData, method: str, overrides: dict | None = None,
         cfg["max_range_m"] = data.scene.range_m
     cfg.update(overrides or {})
     builder = ObstacleBuilder(SegmenterSettings(**cfg))
+    oracle = _TrueGround() if true_ground else None
+    if oracle is not None:
+        builder.ground = oracle  # type: ignore[assignment]
     w = data.model.width
     sc = Score(data.name, method, frames=len(data.frames))
     first_seen: dict[int, int] = {}
     last_id: dict[str, int] = {}
     for k, fr in enumerate(data.frames):
+        if oracle is not None:
+            oracle.mount = fr.mount
         odo = None
         if fr.odometry is not None:
             odo = Odometry(robot_id="eval", seq=k, stamp_ns=int(fr.t_s * 1e9), linear_mps=_vec3(fr.odometry[0]),
@@ -410,6 +435,12 @@ def score_method(data: ScenarioData, method: str, overrides: dict | None = None,
     return sc.finish()
 
 
+def default_scenarios() -> list[str]:
+    """The shipped scenarios `eval` runs when given none: all but those marked default_eval: false
+    (too slow to render for every run; they run by name)."""
+    return [n for n in S.list_builtin_scenarios() if S.Scene.builtin(n).default_eval]
+
+
 def _vec3(v) -> tuple[float, float, float]:
     return tuple(float(x) for x in v)  # type: ignore[return-value]
 
@@ -417,10 +448,10 @@ def _vec3(v) -> tuple[float, float, float]:
 def evaluate(scenarios: list[str] | None = None, methods: list[str] | None = None, frames: int | None = None,
              fps: float | None = None, seed: int = 0, matcher: MatcherConfig = MatcherConfig(),
              overrides: dict | None = None, data: dict[str, ScenarioData] | None = None,
-             mount_error: dict | None = None) -> dict:
+             mount_error: dict | None = None, true_ground: bool = False) -> dict:
     """-> {"scenarios": {name: {method: Score}}, "overall": {method: Score}, "render_s": {name: s}}.
     `data` may hold already-rendered scenarios (reused, e.g. by tests)."""
-    scenarios = scenarios or S.list_builtin_scenarios()
+    scenarios = scenarios or default_scenarios()
     methods = methods or DEFAULT_METHODS
     for m in methods:
         if m not in METHODS:
@@ -431,7 +462,8 @@ def evaluate(scenarios: list[str] | None = None, methods: list[str] | None = Non
         if data is not None:
             data[name] = d
         result["render_s"][name] = d.render_s
-        result["scenarios"][name] = {m: score_method(d, m, overrides, mount_error=mount_error) for m in methods}
+        result["scenarios"][name] = {m: score_method(d, m, overrides, mount_error=mount_error, true_ground=true_ground)
+                                     for m in methods}
     for m in methods:
         result["overall"][m] = Score.pooled([result["scenarios"][n][m] for n in scenarios])
     return result
