@@ -287,7 +287,12 @@ def _split_layers(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, lab: np.ndarra
     kernel = np.exp(-0.5 * (k / _LAYER_SMOOTH_BINS) ** 2)
     kernel /= kernel.sum()
     bounds = np.flatnonzero(np.diff(lab)) + 1
-    for a, b in zip(np.concatenate([[0], bounds]), np.concatenate([bounds, [lab.size]])):
+    starts, ends = np.concatenate([[0], bounds]), np.concatenate([bounds, [lab.size]])
+    d_lo, d_hi = np.minimum.reduceat(dv, starts), np.maximum.reduceat(dv, starts)
+    # a group spanning less depth than layer_gap_m, or all beyond layer_split_range_m, has nothing to split
+    deep = (fB / np.maximum(d_lo, 1e-6) - fB / np.maximum(d_hi, 1e-6) >= cfg.layer_gap_m) & \
+        (fB / np.maximum(d_hi, 1e-6) <= cfg.layer_split_range_m) & (ends - starts >= 2 * cfg.min_pixels)
+    for a, b in zip(starts[deep], ends[deep]):
         todo = [(np.arange(a, b), 0)]
         while todo:
             idx, level = todo.pop()
