@@ -169,10 +169,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if given:
         raise BallbotError(f"eval: {', '.join(SegmenterSettings.flag(k) for k in given)}: the segmenter's settings go "
                            "with --real DIR (the synthetic scenarios set their own per method)")
-    from sim.synthetic import list_builtin_scenarios
     from evaluation import synthetic as E
 
-    scenarios = args.scenarios or list_builtin_scenarios()
+    scenarios = args.scenarios or E.default_scenarios()
     methods = args.method or E.DEFAULT_METHODS
     for m in methods:
         if m not in E.METHODS:
@@ -183,7 +182,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     error = {"pitch_deg": args.mount_pitch_error, "roll_deg": args.mount_roll_error,
              "height_m": args.mount_height_error}
     result = E.evaluate(scenarios, methods, frames=args.frames, fps=args.fps, seed=args.seed, matcher=matcher,
-                        mount_error=error)
+                        mount_error=error, true_ground=args.true_ground)
     if args.json:
         _out(json.dumps(E.result_to_json(result), indent=2))
     else:
@@ -253,6 +252,8 @@ def cmd_eval_real(args: argparse.Namespace) -> int:
 
     if args.scenarios:
         raise BallbotError("eval --real DIR runs a recording; leave out the scenario names")
+    if args.true_ground:
+        raise BallbotError("eval --real: --true-ground needs a synthetic scenario (a recording has no true ground)")
     seg, disp, applied = _real_settings(args, **_method_override(args))
     rec = R.open_recording(args.real, fps=args.fps or 10.0)
     if args.frames is not None and args.frames < 1:
@@ -374,7 +375,7 @@ def register(sub: argparse._SubParsersAction, common) -> None:
                                    "obstacles (judged against an independent v-disparity road profile), track "
                                    "life, ground estimates, time per frame.")
     e.add_argument("scenarios", nargs="*", metavar="SCENARIO", help="built-in scenario names or YAML files "
-                   "(default: all built-in)")
+                   "(default: all built-in but the slow ones, e.g. sway)")
     e.add_argument("--method", action="append", metavar="M",
                    help="seed (the thesis), seed+floor, layers; repeat for several (default: all three)")
     e.add_argument("--json", action="store_true")
@@ -387,6 +388,8 @@ def register(sub: argparse._SubParsersAction, common) -> None:
     g.add_argument("--mount-pitch-error", type=float, default=0.0, metavar="DEG")
     g.add_argument("--mount-roll-error", type=float, default=0.0, metavar="DEG")
     g.add_argument("--mount-height-error", type=float, default=0.0, metavar="M")
+    g.add_argument("--true-ground", action="store_true", help="give the segmenter each frame's true ground "
+                   "instead of its estimate: segmentation and tracking apart from ground estimation")
     r = e.add_argument_group("real recordings")
     r.add_argument("--real", default=None, metavar="DIR", help="a recording folder instead of the scenarios")
     r.add_argument("--draw", default=None, metavar="OUT", help="--real: one picture per pair into OUT")

@@ -19,13 +19,25 @@ that is not visible at all (occluded, out of view) expects nothing. Unmatched de
 classified by what the rendered pixels inside their box are: `floor`, `wall`, or `object` (a piece of
 a true obstacle: a split).
 
+A scenario whose camera moves (a driving, swaying robot: `camera_motion` in the scenario) gives the
+segmenter the robot's true motion as odometry each frame and the upright mount as its configured
+mount (the sway is for the ground estimate to find).
+
 Reported per scenario and method: recall, precision, 3D position error (median, 95th percentile; m
 and % of distance), depth error (% , truths 0.5-4 m), errors against the object's box centre and
 against `visible_centroid_m`,
 floor false positives, id switches (a counted true obstacle matched to a different track id than in
 its previous counted, matched frame: across an occlusion, only if the id after reappearance differs
 from the id before), mean velocity error (tracks at least `vel_warmup` frames old), and the
-mean segmentation time per frame.
+mean segmentation time per frame. In the robot base frame (REP 103, on the floor, not tilted by
+the sway; the segmenter's from its ground estimate): the error of each matched detection's
+`position_base_m` against the truth's measurable centroid taken to the true base frame (median,
+95th percentile), and its steadiness: per obstacle standing still in the world and matched in at
+least 3 frames, how far each frame's error vector strays from that obstacle's median error vector
+(the wobble a swaying camera puts on what stands still; 95th percentile and maximum over all such
+sightings). The ground: the share of frames whose ground was fitted in that frame, and the 95th
+percentile and maximum of the error of its pitch, roll (deg) and height (m) against the camera's
+true mount in that frame.
 """
 from __future__ import annotations
 
@@ -36,14 +48,16 @@ from typing import Iterable
 
 import numpy as np
 
+from common.messages import GroundEstimate, Odometry
 from cores import camera
-from sim import synthetic as S
+from cores.calibration.rectify import Rectifier
 from cores.matching.disparity import to_float
 from cores.matching.matchers import SCALE, MatcherConfig, StereoMatcher
-from cores.calibration.rectify import Rectifier
 from cores.segmentation.builder import ObstacleBuilder
-from cores.segmentation.settings import SegmenterSettings
+from cores.segmentation.ground import plane_from_mount
 from cores.segmentation.mount import Mount
+from cores.segmentation.settings import SegmenterSettings
+from sim import synthetic as S
 
 # eval method name -> settings overrides. `seed` is the thesis as written (no floor removal);
 # `seed+floor` adds the floor removal from the camera mount; `layers` is the default.
@@ -63,6 +77,14 @@ class EvalFrame:
     truth: list  # synthetic.ObstacleTruth, rectified left frame
     kind: np.ndarray  # (H, W) int8: -3 nothing, -2 wall, -1 floor, >= 0 obstacle index
     measurable: list  # per truth: (centroid (3,) m, pixels) of its surface the matcher can see
+    nearest: list = field(default_factory=list)  # per truth: nearest distance (m) of that surface, NaN if none
+    T_base_rect: np.ndarray = field(default_factory=lambda: np.eye(4))  # the camera's true pose on the robot
+    odometry: tuple[np.ndarray, np.ndarray] | None = None  # (linear, angular) base frame; a moving camera only
+
+    @property
+    def mount(self) -> Mount:
+        """The camera's true mount at this frame (height, pitch, roll of the swaying camera)."""
+        return mount_from_T(self.T_base_rect)
 
 
 @dataclass
@@ -76,9 +98,14 @@ class ScenarioData:
 
 
 def mount_from_world(world: S.SyntheticWorld) -> Mount:
-    """The exact mount of the rectified left camera in the world (= base) frame: position and the
-    yaw/pitch/roll that Mount composes (Rz Ry Rx times the optical-to-body axes)."""
-    T = world.T_world_rect
+    """The exact mount of the rectified left camera on the robot standing upright (the world = base
+    frame of a camera that does not move): what a configured mount would say."""
+    return mount_from_T(world.T_base_rect_upright())
+
+
+def mount_from_T(T: np.ndarray) -> Mount:
+    """A 4x4 rectified-camera -> base transform as a Mount: position and the yaw/pitch/roll that
+    Mount composes (Rz Ry Rx times the optical-to-body axes)."""
     body = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
     R = T[:3, :3] @ body.T  # = Rz(yaw) Ry(pitch) Rx(roll)
     pitch = math.asin(max(-1.0, min(1.0, -R[2, 0])))
@@ -88,11 +115,11 @@ def mount_from_world(world: S.SyntheticWorld) -> Mount:
                  float(T[0, 3]), float(T[1, 3]))
 
 
-def _truth_maps(world: S.SyntheticWorld, t: float, x_valid: int) -> tuple[np.ndarray, dict[int, tuple[np.ndarray, int]]]:
+def _truth_maps(world: S.SyntheticWorld, t: float, x_valid: int) -> tuple[np.ndarray, dict[int, tuple[np.ndarray, int, float]]]:
     """(kind map (H, W) int8: -3 nothing, -2 wall, -1 floor, >= 0 obstacle index;
-    {obstacle index: (centroid (3,) m, pixels)} of the obstacle's surface that the matcher can
-    measure: visible in the left image at columns >= x_valid, where block matching has a
-    right-image counterpart)."""
+    {obstacle index: (centroid (3,) m, pixels, nearest distance m)} of the obstacle's surface that
+    the matcher can measure: visible in the left image at columns >= x_valid, where block matching
+    has a right-image counterpart)."""
     ids = world.obstacle_ids(t).astype(np.int8)
     depth = world.true_depth(t)
     m = world.rect.model
@@ -101,7 +128,7 @@ def _truth_maps(world: S.SyntheticWorld, t: float, x_valid: int) -> tuple[np.nda
     v = (np.arange(h) - m.cy) / m.focal_px
     pts = np.stack([np.broadcast_to(u[None, :], (h, w)), np.broadcast_to(v[:, None], (h, w)), np.ones((h, w))], -1)
     pts = pts * depth[..., None]
-    T = world.T_world_rect
+    T = world.T_world_rect_at(t)
     z_world = pts @ T[2, :3] + T[2, 3]
     kind = np.where(ids >= 0, ids, np.where(np.isfinite(depth), np.where(z_world < 0.02, -1, -2), -3)).astype(np.int8)
     seen = {}
@@ -109,12 +136,14 @@ def _truth_maps(world: S.SyntheticWorld, t: float, x_valid: int) -> tuple[np.nda
     for i in range(len(world.scene.boxes)):
         mask = (ids == i) & cols
         n = int(mask.sum())
-        seen[i] = (pts[mask].mean(0) if n else np.full(3, np.nan), n)
+        p = pts[mask]
+        seen[i] = (p.mean(0) if n else np.full(3, np.nan), n, float(np.sqrt((p * p).sum(1).min())) if n else float("nan"))
     return kind, seen
 
 
 def default_sequence(scene: S.Scene) -> tuple[int, float]:
-    """(frames, fps): 3 frames of a static scene (sensor noise differs), 3 s at 15 fps of a moving one."""
+    """(frames, fps): 3 frames of a static scene (sensor noise differs), 3 s at 15 fps of a moving one
+    (objects or the camera)."""
     return (3, 15.0) if scene.is_static() else (45, 15.0)
 
 
@@ -138,7 +167,10 @@ def render_scenario(name: str, frames: int | None = None, fps: float | None = No
         left, right = rectifier.rectify(*world.render(t))
         d = to_float(stereo.compute(left, right), SCALE, matcher.invalid_value)
         kind, seen = static if static is not None else _truth_maps(world, t, x_valid)
-        out.append(EvalFrame(t, left, d, world.truth(t), kind, [seen[i] for i in range(len(scene.boxes))]))
+        n = len(scene.boxes)
+        out.append(EvalFrame(t, left, d, world.truth(t), kind, [seen[i][:2] for i in range(n)],
+                             [seen[i][2] for i in range(n)], world.T_base_rect(t),
+                             world.odometry(t) if scene.camera_moves() else None))
     return ScenarioData(scene.name, scene, rectifier.model, mount_from_world(world), out, time.perf_counter() - t0)
 
 
@@ -165,7 +197,24 @@ class Score:
     id_switches: int = 0
     vel_err_mps: float = float("nan")
     seg_ms: float = float("nan")
-    per_truth: dict = field(default_factory=dict)  # name -> {"seen", "matched", "ids", "hidden", "gaps"}
+    base_err_med_m: float = float("nan")  # base frame, against the truth's measurable centroid
+    base_err_p95_m: float = float("nan")
+    base_wobble_p95_m: float = float("nan")  # static obstacles: spread of the base-frame error over frames
+    base_wobble_max_m: float = float("nan")
+    ground_fitted: float = float("nan")  # share of frames with a ground fitted in that frame
+    ground_pitch_err_p95_deg: float = float("nan")
+    ground_pitch_err_max_deg: float = float("nan")
+    ground_roll_err_p95_deg: float = float("nan")
+    ground_roll_err_max_deg: float = float("nan")
+    ground_height_err_p95_m: float = float("nan")
+    ground_height_err_max_m: float = float("nan")
+    near_err_med_m: float = float("nan")  # distance_m against the nearest measurable point of the truth
+    near_err_p95_m: float = float("nan")
+    border_truths: int = 0  # matched truths cut by the image's left or right side
+    border_flagged: int = 0  # of which the detection says truncated
+    border_edge_err_px: float = float("nan")  # median error of the box side away from the border, px
+    per_truth: dict = field(default_factory=dict)  # name -> {"seen", "matched", "ids", "hidden", "gaps"[, "wobble_p95_m"]}
+    ground: list = field(default_factory=list)  # per frame: {"frame", "source", "true": (h, p, r), "est": (h, p, r)}
     _pos: list = field(default_factory=list, repr=False)
     _pct: list = field(default_factory=list, repr=False)
     _depth: list = field(default_factory=list, repr=False)
@@ -173,6 +222,11 @@ class Score:
     _visible: list = field(default_factory=list, repr=False)
     _vel: list = field(default_factory=list, repr=False)
     _ms: list = field(default_factory=list, repr=False)
+    _base: list = field(default_factory=list, repr=False)
+    _wobble: list = field(default_factory=list, repr=False)
+    _base_vec: dict = field(default_factory=dict, repr=False)  # static truth name -> [error vector (3,)]
+    _near: list = field(default_factory=list, repr=False)
+    _edge: list = field(default_factory=list, repr=False)
 
     def finish(self) -> "Score":
         self.recall = self.matched / self.truths if self.truths else float("nan")
@@ -186,19 +240,43 @@ class Score:
         self.visible_err_med_m = med(self._visible)
         self.vel_err_mps = float(np.mean(self._vel)) if self._vel else float("nan")
         self.seg_ms = float(np.mean(self._ms)) if self._ms else float("nan")
+        for name, vecs in self._base_vec.items():
+            if len(vecs) >= 3:
+                e = np.asarray(vecs)
+                wobble = np.linalg.norm(e - np.median(e, axis=0), axis=1)
+                self._wobble.extend(wobble.tolist())
+                if name in self.per_truth:
+                    self.per_truth[name]["wobble_p95_m"] = float(np.percentile(wobble, 95))
+        self._base_vec = {}
+        self.base_err_med_m, self.base_err_p95_m = med(self._base), p95(self._base)
+        self.near_err_med_m, self.near_err_p95_m = med(self._near), p95(self._near)
+        self.border_edge_err_px = med(self._edge)
+        self.base_wobble_p95_m = p95(self._wobble)
+        self.base_wobble_max_m = float(np.max(self._wobble)) if self._wobble else float("nan")
+        judged = [g for g in self.ground if g["source"] != "none"]
+        if self.ground:
+            self.ground_fitted = sum(g["source"] == "fitted" for g in self.ground) / len(self.ground)
+        if judged:
+            err = np.abs(np.array([np.subtract(g["est"], g["true"]) for g in judged]))  # (n, 3): h, p, r
+            (self.ground_height_err_p95_m, self.ground_pitch_err_p95_deg,
+             self.ground_roll_err_p95_deg) = (float(x) for x in np.percentile(err, 95, axis=0))
+            (self.ground_height_err_max_m, self.ground_pitch_err_max_deg,
+             self.ground_roll_err_max_deg) = (float(x) for x in err.max(0))
         return self
 
     def to_dict(self) -> dict:
-        return {k: v for k, v in asdict(self).items() if not k.startswith("_")}
+        return {k: v for k, v in asdict(self).items() if not k.startswith("_") and k != "ground"}
 
     @classmethod
     def pooled(cls, scores: Iterable["Score"], scenario: str = "overall") -> "Score":
         scores = list(scores)
         out = cls(scenario, scores[0].method if scores else "")
         for s in scores:
-            for k in ("frames", "truths", "detections", "matched", "floor_fp", "wall_fp", "split_fp", "id_switches"):
+            for k in ("frames", "truths", "detections", "matched", "floor_fp", "wall_fp", "split_fp", "id_switches",
+                      "border_truths", "border_flagged"):
                 setattr(out, k, getattr(out, k) + getattr(s, k))
-            for k in ("_pos", "_pct", "_depth", "_center", "_visible", "_vel", "_ms"):
+            for k in ("_pos", "_pct", "_depth", "_center", "_visible", "_vel", "_ms", "_base", "_wobble", "ground", "_near",
+                      "_edge"):
                 getattr(out, k).extend(getattr(s, k))
         return out.finish()
 
@@ -217,27 +295,65 @@ def _match(obstacles, centroids: list[np.ndarray], gate_m: float, gate_rel: floa
     return [(int(r), int(c)) for r, c in zip(rows, cols) if cost[r, c] < 1e6]
 
 
+class _TrueGround:
+    """Stands in for the segmenter's ground estimator when eval is asked for the true ground
+    (--true-ground): each frame's floor comes from the camera's true mount in that frame, so the
+    figures show what segmentation and tracking do when the ground is right, apart from how well
+    the ground is found."""
+
+    def __init__(self) -> None:
+        self.mount: Mount | None = None
+
+    def update(self, dm: np.ndarray, model: camera.RectifiedModel, step: int):
+        m = self.mount
+        return plane_from_mount(m, model), GroundEstimate(height_m=m.height_m, pitch_deg=m.pitch_deg,
+                                                          roll_deg=m.roll_deg, source="fitted", inlier_fraction=1.0,
+                                                          confidence=1.0)
+
+
 def score_method(data: ScenarioData, method: str, overrides: dict | None = None, min_visible_px: int = 400,
-                 eval_range_m: float = 4.5, gate_m: float = 0.3, gate_rel: float = 0.15,
-                 vel_warmup: int = 4, mount_error: dict | None = None) -> Score:
+                 eval_range_m: float | None = None, gate_m: float = 0.3, gate_rel: float = 0.15,
+                 vel_warmup: int = 4, mount_error: dict | None = None, true_ground: bool = False) -> Score:
     """mount_error: added to the true mount the segmenter is told, e.g. {"pitch_deg": 5,
-    "height_m": 0.1} (a balancing robot leans; the floor fit should absorb it)."""
+    "height_m": 0.1} (a balancing robot leans; the floor fit should absorb it). eval_range_m: truths
+    nearer than this count (None: the scenario's range_m, which the segmenter then runs with too,
+    else 4.5 m). true_ground: the floor each frame is the true one (see _TrueGround)."""
+    if eval_range_m is None:
+        eval_range_m = data.scene.range_m or 4.5
     m = data.mount
     err = {"height_m": 0.0, "pitch_deg": 0.0, "roll_deg": 0.0, **(mount_error or {})}
     cfg = dict(METHODS[method])
     cfg.update(mount_height_m=m.height_m + err["height_m"], mount_pitch_deg=m.pitch_deg + err["pitch_deg"],
                mount_yaw_deg=m.yaw_deg, mount_roll_deg=m.roll_deg + err["roll_deg"], mount_x_m=m.x_m,
                mount_y_m=m.y_m)
+    if data.scene.range_m:
+        cfg["max_range_m"] = data.scene.range_m
     cfg.update(overrides or {})
     builder = ObstacleBuilder(SegmenterSettings(**cfg))
+    oracle = _TrueGround() if true_ground else None
+    if oracle is not None:
+        builder.ground = oracle  # type: ignore[assignment]
+    w = data.model.width
     sc = Score(data.name, method, frames=len(data.frames))
     first_seen: dict[int, int] = {}
     last_id: dict[str, int] = {}
     for k, fr in enumerate(data.frames):
+        if oracle is not None:
+            oracle.mount = fr.mount
+        odo = None
+        if fr.odometry is not None:
+            odo = Odometry(robot_id="eval", seq=k, stamp_ns=int(fr.t_s * 1e9), linear_mps=_vec3(fr.odometry[0]),
+                           angular_radps=_vec3(fr.odometry[1]), source="synthetic")
         t0 = time.perf_counter()
-        res = builder.process(fr.disparity, data.model, t_s=fr.t_s, seq=k, stamp_ns=int(fr.t_s * 1e9), image=fr.left)
+        res = builder.process(fr.disparity, data.model, t_s=fr.t_s, seq=k, stamp_ns=int(fr.t_s * 1e9), image=fr.left,
+                              odometry=odo)
         sc._ms.append((time.perf_counter() - t0) * 1e3)
         obs = res.obstacles.obstacles
+        g = res.obstacles.ground
+        if g is not None:
+            true = fr.mount
+            sc.ground.append({"frame": k, "source": g.source, "true": (true.height_m, true.pitch_deg, true.roll_deg),
+                              "est": (g.height_m, g.pitch_deg, g.roll_deg)})
         for o in obs:
             first_seen.setdefault(o.id, k)
         in_range = [i for i, (c, n) in enumerate(fr.measurable) if n > 0 and 0 < c[2] <= eval_range_m]
@@ -277,6 +393,21 @@ def score_method(data: ScenarioData, method: str, overrides: dict | None = None,
             if 0.5 <= c[2] <= 4.0:
                 sc._depth.append(100.0 * abs(p[2] - c[2]) / c[2])
             sc._center.append(float(np.linalg.norm(p - np.asarray(t.center_m, float))))
+            if o.position_base_m is not None:
+                e = np.array(o.position_base_m) - (fr.T_base_rect[:3, :3] @ c + fr.T_base_rect[:3, 3])
+                sc._base.append(float(np.linalg.norm(e)))
+                if t.static:
+                    sc._base_vec.setdefault(t.name, []).append(e)
+            ti_scene = keep[ti]
+            near = fr.nearest[ti_scene] if fr.nearest else float("nan")
+            if np.isfinite(near):
+                sc._near.append(abs(float(o.distance_m) - near))
+            if t.bbox_px is not None and (t.bbox_px[0] == 0 or t.bbox_px[2] == w - 1):
+                sc.border_truths += 1
+                sc.border_flagged += int(o.truncated)
+                # the side of the box away from the border is where the object really ends
+                sc._edge.append(abs(o.bbox_px[2] - (t.bbox_px[2] + 1)) if t.bbox_px[0] == 0
+                                else abs(o.bbox_px[0] - t.bbox_px[0]))
             rec = sc.per_truth[t.name]
             rec["matched"] += 1
             if t.name in last_id and last_id[t.name] != o.id:
@@ -305,13 +436,23 @@ def score_method(data: ScenarioData, method: str, overrides: dict | None = None,
     return sc.finish()
 
 
+def default_scenarios() -> list[str]:
+    """The shipped scenarios `eval` runs when given none: all but those marked default_eval: false
+    (too slow to render for every run; they run by name)."""
+    return [n for n in S.list_builtin_scenarios() if S.Scene.builtin(n).default_eval]
+
+
+def _vec3(v) -> tuple[float, float, float]:
+    return tuple(float(x) for x in v)  # type: ignore[return-value]
+
+
 def evaluate(scenarios: list[str] | None = None, methods: list[str] | None = None, frames: int | None = None,
              fps: float | None = None, seed: int = 0, matcher: MatcherConfig = MatcherConfig(),
              overrides: dict | None = None, data: dict[str, ScenarioData] | None = None,
-             mount_error: dict | None = None) -> dict:
+             mount_error: dict | None = None, true_ground: bool = False) -> dict:
     """-> {"scenarios": {name: {method: Score}}, "overall": {method: Score}, "render_s": {name: s}}.
     `data` may hold already-rendered scenarios (reused, e.g. by tests)."""
-    scenarios = scenarios or S.list_builtin_scenarios()
+    scenarios = scenarios or default_scenarios()
     methods = methods or DEFAULT_METHODS
     for m in methods:
         if m not in METHODS:
@@ -322,7 +463,8 @@ def evaluate(scenarios: list[str] | None = None, methods: list[str] | None = Non
         if data is not None:
             data[name] = d
         result["render_s"][name] = d.render_s
-        result["scenarios"][name] = {m: score_method(d, m, overrides, mount_error=mount_error) for m in methods}
+        result["scenarios"][name] = {m: score_method(d, m, overrides, mount_error=mount_error, true_ground=true_ground)
+                                     for m in methods}
     for m in methods:
         result["overall"][m] = Score.pooled([result["scenarios"][n][m] for n in scenarios])
     return result
@@ -336,21 +478,40 @@ COLUMNS = [("recall", "recall", "{:.0%}"), ("precision", "prec", "{:.0%}"), ("po
            ("seg_ms", "seg ms", "{:.1f}")]
 
 
+# the base frame and the ground (the second table)
+BASE_COLUMNS = [("base_err_med_m", "base err m", "{:.3f}"), ("base_err_p95_m", "b. err p95", "{:.3f}"),
+                ("base_wobble_p95_m", "wobble p95", "{:.3f}"), ("base_wobble_max_m", "wobble max", "{:.3f}"),
+                ("ground_fitted", "ground fit", "{:.0%}"), ("ground_pitch_err_p95_deg", "pitch p95", "{:.2f}"),
+                ("ground_pitch_err_max_deg", "pitch max", "{:.2f}"), ("ground_roll_err_p95_deg", "roll p95", "{:.2f}"),
+                ("ground_roll_err_max_deg", "roll max", "{:.2f}"), ("ground_height_err_p95_m", "height p95", "{:.3f}"),
+                ("ground_height_err_max_m", "height max", "{:.3f}"), ("near_err_med_m", "near err m", "{:.3f}"),
+                ("near_err_p95_m", "n. err p95", "{:.3f}"), ("border", "border flag", "{}"),
+                ("border_edge_err_px", "edge err px", "{:.0f}")]
+
+
 def format_table(result: dict) -> str:
-    head = f"{'scenario':15} {'method':11} {'truth':>5} {'det':>5} " + " ".join(f"{c[1]:>11}" for c in COLUMNS)
-    lines = [head, "-" * len(head)]
     rows = [(n, s) for n, by in result["scenarios"].items() for s in by.values()]
     rows += [("overall", s) for s in result["overall"].values()]
-    prev = None
-    for name, s in rows:
-        if prev is not None and name != prev:
-            lines.append("")
-        prev = name
-        cells = []
-        for key, _, fmt in COLUMNS:
-            v = getattr(s, key)
-            cells.append(f"{('-' if isinstance(v, float) and math.isnan(v) else fmt.format(v)):>11}")
-        lines.append(f"{name:15} {s.method:11} {s.truths:>5} {s.detections:>5} " + " ".join(cells))
+    lines: list[str] = []
+    for columns, counts in ((COLUMNS, True), (BASE_COLUMNS, False)):
+        head = (f"{'scenario':15} {'method':11} " + (f"{'truth':>5} {'det':>5} " if counts else "")
+                + " ".join(f"{c[1]:>11}" for c in columns))
+        if lines:
+            lines += ["", "robot base frame (errors against the truth; wobble: static obstacles' error spread over "
+                          "frames), the ground (errors against the true mount of each frame; deg, m), the nearest "
+                          "distance, and truths cut by the image side (flagged truncated / all; inner box side)"]
+        lines += [head, "-" * len(head)]
+        prev = None
+        for name, s in rows:
+            if prev is not None and name != prev:
+                lines.append("")
+            prev = name
+            cells = []
+            for key, _, fmt in columns:
+                v = f"{s.border_flagged}/{s.border_truths}" if key == "border" else getattr(s, key)
+                cells.append(f"{('-' if isinstance(v, float) and math.isnan(v) else fmt.format(v)):>11}")
+            lines.append(f"{name:15} {s.method:11} " + (f"{s.truths:>5} {s.detections:>5} " if counts else "")
+                         + " ".join(cells))
     return "\n".join(lines)
 
 

@@ -8,10 +8,18 @@ frame (the rectified left camera, see DESIGN.md).
 
 Frames
 ------
-world (= robot base frame, REP 103): origin on the floor directly below the left camera, x forward,
-    y left, z up, metres. The floor is z = 0; the back wall is the plane x = wall_distance_m.
-left camera: at (0, 0, camera_height_m), looking along +x, pitched down by camera_pitch_deg
-    (positive = looking down), no roll; optical convention (x right, y down, z forward).
+world: fixed to the floor, x forward, y left, z up, metres. The floor is z = 0; the back wall is
+    the plane x = wall_distance_m. Objects and their paths are given in it.
+base (the robot base frame, REP 103): on the floor under the robot, x along its heading, y left,
+    z up; never tilted. Without `camera_motion` it is the world frame at all times. With it, the
+    robot drives (a constant speed along its heading and a constant turn rate from a start pose)
+    and the base frame moves with it.
+left camera: in the base frame at (0, 0, camera_height_m), looking along +x, pitched down by
+    camera_pitch_deg (positive = looking down), no roll; optical convention (x right, y down,
+    z forward). With `camera_motion` its sway (a balancing robot leans) adds sums of sinusoids to
+    its pitch, roll and height, in the convention of the segmenter's Mount (yaw about base z, then
+    pitch, then roll: the camera keeps its heading); with a pivot, the lean turns the camera about
+    a point on the base z axis (a ballbot's ball) and so also moves it over the floor.
 right camera: OpenCV convention, ``X_right = R @ X_left + T``.
 rectified (the camera frame of every message): ``X_rect = R1 @ X_left``.
 
@@ -286,6 +294,91 @@ def _box_corners(center: np.ndarray, yaw: float, size: np.ndarray) -> np.ndarray
     return local @ _rot_z(yaw).T + center
 
 
+def _rot_y(a: float) -> np.ndarray:
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def _rot_x(a: float) -> np.ndarray:
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+# optical (x right, y down, z forward) -> body (x forward, y left, z up)
+_BODY_FROM_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+
+
+def camera_axes(pitch_deg: float, roll_deg: float) -> np.ndarray:
+    """(3, 3) base-frame coordinates of the optical axes (x right, y down, z forward) of a camera
+    pitched down by pitch_deg and rolled (right side down) by roll_deg: Ry(pitch) Rx(roll) as in
+    the segmenter's Mount (yaw 0)."""
+    return _rot_y(math.radians(pitch_deg)) @ _rot_x(math.radians(roll_deg)) @ _BODY_FROM_OPTICAL
+
+
+@dataclass(frozen=True)
+class Wave:
+    """amplitude * sin(2 pi frequency_hz t + phase): one component of a sway."""
+
+    amplitude: float
+    frequency_hz: float
+    phase_deg: float = 0.0
+
+    def at(self, t: float) -> float:
+        return self.amplitude * math.sin(2.0 * math.pi * self.frequency_hz * t + math.radians(self.phase_deg))
+
+
+@dataclass
+class CameraMotion:
+    """How the camera moves: the robot drives and the camera sways on it (a balancing ballbot).
+
+    start: (x m, y m, heading deg) of the base frame in the world at t = 0. speed_mps: along the
+    heading; yaw_rate_deg_s: turning (counter-clockwise), both constant: a straight line or an arc.
+    pitch_deg, roll_deg: sinusoids added to the camera's pitch (positive looking down) and roll
+    (positive right side down); height_m: added to its height. pivot_height_m: None, the camera
+    turns about its own centre; else the sway is a lean of the robot about the point this high on
+    the base z axis (a ballbot's ball centre), which carries the camera over the floor too.
+    """
+
+    start: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    speed_mps: float = 0.0
+    yaw_rate_deg_s: float = 0.0
+    pitch_deg: tuple[Wave, ...] = ()
+    roll_deg: tuple[Wave, ...] = ()
+    height_m: tuple[Wave, ...] = ()
+    pivot_height_m: float | None = None
+
+    def base_pose(self, t: float) -> tuple[float, float, float]:
+        """(x m, y m, heading rad) of the base frame in the world at time t (s)."""
+        x0, y0, h0 = self.start[0], self.start[1], math.radians(self.start[2])
+        w = math.radians(self.yaw_rate_deg_s)
+        if abs(w) < 1e-9:
+            return x0 + self.speed_mps * t * math.cos(h0), y0 + self.speed_mps * t * math.sin(h0), h0
+        h = h0 + w * t
+        r = self.speed_mps / w
+        return x0 + r * (math.sin(h) - math.sin(h0)), y0 - r * (math.cos(h) - math.cos(h0)), h
+
+    def sway(self, t: float) -> tuple[float, float, float]:
+        """(pitch deg, roll deg, height m) added to the camera's mount at time t (s)."""
+        return (sum(w.at(t) for w in self.pitch_deg), sum(w.at(t) for w in self.roll_deg),
+                sum(w.at(t) for w in self.height_m))
+
+    def camera_in_base(self, t: float, height_m: float, pitch_deg: float) -> tuple[np.ndarray, np.ndarray]:
+        """(R (3, 3): base coordinates of the left camera's optical axes, origin (3,) base m) at t
+        for a camera mounted height_m high and pitched pitch_deg when the robot stands upright."""
+        dp, dr, dh = self.sway(t)
+        R = camera_axes(pitch_deg + dp, dr)
+        origin = np.array([0.0, 0.0, height_m + dh])
+        if self.pivot_height_m is not None:
+            lean = R @ camera_axes(pitch_deg, 0.0).T
+            pivot = np.array([0.0, 0.0, self.pivot_height_m])
+            origin = pivot + lean @ (origin - pivot)
+        return R, origin
+
+    def twist(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """(linear (3,) m/s, angular (3,) rad/s) of the base frame in its own axes: odometry."""
+        return np.array([self.speed_mps, 0.0, 0.0]), np.array([0.0, 0.0, math.radians(self.yaw_rate_deg_s)])
+
+
 @dataclass
 class Scene:
     """A world to render: camera mount, floor, back wall and obstacles (world frame, metres)."""
@@ -299,6 +392,9 @@ class Scene:
     floor_texture_seed: int = 1
     wall_texture_seed: int = 2
     description: str = ""
+    camera_motion: CameraMotion | None = None  # None: the camera stands still at its mount
+    range_m: float | None = None  # the vision range the scenario is meant for (None: the segmenter's own)
+    default_eval: bool = True  # part of `eval` without scenario names (false: run it by name)
 
     @classmethod
     def default(cls) -> "Scene":
@@ -345,14 +441,20 @@ class Scene:
         scene = cls(name=d.name, description=d.description, camera_height_m=d.camera_height_m,
                     camera_pitch_deg=d.camera_pitch_deg, wall_distance_m=d.wall_distance_m,
                     noise_sigma=d.noise_sigma, floor_texture_seed=d.floor_texture_seed,
-                    wall_texture_seed=d.wall_texture_seed, boxes=[o.box() for o in d.objects])
+                    wall_texture_seed=d.wall_texture_seed, boxes=[o.box() for o in d.objects],
+                    camera_motion=d.camera_motion.motion() if d.camera_motion is not None else None,
+                    range_m=d.range_m, default_eval=d.default_eval)
         for b in scene.boxes:
             if b.center[0] - b.size[2] / 2 >= scene.wall_distance_m:
                 raise ConfigError(f"{where}: object '{b.name}' stands behind the wall")
         return scene
 
     def is_static(self) -> bool:
-        return all(b.is_static() for b in self.boxes)
+        """Nothing moves: neither the objects nor the camera (a static scene is rendered once)."""
+        return self.camera_motion is None and all(b.is_static() for b in self.boxes)
+
+    def camera_moves(self) -> bool:
+        return self.camera_motion is not None
 
 
 def list_builtin_scenarios() -> list[str]:
@@ -429,6 +531,35 @@ class ObjectDoc(_Doc):
                    face_motion=self.path.face_motion if self.path else False, parts=parts)  # type: ignore[arg-type]
 
 
+class WaveDoc(_Doc):
+    """One sinusoid of a sway: amplitude (deg or m) * sin(2 pi frequency_hz t + phase_deg)."""
+
+    amplitude: Annotated[float, Strict(), Field(ge=0, allow_inf_nan=False)]
+    frequency_hz: Annotated[float, Strict(), Field(gt=0, le=30, allow_inf_nan=False)]
+    phase_deg: _Num = 0.0
+
+
+class CameraMotionDoc(_Doc):
+    """`camera_motion:` the robot drives from `start` [x, y, heading deg] at speed_mps, turning at
+    yaw_rate_deg_s, and the camera sways on it: sinusoids added to its pitch, roll (deg) and height
+    (m), about its own centre or, with pivot_height_m, about a point that high under it."""
+
+    start: Annotated[list[_Num], Field(min_length=3, max_length=3)] = [0.0, 0.0, 0.0]
+    speed_mps: Annotated[float, Strict(), Field(ge=0, le=10, allow_inf_nan=False)] = 0.0
+    yaw_rate_deg_s: Annotated[float, Strict(), Field(ge=-180, le=180, allow_inf_nan=False)] = 0.0
+    pitch_deg: list[WaveDoc] = []
+    roll_deg: list[WaveDoc] = []
+    height_m: list[WaveDoc] = []
+    pivot_height_m: Annotated[float, Strict(), Field(ge=0, allow_inf_nan=False)] | None = None
+
+    def motion(self) -> CameraMotion:
+        def waves(ws: list[WaveDoc]) -> tuple[Wave, ...]:
+            return tuple(Wave(w.amplitude, w.frequency_hz, w.phase_deg) for w in ws)
+
+        return CameraMotion((self.start[0], self.start[1], self.start[2]), self.speed_mps, self.yaw_rate_deg_s,
+                            waves(self.pitch_deg), waves(self.roll_deg), waves(self.height_m), self.pivot_height_m)
+
+
 class SceneDoc(_Doc):
     """A scenario file: camera mount, floor, wall, noise, and the obstacles (world frame, m)."""
 
@@ -441,12 +572,39 @@ class SceneDoc(_Doc):
     floor_texture_seed: _Int = 1
     wall_texture_seed: _Int = 2
     objects: list[ObjectDoc]
+    camera_motion: CameraMotionDoc | None = None
+    # the vision range the scenario is meant for: eval runs the segmenter with it and expects what
+    # it holds (None: the segmenter's own range)
+    range_m: Annotated[float, Strict(), Field(ge=0.5, le=100, allow_inf_nan=False)] | None = None
+    # part of `eval` without scenario names; false for one too slow to render for every run
+    default_eval: Annotated[bool, Strict()] = True
 
     @model_validator(mode="after")
     def _unique(self) -> "SceneDoc":
         names = [o.name for o in self.objects]
         if len(set(names)) != len(names):
             raise ValueError(f"object names must be unique, got {names}")
+        return self
+
+    @model_validator(mode="after")
+    def _sway_in_bounds(self) -> "SceneDoc":
+        m = self.camera_motion
+        if m is None:
+            return self
+        pitch = abs(self.camera_pitch_deg) + sum(w.amplitude for w in m.pitch_deg)
+        if pitch > 60.0:
+            raise ValueError(f"camera_motion: camera_pitch_deg {self.camera_pitch_deg:g} and the pitch_deg "
+                             f"amplitudes reach {pitch:g} deg (at most 60)")
+        roll = sum(w.amplitude for w in m.roll_deg)
+        if roll > 45.0:
+            raise ValueError(f"camera_motion: the roll_deg amplitudes add up to {roll:g} deg (at most 45)")
+        low = self.camera_height_m - sum(w.amplitude for w in m.height_m)
+        if low < 0.05:
+            raise ValueError(f"camera_motion: the height_m amplitudes take the camera down to {low:g} m "
+                             f"(camera_height_m {self.camera_height_m:g}; at least 0.05 m)")
+        if m.pivot_height_m is not None and m.pivot_height_m >= low:
+            raise ValueError(f"camera_motion: pivot_height_m {m.pivot_height_m:g} must be below the camera "
+                             f"(lowest {low:g} m)")
         return self
 
 
@@ -497,7 +655,10 @@ class ObstacleTruth:
     seen by the rectified left image's pixels (NaN if none). nearest_m: min Euclidean distance of
     those points to the camera (NaN if none). visible_px: pixel count in the rectified left image.
     bbox_px: (x0, y0, x1, y1) inclusive pixel bounds in the rectified left image, None if not visible.
-    velocity_mps: (3,) m/s.
+    velocity_mps: (3,) m/s, over the floor (not relative to a driving robot), in camera axes.
+    center_base_m, visible_centroid_base_m, velocity_base_mps: the same in the robot base frame
+    (REP 103, on the floor under the robot, not tilted by the camera's sway).
+    static: the object stands still in the world.
     """
 
     name: str
@@ -509,6 +670,10 @@ class ObstacleTruth:
     visible_px: int
     bbox_px: tuple[int, int, int, int] | None
     velocity_mps: np.ndarray
+    center_base_m: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+    visible_centroid_base_m: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+    velocity_base_mps: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    static: bool = True
 
 
 # --- rendering ---------------------------------------------------------------------------------------
@@ -633,6 +798,23 @@ def _intersect_box(origin: np.ndarray, dirs: np.ndarray, p: _PlacedPart):
     return hits, t, face, u, v, du, dv, np.abs(dax)
 
 
+@dataclass
+class _Cam:
+    """One view of the rig, independent of where the rig is: unit rays (N, 3) in its own frame,
+    rotation R_left_cam (its axes in left-camera coordinates) and centre (left-camera coordinates),
+    pinhole K, shaded or geometry only, and the window slack (see _View.slack_px)."""
+
+    dirs: np.ndarray
+    R_left_cam: np.ndarray
+    center_left: np.ndarray
+    K: np.ndarray
+    shaded: bool
+    slack_px: float = 2.0
+
+    def __post_init__(self) -> None:
+        self.dirs32 = np.ascontiguousarray(self.dirs, np.float32)  # a moving camera turns them every frame
+
+
 class SyntheticWorld:
     """Renders a `Scene` for a raw stereo rig, with ground truth in the rectified left frame.
 
@@ -643,7 +825,10 @@ class SyntheticWorld:
 
     Cost: floor, wall and static objects are ray-cast once per camera; a frame then casts only the
     moving objects' rays (their image windows). A static scene is rendered once and each frame only
-    adds its noise.
+    adds its noise. A moving camera (scene.camera_motion) casts every ray every frame.
+
+    Poses: `left_pose(t)` (world), `T_world_base(t)`, `T_base_rect(t)` (the rectified camera on the
+    robot, what a ground estimate measures), `T_world_rect_at(t)`, `odometry(t)`.
     """
 
     def __init__(self, scene: Scene, rig: camera.RawRig, rect: camera.Rectification, seed: int = 0,
@@ -660,36 +845,31 @@ class SyntheticWorld:
         w, h = rig.image_size
         self.shape = (h, w)
 
-        p = math.radians(scene.camera_pitch_deg)
-        cp, sp = math.cos(p), math.sin(p)
-        # columns: the left camera's x (right), y (down), z (forward) axes in world coordinates
-        self.R_world_left = np.array([[0.0, -sp, cp], [-1.0, 0.0, 0.0], [0.0, -cp, -sp]])
-        self.origin_left = np.array([0.0, 0.0, scene.camera_height_m])
         R1 = np.asarray(rect.R1, float)
-        self.R_world_rect = self.R_world_left @ R1.T
         Rl, Tl = np.asarray(rig.R, float), np.asarray(rig.T, float)
-        origin_right = self.origin_left + self.R_world_left @ (-Rl.T @ Tl)
-
-        def view(origin, dirs_cam, R_world_cam, K, shaded=True):
-            dw = (dirs_cam @ R_world_cam.T).astype(np.float32)
-            # lens distortion moves pixels off their pinhole position; objects are bounded in the
-            # image by pinhole projection, so widen their windows by the largest such offset
-            h, w = self.shape
-            pin = dirs_cam[:, :2] / dirs_cam[:, 2:] @ K[:2, :2].T + K[:2, 2]
-            xs, ys = np.meshgrid(np.arange(w), np.arange(h))
-            off = np.abs(pin - np.stack([xs.ravel(), ys.ravel()], 1)).max()
-            return _View(origin, dw, self.shape, 1.0 / K[0, 0], shaded, R_world_cam.T, K, float(off) + 2.0)
-
-        self._left = view(self.origin_left, _undistorted_rays(rig.left.K, rig.left.D, rig.image_size),
-                          self.R_world_left, rig.left.K)
-        self._right = view(origin_right, _undistorted_rays(rig.right.K, rig.right.D, rig.image_size),
-                           self.R_world_left @ Rl.T, rig.right.K)
         m = rect.model
         rect_dirs = _pinhole_rays(m.focal_px, m.cx, m.cy, (m.width, m.height))
         K_rect = np.array([[m.focal_px, 0.0, m.cx], [0.0, m.focal_px, m.cy], [0.0, 0.0, 1.0]])
-        self._rect = view(self.origin_left, rect_dirs, self.R_world_rect, K_rect, shaded=False)
-        self._rect_dirs = rect_dirs.astype(np.float32)  # the same rays in the rectified frame
+        # per view (0 left, 1 right, 2 rectified left): its rays in its own frame, its rotation and
+        # centre relative to the left camera, its pinhole K, and whether it is shaded
+        self._cams = [
+            _Cam(_undistorted_rays(rig.left.K, rig.left.D, rig.image_size), np.eye(3), np.zeros(3), rig.left.K, True),
+            _Cam(_undistorted_rays(rig.right.K, rig.right.D, rig.image_size), Rl.T, -Rl.T @ Tl, rig.right.K, True),
+            _Cam(rect_dirs, R1.T, np.zeros(3), K_rect, False),
+        ]
+        for c in self._cams:
+            # lens distortion moves pixels off their pinhole position; objects are bounded in the
+            # image by pinhole projection, so widen their windows by the largest such offset
+            pin = c.dirs[:, :2] / c.dirs[:, 2:] @ c.K[:2, :2].T + c.K[:2, 2]
+            xs, ys = np.meshgrid(np.arange(w), np.arange(h))
+            c.slack_px = float(np.abs(pin - np.stack([xs.ravel(), ys.ravel()], 1)).max()) + 2.0
+        self._rect_dirs = rect_dirs.astype(np.float32)  # the rectified view's rays in the rectified frame
         self._rect_shape = (m.height, m.width)
+        self._view_cache: dict[tuple[int, float], _View] = {}
+        # the pose at t = 0 (the only one of a camera that does not move): world frame
+        self.R_world_left, self.origin_left = self.left_pose(0.0)
+        self.R_world_rect = self.R_world_left @ R1.T
+        self._left, self._right, self._rect = (self._make_view(k, 0.0) for k in range(3))
 
         self._floor_tex = _SurfaceTex.from_seed(scene.floor_texture_seed, seed)
         self._wall_tex = _SurfaceTex.from_seed(scene.wall_texture_seed, seed)
@@ -714,6 +894,56 @@ class SyntheticWorld:
     # public API ------------------------------------------------------------------------------------
     def is_static(self) -> bool:
         return self.scene.is_static()
+
+    def left_pose(self, t: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        """(R (3, 3): world coordinates of the left camera's optical axes, centre (3,) world m) at t."""
+        T = self.T_world_base(t)
+        R_b, o_b = self._left_in_base(t)
+        return T[:3, :3] @ R_b, T[:3, :3] @ o_b + T[:3, 3]
+
+    def T_world_base(self, t: float = 0.0) -> np.ndarray:
+        """4x4: the robot base frame (on the floor under the robot, never tilted) -> world, at t."""
+        T = np.eye(4)
+        m = self.scene.camera_motion
+        if m is not None:
+            x, y, yaw = m.base_pose(float(t))
+            T[:3, :3] = _rot_z(yaw)
+            T[:2, 3] = (x, y)
+        return T
+
+    def T_base_rect(self, t: float = 0.0) -> np.ndarray:
+        """4x4: the rectified left camera frame -> the robot base frame at t (the camera's true
+        mount at that instant: what a ground estimate should find)."""
+        R_b, o_b = self._left_in_base(t)
+        T = np.eye(4)
+        T[:3, :3] = R_b @ np.asarray(self.rect.R1, float).T
+        T[:3, 3] = o_b
+        return T
+
+    def T_base_rect_upright(self) -> np.ndarray:
+        """4x4: the rectified left camera frame -> the base frame of the robot standing upright
+        (no sway): the camera mount a configuration file would give."""
+        sc = self.scene
+        T = np.eye(4)
+        T[:3, :3] = camera_axes(sc.camera_pitch_deg, 0.0) @ np.asarray(self.rect.R1, float).T
+        T[:3, 3] = (0.0, 0.0, sc.camera_height_m)
+        return T
+
+    def T_world_rect_at(self, t: float = 0.0) -> np.ndarray:
+        """4x4: the rectified left camera frame -> the world frame at t."""
+        return self.T_world_base(t) @ self.T_base_rect(t)
+
+    def odometry(self, t: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        """(linear (3,) m/s, angular (3,) rad/s) of the robot base in its own axes at t (zero when
+        the camera does not move)."""
+        m = self.scene.camera_motion
+        return m.twist(float(t)) if m is not None else (np.zeros(3), np.zeros(3))
+
+    def _left_in_base(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        sc = self.scene
+        if sc.camera_motion is None:
+            return camera_axes(sc.camera_pitch_deg, 0.0), np.array([0.0, 0.0, sc.camera_height_m])
+        return sc.camera_motion.camera_in_base(float(t), sc.camera_height_m, sc.camera_pitch_deg)
 
     def render(self, t: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
         """The raw (distorted) left and right images at time t (s): uint8 (H, W) each."""
@@ -743,17 +973,21 @@ class SyntheticWorld:
                 self._truth_cache.clear()
             self._truth_cache[key] = self._compute_truth(key)
         return [dataclasses.replace(o, center_m=o.center_m.copy(), visible_centroid_m=o.visible_centroid_m.copy(),
-                                    velocity_mps=o.velocity_mps.copy()) for o in self._truth_cache[key]]
+                                    velocity_mps=o.velocity_mps.copy(), center_base_m=o.center_base_m.copy(),
+                                    visible_centroid_base_m=o.visible_centroid_base_m.copy(),
+                                    velocity_base_mps=o.velocity_base_mps.copy()) for o in self._truth_cache[key]]
 
     def _compute_truth(self, t: float) -> list[ObstacleTruth]:
         layer = self._layer(2, t)
         w = self._rect_shape[1]
-        R_rect_world = self.R_world_rect.T
+        T_wr = self.T_world_rect_at(t)
+        R_rect_world, origin = T_wr[:3, :3].T, T_wr[:3, 3]
+        T_br = self.T_base_rect(t)
         out = []
         for i, b in enumerate(self.scene.boxes):
-            origin, yaw, vel = b.pose(t)
-            center_w = origin + _rot_z(yaw) @ b.local_center()
-            center = R_rect_world @ (center_w - self.origin_left)
+            origin_b, yaw, vel = b.pose(t)
+            center_w = origin_b + _rot_z(yaw) @ b.local_center()
+            center = R_rect_world @ (center_w - origin)
             idx = np.flatnonzero(layer.obj == i)
             if idx.size:
                 # rectified frame, origin = the left camera centre
@@ -764,8 +998,10 @@ class SyntheticWorld:
                 bbox: tuple[int, int, int, int] | None = (int(xs.min()), int(ys.min()), int(xs.max()), int(ys.max()))
             else:
                 centroid, nearest, bbox = np.full(3, np.nan), float("nan"), None
+            to_base = lambda p: T_br[:3, :3] @ p + T_br[:3, 3]  # noqa: E731
             out.append(ObstacleTruth(b.name, b.kind, center, tuple(b.size), centroid, nearest,  # type: ignore[arg-type]
-                                     int(idx.size), bbox, R_rect_world @ vel))
+                                     int(idx.size), bbox, R_rect_world @ vel, to_base(center), to_base(centroid),
+                                     T_br[:3, :3] @ (R_rect_world @ vel), b.is_static()))
         return out
 
     def true_disparity(self, t: float = 0.0) -> np.ndarray:
@@ -794,11 +1030,9 @@ class SyntheticWorld:
 
     @property
     def T_world_rect(self) -> np.ndarray:
-        """4x4 transform from the rectified left camera frame to the world (robot base) frame."""
-        T = np.eye(4)
-        T[:3, :3] = self.R_world_rect
-        T[:3, 3] = self.origin_left
-        return T
+        """4x4 transform from the rectified left camera frame to the world frame at t = 0 (the robot
+        base frame of a camera that does not move; see T_world_rect_at, T_base_rect)."""
+        return self.T_world_rect_at(0.0)
 
     # internals -------------------------------------------------------------------------------------
     def _add_noise(self, clean: np.ndarray, t: float, cam: int) -> np.ndarray:
@@ -824,11 +1058,39 @@ class SyntheticWorld:
             out.append(img + np.float32(0.5))  # +0.5: the uint8 conversion truncates
         return out[0], out[1]
 
-    def _view(self, which: int) -> _View:
-        return (self._left, self._right, self._rect)[which]
+    def _make_view(self, which: int, t: float) -> _View:
+        c = self._cams[which]
+        R_wl, o_wl = self.left_pose(t)
+        R_world_cam = R_wl @ c.R_left_cam
+        dw = c.dirs32 @ R_world_cam.T.astype(np.float32)
+        K = c.K
+        return _View(o_wl + R_wl @ c.center_left, dw, self.shape, 1.0 / K[0, 0], c.shaded, R_world_cam.T, K,
+                     c.slack_px)
+
+    def _view(self, which: int, t: float = 0.0) -> _View:
+        if not self.scene.camera_moves():
+            return (self._left, self._right, self._rect)[which]
+        key = (which, float(t))
+        if key not in self._view_cache:
+            if len(self._view_cache) > 6:
+                self._view_cache.clear()
+            self._view_cache[key] = self._make_view(which, float(t))
+        return self._view_cache[key]
 
     def _layer(self, which: int, t: float) -> _Layer:
         """Depth, shade and obstacle index of view `which` (0 left, 1 right, 2 rectified left)."""
+        if self.scene.camera_moves():
+            # everything moves in the image: floor, wall and every object are cast for each frame
+            key = (which, float(t))
+            if key not in self._frame_cache:
+                if len(self._frame_cache) > 6:
+                    self._frame_cache.clear()
+                v = self._view(which, t)
+                layer = self._background(v)
+                for i in range(len(self.scene.boxes)):
+                    self._draw(v, layer, i, t)
+                self._frame_cache[key] = layer
+            return self._frame_cache[key]
         if which not in self._static_layers:
             base = self._background(self._view(which))
             for i in self._static_objs:

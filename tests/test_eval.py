@@ -113,3 +113,88 @@ def test_layers_floor_fit_absorbs_a_wrong_mount_where_seed_fails(data):
     layers, seed_floor = r["overall"]["layers"], r["overall"]["seed+floor"]
     assert layers.recall >= 0.95 and layers.precision >= 0.95 and layers.floor_fp == 0, E.format_table(r)
     assert seed_floor.floor_fp > 0
+
+
+# --- people close to a low camera (10 m range) ------------------------------------------------------
+
+PEOPLE = ["people-side", "people-side-far", "people-queue", "people-queue-far", "people-border"]
+
+
+@pytest.fixture(scope="module")
+def people():
+    data = {name: E.render_scenario(name, frames=2) for name in PEOPLE}
+    return E.evaluate(PEOPLE, ["layers"], data=data)["scenarios"]
+
+
+def test_people_side_by_side_are_one_obstacle_each_from_2_5_to_9_5_m(people):
+    """Pairs 0.15-0.3 m apart at 2.5, 5, 7 and 9.5 m: each person is one obstacle where they stand."""
+    for name in ("people-side", "people-side-far"):
+        s = people[name]["layers"]
+        assert s.recall == 1.0 and s.precision == 1.0, (name, s.to_dict())
+        assert s.pos_err_p95_pct <= 2.5, (name, s.pos_err_p95_pct)
+
+
+def test_people_one_behind_another_are_separate_obstacles(people):
+    """0.3 m between the back of one and the front of the other: at 2 m and 4.5 m, and at 7 m where
+    it is under half a pixel of disparity for this rig's 10 cm baseline."""
+    s = people["people-queue"]["layers"]
+    assert s.recall == 1.0 and s.precision == 1.0, s.to_dict()
+    far = people["people-queue-far"]["layers"]
+    for name in ("front-c", "behind-c"):
+        assert far.per_truth[name]["matched"] == far.per_truth[name]["seen"] == 2, far.per_truth
+    assert far.precision == 1.0
+
+
+@pytest.mark.xfail(strict=True, reason="9 m from the lifecam rig (f B = 64 px m) 0.55 m of depth is 0.43 px of "
+                   "disparity, within block matching's noise on a person (their disparities spread over ~0.5 px): "
+                   "the two are one obstacle")
+def test_people_one_behind_another_9_m_away_are_separate(people):
+    far = people["people-queue-far"]["layers"]
+    assert all(far.per_truth[n]["matched"] == far.per_truth[n]["seen"] for n in ("front-d", "behind-d"))
+
+
+def test_people_cut_by_the_image_border_are_obstacles_flagged_truncated_with_their_near_edge_right(people):
+    s = people["people-border"]["layers"]
+    assert s.recall == 1.0 and s.precision == 1.0, s.to_dict()
+    assert s.border_truths == 4 and s.border_flagged == 4  # two people cut, two frames
+    assert s.near_err_p95_m <= 0.05, s.near_err_p95_m  # the nearest point, against the truth's measurable one
+    assert s.border_edge_err_px <= 8, s.border_edge_err_px  # the box side away from the border
+
+
+# --- a swaying ballbot ------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def sway():
+    # 20 frames at 15 fps: the camera pitches from 11 to 17 and back to 1.5 deg, rolls from +6 to -9 deg
+    return E.render_scenario("sway", frames=20, fps=15.0)
+
+
+def test_sway_with_the_true_ground_holds_what_stands_still_within_5_cm(sway):
+    """Given each frame's true ground, the base frame (REP 103, not tilted by the sway) holds the
+    chair, the standing person and the crate steady within 5 cm while the robot drives and sways;
+    the table, which the walking person passes behind, is seen with more or less of it. (Seen
+    almost edge-on from 0.9 m, the table's top barely shows: its back legs are at times an obstacle
+    of their own, which is what keeps the precision below 100 %.)"""
+    s = E.score_method(sway, "layers", true_ground=True)
+    assert s.ground_fitted == 1.0 and s.ground_pitch_err_max_deg < 1e-6
+    for name in ("chair", "standing", "crate"):
+        assert s.per_truth[name]["wobble_p95_m"] <= 0.05, (name, s.per_truth[name])
+    assert s.base_err_med_m <= 0.05, s.to_dict()
+    assert s.recall >= 0.85 and s.precision >= 0.8, s.to_dict()
+
+
+@pytest.mark.xfail(strict=True, reason="the ground estimator (ground.py, issue 20 item 1) refuses fits that differ "
+                   "from its smoothed estimate by more than ground_step_deg and then holds a stale ground for "
+                   "frames: at 15 fps the sway turns the camera by up to 8 deg a frame")
+def test_sway_the_ground_is_found_every_frame(sway):
+    s = E.score_method(sway, "layers")
+    assert s.ground_fitted == 1.0 and s.ground_pitch_err_max_deg <= 1.0 and s.ground_roll_err_max_deg <= 1.0, \
+        [g for g in s.ground if g["source"] != "fitted"]
+
+
+def test_eval_ground_figures_agree_with_the_estimator_on_a_still_camera(data):
+    """The eval's true mount and the estimator's ground use one convention: on the still scenes
+    the fitted ground is within a few tenths of a degree and a centimetre."""
+    r = E.evaluate(["two-boxes", "chair"], ["layers"], data=data)["overall"]["layers"]
+    assert r.ground_fitted == 1.0
+    assert r.ground_pitch_err_max_deg < 0.5 and r.ground_roll_err_max_deg < 0.8 and r.ground_height_err_max_m < 0.02

@@ -247,7 +247,8 @@ def test_karlsruhe_meets_the_real_scene_targets_with_the_default_segmenter():
     seen in >= 5 frames, while tracks do not hop between objects (few jumps over the ground) and
     the parked street's obstacles come out nearly still over the ground; the ground is the road
     (its height and pitch agree with the independent profile). Of all near obstacles, confirmed
-    or not, fewer live 5 frames (the issue's 80 % is not reached: see the README)."""
+    or not, two in three live 5 frames (the issue's 80 % is not reached: see the README), with almost no
+    track hopping more than 2 m over the ground."""
     from cores.matching.config import MatcherConfig
     from cores.segmentation.settings import SegmenterSettings
 
@@ -257,9 +258,9 @@ def test_karlsruhe_meets_the_real_scene_targets_with_the_default_segmenter():
     assert f["median_obstacles_per_frame"] <= 25, f
     assert f["flat_fraction"] <= 0.05, f
     assert f["near_confirmed_long_track_fraction"] >= 0.80, f
-    assert f["near_long_track_fraction"] >= 0.40, f
-    assert f["track_jump_fraction"] <= 0.10, f
-    assert f["static_speed_mps"]["median"] <= 3.0, f
+    assert f["near_long_track_fraction"] >= 0.60, f
+    assert f["track_jump_fraction"] <= 0.05, f
+    assert f["static_speed_mps"]["median"] <= 1.0, f
     assert f["ground_sources"] == {"fitted": 40}
     assert abs(f["ground_height_m"]["median"] - f["road_height_m"]["median"]) < 0.1
     assert abs(f["ground_pitch_deg"]["median"] - f["road_pitch_deg"]["median"]) < 1.0

@@ -69,6 +69,67 @@ def test_layers_separates_objects_touching_in_the_image_at_different_depths():
     assert len(seed.segment(d, MODEL, SegmenterSettings(method="seed"))) < 2
 
 
+def test_layers_separates_things_one_behind_the_other_less_than_a_disparity_pixel_apart():
+    """Two boxes 0.6 m apart in depth 6.5 m away, the far one half hidden: under a pixel of
+    disparity apart, so the column-disparity grid joins them; the depth-layer split parts them."""
+    d = scene([(300, 380, 6.5, 120), (360, 430, 7.1, 130)], wall_m=12.0, holes=0.0)
+    cfg = SegmenterSettings(max_range_m=10.0)
+    assert _depths(layers.segment(d, MODEL, cfg)) == [6.5, 7.1]
+    assert len(layers.segment(d, MODEL, cfg.model_copy(update={"layer_valley_ratio": 0.0}))) == 1
+
+
+def _grouped(*parts):
+    """Grouped pixels as _group gives them, one group: parts of (rows, cols, disparity per pixel)."""
+    ys, xs, dv = [], [], []
+    for rows, cols, disp in parts:
+        yy, xx = np.meshgrid(np.asarray(rows), np.asarray(cols), indexing="ij")
+        ys.append(yy.ravel())
+        xs.append(xx.ravel())
+        dv.append(np.broadcast_to(np.asarray(disp, np.float32), yy.shape).ravel())
+    ys, xs, dv = (np.concatenate(a) for a in (ys, xs, dv))
+    return ys, xs, dv, np.ones(ys.size, np.int32)
+
+
+def _layers_of(ys, xs, dv, lab):
+    out = layers._split_layers(ys, xs, dv, lab, SegmenterSettings(max_range_m=10.0), MODEL, 2)[0]
+    return {int(k): (float(np.median(dv[out == k])), int((out == k).sum())) for k in np.unique(out) if k > 0}
+
+
+def test_the_depth_layer_split_parts_a_person_behind_another_and_keeps_a_table_and_a_torso_whole():
+    rows = np.arange(50, 200)
+    # a person (d 12 px, 5.5 m) with one 0.5 m behind (d 11 px) beside them, and the ramp block
+    # matching draws across the occlusion between them: three columns of in-between disparities
+    ramp = [(rows, [139], 11.75), (rows, [140], 11.5), (rows, [141], 11.25)]
+    queue = _layers_of(*_grouped((rows, np.arange(100, 139), 12.0), *ramp, (rows, np.arange(142, 165), 11.0)))
+    assert sorted(round(v[0]) for v in queue.values()) == [11, 12]
+    assert sum(v[1] for v in queue.values()) == rows.size * (39 + 23)  # the ramp's pixels are dropped
+    # a table 2 m away: front legs and apron (d 33), back legs (d 25), and the top between them,
+    # row by row from the back edge to the front across the table's whole width
+    top = [([80 + k], np.arange(100, 200), 25.0 + k) for k in range(9)]
+    table = _layers_of(*_grouped((np.arange(90, 200), np.r_[100:106, 194:200], 33.0), (np.arange(92, 106),
+                                 np.arange(100, 200), 33.0), (np.arange(90, 150), np.r_[110:114, 186:190], 25.0),
+                                 *top))
+    assert len(table) == 1
+    # a person's torso 6 cm before their legs (d 34 and 33): one person
+    assert len(_layers_of(*_grouped((np.arange(50, 120), np.arange(100, 140), 34.0),
+                                    (np.arange(120, 200), np.arange(104, 136), 33.0)))) == 1
+
+
+def test_depth_layers_of_one_group_are_not_joined_again_but_a_fence_s_stretches_are():
+    """Regions whose extents come within merge_gap_depth_m along the view join (the stretches of a
+    fence the matcher left out), unless the depth-layer split made them two (one behind the other)."""
+    def region(z0, z1, groups=frozenset()):
+        pts = np.array([[-1.0, -0.5, z0], [-0.8, 0.5, z1]])
+        return layers._Region(pts, pts[0], pts[1], (0, 0, 10, 10), 100, 100, np.full(2, FB / z0), 0, groups)
+
+    fence = layers._merge_close([region(5.0, 5.5), region(5.7, 6.2)], 0.12, 0.25)
+    assert len(fence) == 1
+    people = layers._merge_close([region(5.0, 5.5, frozenset({7})), region(5.7, 6.2, frozenset({7}))], 0.12, 0.25)
+    assert len(people) == 2
+    touching = layers._merge_close([region(5.0, 5.5, frozenset({7})), region(5.55, 6.2, frozenset({7}))], 0.12, 0.25)
+    assert len(touching) == 1
+
+
 def test_layers_keeps_an_object_cut_by_the_image_border():
     d = scene([(560, 700, 2.0, 200)])
     dets = layers.segment(d, MODEL, SegmenterSettings())
@@ -341,6 +402,34 @@ def test_builder_publishes_ground_free_space_and_confirms_tracks():
     assert last.obstacles.obstacles[0].position_base_m is not None
     seed_out = ObstacleBuilder(SegmenterSettings(method="seed")).process(d, MODEL, t_s=0, seq=0, stamp_ns=0)
     assert seed_out.freespace is None and seed_out.obstacles.ground is None  # no mount, no ground: said so
+
+
+def test_a_tracked_object_seen_in_pieces_stays_one_obstacle_and_a_newcomer_beside_it_does_not_join():
+    """A wide low cabinet 3 m away is tracked; then the matcher loses a stretch in its middle (two
+    pieces 0.2 m apart across the view, too far for merge_gap_m): it is still one obstacle with its
+    id, while a box stepping up 0.3 m beside it is an obstacle of its own."""
+    mount = Mount(1.0, 15.0)
+
+    def frame(gap: bool, newcomer: bool) -> np.ndarray:
+        d = scene([(200, 470, 3.0, 80)] + ([(510, 560, 3.0, 120)] if newcomer else []), holes=0.0)
+        if gap:
+            d[:, 320:360] = scene(holes=0.0)[:, 320:360]  # the floor and wall behind show through
+        return d
+
+    for merge in (True, False):
+        b = ObstacleBuilder(_mounted(mount).model_copy(update={"track_merge_fragments": merge}))
+        outs = [b.process(frame(k >= 4, k >= 5), MODEL, t_s=k / 15, seq=k, stamp_ns=k) for k in range(7)]
+        first = outs[0].obstacles.obstacles
+        assert len(first) == 1
+        for r in outs[4:]:
+            obs = sorted(r.obstacles.obstacles, key=lambda o: o.bbox_px[0])
+            if merge:
+                assert obs[0].id == first[0].id and obs[0].bbox_px[0] <= 202 and obs[0].bbox_px[2] >= 468
+                assert len(obs) == (2 if r.obstacles.seq >= 5 else 1)
+                if len(obs) == 2:
+                    assert obs[1].id != obs[0].id and obs[1].bbox_px[0] >= 500
+            else:  # without: the pieces are two obstacles (what the tracker is given to hold together)
+                assert sum(o.bbox_px[2] <= 470 for o in obs) == 2
 
 
 def test_odometry_gives_velocities_over_the_ground():

@@ -191,7 +191,7 @@ def _matchable(disp: np.ndarray) -> np.ndarray:
     return smooth & (right_min > xr - 0.5)
 
 
-@pytest.mark.parametrize("name,t", [("two-boxes", 0.0), ("chair", 0.0), ("person-walking", 1.3)])
+@pytest.mark.parametrize("name,t", [("two-boxes", 0.0), ("chair", 0.0), ("person-walking", 1.3), ("sway", 0.8)])
 def test_rectified_pair_agrees_with_true_disparity(name, t, rig, rect):
     """Rectify the rendered raw pair with OpenCV: the right image sampled at x - true disparity
     must reproduce the left one, and visibly less so 0.25 px off. This proves renderer, lens
@@ -205,6 +205,9 @@ def test_rectified_pair_agrees_with_true_disparity(name, t, rig, rect):
     xs, ys = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
     mask = _matchable(disp)
     regions = {"floor": (ids == -1) & (ys > 300), "wall": (ids == -1) & (ys < 100)}
+    if name == "sway":  # people and furniture fill the top of the view; the far wall shows only in slivers
+        regions.pop("wall")
+        regions["floor"] = (ids == -1) & (ys > 420)  # rolled 10 deg: the floor far off is grazing
     regions.update({b.name: ids == i for i, b in enumerate(world.scene.boxes)})
     errs = {}
     for shift in (0.0, 0.25, 1.0):
@@ -254,8 +257,9 @@ def test_subpixel_matches_agree_with_true_disparity(clean_world, rig, rect):
 # --- scenarios ---------------------------------------------------------------------------------------
 
 def test_builtin_scenarios_listed():
-    assert S.list_builtin_scenarios() == ["border", "border-right", "chair", "occlusion", "person-walking",
-                                          "toolbox", "touching", "two-boxes"]
+    assert S.list_builtin_scenarios() == ["border", "border-right", "chair", "occlusion", "people-border",
+                                          "people-queue", "people-queue-far", "people-side", "people-side-far",
+                                          "person-walking", "sway", "toolbox", "touching", "two-boxes"]
     with pytest.raises(ConfigError, match="no-such-scene.*built-in: border, border-right, chair"):
         S.Scene.builtin("no-such-scene")
 
@@ -354,6 +358,94 @@ def test_box_path_stops_without_loop():
     assert np.allclose(c, (2.0, 0.0, 0.2)) and np.allclose(v, 0)
 
 
+# --- a moving, swaying camera ------------------------------------------------------------------------
+
+def _mount_angles(R_base_cam: np.ndarray) -> tuple[float, float, float]:
+    """(pitch, roll, yaw) deg of optical axes given in the base frame, from the axes themselves: the
+    optical axis z points forward-down by the pitch, the image's x axis (right) dips by the roll."""
+    fwd, right = R_base_cam[:, 2], R_base_cam[:, 0]
+    pitch = math.degrees(math.asin(-fwd[2]))
+    yaw = math.degrees(math.atan2(fwd[1], fwd[0]))
+    # the roll tilts the image's x axis out of the horizontal plane: down on the right is positive
+    roll = math.degrees(math.asin(-right[2] / math.cos(math.radians(pitch))))
+    return pitch, roll, yaw
+
+
+def test_swaying_camera_pose_follows_the_scenario(rig, rect):
+    """The sway scenario's camera: pitch and roll are the mount's plus the declared sinusoids, the
+    heading stays the robot's, the height bobs, and the robot drives its arc over the floor."""
+    world = _world("sway", rig, rect)
+    sc = world.scene
+    m = sc.camera_motion
+    assert not world.is_static() and sc.camera_moves()
+    R1 = np.asarray(rect.R1, float)
+    for t in (0.0, 0.37, 1.1, 2.5):
+        T = world.T_base_rect(t)
+        R_left = T[:3, :3] @ R1  # the (unrectified) left camera's axes, whose pitch and roll the scene sets
+        pitch, roll, yaw = _mount_angles(R_left)
+        dp = sum(w.amplitude * math.sin(2 * math.pi * w.frequency_hz * t + math.radians(w.phase_deg)) for w in m.pitch_deg)
+        dr = sum(w.amplitude * math.sin(2 * math.pi * w.frequency_hz * t + math.radians(w.phase_deg)) for w in m.roll_deg)
+        dh = sum(w.amplitude * math.sin(2 * math.pi * w.frequency_hz * t + math.radians(w.phase_deg)) for w in m.height_m)
+        assert pitch == pytest.approx(sc.camera_pitch_deg + dp, abs=1e-6)
+        assert roll == pytest.approx(dr, abs=1e-6)
+        assert yaw == pytest.approx(0.0, abs=1e-6)
+        assert np.allclose(T[:3, 3], (0.0, 0.0, sc.camera_height_m + dh))
+        # the base frame drives along an arc: speed 0.25 m/s, turning 3 deg/s
+        Tw = world.T_world_base(t)
+        heading = math.radians(3.0 * t)
+        assert math.atan2(Tw[1, 0], Tw[0, 0]) == pytest.approx(heading, abs=1e-9)
+        r = 0.25 / math.radians(3.0)
+        assert np.allclose(Tw[:2, 3], (r * math.sin(heading), r * (1 - math.cos(heading))), atol=1e-9)
+    lin, ang = world.odometry(1.0)
+    assert np.allclose(lin, (0.25, 0, 0)) and np.allclose(ang, (0, 0, math.radians(3.0)))
+    # the sway really is +-10 deg at 0.5-2 Hz
+    assert sum(w.amplitude for w in m.pitch_deg) == 10.0 and sum(w.amplitude for w in m.roll_deg) == 10.0
+    assert all(0.5 <= w.frequency_hz <= 2.0 for w in m.pitch_deg + m.roll_deg)
+
+
+def test_swaying_camera_renders_the_floor_and_objects_where_the_truth_says(rig, rect):
+    """The renderer and the pose chain agree: every floor pixel of the rectified view, taken to the
+    world by the camera's pose at that instant, lies on the floor (z = 0); what stands still keeps
+    its world position and its base-frame truth is the world's seen from the robot."""
+    world = _world("sway", rig, rect)
+    m = rect.model
+    ids0 = None
+    for t in (0.2, 1.4):
+        depth = world.true_depth(t)
+        ids = world.obstacle_ids(t)
+        h, w = depth.shape
+        u, v = np.meshgrid((np.arange(w) - m.cx) / m.focal_px, (np.arange(h) - m.cy) / m.focal_px)
+        pts = np.stack([u, v, np.ones_like(u)], -1) * depth[..., None]
+        T = world.T_world_rect_at(t)
+        pw = pts @ T[:3, :3].T + T[:3, 3]
+        floor = (ids == -1) & np.isfinite(depth) & (pw[..., 0] < world.scene.wall_distance_m - 0.01)
+        assert floor.sum() > 20000
+        assert np.abs(pw[..., 2][floor]).max() < 1e-3
+        Tb = np.linalg.inv(world.T_world_base(t))
+        for o, b in zip(world.truth(t), world.scene.boxes):
+            origin, yaw, _ = b.pose(t)
+            center_w = origin + S._rot_z(yaw) @ b.local_center()
+            assert np.allclose(T[:3, :3] @ o.center_m + T[:3, 3], center_w, atol=1e-9)
+            assert np.allclose(o.center_base_m, Tb[:3, :3] @ center_w + Tb[:3, 3], atol=1e-9)
+            assert o.static == b.is_static()
+        if ids0 is not None:
+            assert (ids0 != ids).mean() > 0.05  # the view moved
+        ids0 = ids
+
+
+def test_a_lean_about_a_pivot_carries_the_camera_over_the_floor():
+    """With pivot_height_m the sway is a lean of the robot about a point under the camera (a
+    ballbot's ball): leaning forward by a degree moves the camera forward by (h - pivot) sin(a)
+    and down by (h - pivot) (1 - cos(a)); without a pivot the camera turns on the spot."""
+    lean = S.CameraMotion(pitch_deg=(S.Wave(5.0, 0.5, 90.0),), pivot_height_m=0.2)
+    R, o = lean.camera_in_base(0.0, 1.0, 10.0)  # sin(90 deg) = 1: leaning 5 deg forward
+    a = math.radians(5.0)
+    assert np.allclose(o, (0.8 * math.sin(a), 0.0, 0.2 + 0.8 * math.cos(a)))
+    assert _mount_angles(R)[0] == pytest.approx(15.0)
+    R2, o2 = S.CameraMotion(pitch_deg=(S.Wave(5.0, 0.5, 90.0),)).camera_in_base(0.0, 1.0, 10.0)
+    assert np.allclose(o2, (0, 0, 1.0)) and np.allclose(R, R2)
+
+
 # --- scenario files ----------------------------------------------------------------------------------
 
 _GOOD = """
@@ -398,6 +490,16 @@ def test_yaml_round_trip(tmp_path):
     (("    size: [0.3, 0.3, 0.3]\n", "    parts: [{offset: [0, 0], size: [1, 1, 1]}]\n"),
      r"objects\[0\] \('crate'\): parts\[0\]: field 'offset': .*at least 3 items"),
     (("name: mine\n", "name: mine\nwall_distance_m: 1.5\n"), r"'crate' stands behind the wall"),
+    (("name: mine\n", "name: mine\ncamera_motion: {pitch_deg: [{amplitude: 60, frequency_hz: 1}]}\n"),
+     r"camera_motion: camera_pitch_deg 10 and the pitch_deg amplitudes reach 70 deg \(at most 60\)"),
+    (("name: mine\n", "name: mine\ncamera_motion: {roll_deg: [{amplitude: 5, frequency_hz: 0}]}\n"),
+     r"camera_motion: roll_deg\[0\]: field 'frequency_hz': .*greater than 0"),
+    (("name: mine\n", "name: mine\ncamera_motion: {height_m: [{amplitude: 0.8, frequency_hz: 1}]}\n"),
+     r"take the camera down to 0 m"),
+    (("name: mine\n", "name: mine\ncamera_motion: {pivot_height_m: 0.9}\n"), r"pivot_height_m 0.9 must be below"),
+    (("name: mine\n", "name: mine\ncamera_motion: {sway: 3}\n"), r"camera_motion: unknown field 'sway'"),
+    (("name: mine\n", "name: mine\ncamera_motion: {start: [0, 0]}\n"), r"camera_motion: field 'start': .*at least 3"),
+    (("name: mine\n", "name: mine\nrange_m: 0.1\n"), r"field 'range_m': .*greater than or equal to 0.5"),
 ])
 def test_yaml_errors_name_file_and_field(tmp_path, edit, message):
     f = tmp_path / "bad.yaml"

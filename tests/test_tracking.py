@@ -97,3 +97,41 @@ def test_move_carries_tracks_by_the_robots_own_motion():
     assert np.allclose(tr.tracks[0].position, [0.0, -1.2, 0.3]) and np.allclose(tr.tracks[0].box, [[-0.2, -1.4], [0.2, -1.0]])
     (t1,) = tr.update([np.array([0.0, -1.2, 0.3])], 0.1, [np.array([[-0.2, -1.4], [0.2, -1.0]])])
     assert t1.id == t0.id and np.linalg.norm(t1.velocity) < 1e-6
+
+
+def _fp(x0, x1, y0, y1):
+    return np.array([[x0, y0], [x1, y1]], float)
+
+
+def test_a_fence_seen_with_more_or_less_of_it_keeps_its_id_and_stands_still():
+    """In the base frame, by footprints: a fence along the road 6 m long is seen next as a 2.5 m
+    stretch at one end (its centroid 1.75 m away), then whole again. It is the same thing: its id
+    stays and the sliding centroid is not taken for motion; a post 1 m beyond the fence's end is
+    another thing."""
+    tr = Tracker()
+    tr.ground_plane = True
+    whole = (np.array([7.0, 3.0, 0.6]), _fp(4.0, 10.0, 2.9, 3.1))
+    part = (np.array([5.25, 3.0, 0.6]), _fp(4.0, 6.5, 2.9, 3.1))
+    post = (np.array([11.0, 3.0, 0.6]), _fp(10.9, 11.1, 2.9, 3.1))
+    ids = set()
+    for k, (p, box) in enumerate([whole, whole, part, whole, part, part, whole]):
+        seen = tr.update([p, post[0]] if k >= 3 else [p], k / 10, [box, post[1]] if k >= 3 else [box])
+        ids.add(seen[0].id)
+        if k >= 3:
+            assert seen[1].id != seen[0].id
+    assert len(ids) == 1
+    assert np.linalg.norm(tr.tracks[0].velocity) < 0.5, tr.tracks[0].velocity
+
+
+def test_a_new_track_starts_still_and_a_walker_is_picked_up_by_the_gain():
+    """Two centroids 0.1 s apart, 5 cm apart (the noise of a centroid 3 m away) are no speed of
+    0.5 m/s: a new track starts at zero velocity and the second sighting pulls it by the Kalman
+    gain only part of the way; a person walking at 1 m/s is measured within a second."""
+    tr = Tracker()
+    (a,) = tr.update([np.array([0.0, 0.0, 3.0])], 0.0)
+    (a,) = tr.update([np.array([0.05, 0.0, 3.0])], 0.1)
+    assert np.linalg.norm(a.velocity) < 0.4
+    tr = Tracker()
+    for k in range(12):
+        (w,) = tr.update([np.array([-1.0 + 0.1 * k, 0.0, 3.0])], k / 10)
+    assert abs(w.velocity[0] - 1.0) < 0.2, w.velocity

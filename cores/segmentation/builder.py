@@ -126,6 +126,56 @@ class ObstacleBuilder:
         self.tracker.move(R, -R @ (np.asarray(odometry.linear_mps, float) * dt))
         return True
 
+    def _merge_fragments(self, dets: list[Detection], points: list[np.ndarray], fps: list[np.ndarray], mount: Mount,
+                         model: camera.RectifiedModel, t_s: float
+                         ) -> tuple[list[Detection], list[np.ndarray], list[np.ndarray]]:
+        """Pieces of one tracked object put back together: a confirmed track that stood somewhere
+        in the last frame still stands there, so detections whose footprints lie (mostly) inside
+        its predicted footprint are its parts, seen apart this frame because the matcher lost a
+        texture-poor stretch of it (a fence along the road, a hedge). One object each frame keeps
+        its id and its centroid, where its pieces would be tracks that flicker. Only what lies
+        inside the footprint is joined: a person stepping up beside a tracked one, or standing
+        behind them, is outside it. fps: the detections' footprints (_footprint); -> (detections,
+        points, footprints) with each group of pieces as one."""
+        live = [tr for tr in self.tracker.tracks
+                if tr.confirmed and tr.box is not None and t_s - tr.last_seen_s <= 0.25]
+        if not live or len(dets) < 2:
+            return dets, points, fps
+        tb = np.array([tr.predicted_box(t_s) for tr in live])  # (T, 2, 2)
+        # how far its footprint's edges may be off: the stereo noise where it stands, its own motion
+        # since it was seen, a few centimetres of the percentiles' jitter
+        pad = np.array([np.sqrt(self.tracker.measurement_var(tr.position))
+                        + float(np.linalg.norm(tr.velocity[:2])) * (t_s - tr.last_seen_s) + 0.05 for tr in live])
+        lo, hi = tb[:, 0] - pad[:, None], tb[:, 1] + pad[:, None]  # (T, 2)
+        F = np.array(fps)  # (D, 2, 2)
+        ext = np.maximum(F[:, 1] - F[:, 0], 0.05)  # (D, 2)
+        overlap = np.clip(np.minimum(hi[:, None], F[None, :, 1]) - np.maximum(lo[:, None], F[None, :, 0]), 0, None)
+        inside = np.prod(overlap / ext[None], axis=2)  # (T, D): share of each footprint inside each track's
+        # a piece belongs to the tightest confirmed track around it: a table with a track of its own
+        # is not a piece of a person who stood behind it in one frame
+        size = np.prod(hi - lo, axis=1)
+        cand = np.where(inside >= 0.7, size[:, None], np.inf)
+        owner = np.where(np.isfinite(cand.min(0)), cand.argmin(0), -1)
+        groups: dict[int, list[int]] = {}
+        for di, ti in enumerate(owner.tolist()):
+            if ti >= 0:
+                groups.setdefault(ti, []).append(di)
+        merged = {g[0]: g for g in groups.values() if len(g) > 1}
+        if not merged:
+            return dets, points, fps
+        drop = {di for g in merged.values() for di in g[1:]}
+        out_d, out_p, out_f = [], [], []
+        for di, (d, p, f) in enumerate(zip(dets, points, fps)):
+            if di in drop:
+                continue
+            if di in merged:
+                d, p = layers.merge_detections([dets[k] for k in merged[di]], [points[k] for k in merged[di]], model)
+                f = _footprint(mount, p)
+            out_d.append(d)
+            out_p.append(p)
+            out_f.append(f)
+        return out_d, out_p, out_f
+
     def process(self, disparity: np.ndarray, model: camera.RectifiedModel, *, t_s: float, seq: int, stamp_ns: int,
                 robot_id: str = "offline", confidence: np.ndarray | None = None, odometry: Odometry | None = None,
                 image: np.ndarray | None = None, stale: bool = False,
@@ -151,14 +201,17 @@ class ObstacleBuilder:
             self._track_frame = track_frame
         over_ground = track_frame == "base" and self._ego_motion(odometry, t_s)
         self._last_t = t_s
-        dets = frame.detections
+        dets, points = frame.detections, frame.points
+        fps = [_footprint(mount, pts) for pts in points] if mount is not None and len(points) == len(dets) else None
+        if fps is not None and cfg.track_merge_fragments:
+            dets, points, fps = self._merge_fragments(dets, points, fps, mount, model, t_s)
         positions = [mount.to_base(d.position_m) if mount is not None else np.asarray(d.position_m, float)
                      for d in dets]
         self.tracker.depth_scale = model.focal_px * model.baseline_m
         self.tracker.ground_plane = track_frame == "base"
         boxes = None
         if mount is not None:
-            boxes = [_footprint(mount, pts) for pts in frame.points] if len(frame.points) == len(dets) else \
+            boxes = fps if fps is not None else \
                 [np.array([p[:2] - 0.5 * np.asarray(d.size_m)[[2, 0]], p[:2] + 0.5 * np.asarray(d.size_m)[[2, 0]]])
                  for d, p in zip(dets, positions)]
         edges = [None if d.edges is None else (mount.to_base(d.edges) if mount is not None else d.edges) for d in dets]

@@ -21,13 +21,16 @@ only what stands on it counts, and objects are grouped where they stand.
  7. grouping on the column-disparity grid (u-disparity): a cell (column, disparity bin) is
     occupied when its standing pixels cover min_cell_height_m; touching cells are one object.
     In metres this is a polar grid on the ground as fine as the matcher can see: a car, a wall
-    seen obliquely, a person stay whole; a person in front of a wall stays apart
+    seen obliquely, a person stay whole; a person in front of a wall stays apart. A group whose
+    disparities form two peaks with an empty valley between them, bridged only by the narrow
+    ramp the matcher draws across an occlusion, is two things one behind the other: split
  8. objects smaller than min_size_m / min_area_m2, or whose top is below min_height_m, are dropped
  9. per object, its 3D points; where a column ends within floor_margin_m (+4 cm) of the floor the
     object stands on it and the strip the band cut off is filled back in along the floor normal
 10. objects whose 3D extents come within merge_gap_m are one (a chair's back leg seen between its
-    front legs); a small object mostly inside a larger one's box is part of it (depths meet) or
-    seen through it (wholly behind: a car's windows) and dropped
+    front legs; along the view merge_gap_depth_m: a fence seen obliquely); a small object mostly
+    inside a larger one's box is part of it (depths meet) or seen through it (wholly behind: a
+    car's windows) and dropped
 11. per object: centroid (mean of the points), extent (2nd-98th percentile), nearest distance
     (2nd percentile of range), bbox, area, median disparity, confidence (mean matcher confidence,
     else the fraction of its pixels with a valid raw disparity)
@@ -61,6 +64,7 @@ class _Region:
     valid: int  # of which with a valid raw disparity
     disparities: np.ndarray  # (n,) px
     filled: int = 0  # points added by _fill_to_floor (included in pts)
+    groups: frozenset = frozenset()  # the split groups (_split_layers) it holds a depth layer of
 
 
 def _fill_to_floor(mask: np.ndarray, d_box: np.ndarray, x0: int, y0: int, floor: FloorPlane, cfg: SegmenterSettings,
@@ -104,9 +108,11 @@ def _fill_to_floor(mask: np.ndarray, d_box: np.ndarray, x0: int, y0: int, floor:
     return P[idx] + t[:, None] * n_down
 
 
-def _merge_close(regions: list[_Region], gap_m: float) -> list[_Region]:
-    """Merge regions whose 3D extents come within gap_m of each other along every axis: the parts
-    of one object that the image shows apart (a chair's back leg seen between its front legs)."""
+def _merge_close(regions: list[_Region], gap_m: float, depth_gap_m: float = 0.0) -> list[_Region]:
+    """Merge regions whose 3D extents come within gap_m of each other across the view (x, y) and
+    within max(gap_m, depth_gap_m) along it (z): the parts of one object that the image shows
+    apart (a chair's back leg seen between its front legs; a fence or a wall along the road seen
+    obliquely, whose texture-poor stretches the matcher leaves out)."""
     if len(regions) < 2 or gap_m <= 0:
         return regions
     parent = list(range(len(regions)))
@@ -120,9 +126,16 @@ def _merge_close(regions: list[_Region], gap_m: float) -> list[_Region]:
     lo = np.array([r.lo for r in regions])
     hi = np.array([r.hi for r in regions])
     gap = np.maximum(lo[:, None, :] - hi[None, :, :], lo[None, :, :] - hi[:, None, :])  # (n, n, 3)
-    close = np.all(gap <= gap_m, axis=2)
+    close = np.all(gap <= np.array([gap_m, gap_m, max(gap_m, depth_gap_m)]), axis=2)
+    held = [set(r.groups) for r in regions]  # per root: the split groups it holds a layer of
     for i, j in zip(*np.nonzero(np.triu(close, 1))):
-        parent[root(int(i))] = root(int(j))
+        a, b = root(int(i)), root(int(j))
+        # two depth layers of one group (a person behind another) are not joined again by the gap
+        # along the view that joins a fence's stretches, only where they touch
+        if a == b or (gap[i, j, 2] > gap_m and held[a] & held[b]):
+            continue
+        parent[a] = b
+        held[b] |= held[a]
     groups: dict[int, list[_Region]] = {}
     for i, r in enumerate(regions):
         groups.setdefault(root(i), []).append(r)
@@ -151,8 +164,8 @@ def _absorb_contained(regions: list[_Region], gap_m: float, model: camera.Rectif
         c = regions[ci]
         for ri in order:
             r = regions[ri]
-            if ri == ci or not alive[ri] or r.area >= c.area:
-                continue
+            if ri == ci or not alive[ri] or r.area >= c.area or r.groups & c.groups:
+                continue  # (two depth layers of one group: one stands behind the other, both are there)
             ix = max(0, min(r.bbox[2], c.bbox[2]) - max(r.bbox[0], c.bbox[0]))
             iy = max(0, min(r.bbox[3], c.bbox[3]) - max(r.bbox[1], c.bbox[1]))
             own = (r.bbox[2] - r.bbox[0]) * (r.bbox[3] - r.bbox[1])
@@ -178,7 +191,8 @@ def _union(g: list[_Region]) -> _Region:
     lo, hi = np.percentile(pts[::max(1, len(pts) // _STAT_SAMPLES)], [2, 98], axis=0)
     return _Region(pts, lo, hi, (min(r.bbox[0] for r in g), min(r.bbox[1] for r in g), max(r.bbox[2] for r in g),
                                  max(r.bbox[3] for r in g)), sum(r.area for r in g), sum(r.valid for r in g),
-                   np.concatenate([r.disparities for r in g]), sum(r.filled for r in g))
+                   np.concatenate([r.disparities for r in g]), sum(r.filled for r in g),
+                   frozenset().union(*(r.groups for r in g)))
 
 
 MAX_FLOOR_SAMPLES = 1_000_000  # points of drivable floor per frame, at most
@@ -234,6 +248,100 @@ def _group(dm: np.ndarray, stand: np.ndarray, cfg: SegmenterSettings, model: cam
     return ys[first:], xs[first:], dv[first:], lab[first:]
 
 
+_LAYER_BIN_PX = 1.0 / 16.0  # disparity histogram bins of the layer split: the matchers' sub-pixel step
+_LAYER_SMOOTH_BINS = 1.0  # Gaussian smoothing of that histogram, bins (sub-pixel matching noise)
+_LAYER_BAND = 0.35  # the valley band: bins below this share of the smaller peak's density
+_LAYER_MAX_SPLITS = 3  # each side of a split is split again, this many levels deep at most
+
+
+def _split_layers(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, lab: np.ndarray, cfg: SegmenterSettings,
+                  model: camera.RectifiedModel, step: int) -> tuple[np.ndarray, dict[int, int]]:
+    """Split grouped objects that are two things one behind the other: (new labels for the grouped
+    pixels, sorted by label as _group gives them, 0 = dropped; {label: the group it was split
+    from} for every label of a split group, whose layers later steps do not join again by depth).
+
+    The column-disparity grid joins cells up to a few pixels of disparity apart (one object's
+    surfaces at slightly different depths; a wall seen obliquely), which far away is metres: a
+    person 0.3 m behind another, a person behind a table, are one cell group. They show as two
+    peaks of the group's disparity histogram (area-weighted: m^2 of surface per bin) with a valley
+    between them that holds only the ramp block matching draws across the occlusion's contour, a
+    band a few pixels wide. A valley splits the group when
+    - its density is at most layer_valley_ratio of the smaller peak's;
+    - each side holds layer_min_area_m2 of surface and a tenth of the other side's (specks of
+      phantom depth beside a car or a facade stay with it);
+    - the peaks stand layer_gap_m apart in depth (a torso before the legs is one person);
+    - the valley's pixels are a thin band, at most layer_bridge_px wide along each image row: a
+      table top or a chair seat also fills the valley between front and back legs, but across the
+      object's whole width, and keeps it whole;
+    - the far side is within layer_split_range_m (a far street's facades and shelters would fall
+      apart into panels).
+    The valley's pixels (the ramp: phantom depths) are dropped; each side may be split again."""
+    family: dict[int, int] = {}
+    if cfg.layer_valley_ratio <= 0 or lab.size == 0:
+        return lab, family
+    out = lab.copy()
+    next_label = int(lab.max()) + 1
+    fB = model.focal_px * model.baseline_m
+    bridge = cfg.layer_bridge_px / step
+    k = np.arange(-4, 5, dtype=np.float64)
+    kernel = np.exp(-0.5 * (k / _LAYER_SMOOTH_BINS) ** 2)
+    kernel /= kernel.sum()
+    bounds = np.flatnonzero(np.diff(lab)) + 1
+    starts, ends = np.concatenate([[0], bounds]), np.concatenate([bounds, [lab.size]])
+    d_lo, d_hi = np.minimum.reduceat(dv, starts), np.maximum.reduceat(dv, starts)
+    # a group spanning less depth than layer_gap_m, or all beyond layer_split_range_m, has nothing to split
+    deep = (fB / np.maximum(d_lo, 1e-6) - fB / np.maximum(d_hi, 1e-6) >= cfg.layer_gap_m) & \
+        (fB / np.maximum(d_hi, 1e-6) <= cfg.layer_split_range_m) & (ends - starts >= 2 * cfg.min_pixels)
+    for a, b in zip(starts[deep], ends[deep]):
+        todo = [(np.arange(a, b), 0)]
+        while todo:
+            idx, level = todo.pop()
+            if level >= _LAYER_MAX_SPLITS or idx.size < 2 * cfg.min_pixels:
+                continue
+            d = dv[idx].astype(np.float64)
+            bins = np.floor(d / _LAYER_BIN_PX).astype(np.int64)
+            b0 = int(bins.min())
+            rel = bins - b0
+            area = (step * model.baseline_m / d) ** 2  # m^2 of surface a working pixel covers at its depth
+            hist = np.convolve(np.pad(np.bincount(rel, weights=area), kernel.size // 2), kernel, mode="valid")
+            if hist.size < 3:
+                continue
+            mass_left = np.cumsum(hist)
+            mass_right = mass_left[-1] - mass_left + hist
+            least = np.maximum(cfg.layer_min_area_m2, 0.1 * np.maximum(mass_left, mass_right))
+            ok = (mass_left >= least) & (mass_right >= least)
+            ok[0] = ok[-1] = False
+            if not ok.any():
+                continue
+            lower = np.minimum(np.maximum.accumulate(hist), np.maximum.accumulate(hist[::-1])[::-1])
+            ratio = np.where(ok, hist / np.maximum(lower, 1e-12), np.inf)
+            i = int(np.argmin(ratio))
+            if ratio[i] > cfg.layer_valley_ratio:
+                continue
+            band = hist <= _LAYER_BAND * lower[i]
+            lo = hi = i
+            while lo > 0 and band[lo - 1]:
+                lo -= 1
+            while hi < hist.size - 1 and band[hi + 1]:
+                hi += 1
+            z_far = fB / ((b0 + int(np.argmax(hist[:lo])) + 0.5) * _LAYER_BIN_PX)
+            z_near = fB / ((b0 + hi + 1 + int(np.argmax(hist[hi + 1:])) + 0.5) * _LAYER_BIN_PX)
+            if z_far > cfg.layer_split_range_m or z_far - z_near < cfg.layer_gap_m:
+                continue
+            in_band = (rel >= lo) & (rel <= hi)
+            # how wide the valley's pixels are along each image row they are in: a ramp along an
+            # occlusion's contour is a few pixels wide whatever the contour's shape
+            if in_band.sum() > bridge * max(1, np.unique(ys[idx[in_band]]).size):
+                continue
+            far, near = idx[rel < lo], idx[rel > hi]
+            out[idx[in_band]] = 0
+            out[far] = next_label
+            family[next_label] = family[int(lab[a])] = int(lab[a])
+            next_label += 1
+            todo += [(far, level + 1), (near, level + 1)]
+    return out, family
+
+
 def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: SegmenterSettings | None = None,
                   ground: GroundEstimator | None = None, confidence: np.ndarray | None = None,
                   image: np.ndarray | None = None) -> LayersFrame:
@@ -281,9 +389,15 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
         return LayersFrame([], [], floor, estimate, floor_points)
 
     ys, xs, dv, lab = _group(dm, stand, cfg, model, step)
+    lab, family = _split_layers(ys, xs, dv, lab, cfg, model, step)
+    order = np.argsort(lab, kind="stable")
+    ys, xs, dv, lab = ys[order], xs[order], dv[order], lab[order]
+    first = int(np.searchsorted(lab, 1))
+    ys, xs, dv, lab = ys[first:], xs[first:], dv[first:], lab[first:]
     bounds = np.flatnonzero(np.diff(lab)) + 1
     regions: list[_Region] = []
-    for gy, gx, gd in zip(np.split(ys, bounds), np.split(xs, bounds), np.split(dv, bounds)):
+    for gy, gx, gd, gl in zip(np.split(ys, bounds), np.split(xs, bounds), np.split(dv, bounds),
+                              lab[np.concatenate([[0], bounds]).astype(np.int64)] if lab.size else []):
         area = gy.size
         if area < cfg.min_pixels:
             continue
@@ -310,8 +424,10 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
                 filled = len(extra)
                 y1 = max(y1, min(h, int(np.ceil((float(np.max(extra[:, 1] / extra[:, 2])) * f + model.cy) / step)) + 1))
         lo, hi = np.percentile(pts[::max(1, len(pts) // _STAT_SAMPLES)], [2, 98], axis=0)
-        regions.append(_Region(pts, lo, hi, (x0, y0, x1, y1), area, valid, gd.astype(np.float64), filled))
-    regions = _absorb_contained(_merge_close(regions, cfg.merge_gap_m), cfg.merge_gap_m, model, step)
+        groups = frozenset({family[int(gl)]}) if int(gl) in family else frozenset()
+        regions.append(_Region(pts, lo, hi, (x0, y0, x1, y1), area, valid, gd.astype(np.float64), filled, groups))
+    regions = _absorb_contained(_merge_close(regions, cfg.merge_gap_m, cfg.merge_gap_depth_m), cfg.merge_gap_m,
+                                model, step)
     out: list[Detection] = []
     points: list[np.ndarray] = []
     measured = np.flatnonzero(d0.any(0))  # columns the matcher measured (not its blind left band)
@@ -337,6 +453,24 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
     if cfg.edge_refine and image is not None and out:
         out = [_refine_box(det, image) for det in out]
     return LayersFrame(out, points, floor, estimate, floor_points)
+
+
+def merge_detections(dets: list[Detection], points: list[np.ndarray], model: camera.RectifiedModel
+                     ) -> tuple[Detection, np.ndarray]:
+    """Several detections of one object as one: the statistics of segment_frame over the union of
+    their camera-frame points (n_i, 3) m. -> (the detection, its points)."""
+    pts = np.concatenate(points)
+    sub = pts[::max(1, len(pts) // _STAT_SAMPLES)]
+    lo, hi = np.percentile(sub, [2, 98], axis=0)
+    area = sum(d.area_px for d in dets)
+    return Detection(position_m=pts.mean(0), size_m=np.maximum(hi - lo, 0.0),
+                     distance_m=min(float(d.distance_m) for d in dets),
+                     bbox_px=(min(d.bbox_px[0] for d in dets), min(d.bbox_px[1] for d in dets),
+                              max(d.bbox_px[2] for d in dets), max(d.bbox_px[3] for d in dets)),
+                     area_px=area, disparity_px=float(np.median([d.disparity_px for d in dets])),
+                     confidence=float(sum(d.confidence * d.area_px for d in dets) / max(1, area)),
+                     cut=tuple(any(d.cut[k] for d in dets) for k in range(3)),  # type: ignore[arg-type]
+                     edges=_edges(sub, model)), pts
 
 
 def _drivable(floor: FloorPlane, df: np.ndarray, seen_floor: np.ndarray, standing: np.ndarray, dk: np.ndarray,

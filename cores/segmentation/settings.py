@@ -79,10 +79,28 @@ class SegmenterSettings(MountSettings):
     min_pixels: int = Field(12, ge=1, description="layers: smallest region, pixels at the working resolution")
     merge_gap_m: float = Field(0.12, ge=0, le=10, description="layers: regions whose 3D extents come this close "
                                "are one object")
+    merge_gap_depth_m: float = Field(0.25, ge=0, le=10, description="layers: ... and this close along the view "
+                                     "(depth): a fence or a wall along the road seen obliquely, whose texture-poor "
+                                     "stretches the matcher leaves out, is one object; keep it below the gap that "
+                                     "separates people one behind another")
     group_bin_px: float = Field(1.0, gt=0, le=16, description="layers: disparity bin of the column-disparity "
                                 "grid that groups standing points into objects, px")
     min_cell_height_m: float = Field(0.05, ge=0, le=5, description="layers: a column-disparity cell is occupied "
                                      "when its standing points cover this much height")
+    layer_valley_ratio: float = Field(0.25, ge=0, le=1, description="layers: a grouped object whose disparity "
+                                      "histogram has a valley this much lower than its two peaks is two things one "
+                                      "behind the other and is split there (0: never split)")
+    layer_min_area_m2: float = Field(0.04, ge=0, le=100, description="layers: each side of such a split holds at "
+                                     "least this much surface, m^2 (a hand held out is part of its person)")
+    layer_gap_m: float = Field(0.3, ge=0, le=100, description="layers: ... and the two sides' depths (the "
+                               "histogram's peaks) are at least this far apart, m (a torso before the legs is one "
+                               "person)")
+    layer_bridge_px: float = Field(24.0, ge=0, le=1000, description="layers: ... and the valley's pixels are at "
+                                   "most this wide along an image row, px (the ramp block matching draws across an "
+                                   "occlusion; a table top spans the whole table and keeps it whole)")
+    layer_split_range_m: float = Field(20.0, ge=0, le=100, description="layers: things farther than this are not "
+                                       "split by depth (a far street's facades, hedges and shelters would fall "
+                                       "apart into panels)")
     min_confidence: int = Field(200, ge=0, le=255, description="pixels whose disparity confidence (when the matcher "
                                 "gives one, e.g. dense) is below this are not used: dense fills every hole "
                                 "smoothly, and filled pixels would join neighbouring objects into one")
@@ -99,6 +117,9 @@ class SegmenterSettings(MountSettings):
     track_confirm_n: int = Field(5, ge=1, le=100, description="... of the last N frames")
     track_max_speed_mps: float = Field(2.5, gt=0, le=100, description="fastest obstacle over the ground (gates "
                                        "association across dropouts)")
+    track_merge_fragments: bool = Field(True, description="detections lying inside where a confirmed track "
+                                        "stood in the last frame are one obstacle (a fence whose texture-poor "
+                                        "stretches the matcher leaves out stays whole)")
     odometry_timeout_s: float = Field(0.5, gt=0, description="odometry older than this is not used")
     stale_after_s: float = Field(0.5, gt=0, description="input older than this (or none for this long) is stale")
 

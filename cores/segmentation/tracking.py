@@ -5,20 +5,23 @@ known, else the camera frame; metres; the axes are independent, so the filter is
 filters sharing one covariance shape). Association is one-to-one (Hungarian). In the camera frame
 its cost is the distance between a track's prediction and a detection; in the base frame it is
 the gap between their footprints on the ground (0 when they overlap) plus a tenth of the centroid
-distance, and the centroids may differ by no more than half the smaller footprint plus the gate,
-so a railing whose visible part slides along keeps its id while a fragment inside a large
-object's old footprint does not inherit it. The gate is gate_m plus twice the stereo noise at that
-distance (half a pixel of disparity, from the rig's f B) plus how far the track may have moved
-while unseen (max_speed_mps * time unseen). A track unseen for longer than timeout_s and in at
+distance, and the centroids may differ by no more than the gate plus half the larger footprint
+(seen with more or less of it, an object's centroid moves by up to half its extent: a railing
+whose visible part slides along, a car entering the view). The gate is gate_m plus twice the
+stereo noise at that distance (half a pixel of disparity, from the rig's f B) plus how far the
+track may have moved while unseen (max_speed_mps * time unseen). A track unseen for longer than timeout_s and in at
 least min_missed frames is dropped, so a short occlusion keeps its id and a long one does not,
 while a segmenter starved of CPU (frames 1 s apart on a loaded robot) does not drop tracks it
 simply had no frame to see them in. t_s must not go backwards (the service passes a monotonic
 time base).
 
-Velocities are the filter's, zero until two sightings have measured motion. A sighting cut by
-the side of the view or the vision range does not move its track's velocity by its centroid
-(which slides with the view); cut on one side only, the other side's edge measures the motion
-(a person walking into the image).
+Velocities are the filter's: a new track starts at zero velocity with the variance of the speeds
+obstacles have (most of what a robot sees stands still; two noisy centroids a frame apart are
+not a speed), and sightings pull it by the Kalman gain. A sighting cut by the side of the view or
+the vision range does not move its track's velocity by its centroid (which slides with the view);
+cut on one side only, the other side's edge measures the motion (a person walking into the
+image). Nor does a sighting whose footprint changed shape (more or less of the object segmented):
+the position restarts from it, the velocity stays.
 
 A track is confirmed once it has been seen in confirm_m of the last confirm_n frames, and stays
 confirmed while it lives: one-frame flukes never reach a planner as trusted. When the frame the
@@ -103,7 +106,8 @@ class Tracker:
         return (0.01 + k * z2) ** 2
 
     def _correct(self, tr: Track, p: np.ndarray, t_s: float,
-                 cut: tuple[bool, bool, bool] = (False, False, False), edges: np.ndarray | None = None) -> None:
+                 cut: tuple[bool, bool, bool] = (False, False, False), edges: np.ndarray | None = None,
+                 reshaped: bool = False) -> None:
         """Update a track with a sighting at p. cut: (left, right, far): the sighting is cut by the
         left or right edge of what the camera measures, or by the vision range; its centroid then
         slides with the view (a car entering the image, a railing along the road). If one side is
@@ -125,17 +129,12 @@ class Tracker:
             kp = pp / (pp + r)
             tr.position = x + kp * (p - x)
             tr.P = np.array([(1 - kp) * pp, tr.P[1], tr.P[2]])
-        elif whole and not tr.last_whole:
-            # whole again after cut sightings: the position restarts from its centroid, the velocity stays
+        elif (whole and not tr.last_whole) or reshaped:
+            # whole again after cut sightings, or seen with another shape (more or less of it
+            # segmented): the centroid moved because of what is seen, not because the object
+            # moved; the position restarts from it, the velocity stays
             tr.position = p.copy()
             tr.P = np.array([r, 0.0, tr.P[2]])
-        elif not tr.moving:
-            # the first pair of sightings that measures motion: velocity from the two positions
-            if dt > 1e-6:
-                tr.velocity = (meas - tr.position) / dt
-                tr.P = np.array([r, r / dt, 2 * r / dt ** 2 + self.accel ** 2 * dt])
-                tr.moving = True
-            tr.position = meas.copy()
         else:
             pp, pv, vv = tr.P
             if dt > 0:
@@ -149,6 +148,7 @@ class Tracker:
             tr.position = x + kp * innov
             tr.velocity = tr.velocity + kv * innov
             tr.P = np.array([(1 - kp) * pp, (1 - kp) * pv, vv - kv * pv])
+            tr.moving = tr.moving or dt > 1e-6
         tr.last_seen_s = t_s
         tr.hits += 1
         tr.last_whole = whole
@@ -173,6 +173,9 @@ class Tracker:
             P = np.array(pos)
             dims = slice(0, 2) if self.ground_plane else slice(0, 3)
             D = np.linalg.norm(pred[:, None, dims] - P[None, :, dims], axis=2)
+            unseen = np.array([t_s - tr.last_seen_s for tr in self.tracks])
+            sigma = np.sqrt([self.measurement_var(p) for p in pred])
+            gate = self.gate_m + 2 * sigma + self.max_speed * np.maximum(0.0, unseen - 0.1)
             slack = np.zeros_like(D)  # how far a centroid may move because of what of the object is seen
             if self.ground_plane and boxes is not None:
                 tb = [tr.predicted_box(t_s) for tr in self.tracks]
@@ -181,18 +184,15 @@ class Tracker:
                     T = np.array([b if b is not None else np.zeros((2, 2)) for b in tb])  # (nt, 2, 2)
                     B = np.asarray(boxes, float)  # (nd, 2, 2)
                     gap = np.maximum(0.0, np.maximum(T[:, None, 0] - B[None, :, 1], B[None, :, 0] - T[:, None, 1]))
-                    # the centroids too may differ by no more than half the smaller footprint: a railing
-                    # sliding along keeps its id, a small fragment inside a large object's old
-                    # footprint does not inherit it
+                    # the centroids too may differ by no more than the gate and half the larger
+                    # footprint: seen with more or less of it (a fence whose stretches come and go,
+                    # a car entering the view) an object's centroid moves by up to half its extent
                     ext_t = np.ptp(T, axis=1).max(1)
                     ext_d = np.ptp(B, axis=1).max(1)
-                    slack = np.where(have[:, None], 0.5 * np.minimum(ext_t[:, None], ext_d[None, :]), 0.0)
-                    far = D > slack + self.gate_m
+                    slack = np.where(have[:, None], 0.5 * np.maximum(ext_t[:, None], ext_d[None, :]), 0.0)
+                    far = D > slack + gate[:, None]
                     D = np.where(have[:, None], np.linalg.norm(gap, axis=2) + 0.1 * D, D)
                     D = np.where(far, 1e6, D)
-            unseen = np.array([t_s - tr.last_seen_s for tr in self.tracks])
-            sigma = np.sqrt([self.measurement_var(p) for p in pred])
-            gate = self.gate_m + 2 * sigma + self.max_speed * np.maximum(0.0, unseen - 0.1)
             cost = np.where(D <= gate[:, None], D, 1e6)
             for ti, pi in zip(*linear_sum_assignment(cost)):
                 if cost[ti, pi] < 1e6:
@@ -202,13 +202,21 @@ class Tracker:
             tr = assigned.get(pi)
             if tr is None:
                 cut = cuts[pi] if cuts is not None else (False, False, False)
+                # most of what a robot sees stands still: the velocity starts at zero, as uncertain
+                # as the speeds obstacles have, and sightings pull it by the Kalman gain (two noisy
+                # centroids 0.1 s apart are not a speed)
                 tr = Track(self._next_id, p.copy(), last_seen_s=t_s, last_whole=not any(cut),
-                           edges=None if edges is None or edges[pi] is None else np.asarray(edges[pi], float))
+                           edges=None if edges is None or edges[pi] is None else np.asarray(edges[pi], float),
+                           P=np.array([self.measurement_var(p), 0.0, (0.5 * self.max_speed) ** 2]))
                 self._next_id += 1
                 self.tracks.append(tr)
             else:
+                reshaped = False
+                if boxes is not None and tr.box is not None:
+                    e_old, e_new = np.ptp(tr.box, axis=0), np.ptp(np.asarray(boxes[pi], float), axis=0)
+                    reshaped = bool(np.max(np.abs(e_new - e_old)) > 0.2 + 0.25 * max(e_old.max(), e_new.max()))
                 self._correct(tr, p, t_s, cuts[pi] if cuts is not None else (False, False, False),
-                              edges[pi] if edges is not None else None)
+                              edges[pi] if edges is not None else None, reshaped)
             if boxes is not None:
                 tr.box = np.asarray(boxes[pi], float)
             tr.missed = -1  # seen in this frame (0 after the count below)
