@@ -10,7 +10,7 @@ loopback, and the report says why). The maps are counted per robot on `ballbot/<
 where each robot's dispatcher republishes what it checked.
 
 Phases, each measured on its own:
-  equal   every robot offers twice its share: maps/s per robot against total/N and ceiling/N
+  equal   every robot offers 1.5 x its share: maps/s per robot against total/N and ceiling/N
   alone   the last robot alone, offering half its share: its single-robot latency
   flood   robot 0 offers 4x (its dispatcher may hold 8 items per worker) and frames without grants
           are put on the workers' keys in its name; the middle robots offer twice their share, the
@@ -70,6 +70,7 @@ class Map:
     worker: str
     t: float  # monotonic arrival
     latency_ms: float
+    method: str = ""
 
 
 @dataclass
@@ -81,6 +82,7 @@ class Fleet:
     method: str = "sgbm"
     netns: bool = True
     greedy: dict[str, int] = field(default_factory=dict)  # robot -> its dispatcher's max_in_flight
+    fallback: dict[str, str] = field(default_factory=dict)  # robot -> its onboard fallback (default none)
     weights: str = ""
     logdir: str | None = None
     max_age_ms: float = 1000.0
@@ -140,7 +142,8 @@ class Fleet:
             self._wait_port()
             for r in self.robots:
                 self._start(f"dispatch-{r}", ["disparity", "--connect", self.endpoint, "--robot-id", r, "--pool", POOL,
-                                              "--fallback", "none", "--max-age-ms", f"{self.max_age_ms:g}",
+                                              "--fallback", self.fallback.get(r, "none"),
+                                              "--max-age-ms", f"{self.max_age_ms:g}",
                                               "--method", self.method,
                                               "--max-in-flight", str(self.greedy.get(r, 2))])
             self.session = open_session(ZenohOptions(mode="peer", connect=[self.endpoint], listen=[]))
@@ -254,7 +257,8 @@ class Fleet:
             m = msgpack.unpackb(sample.payload.to_bytes())  # a few fields only: keep the bench light
             t = time.monotonic()
             with self.lock:
-                self.maps.append(Map(m["robot_id"], m["seq"], m["worker"], t, (time.time_ns() - m["stamp_ns"]) / 1e6))
+                self.maps.append(Map(m["robot_id"], m["seq"], m["worker"], t, (time.time_ns() - m["stamp_ns"]) / 1e6,
+                                     m.get("method", "")))
 
         def on_token(sample) -> None:
             with self.lock:
@@ -298,6 +302,29 @@ class Fleet:
             return next((t for t, w, u in self.tokens if w == worker and u == up and t >= after), None)
 
 
+def worker_ceiling(method: str, frames: list, seconds: float = 3.0) -> dict:
+    """The pool worker's own compute (FrameComputer, the worker's settings, one OpenCV thread) on
+    the fleet's frames, in this process: frames/s as frames / wall time."""
+    import cv2
+
+    from services.disparity.main import DisparitySettings
+    from services.disparity.pool import FrameComputer
+
+    computer = FrameComputer(DisparitySettings(method=method, threads=1), 1.0, "raw")
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        computer.compute(frames[0], "bench")  # the first call allocates
+        n, t0 = 0, time.perf_counter()
+        while time.perf_counter() - t0 < seconds or n < 3:
+            computer.compute(frames[n % len(frames)], "bench")
+            n += 1
+        wall = time.perf_counter() - t0
+    finally:
+        cv2.setNumThreads(before)
+    return {"fps": n / wall, "ms": wall * 1e3 / n}
+
+
 def _frames() -> list:
     from bench.scaling import rectified_pairs, rectified_payloads
 
@@ -337,13 +364,11 @@ def back_at_share(maps: list[Map], robot: str, t_event: float, share_hz: float, 
 
 
 def run(args: argparse.Namespace, say) -> dict:
-    from bench.scaling import ceiling, rectified_pairs
-
     robots = [f"r{i}{uuid.uuid4().hex[:3]}" for i in range(args.robots)]
     cores = os.cpu_count() or 1
-    pairs = rectified_pairs(4)
-    say("in-process one-thread ceiling ...")
-    ceilings = [ceiling(args.method, 1, pairs, 3.0)]
+    frames = _frames()
+    say("in-process one-thread ceiling (the worker's own compute) ...")
+    ceilings = [worker_ceiling(args.method, frames)]
     workers = [f"w{i}" for i in range(args.workers)]
     report: dict = {"method": args.method, "image": "640x480", "cores": cores, "robots": robots, "workers": workers,
                     "load_avg_1min_start": os.getloadavg()[0]}
@@ -356,7 +381,7 @@ def run(args: argparse.Namespace, say) -> dict:
             fleet.add_worker(w)
         one = ceilings[0]["fps"]
         ceiling_now = min(len(workers), cores) * one
-        offer = max(2.0, 2.0 * ceiling_now / len(robots))  # each robot wants twice its share
+        offer = max(2.0, 1.5 * ceiling_now / len(robots))  # each robot wants 1.5 x its share
         fleet.rates.update({r: offer for r in robots})
         fleet.wait(lambda: {m.robot for m in fleet.between(0, 1e18)} >= set(robots)
                    and {m.worker.split("@")[0] for m in fleet.between(0, 1e18)} >= set(workers), 180,
@@ -365,7 +390,7 @@ def run(args: argparse.Namespace, say) -> dict:
         report["offered_hz"] = offer
         report["equal"] = measure(fleet, {r: offer for r in robots}, 3.0, args.seconds)
         light = robots[-1]
-        light_hz = 0.5 * report["equal"]["total_hz"] / len(robots)
+        light_hz = 0.5 * report["equal"]["total_hz"] / len(robots)  # within its share
         report["light_hz"] = light_hz
         say(f"alone: {light} offers {light_hz:.2f}/s, the others nothing ...")
         quiet = {r: 0.0 for r in robots}
@@ -418,7 +443,7 @@ def run(args: argparse.Namespace, say) -> dict:
                 "results_unmatched", "pool_grants", "pool_declined", "pool_wants", "results_rejected")}
                 for k, v in fleet.stats.items() if "/dispatcher/" in k}
     say("in-process one-thread ceiling again ...")
-    ceilings.append(ceiling(args.method, 1, pairs, 3.0))
+    ceilings.append(worker_ceiling(args.method, frames))
     one = float(np.mean([c["fps"] for c in ceilings]))
     report["ceiling_one_thread_fps"] = [c["fps"] for c in ceilings]
     report["workers_ceiling_hz"] = min(len(workers), cores) * one

@@ -124,6 +124,8 @@ class PoolGrant(Message):
     robots: int = Field(0, ge=0, description="robots wanting or holding work at this worker")
     share: float = Field(0.0, ge=0, le=1, description="this robot's weight over theirs")
     queued: int = Field(0, ge=0, description="items waiting at the worker beside the one it computes")
+    wait_ms: float = Field(0.0, ge=0, le=60000, description="how long a frame sent now would wait there before "
+                           "it is started (a robot holding several grants sends to the soonest)")
 
 
 class Obstacle(BaseModel):

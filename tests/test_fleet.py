@@ -191,3 +191,195 @@ def test_the_grant_travels_in_the_work_items_attachment():
     assert attachment_grant(att) == "ab" * 16
     assert attachment_grant(make_attachment(3.0, 500.0, b"n" * 16)) == ""
     assert attachment_grant(b"\xc1junk") == "" and attachment_grant(None) == ""
+
+
+# --- the pool router's access control (deploy/pool-acl.py), real router, users over tcp ------------------
+
+@pytest.mark.system
+def test_pool_router_keeps_robots_and_workers_apart(tmp_path):
+    """Robot A reads only its own grants and maps and cannot send work or demands in B's name; a
+    worker sees only the frames sent to it and cannot answer as another worker. The router is
+    started from the generated config (--plain: user/password over tcp; TLS is make-certs.sh's)."""
+    import json
+    import subprocess
+    import sys
+    import threading
+    import time
+
+    from common.keys import topic
+    from common.zenoh_session import ZenohOptions, open_session
+    from helpers import REPO, free_port, wait_port
+
+    port = free_port()
+    users = {"robot-A": "pa", "robot-B": "pb", "worker-w0": "p0", "worker-w1": "p1"}
+    (tmp_path / "users.txt").write_text("".join(f"{u}:{p}\n" for u, p in users.items()))
+    out = subprocess.run([sys.executable, str(REPO / "deploy/pool-acl.py"), "--pool", "lab", "--robot", "A",
+                          "--robot", "B", "--worker", "w0", "--worker", "w1", "--plain", "--listen",
+                          f"tcp/127.0.0.1:{port}", "--certs-path", str(tmp_path)],
+                         check=True, capture_output=True, text=True)
+    (tmp_path / "pool.json5").write_text(out.stdout)
+    bad = subprocess.run([sys.executable, str(REPO / "deploy/pool-acl.py"), "--pool", "lab", "--robot", "a/b",
+                          "--worker", "w"], capture_output=True, text=True)
+    assert bad.returncode != 0 and "--robot 'a/b'" in bad.stderr
+    log = open(tmp_path / "router.log", "w")
+    router = subprocess.Popen([sys.executable, "-m", "ballbot_vision.cli", "run", "router", "--zenoh-config",
+                               str(tmp_path / "pool.json5")], stdout=log, stderr=subprocess.STDOUT)
+
+    def session(user: str):
+        conf = tmp_path / f"{user}.json5"
+        conf.write_text(json.dumps({"transport": {"auth": {"usrpwd": {"user": user, "password": users[user]}}}}))
+        return open_session(ZenohOptions(mode="client", connect=[f"tcp/127.0.0.1:{port}"], listen=[],
+                                         config_file=str(conf)))
+
+    got: dict[str, list[str]] = {}
+    cond = threading.Condition()
+
+    def record(who: str):
+        def cb(sample) -> None:
+            with cond:
+                got.setdefault(who, []).append(str(sample.key_expr))
+                got.setdefault(who + ":payload", []).append(sample.payload.to_bytes())
+                cond.notify_all()
+        return cb
+
+    def wait(pred, timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        with cond:
+            while not pred():
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                cond.wait(min(left, 0.5))
+            return True
+
+    P = "ballbot/pool/lab"
+    try:
+        wait_port(port, router)
+        with session("robot-A") as a, session("robot-B") as b, session("worker-w0") as w0, \
+                session("worker-w1") as w1:
+            subs = [a.declare_subscriber(topic("pool_result").pattern("A", pool="lab"), record("A-own")),
+                    a.declare_subscriber(f"{P}/result/B/*", record("A-spy")),
+                    a.declare_subscriber(f"{P}/**", record("A-all")),
+                    b.declare_subscriber(f"{P}/result/B/*", record("B-own")),
+                    w0.declare_subscriber(topic("pool_work").pattern(pool="lab", instance="w0"), record("w0-own")),
+                    w1.declare_subscriber(f"{P}/work/w0/*", record("w1-spy")),
+                    w1.declare_subscriber(f"{P}/work/w1/*", record("w1-own"))]
+            # a marker that must arrive proves the links and declarations are up before the denials count
+            deadline = time.monotonic() + 30
+            while not wait(lambda: "B-own" in got and "w0-own" in got, 0.5):
+                assert time.monotonic() < deadline, f"nothing allowed arrived; router log in {tmp_path}"
+                w0.put(f"{P}/result/B/w0", b"marker")
+                a.put(f"{P}/work/w0/A", b"marker")
+            a.put(f"{P}/work/w1/B", b"A sends in B's name")     # denied: not A's key
+            a.put(f"{P}/demand/B", b"A asks in B's name")       # denied
+            w0.put(f"{P}/result/A/w1", b"w0 answers as w1")     # denied: not w0's key
+            w0.put(f"{P}/result/A/w0", b"w0's map for A")       # allowed, to A only
+            w1.put(f"{P}/result/B/w1", b"w1's map for B")       # allowed, to B only
+            b.put(f"{P}/work/w1/B", b"B's frame for w1")        # allowed, to w1 only
+            assert wait(lambda: len(got.get("A-own", [])) >= 1 and len(got.get("w1-own", [])) >= 1
+                        and len(got.get("B-own", [])) >= 2, 20), got
+            time.sleep(1.0)  # bounded wait for what must NOT arrive (stated; all else waits on events)
+            with cond:
+                assert got.get("A-own") == [f"{P}/result/A/w0"], got
+                assert "A-spy" not in got, got                      # A never sees B's maps
+                # nothing of B's through the router (A's own puts come back to its own subscriber locally)
+                assert not [k for k in got.get("A-all", []) if "/B/" in k or k.endswith("/w1")], got
+                assert "w1-spy" not in got, got                     # w1 never sees w0's frames
+                assert got.get("w1-own:payload") == [b"B's frame for w1"], got  # nor A's frame in B's name
+            del subs
+    finally:
+        router.send_signal(15)
+        try:
+            router.wait(10)
+        except subprocess.TimeoutExpired:
+            router.kill()
+
+
+# --- real processes: robots fed rectified frames, pool workers in their own network namespaces ---------
+
+@pytest.mark.system
+@pytest.mark.slow
+def test_a_fleet_shares_a_pool_fairly_and_survives_a_kill_and_a_join(tmp_path):
+    """Three robots (their dispatchers fed rectified frames by bench/fleet.py's feeder) share two
+    sgbm pool workers, each in its own network namespace where `ip netns` works: every robot gets
+    its share, a flooding robot no more, each map reaches only the robot that asked, a killed
+    worker costs nobody the stream, a new worker is used, `status` shows the pool, and a robot
+    whose pool vanishes computes onboard. Bounds are generous: the machine is shared."""
+    import json
+    import subprocess
+    import sys
+    import threading
+    import time
+
+    from bench.fleet import Fleet
+
+    robots = ["fa", "fb", "fc"]
+    with Fleet(robots, greedy={"fa": 8}, fallback={"fc": "half"}, logdir=str(tmp_path)) as fleet:
+        print("workers in", "network namespaces" if fleet.use_netns else f"this namespace ({fleet.netns_reason})")
+        fleet.add_worker("w0")
+        fleet.add_worker("w1")
+        fleet.rates.update({r: 6.0 for r in robots})
+        fleet.wait(lambda: {(m.robot, m.worker) for m in fleet.between(0, 1e18)}
+                   >= {(r, f"{w}@fleet") for r in robots for w in ("w0", "w1")}, 240,
+                   "every robot to get maps from both pool workers")
+
+        def window(seconds: float) -> dict[str, float]:
+            t0 = time.monotonic()
+            time.sleep(seconds)  # a measuring window (what is measured arrives by events)
+            ms = fleet.between(t0, time.monotonic())
+            return {r: sum(1 for m in ms if m.robot == r) / seconds for r in robots}
+
+        equal = window(8.0)
+        total = sum(equal.values())
+        print("equal maps/s", equal)
+        assert total > 0 and all(v >= 0.5 * total / 3 for v in equal.values()), equal
+        # fa floods: 4x the frames, 8 items in flight allowed, and frames without grants in its name
+        fleet.rates["fa"] = 24.0
+        flood = threading.Thread(target=fleet.flood_unsolicited, args=("fa", ["w0", "w1"], 2.0, 8.0), daemon=True)
+        flood.start()
+        flooded = window(8.0)
+        flood.join()
+        fleet.rates["fa"] = 6.0
+        print("flood maps/s", flooded)
+        others = (flooded["fb"] + flooded["fc"]) / 2
+        assert flooded["fa"] <= 1.6 * others and min(flooded["fb"], flooded["fc"]) >= 0.5 * sum(flooded.values()) / 3
+        fleet.wait(lambda: any(v["extra"].get("robot.fa.unsolicited", 0) > 0 for k, v in fleet.stats.items()
+                               if "/pool-worker/" in k), 20, "a pool worker to count fa's unsolicited frames")
+        # each map went back only to the robot that asked: no dispatcher saw a result it had not asked for
+        fleet.wait(lambda: len([k for k in fleet.stats if "/dispatcher/" in k]) == 3, 20, "every dispatcher's stats")
+        for k, v in fleet.stats.items():
+            if "/dispatcher/" in k:
+                assert v["extra"].get("results_unmatched", 0) == 0 and v["extra"].get("results_rejected", 0) == 0, \
+                    (k, v["extra"])
+        # `status` shows the pool: its workers and each robot's share
+        out = subprocess.run([sys.executable, "-m", "ballbot_vision.cli", "status", "--json", "--connect",
+                              fleet.endpoint, "--mode", "peer", "--wait", "3"], capture_output=True, text=True,
+                             timeout=120)
+        pools = {p["pool"]: p for p in json.loads(out.stdout)["pools"]}
+        assert {w["instance"] for w in pools["fleet"]["workers"]} == {"w0", "w1"}, pools
+        shares = {r["robot"]: r for r in pools["fleet"]["robots"]}
+        assert set(robots) <= set(shares) and all(0 < shares[r]["share"] <= 1 for r in robots), shares
+        # a killed worker: every robot carries on with the survivor
+        t_kill = fleet.kill_worker("w0")
+        fleet.wait(lambda: {m.robot for m in fleet.between(t_kill + 0.5, 1e18) if m.worker == "w1@fleet"}
+                   >= set(robots), 30, "every robot's maps from the surviving worker")
+        time.sleep(3.0)  # the window the gaps are measured over
+        for r in robots:
+            ts = [t_kill] + sorted(m.t for m in fleet.between(t_kill, t_kill + 3.0) if m.robot == r)
+            gap = max(b - a for a, b in zip(ts, ts[1:]))
+            assert gap < 3.0, f"{r}: no map for {gap:.1f} s after the kill"
+        # a new worker is used by every robot
+        t_add = time.monotonic()
+        fleet.add_worker("w2")
+        fleet.wait(lambda: {m.robot for m in fleet.between(t_add, 1e18) if m.worker == "w2@fleet"} >= set(robots),
+                   120, "every robot's maps from the new worker")
+        token = fleet.token_time("w2", True, t_add)
+        first = min(m.t for m in fleet.between(t_add, 1e18) if m.worker == "w2@fleet")
+        print(f"new worker: first map {first - token:.2f} s after its token")
+        assert first - token < 10.0
+        # the pool vanishes: fc computes onboard (half resolution), the others say no worker reachable
+        for w in ("w1", "w2"):
+            fleet.kill_worker(w)
+        t_gone = time.monotonic()
+        fleet.wait(lambda: any(m.robot == "fc" and "onboard" in m.method for m in fleet.between(t_gone, 1e18)), 30,
+                   "fc's onboard fallback")

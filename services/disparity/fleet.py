@@ -137,6 +137,7 @@ class FairScheduler:
         self.cond = threading.Condition()
         self.flows: dict[str, Flow] = {}
         self.vtime = 0.0  # start tag of the item last started
+        self.busy_since: float | None = None  # when the item being computed started
         self.cost_s = 0.0  # EMA over every robot: a new robot's first estimate
         self.counters = {k: 0 for k in ("granted", "declined", "expired", "unsolicited", "too_many_robots",
                                         "superseded", "priority")}
@@ -289,6 +290,7 @@ class FairScheduler:
             item = f.queued.popleft()
             f.computing += 1
             self.vtime = max(self.vtime, item.tag)
+            self.busy_since = self.clock()
             return item
 
     def finished(self, item: Item, compute_s: float | None) -> None:
@@ -299,6 +301,7 @@ class FairScheduler:
             if f is None:
                 return
             f.computing = max(0, f.computing - 1)
+            self.busy_since = None
             if compute_s is None:
                 f.counts["stale"] += 1
                 return
@@ -306,6 +309,24 @@ class FairScheduler:
             self.cost_s = compute_s if not self.cost_s else 0.9 * self.cost_s + 0.1 * compute_s
             f.served.append(now)
             f.counts["served"] += 1
+
+    def grant_wait_s(self, robot: str, grant: str) -> float:
+        """How long the frame sent against this grant will wait here before it is started: the rest
+        of the item being computed, and the granted items ahead of it (a robot that holds grants of
+        several workers sends its frame to the one that starts it first)."""
+        now = self.clock()
+        with self.cond:
+            f = self.flows.get(robot)
+            if f is None or grant not in f.grants:
+                return 0.0
+            cost = self.cost_s or 0.0
+            rest = max(0.0, self.busy_since + cost - now) if self.busy_since is not None else 0.0
+            _, tag, priority = f.grants[grant]
+            ahead = sum(1 for g in self.flows.values() for i in g.queued if i.grant and
+                        (i.tag, not i.priority) < (tag, not priority))
+            ahead += sum(1 for g in self.flows.values() for gid, (_, t, p) in g.grants.items()
+                         if gid != grant and (t, not p) < (tag, not priority))
+            return rest + ahead * cost
 
     def expire(self) -> list[tuple[str, str]]:
         """Grants not used within grant_ttl_s are withdrawn (the slot goes to the next robot), and
@@ -422,7 +443,7 @@ def run_pool_worker(node: Node, settings: Any) -> None:
                 n = seq[0]
             msg = PoolGrant(robot_id=robot, seq=n, stamp_ns=time.time_ns(), worker=me, grant=grant,
                             ttl_ms=sched.grant_ttl_s * 1e3, robots=robots, share=min(1.0, share),
-                            queued=sched.queued())
+                            queued=sched.queued(), wait_ms=min(60000.0, sched.grant_wait_s(robot, grant) * 1e3))
             publisher("pool_grant", robot).put(codec.encode(msg))
 
     def on_demand(sample) -> None:

@@ -349,7 +349,9 @@ class DispatchState:
             free = self._free(now)
             if not free:
                 return None
-            w = min(free, key=lambda s: (len(s.in_flight), s.last_assigned))
+            # the soonest start: a pool worker's grant says when it would start our frame
+            w = min(free, key=lambda s: (s.grants[0][3] if s.pooled and s.grants else now, len(s.in_flight),
+                                         s.last_assigned))
             if w.trust != "trusted":
                 self.counters["probes"] += 1
             if w.pooled:
@@ -368,7 +370,7 @@ class DispatchState:
             return w.item_grant.pop(seq, "") if w is not None else ""
 
     # fleet pool grants (fleet.py)
-    def add_grant(self, name: str, grant: str, ttl_s: float = 1.0) -> bool:
+    def add_grant(self, name: str, grant: str, ttl_s: float = 1.0, wait_s: float = 0.0) -> bool:
         """A pool worker lets us send it one frame (within ttl_s). -> False, to give it back, when
         it is no pool worker of ours, may get no work now (quarantined and no probe due, paused
         after a missed answer) or already holds max_in_flight items and grants."""
@@ -385,25 +387,26 @@ class DispatchState:
                 usable = not w.in_flight and not w.grants and w.next_probe <= now
             if not usable:
                 return False
-            w.grants.append((grant, now + ttl_s, now))
+            w.grants.append((grant, now + ttl_s, now, now + wait_s))
             w.last_grant = now
             self.counters["grants"] += 1
             self.cond.notify_all()
             return True
 
     def take_grants(self, held_s: float = 0.0) -> list[tuple[str, str]]:
-        """Grants not used yet and held longer than held_s, removed: -> [(worker, grant)] to give back."""
+        """Grants not used yet, held longer than held_s or up to when their worker would start the
+        frame (from then on it would idle for us), removed: -> [(worker, grant)] to give back."""
         with self.cond:
             now = self.clock()
             out = []
             for w in self.workers.values():
                 self._prune_grants(w, now)
                 keep = deque()
-                for g, expires, got in w.grants:
-                    if now - got >= held_s:
-                        out.append((w.name, g))
+                for held in w.grants:
+                    if now - held[2] >= held_s or now >= held[3]:
+                        out.append((w.name, held[0]))
                     else:
-                        keep.append((g, expires, got))
+                        keep.append(held)
                 w.grants = keep
             return out
 
@@ -659,8 +662,10 @@ class Dispatcher:
         self._want_since: float | None = None  # wanting without a grant since
         self._demand_seq = 0
         self._demand_pub: Any = None
-        self._frame_interval_s = 0.1  # between the frames we get (EMA of capture stamps)
-        self._last_stamp_ns = 0
+        self._frame_interval_s = 1.0  # between the frames that arrive (_input_rate)
+        self._rx = (time.monotonic(), 0)
+        self._inbox: Any = None
+        self._wanted_at = -1e9  # last want with a frame in hand
         self.pool_load: dict[str, tuple[int, float, int]] = {}  # pool worker -> (robots, our share, queued)
         self.node, self.state = node, state
         self.max_age_ms = max_age_ms
@@ -865,7 +870,7 @@ class Dispatcher:
             return
         self.pool_load[name] = (msg.robots, msg.share, msg.queued)
         # a little under the worker's ttl: a frame sent at the last moment must still find its grant
-        if not self.state.add_grant(name, msg.grant, 0.8 * msg.ttl_ms / 1e3):
+        if not self.state.add_grant(name, msg.grant, 0.8 * msg.ttl_ms / 1e3, msg.wait_ms / 1e3):
             self._demand(want=False, decline=[msg.grant])
 
     def _demand(self, want: bool, decline: list[str] = ()) -> None:
@@ -884,14 +889,22 @@ class Dispatcher:
         if decline:
             self._count("pool_declined", len(decline))
 
-    def _want(self, now: float) -> None:
+    def _want(self, now: float, ahead: bool = False) -> None:
         """While we hold a frame and no grant: ask, again every 0.1 s (a worker forgets a want after
-        0.5 s, and a worker that joins learns of it so)."""
-        if self._want_since is None:
+        0.5 s, and a worker that joins learns of it so). ahead: no frame yet, one is due (see
+        _backlogged); a grant that comes first is held for it (_hold_s)."""
+        if not ahead:
+            self._wanted_at = now
+        if self._want_since is None and not ahead:
             self._want_since = now
             self._demand(want=True)
         elif now - self._want_at >= 0.1:
             self._demand(want=True)
+
+    def _backlogged(self, now: float) -> bool:
+        """Frames come faster than grants: we wanted with a frame in hand lately, and the next
+        frame is due within the time a grant is held."""
+        return now - self._wanted_at < 0.3 and self._frame_interval_s <= 0.25
 
     def _decline_unused(self, held_s: float = 0.0) -> None:
         grants = self.state.take_grants(held_s)
@@ -900,21 +913,24 @@ class Dispatcher:
 
     def _hold_s(self) -> float:
         """How long a grant that came while we hold no frame is kept for the next one: about one
-        frame interval (the worker computes another robot's item meanwhile, so a short hold costs
-        it nothing and saves a round of decline and re-grant), never long enough to idle it."""
-        return min(0.1, 1.2 * self._frame_interval_s)
+        frame interval, and never past the moment its worker would start it (the worker computes
+        another robot's item meanwhile, so the hold costs it nothing and saves a round of decline
+        and re-grant; see DispatchState.take_grants)."""
+        return min(0.25, 1.2 * self._frame_interval_s)
 
     def _take(self, inbox: Any, timeout: float) -> tuple[StereoFrame, bytes] | None:
-        got = self.node.take(inbox, timeout)
-        if got is not None:
-            self._frame_seen(got[0])
-        return got
+        return self.node.take(inbox, timeout)
 
-    def _frame_seen(self, msg: StereoFrame) -> None:
-        if self._last_stamp_ns and msg.stamp_ns > self._last_stamp_ns:
-            dt = min(1.0, (msg.stamp_ns - self._last_stamp_ns) / 1e9)
-            self._frame_interval_s = 0.8 * self._frame_interval_s + 0.2 * dt
-        self._last_stamp_ns = max(self._last_stamp_ns, msg.stamp_ns)
+    def _input_rate(self, now: float) -> None:
+        """The interval between frames arriving (the inbox counts them all, taken or not)."""
+        if self._inbox is None:
+            return
+        n, dt = self._inbox.received, now - self._rx[0]
+        if dt >= 0.5:
+            arrived = n - self._rx[1]
+            interval = min(1.0, dt / arrived) if arrived else 1.0
+            self._frame_interval_s = 0.5 * self._frame_interval_s + 0.5 * interval
+            self._rx = (now, n)
 
     def start(self) -> None:
         s = self.node.session
@@ -951,6 +967,7 @@ class Dispatcher:
         self.rates.add(f"out_work_{name}", len(payload))
 
     def _housekeeping(self, out) -> None:
+        self._input_rate(time.monotonic())
         for name, seq in self.state.expire():
             self.node.warn("timeout", f"worker {name}: no map for seq {seq} in time; slot freed")
         alive, trusted = self.state.alive(), self.state.trusted()
@@ -1017,7 +1034,7 @@ class Dispatcher:
 
     def run(self) -> None:
         node = self.node
-        inbox = node.latest("frames_rect")
+        inbox = self._inbox = node.latest("frames_rect")
         self.out = node.publisher("disparity", sign_key=self.sign_key)
         if self.sign_key is None:
             log.warning("dispatcher: no BALLBOT_CALIBRATION_KEY: the disparity maps are published unsigned, so the "
@@ -1054,18 +1071,22 @@ class Dispatcher:
                     self._compute_onboard(msg)
                 continue
             if self.pool and not self.state.has_free():
-                # Pool workers give work only against grants: hold the newest frame and ask for one.
-                got = self._take(inbox, 0.0 if pending else 0.05)
-                if got is not None:
-                    if pending is not None:
-                        node.extra["replaced_pending"] = node.extra.get("replaced_pending", 0) + 1
-                    pending = got
+                # Pool workers give work only against grants: hold a frame and ask for one (the
+                # newest is taken, and decoded, only when a grant comes). While frames come faster
+                # than grants, ask a little ahead, so a turn is not skipped for want of a frame
+                # at that instant.
+                if pending is None:
+                    pending = self._take(inbox, 0.05)
                 if pending is not None and self._too_old(pending[0]):
                     pending = None
-                if pending is None:
-                    self._want_since = None
                     continue
                 now = time.monotonic()
+                if pending is None:
+                    if self._backlogged(now):
+                        self._want(now, ahead=True)
+                    else:
+                        self._want_since = None
+                    continue
                 self._want(now)
                 if self.fallback is not None and now - self._want_since > self.pool_patience_s:
                     # the pool is there but grants us nothing (a full fleet): the robot is not left blind
