@@ -904,7 +904,7 @@ class Dispatcher:
     def _backlogged(self, now: float) -> bool:
         """Frames come faster than grants: we wanted with a frame in hand lately, and the next
         frame is due within the time a grant is held."""
-        return now - self._wanted_at < 0.3 and self._frame_interval_s <= 0.25
+        return now - self._wanted_at < 0.3 and self._frame_interval_s <= 0.5
 
     def _decline_unused(self, held_s: float = 0.0) -> None:
         grants = self.state.take_grants(held_s)
@@ -916,7 +916,7 @@ class Dispatcher:
         frame interval, and never past the moment its worker would start it (the worker computes
         another robot's item meanwhile, so the hold costs it nothing and saves a round of decline
         and re-grant; see DispatchState.take_grants)."""
-        return min(0.25, 1.2 * self._frame_interval_s)
+        return min(0.5, 1.2 * self._frame_interval_s)
 
     def _take(self, inbox: Any, timeout: float) -> tuple[StereoFrame, bytes] | None:
         return self.node.take(inbox, timeout)
