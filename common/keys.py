@@ -107,6 +107,7 @@ TOPICS: dict[str, Topic] = {t.name: t for t in [
 ]}
 
 OBSTACLES_ALL = "ballbot/obstacles/**"
+POOL_ROOT = "ballbot/pool/"  # every fleet pool's keys start so (the pool_* topics above)
 FREESPACE_ALL = "ballbot/freespace/**"
 
 

@@ -58,7 +58,7 @@ import numpy as np
 
 from common import codec
 from common.errors import BallbotError, DecodeError
-from common.keys import topic
+from common.keys import POOL_ROOT, topic
 from common.messages import DisparityMap, PoolDemand, PoolGrant, StereoFrame, WorkDone
 from common.node import Node, qos
 from common.signing import calibration_key
@@ -693,7 +693,7 @@ class Dispatcher:
         is its instance; a pool worker <instance>@<pool> (the pool's keys end with the instance)."""
         key = str(key_expr)
         instance = key.rsplit("/", 1)[-1]
-        if self.pool and key.startswith("ballbot/pool/"):
+        if self.pool and key.startswith(POOL_ROOT):
             return f"{instance}@{self.pool}", instance
         return instance, instance
 
