@@ -370,10 +370,14 @@ def measure(fleet: Fleet, rates: dict[str, float], warmup: float, seconds: float
 
 
 def back_at_share(maps: list[Map], robot: str, t_event: float, share_hz: float, until: float,
-                  window: float = 2.0, step: float = 0.05) -> float | None:
-    """Seconds from t_event until robot's maps/s over the next `window` s reach 0.9 x share_hz (the
-    first such moment, on a grid of `step`); None if never before `until`."""
+                  window: float = 2.0, step: float = 0.05, settled_from: float | None = None) -> float | None:
+    """Seconds from t_event until robot's maps/s over the next `window` s reach 0.9 x its new share
+    (the first such moment, on a grid of `step`); None if never before `until`. The new share is
+    share_hz, or the robot's own rate from settled_from on if that is lower: how long the event
+    cost it, apart from how evenly the rest of the run happens to divide (reported separately)."""
     ts = np.array(sorted(m.t for m in maps if m.robot == robot and m.t >= t_event))
+    if settled_from is not None and until > settled_from:
+        share_hz = min(share_hz, np.count_nonzero(ts >= settled_from) / (until - settled_from))
     t = t_event
     while t + window <= until:
         n = np.count_nonzero((ts >= t) & (ts < t + window))
@@ -437,7 +441,8 @@ def run(args: argparse.Namespace, say) -> dict:
         report["kill"] = {"token_gone_s": None if gone is None else gone - t_kill, "new_share_hz": new_share,
                           "new_share_from_ceiling_hz": min(len(workers) - 1, cores) * one / len(robots),
                           "after": summary(after, robots, t_end - t_kill - 2.0),
-                          "back_at_share_s": {r: back_at_share(maps, r, t_kill, new_share, t_end) for r in robots},
+                          "back_at_share_s": {r: back_at_share(maps, r, t_kill, new_share, t_end,
+                                                               settled_from=t_kill + 2.0) for r in robots},
                           "longest_gap_s": {r: _gap([m.t for m in maps if m.robot == r], t_kill, t_end)
                                             for r in robots}}
         say(f"add: a new worker {workers[0]}b ...")
@@ -456,7 +461,8 @@ def run(args: argparse.Namespace, say) -> dict:
         share2 = len(settled) / max(1e-3, t_end - t_token - 2.0) / len(robots)
         report["add"] = {"process_to_token_s": t_up - t_start, "token_to_first_map_s": first - t_token,
                          "share_hz": share2, "after": summary(settled, robots, t_end - t_token - 2.0),
-                         "back_at_share_s": {r: back_at_share(maps, r, t_token, share2, t_end) for r in robots}}
+                         "back_at_share_s": {r: back_at_share(maps, r, t_token, share2, t_end,
+                                                              settled_from=t_token + 2.0) for r in robots}}
         with fleet.lock:
             report["pool_stats"] = {k: v for k, v in fleet.stats.items() if "/pool-worker/" in k}
             report["dispatcher_stats"] = {k: {x: v["extra"].get(x, 0) for x in (

@@ -221,16 +221,19 @@ class FairScheduler:
                        if f.want_until > now and not f.grants and not f.queued]
             if not wanting:
                 return None
-            f = min(wanting, key=lambda f: (self._start_tag(f), f.last_granted))
             held = self._held()
-            priority = False
-            if held >= self.waiting:
+            priority = held >= self.waiting
+            if priority:
+                if held > self.waiting:
+                    return None
                 tags = [t for g in self.flows.values() for t in [s for _, s, _ in g.grants.values()]
                         + [i.tag for i in g.queued if i.grant]]
-                priority = self._below_share(f, now) and (not tags or self._start_tag(f) <= min(tags))
-                if held > self.waiting or not priority:
+                wanting = [f for f in wanting if self._below_share(f, now)
+                           and (not tags or self._start_tag(f) <= min(tags))]
+                if not wanting:
                     return None
                 self.counters["priority"] += 1
+            f = min(wanting, key=lambda f: (self._start_tag(f), f.last_granted))
             start = self._advance(f)
             grant = os.urandom(GRANT_BYTES).hex()
             f.grants[grant] = (now, start, priority)
