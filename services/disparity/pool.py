@@ -40,6 +40,11 @@ One mechanism, push with checked answers:
   the segmenter's heartbeat marks the obstacle stream stale. The fallback is also what makes
   `ballbot-vision up` a single process per stage: no extra hop when everything runs on one host.
 
+* With `--pool NAME` the dispatcher also uses a fleet pool's workers (fleet.py), named
+  `<instance>@<pool>` here: the same trust, checks and fallback, but a pool worker gets a frame
+  only against one of its grants (DispatchState.add_grant), which the dispatcher asks for while it
+  holds a frame (PoolDemand) and gives back when it has none.
+
 DispatchState is the pure bookkeeping (no Zenoh, unit-tested); Dispatcher and run_worker are the
 Zenoh shells.
 """
