@@ -667,6 +667,7 @@ class Dispatcher:
         self._want_since: float | None = None  # wanting without a grant since
         self._demand_seq = 0
         self._demand_pub: Any = None
+        self._refused_grants: list[str] = []  # grants add_grant refused, to give back
         self._frame_interval_s = 1.0  # between the frames that arrive (_input_rate)
         self._rx = (time.monotonic(), 0)
         self._inbox: Any = None
@@ -876,7 +877,8 @@ class Dispatcher:
         self.pool_load[name] = (msg.robots, msg.share, msg.queued)
         # a little under the worker's ttl: a frame sent at the last moment must still find its grant
         if not self.state.add_grant(name, msg.grant, 0.8 * msg.ttl_ms / 1e3, msg.wait_ms / 1e3):
-            self._demand(want=False, decline=[msg.grant])
+            with self._recent_lock:  # given back by the main loop: no put from a Zenoh callback
+                self._refused_grants.append(msg.grant)
 
     def _demand(self, want: bool, decline: list[str] = ()) -> None:
         """Tell every worker of the pool that we hold a frame and no grant (want), and give back
@@ -912,9 +914,12 @@ class Dispatcher:
         return now - self._wanted_at < 0.3 and self._frame_interval_s <= 0.5
 
     def _decline_unused(self, held_s: float = 0.0) -> None:
-        grants = self.state.take_grants(held_s)
+        grants = [g for _, g in self.state.take_grants(held_s)]
+        with self._recent_lock:
+            grants += self._refused_grants
+            self._refused_grants = []
         if grants:
-            self._demand(want=False, decline=[g for _, g in grants])
+            self._demand(want=False, decline=grants)
 
     def _hold_s(self) -> float:
         """How long a grant that came while we hold no frame is kept for the next one: about one
@@ -973,6 +978,10 @@ class Dispatcher:
 
     def _housekeeping(self, out) -> None:
         self._input_rate(time.monotonic())
+        if self._refused_grants:
+            with self._recent_lock:
+                refused, self._refused_grants = self._refused_grants, []
+            self._demand(want=False, decline=refused)
         for name, seq in self.state.expire():
             self.node.warn("timeout", f"worker {name}: no map for seq {seq} in time; slot freed")
         alive, trusted = self.state.alive(), self.state.trusted()
