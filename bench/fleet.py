@@ -10,7 +10,7 @@ loopback, and the report says why). The maps are counted per robot on `ballbot/<
 where each robot's dispatcher republishes what it checked.
 
 Phases, each measured on its own:
-  equal   every robot offers twice its share: maps/s per robot against total/N and ceiling/N
+  equal   every robot offers twice its share (at least 8 pairs/s): maps/s per robot against total/N and ceiling/N
   alone   the last robot alone, offering half its share: its single-robot latency
   flood   robot 0 offers 4x (its dispatcher may hold 8 items per worker) and frames without grants
           are put on the workers' keys in its name; the middle robots offer twice their share, the
@@ -406,14 +406,17 @@ def run(args: argparse.Namespace, say) -> dict:
             fleet.add_worker(w)
         one = ceilings[0]["fps"]
         ceiling_now = min(len(workers), cores) * one
-        offer = max(2.0, 2.0 * ceiling_now / len(robots))  # each robot wants twice its share
+        # each robot wants twice its share (at least 8/s: the load of a shared machine can fall later)
+        offer = max(8.0, 2.0 * ceiling_now / len(robots))
+        report["offered"] = {}
         fleet.rates.update({r: offer for r in robots})
         fleet.wait(lambda: {m.robot for m in fleet.between(0, 1e18)} >= set(robots)
                    and {m.worker.split("@")[0] for m in fleet.between(0, 1e18)} >= set(workers), 180,
                    "every robot to get maps from every worker")
         say(f"equal: {len(robots)} robots, each offered {offer:.1f}/s ...")
         report["offered_hz"] = offer
-        report["equal"] = measure(fleet, {r: offer for r in robots}, 3.0, args.seconds)
+        report["offered"]["equal"] = {r: offer for r in robots}
+        report["equal"] = measure(fleet, report["offered"]["equal"], 3.0, args.seconds)
         say(f"alone, saturating: {robots[1]} offers {2 * ceiling_now:.1f}/s, the others nothing ...")
         report["alone_full"] = measure(fleet, {**{r: 0.0 for r in robots}, robots[1]: 2 * ceiling_now}, 3.0,
                                        args.seconds)
@@ -429,8 +432,8 @@ def run(args: argparse.Namespace, say) -> dict:
         flood = threading.Thread(target=fleet.flood_unsolicited, args=(greedy, workers, 2.0, args.seconds + 3.0),
                                  daemon=True)
         flood.start()
-        report["flood"] = measure(fleet, {**{r: offer for r in robots}, greedy: 4 * offer, light: light_hz}, 3.0,
-                                  args.seconds)
+        report["offered"]["flood"] = {**{r: offer for r in robots}, greedy: 4 * offer, light: light_hz}
+        report["flood"] = measure(fleet, report["offered"]["flood"], 3.0, args.seconds)
         flood.join()
         fleet.rates.update({r: offer for r in robots})
         say(f"kill: SIGKILL {workers[0]} ...")
@@ -509,6 +512,30 @@ def _gap(ts: list[float], t0: float, t1: float) -> float:
     return max(b - a for a, b in zip(ts, ts[1:]))
 
 
+def max_min_fair(total: float, demands: dict[str, float]) -> dict[str, float]:
+    """What each robot is entitled to of `total` maps/s when robot i asks for demands[i]: max-min
+    fairness (water filling): a robot asking less than an equal split gets what it asks, the
+    others split the rest equally. A robot that is sent all it asks for loses nothing to a flood."""
+    left, out = total, {}
+    pending = sorted(demands.items(), key=lambda kv: kv[1])
+    while pending:
+        even = left / len(pending)
+        robot, want = pending[0]
+        if want <= even:
+            out[robot] = want
+            left -= want
+            pending.pop(0)
+        else:
+            for robot, _ in pending:
+                out[robot] = even
+            break
+    return out
+
+
+def entitled(phase: dict, offered: dict[str, float]) -> dict[str, float]:
+    return max_min_fair(phase["total_hz"], {r: offered[r] for r in phase["robots"]})
+
+
 def targets(r: dict) -> list[tuple[str, float, str, float, bool]]:
     n = len(r["robots"])
     eq = r["equal"]
@@ -519,15 +546,12 @@ def targets(r: dict) -> list[tuple[str, float, str, float, bool]]:
            ("  a pool host of its own, from CPU per map: x ideal", ph["x_ideal"], ">=", TARGET_SHARE,
             ph["x_ideal"] >= TARGET_SHARE)]
     worst = min(v["hz"] for v in eq["robots"].values())
-    out.append(("equal: worst robot / fair share (total/N)", worst / share, ">=", TARGET_SHARE,
-                worst / share >= TARGET_SHARE))
+    ent = entitled(eq, r["offered"]["equal"])
+    x = min(eq["robots"][k]["hz"] / ent[k] for k in ent)
+    out.append(("equal: worst robot / its max-min fair share", x, ">=", TARGET_SHARE, x >= TARGET_SHARE))
     ceil_share = r["workers_ceiling_hz"] / n
     out.append(("equal: worst robot / ceiling share (ceiling/N)", worst / ceil_share, ">=", TARGET_SHARE,
                 worst / ceil_share >= TARGET_SHARE))
-    full = next(iter(r["alone_full"]["robots"].values()))
-    x = max(v["latency_ms"]["p50"] for v in eq["robots"].values()) / full["latency_ms"]["p50"]
-    out.append(("equal: worst latency p50 / one robot alone saturating", x, "<=", TARGET_LATENCY_X,
-                x <= TARGET_LATENCY_X))
     fl = r["flood"]
     greedy, light = r["robots"][0], r["robots"][-1]
     got = fl["robots"][light]["hz"] / r["light_hz"]
@@ -541,12 +565,13 @@ def targets(r: dict) -> list[tuple[str, float, str, float, bool]]:
         (alone / r["alone"]["worker_proc_ms_p50"])
     out.append(("  same, each over its phase's compute time per map", norm, "<=", TARGET_LATENCY_X,
                 norm <= TARGET_LATENCY_X))
-    # max-min fair: the light robot gets what it offers, the others split the rest
-    heavy = (fl["total_hz"] - fl["robots"][light]["hz"]) / (n - 1)
-    g = fl["robots"][greedy]["hz"] / heavy
-    out.append(("flood: flooding robot / the others' share", g, "<=", 1.1, g <= 1.1))
-    others = min(v["hz"] for k, v in fl["robots"].items() if k not in (greedy, light)) / heavy
-    out.append(("flood: worst other robot / their share", others, ">=", TARGET_SHARE, others >= TARGET_SHARE))
+    # max-min fair: a robot asking less than an equal split gets what it asks, the others split the rest
+    ent = entitled(fl, r["offered"]["flood"])
+    g = fl["robots"][greedy]["hz"] / ent[greedy]
+    out.append(("flood: flooding robot / its max-min fair share", g, "<=", 1.1, g <= 1.1))
+    others = min(fl["robots"][k]["hz"] / ent[k] for k in ent if k != greedy)
+    out.append(("flood: worst other robot / its max-min fair share", others, ">=", TARGET_SHARE,
+                others >= TARGET_SHARE))
     backs = [v for v in r["kill"]["back_at_share_s"].values()]
     worst_back = max((b if b is not None else float("inf")) for b in backs)
     out.append(("kill: slowest robot back at its new share (s)", worst_back, "<=", TARGET_RECOVER_S,

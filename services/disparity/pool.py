@@ -651,6 +651,16 @@ def _attachment_bytes(sample) -> bytes | None:
 
 # --- the dispatcher (robot side) --------------------------------------------------------------------
 
+class _KeyPut:
+    """session.put on one key, shaped like a publisher."""
+
+    def __init__(self, session: Any, key: str, qos_: dict[str, Any]):
+        self.session, self.key, self.qos = session, key, qos_
+
+    def put(self, payload: bytes) -> None:
+        self.session.put(self.key, payload, **self.qos)
+
+
 class Dispatcher:
     """frames_rect -> one worker's work key, following the workers' liveliness tokens; each
     worker's map from its result key, checked against the item (results.py), -> `disparity`,
@@ -956,7 +966,10 @@ class Dispatcher:
             self._subs.append(s.liveliness().declare_subscriber(topic("pool_worker").pattern(pool=p), self._on_token,
                                                                history=True))
             key = topic("pool_demand").key(self.rid, pool=p)
-            self._demand_pub = s.declare_publisher(key, **qos(topic("pool_demand")))
+            # a put per demand, not a declared publisher: no publisher state that could go stale while
+            # workers come and go (in one bench run a robot's demands stopped reaching the workers
+            # after a worker was replaced; the cause is not established)
+            self._demand_pub = _KeyPut(s, key, qos(topic("pool_demand")))
             self.node.uses("publishes", key)
             self.node.uses("publishes", topic("pool_work").pattern(self.rid, pool=p))
         threading.Thread(target=self._results_loop, name="results", daemon=True).start()
