@@ -61,7 +61,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         return run_router(zenoh_options(args, "router"), robot_id(args))
     m, settings_cls = service_module(args.service)
     settings = load_settings(settings_cls, config_file(args), args)
-    with Node(args.service, zenoh_options(args), robot_id(args), instance=args.instance) as node:
+    node_options = getattr(m, "node_options", lambda _: {})(settings)
+    with Node(args.service, zenoh_options(args), robot_id(args), instance=args.instance, **node_options) as node:
         m.run(node, settings)
     return 0
 
@@ -180,6 +181,7 @@ def cmd_healthcheck(args: argparse.Namespace) -> int:
     deadline = time.monotonic() + args.timeout
     with open_session(o) as session:
         session.declare_subscriber(topic("stats").pattern(robot_id(args)), on_stats)
+        session.declare_subscriber(topic("pool_stats").pattern(), on_stats)  # a fleet pool's worker
         with changed:
             while True:
                 ok, bad = verdict()

@@ -87,10 +87,14 @@ def status(opts: ZenohOptions, robot: str, wait_s: float, as_json: bool) -> int:
             latest[key] = s
             seen_at[key] = time.monotonic()
 
+    from ballbot_vision.pool_status import PoolWatch, format_pools
+
     alive_prefix = topic("alive").pattern(robot)
     with open_session(opts) as session:
         session.declare_subscriber(topic("stats").pattern(robot), on_stats)
+        pool_watch = PoolWatch(session)  # fleet pools: their workers report under ballbot/pool/<pool>/
         time.sleep(wait_s)  # stats arrive once a second: listen for a couple of periods
+        pools = pool_watch.collect(session, robot)
         alive = set()
         for reply in session.liveliness().get(alive_prefix, timeout=2.0):
             if reply.ok is not None:
@@ -121,9 +125,12 @@ def status(opts: ZenohOptions, robot: str, wait_s: float, as_json: bool) -> int:
     rows.sort(key=lambda r: (r["robot_id"], ORDER.get(r["service"], 9), r["role"] != "dispatcher", r["instance"]))
     level, line = verdict(rows, warnings)
     if as_json:
-        print(json.dumps({"pipeline": {"health": level, "summary": line}, "instances": rows, "warnings": warnings}))
-    elif not names:
+        print(json.dumps({"pipeline": {"health": level, "summary": line}, "instances": rows, "warnings": warnings,
+                          "pools": pools}))
+    elif not names and not pools:
         print("no service instance found (is the pipeline up, and --connect right?)")
+    elif not names:
+        print("\n".join(format_pools(pools)))
     else:
         print(f"pipeline {level.upper()}: {line}")
         print(f"{'':2}{'name':10} {'instance':26} {'rate':>7} {'proc':>7} {'age':>7} {'drops':>7} {'errors':>7} "
@@ -139,6 +146,8 @@ def status(opts: ZenohOptions, robot: str, wait_s: float, as_json: bool) -> int:
                   f"{_fmt_rate(r['in_Bps']):>9} {_fmt_rate(r['out_Bps']):>9}  {r['status']}")
         for w in warnings:
             print(f"WARNING: {w}")
+        if pools:
+            print("\n".join(format_pools(pools)))
     if not names:
-        return 1
+        return 0 if pools and not any(p["warnings"] for p in pools) else (3 if pools else 1)
     return 0 if level == "ok" else 3

@@ -35,7 +35,7 @@ import numpy as np
 from bench.measure import cpu_seconds, free_port, percentiles
 
 STAGES = ["capture", "rectify", "disparity", "segmenter"]
-PARTS = ["pipeline", "sources", "renderer", "segmenter", "scaling", "accuracy", "record", "trust"]
+PARTS = ["pipeline", "sources", "renderer", "segmenter", "scaling", "accuracy", "record", "trust", "fleet"]
 
 # What "sustainable" means for an offered rate (the search keeps the highest rate that is):
 MAX_DROPPED = 0.03  # at most this fraction of captured pairs never becomes an obstacle list (seq gaps)
@@ -52,7 +52,8 @@ def add_bench_arguments(p: argparse.ArgumentParser) -> None:
                         "renderer: the synthetic world; segmenter: time per method; scaling: disparity "
                         "workers 1-3 (sgbm); accuracy: bad-2px on a Middlebury pair; record: `record` at 30 "
                         "fps, drops and CPU (bench/record.py); trust: what checking and signing a worker's "
-                        "map costs (bench/trust.py)")
+                        "map costs (bench/trust.py); fleet: 4 robots sharing 2 sgbm pool workers, per robot "
+                        "against its fair share, a worker killed and one added (bench/fleet.py)")
     p.add_argument("--seconds", type=float, default=10.0, help="measured duration at the chosen rate")
     p.add_argument("--probe-seconds", type=float, default=3.0, help="measured duration of each search probe")
     p.add_argument("--warmup", type=float, default=1.5, help="seconds discarded after capture starts delivering")
@@ -625,6 +626,13 @@ def bench_part(part: str, args: argparse.Namespace) -> int:
         return main(flags)
     if part == "trust":
         from bench.trust import main
+        return main(flags + ["--seconds", f"{args.seconds:g}"])
+    if part == "fleet":
+        from bench.fleet import main
+        if args.method:
+            flags += ["--method", args.method]
+        if args.workers:
+            flags += ["--workers", str(args.workers)]
         return main(flags + ["--seconds", f"{args.seconds:g}"])
     if part == "segmenter":
         from bench.segmenter import bench_segmenter, format_bench

@@ -1,6 +1,9 @@
 """The one table of Zenoh keys. No service spells a key string itself: it asks this table.
 
-Public: `ballbot/obstacles/<robot_id>` and `ballbot/freespace/<robot_id>`. Everything else lives under `ballbot/<robot_id>/`.
+Public: `ballbot/obstacles/<robot_id>` and `ballbot/freespace/<robot_id>`. Everything else lives under `ballbot/<robot_id>/`,
+except a fleet pool's keys (`ballbot/pool/<pool>/...`, shared by the robots that use the pool): in those, the
+robot id sits where a router's access control can pin it (a robot sends only `work/*/<its id>`, reads only
+`result/<its id>/*`), see docs/fleet.md.
 """
 from __future__ import annotations
 
@@ -8,8 +11,8 @@ from dataclasses import dataclass
 
 from pydantic import BaseModel
 
-from common.messages import (CalibrationUpdate, DisparityMap, FreeSpace, GroundTruth, ObstacleList, Odometry, ReplayControl,
-                       ServiceStats, StereoFrame, WorkDone)
+from common.messages import (CalibrationUpdate, DisparityMap, FreeSpace, GroundTruth, ObstacleList, Odometry, PoolDemand,
+                       PoolGrant, ReplayControl, ServiceStats, StereoFrame, WorkDone)
 
 
 @dataclass(frozen=True)
@@ -31,9 +34,11 @@ class Topic:
     def key(self, robot_id: str, **fields: str) -> str:
         return self.template.format(robot_id=robot_id, **fields)
 
-    def pattern(self, robot_id: str = "*") -> str:
+    def pattern(self, robot_id: str = "*", **fields: str) -> str:
         """Key expression matching every instance of this topic (wildcards for unknown fields)."""
         out = self.template.replace("{robot_id}", robot_id)
+        for name, value in fields.items():
+            out = out.replace("{" + name + "}", value)
         while "{" in out:
             i, j = out.index("{"), out.index("}")
             out = out[:i] + "*" + out[j + 1:]
@@ -61,6 +66,29 @@ TOPICS: dict[str, Topic] = {t.name: t for t in [
           max_bytes=40 << 20),
     Topic("work_done", "ballbot/{robot_id}/work_done/{instance}", WorkDone, "disparity", 30.0, ("disparity",),
           "a worker's receipt for a work item it dropped (worker -> dispatcher)", max_bytes=64 << 10),
+    # A fleet pool (services/disparity/fleet.py): workers shared by any robot, granted work fairly.
+    Topic("pool_worker", "ballbot/pool/{pool}/workers/{instance}", None, "disparity", 0.0, ("disparity",),
+          "liveliness token of a pool worker (`run disparity --role worker --pool NAME`) ready for grants"),
+    Topic("pool_demand", "ballbot/pool/{pool}/demand/{robot_id}", PoolDemand, "disparity", 20.0, ("disparity",),
+          "a robot's dispatcher: it has a frame and no grant (want), or gives grants back (dispatcher -> every "
+          "pool worker)", max_bytes=16 << 10),
+    Topic("pool_grant", "ballbot/pool/{pool}/grant/{robot_id}/{instance}", PoolGrant, "disparity", 30.0,
+          ("disparity",), "a pool worker lets one robot send it one frame (worker -> that robot's dispatcher), "
+          "issued by weighted fair queueing over the robots that want", max_bytes=16 << 10),
+    Topic("pool_work", "ballbot/pool/{pool}/work/{instance}/{robot_id}", StereoFrame, "disparity", 30.0,
+          ("disparity",), "rectified pair for one pool worker, sent against a grant (dispatcher -> worker)",
+          image_stream=True, max_bytes=80 << 20),
+    Topic("pool_result", "ballbot/pool/{pool}/result/{robot_id}/{instance}", DisparityMap, "disparity", 30.0,
+          ("disparity",), "a pool worker's map for one item, to the robot that sent it only (worker -> that "
+          "robot's dispatcher, which checks it and republishes it on disparity)", image_stream=True,
+          max_bytes=40 << 20),
+    Topic("pool_done", "ballbot/pool/{pool}/done/{robot_id}/{instance}", WorkDone, "disparity", 30.0,
+          ("disparity",), "a pool worker's receipt for an item it dropped (worker -> that robot's dispatcher)",
+          max_bytes=64 << 10),
+    Topic("pool_stats", "ballbot/pool/{pool}/stats/{instance}", ServiceStats, "disparity", 1.0, ("status",),
+          "a pool worker's stats, with each robot's weight, share, queue and maps/s", max_bytes=256 << 10),
+    Topic("pool_alive", "ballbot/pool/{pool}/alive/{instance}", None, "disparity", 0.0, ("status",),
+          "liveliness token of a running pool worker process"),
     Topic("obstacles", "ballbot/obstacles/{robot_id}", ObstacleList, "segmenter", 30.0, ("anyone",),
           "PUBLIC: obstacle list with 3D positions in metres", public=True, max_bytes=4 << 20),
     Topic("freespace", "ballbot/freespace/{robot_id}", FreeSpace, "segmenter", 30.0, ("anyone",),
@@ -79,6 +107,7 @@ TOPICS: dict[str, Topic] = {t.name: t for t in [
 ]}
 
 OBSTACLES_ALL = "ballbot/obstacles/**"
+POOL_ROOT = "ballbot/pool/"  # every fleet pool's keys start so (the pool_* topics above)
 FREESPACE_ALL = "ballbot/freespace/**"
 
 

@@ -100,6 +100,34 @@ class WorkDone(Message):
                         "empty for a dropped item")
 
 
+GrantId = Annotated[str, Field(min_length=8, max_length=64, pattern=r"^[0-9a-f]+$")]
+
+
+class PoolDemand(Message):
+    """A robot's dispatcher to every worker of a fleet pool: `want` (it holds a frame and no grant;
+    repeated while that lasts) and grants it gives back unused (`decline`). `seq` and `stamp_ns`
+    are the sender's own counter and send time; the robot is the one in the key."""
+
+    want: bool
+    decline: list[GrantId] = Field(default_factory=list, max_length=32)
+
+
+class PoolGrant(Message):
+    """A pool worker lets one robot send it one frame: the frame must carry `grant` in its
+    attachment, within `ttl_ms`. Issued by weighted fair queueing over the robots that want; the
+    load figures are this worker's view when it granted. `seq` and `stamp_ns`: the worker's own
+    counter and send time."""
+
+    worker: str = Field(min_length=1, max_length=128)
+    grant: GrantId
+    ttl_ms: float = Field(gt=0, le=60000)
+    robots: int = Field(0, ge=0, description="robots wanting or holding work at this worker")
+    share: float = Field(0.0, ge=0, le=1, description="this robot's weight over theirs")
+    queued: int = Field(0, ge=0, description="items waiting at the worker beside the one it computes")
+    wait_ms: float = Field(0.0, ge=0, le=60000, description="how long a frame sent now would wait there before "
+                           "it is started (a robot holding several grants sends to the soonest)")
+
+
 class Obstacle(BaseModel):
     model_config = ConfigDict(extra="forbid")
 

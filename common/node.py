@@ -474,8 +474,9 @@ class _Progress:
 class Node:
     def __init__(self, service: str, options: ZenohOptions, robot_id: str, instance: str | None = None,
                  install_signal_handlers: bool = True, clock: Clock | None = None,
-                 limits: FreshnessLimits | None = None):
+                 limits: FreshnessLimits | None = None, pool: str | None = None):
         self.service = service
+        self.pool = pool  # a fleet pool's worker: its stats and token live under the pool's keys
         self.robot_id = robot_id
         self.instance = instance or f"{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:4]}"
         self.options = options
@@ -515,10 +516,15 @@ class Node:
                 signal.signal(sig, lambda *_: self.stop_event.set())
         release_memory_eagerly()
         self.session = open_session(self.options)
-        self._token = self.session.liveliness().declare_token(
-            topic("alive").key(self.robot_id, service=self.service, instance=self.instance))
-        self._stats_pub = self.session.declare_publisher(
-            topic("stats").key(self.robot_id, service=self.service, instance=self.instance), **qos(topic("stats")))
+        if self.pool:
+            alive_key = topic("pool_alive").key(self.robot_id, pool=self.pool, instance=self.instance)
+            stats_key = topic("pool_stats").key(self.robot_id, pool=self.pool, instance=self.instance)
+            self._publishes = {"pool_stats", "pool_alive"}
+        else:
+            alive_key = topic("alive").key(self.robot_id, service=self.service, instance=self.instance)
+            stats_key = topic("stats").key(self.robot_id, service=self.service, instance=self.instance)
+        self._token = self.session.liveliness().declare_token(alive_key)
+        self._stats_pub = self.session.declare_publisher(stats_key, **qos(topic("stats")))
         self._stats_thread = threading.Thread(target=self._stats_loop, name="stats", daemon=True)
         self._stats_thread.start()
         self.status = "ok"

@@ -86,6 +86,8 @@ def test_key_table_is_the_only_place_keys_are_spelled():
         assert t.template.startswith("ballbot/")
         if t.public:
             assert t.template == f"ballbot/{t.name}/{{robot_id}}"
+        elif t.name.startswith("pool_"):  # a fleet pool's keys, shared by its robots
+            assert t.template.startswith(keys.POOL_ROOT + "{pool}/")
         else:
             assert t.template.startswith("ballbot/{robot_id}/")
     offenders = []

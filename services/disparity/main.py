@@ -4,18 +4,32 @@
 rectified frame to exactly one free worker; with no worker alive it computes onboard (fallback) or
 reports "no worker reachable". `run disparity --role worker` (anywhere) computes frames from its own
 work key and publishes DisparityMap on `disparity`.
+
+A fleet pool (fleet.py): `run disparity --role worker --pool NAME` serves any robot whose dispatcher
+runs with `--pool NAME`, each robot its weighted share (`--pool-weights robotA=2,robotB=1`); with
+`--serve-robot` it also serves its own robot's work key.
 """
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
-from pydantic import Field
+from pydantic import BeforeValidator, Field
 
 from common.node import Node
 from cores.matching.config import MatcherConfig
 
-SUBSCRIBES = ["frames_rect", "work_done", "worker", "work"]  # dispatch: frames_rect, work_done, worker; worker: work
-PUBLISHES = ["disparity", "work", "work_done", "worker"]
+# dispatch: frames_rect, work_result, work_done, worker (+ pool_result, pool_done, pool_grant, pool_worker);
+# worker: work (+ pool_demand, pool_work)
+SUBSCRIBES = ["frames_rect", "work_result", "work_done", "worker", "work", "pool_worker", "pool_demand", "pool_grant",
+              "pool_work", "pool_result", "pool_done"]
+PUBLISHES = ["disparity", "work", "work_result", "work_done", "worker", "pool_worker", "pool_demand", "pool_grant",
+             "pool_work", "pool_result", "pool_done", "pool_stats", "pool_alive"]
+
+
+def _weights(value):
+    from services.disparity.fleet import parse_weights
+
+    return parse_weights(value)
 
 
 class DisparitySettings(MatcherConfig):
@@ -34,9 +48,28 @@ class DisparitySettings(MatcherConfig):
     jpeg_quality: int = Field(90, ge=1, le=100, description="for transport jpeg")
     fallback: Literal["none", "full", "half"] = Field("full", description="onboard matcher used only while no "
                                                      "worker is alive (half: half resolution; none: report \"no worker reachable\")")
+    # fleet pool (both sides)
+    pool: str = Field("", pattern=r"^([A-Za-z0-9_.-]{1,64})?$", description="a fleet pool's name: a worker serves "
+                      "any robot of it (its stats go to the pool's keys); a dispatcher also sends work to its workers "
+                      "(empty: no pool)")
+    serve_robot: bool = Field(False, description="worker with --pool: also serve its own robot's work key")
+    pool_weights: Annotated[dict[str, float], BeforeValidator(_weights)] = Field(
+        default_factory=dict, description="worker with --pool: each robot's weight, robotA=2,robotB=1 (others 1)")
+    pool_queue: int = Field(1, ge=1, le=8, description="worker with --pool: items waiting beside the one computed "
+                            "(1: a frame is ready when the current one ends, and none waits behind more than one)")
+    pool_grant_ttl_s: float = Field(1.0, gt=0, le=30, description="worker with --pool: a grant not used in this "
+                                    "time goes to the next robot")
+    pool_patience_s: float = Field(1.0, gt=0, description="dispatcher with --pool: wanting this long without a grant "
+                                   "(a full pool), the onboard fallback computes the frame")
     # worker side
     result_encoding: Literal["raw", "png"] = Field("raw", description="disparity map encoding (png: lossless, "
                                                    "for narrow links; invalid 0)")
+
+
+def node_options(settings: DisparitySettings) -> dict:
+    """A pool worker's stats and liveliness go to its pool's keys, so no robot's `status` takes it
+    for one of its own services."""
+    return {"pool": settings.pool} if settings.role == "worker" and settings.pool else {}
 
 
 def run(node: Node, settings: DisparitySettings) -> None:
@@ -46,7 +79,12 @@ def run(node: Node, settings: DisparitySettings) -> None:
 
     if settings.threads:
         cv2.setNumThreads(settings.threads)
-    if settings.role == "worker":
+    if settings.role == "worker" and settings.pool:
+        from services.disparity.fleet import run_pool_worker
+
+        node.role = "pool-worker"
+        run_pool_worker(node, settings)
+    elif settings.role == "worker":
         node.role = "worker"
         run_worker(node, settings)
     else:

@@ -40,6 +40,11 @@ One mechanism, push with checked answers:
   the segmenter's heartbeat marks the obstacle stream stale. The fallback is also what makes
   `ballbot-vision up` a single process per stage: no extra hop when everything runs on one host.
 
+* With `--pool NAME` the dispatcher also uses a fleet pool's workers (fleet.py), named
+  `<instance>@<pool>` here: the same trust, checks and fallback, but a pool worker gets a frame
+  only against one of its grants (DispatchState.add_grant), which the dispatcher asks for while it
+  holds a frame (PoolDemand) and gives back when it has none.
+
 DispatchState is the pure bookkeeping (no Zenoh, unit-tested); Dispatcher and run_worker are the
 Zenoh shells.
 """
@@ -58,8 +63,8 @@ import numpy as np
 
 from common import codec
 from common.errors import BallbotError, DecodeError
-from common.keys import topic
-from common.messages import DisparityMap, StereoFrame, WorkDone
+from common.keys import POOL_ROOT, topic
+from common.messages import DisparityMap, PoolDemand, PoolGrant, StereoFrame, WorkDone
 from common.node import Node, qos
 from common.signing import calibration_key
 from cores.matching.disparity import RecentValid
@@ -199,6 +204,11 @@ class WorkerSlot:
     why: str = ""  # why it is quarantined
     quarantined_at: float = -1.0  # only an item sent after this (a probe) can bring it back
     rtt: deque = field(default_factory=lambda: deque(maxlen=32))  # s from send to receipt, recent items
+    # a fleet pool's worker (fleet.py): work only against its grants, each good for one frame
+    pooled: bool = False
+    grants: deque = field(default_factory=deque)  # grant ids not used yet
+    item_grant: dict[int, str] = field(default_factory=dict)  # seq -> the grant it was sent with
+    last_grant: float = 0.0
 
 
 class DispatchState:
@@ -234,14 +244,14 @@ class DispatchState:
         self.counters: dict[str, int] = {k: 0 for k in (
             "dispatched", "completed", "failed", "timeouts", "lost_in_flight", "unknown_worker",
             "unknown_frame", "duplicate", "late", "workers_joined", "workers_left", "quarantined", "probes",
-            "rejected")}
+            "rejected", "grants")}
 
     # membership
-    def add_worker(self, name: str) -> bool:
+    def add_worker(self, name: str, pooled: bool = False) -> bool:
         with self.cond:
             if name in self.workers:
                 return False
-            self.workers[name] = WorkerSlot(name, next_probe=self.clock())
+            self.workers[name] = WorkerSlot(name, next_probe=self.clock(), pooled=pooled)
             self.counters["workers_joined"] += 1
             self.cond.notify_all()
             return True
@@ -282,14 +292,29 @@ class DispatchState:
 
     # assignment
     def _due_probe(self, now: float) -> list[WorkerSlot]:
-        return [w for w in self.workers.values() if w.trust != "trusted" and not w.in_flight and w.next_probe <= now]
+        return [w for w in self.workers.values() if w.trust != "trusted" and not w.in_flight and w.next_probe <= now
+                and self._granted(w, now)]
+
+    def _granted(self, w: WorkerSlot, now: float) -> bool:
+        """A robot's own worker needs nothing; a pool worker a live grant."""
+        if not w.pooled:
+            return True
+        self._prune_grants(w, now)
+        return bool(w.grants)
 
     def _free(self, now: float) -> list[WorkerSlot]:
         probes = self._due_probe(now)
         if probes:  # a probe first: a new worker is tried on the next frame, whoever else is free
             return probes
         return [w for w in self.workers.values()
-                if w.trust == "trusted" and len(w.in_flight) < self.max_in_flight and w.paused_until <= now]
+                if w.trust == "trusted" and self._held(w) < self.max_in_flight and w.paused_until <= now
+                and self._granted(w, now)]
+
+    @staticmethod
+    def _held(w: WorkerSlot) -> int:
+        """Items a worker holds: in flight; for a pool worker not those whose map is being checked
+        (it granted the next frame when it finished them)."""
+        return len(w.in_flight) - (len(w.answering) if w.pooled else 0)
 
     def has_free(self) -> bool:
         with self.cond:
@@ -315,15 +340,81 @@ class DispatchState:
             free = self._free(now)
             if not free:
                 return None
-            w = min(free, key=lambda s: (len(s.in_flight), s.last_assigned))
+            # the soonest start: a pool worker's grant says when it would start our frame
+            w = min(free, key=lambda s: (s.grants[0][3] if s.pooled and s.grants else now, len(s.in_flight),
+                                         s.last_assigned))
             if w.trust != "trusted":
                 self.counters["probes"] += 1
+            if w.pooled:
+                w.item_grant[seq] = w.grants.popleft()[0]
             w.in_flight[seq] = now
             w.tickets[seq] = ticket
             w.assigned += 1
             w.last_assigned = now
             self.counters["dispatched"] += 1
             return w.name
+
+    def grant_of(self, name: str, seq: int) -> str:
+        """The grant a pool worker's item `seq` was claimed with ("" for a robot's own worker)."""
+        with self.cond:
+            w = self.workers.get(name)
+            return w.item_grant.pop(seq, "") if w is not None else ""
+
+    # fleet pool grants (fleet.py)
+    def add_grant(self, name: str, grant: str, ttl_s: float = 1.0, wait_s: float = 0.0) -> bool:
+        """A pool worker lets us send it one frame (within ttl_s). -> False, to give it back, when
+        it is no pool worker of ours, may get no work now (quarantined and no probe due, paused
+        after a missed answer) or already holds max_in_flight items and grants."""
+        with self.cond:
+            now = self.clock()
+            w = self.workers.get(name)
+            if w is None or not w.pooled:
+                self.counters["unknown_worker"] += 1
+                return False
+            self._prune_grants(w, now)
+            if w.trust == "trusted":
+                usable = w.paused_until <= now and self._held(w) + len(w.grants) < self.max_in_flight
+            else:
+                usable = not w.in_flight and not w.grants and w.next_probe <= now
+            if not usable:
+                return False
+            w.grants.append((grant, now + ttl_s, now, now + wait_s))
+            w.last_grant = now
+            self.counters["grants"] += 1
+            self.cond.notify_all()
+            return True
+
+    def take_grants(self, held_s: float = 0.0) -> list[tuple[str, str]]:
+        """Grants not used yet, held longer than held_s or up to when their worker would start the
+        frame (from then on it would idle for us), removed: -> [(worker, grant)] to give back."""
+        with self.cond:
+            now = self.clock()
+            out = []
+            for w in self.workers.values():
+                self._prune_grants(w, now)
+                keep = deque()
+                for held in w.grants:
+                    if now - held[2] >= held_s or now >= held[3]:
+                        out.append((w.name, held[0]))
+                    else:
+                        keep.append(held)
+                w.grants = keep
+            return out
+
+    def holds_grants(self) -> bool:
+        with self.cond:
+            return any(w.grants for w in self.workers.values())
+
+    @staticmethod
+    def _prune_grants(w: WorkerSlot, now: float) -> None:
+        """Grants past their ttl are void at the worker too: never send against one."""
+        while w.grants and w.grants[0][1] <= now:
+            w.grants.popleft()
+
+    def pooled(self) -> int:
+        """Pool workers present (any trust): whether wanting work from the pool makes sense."""
+        with self.cond:
+            return sum(1 for w in self.workers.values() if w.pooled)
 
     def unclaim(self, name: str, seq: int) -> None:
         """The send failed: the frame never left."""
@@ -491,18 +582,22 @@ class DispatchState:
             return {"counters": dict(self.counters),
                     "workers": {n: {"in_flight": len(w.in_flight), "assigned": w.assigned,
                                     "completed": w.completed, "failed": w.failed, "timeouts": w.timeouts,
-                                    "trust": w.trust, "why": w.why, "timeout_s": self.timeout_for(w)}
+                                    "trust": w.trust, "why": w.why, "timeout_s": self.timeout_for(w),
+                                    "pooled": w.pooled}
                                 for n, w in self.workers.items()}}
 
 
 # --- work item envelope ---------------------------------------------------------------------------
 
-def make_attachment(age_ms: float, max_age_ms: float, nonce: bytes = b"") -> bytes:
+def make_attachment(age_ms: float, max_age_ms: float, nonce: bytes = b"", grant: str = "") -> bytes:
     """Sent beside the (unchanged) StereoFrame payload: its age when sent and the max age, so a
     worker on another host can tell its age without synchronised clocks, and the item's random
-    nonce, which the worker's answer must carry back (results.py)."""
-    return msgpack.packb({"age_ms": float(age_ms), "max_age_ms": float(max_age_ms), "nonce": nonce},
-                         use_bin_type=True)
+    nonce, which the worker's answer must carry back (results.py); to a pool worker, also the grant
+    it was sent against (fleet.py)."""
+    doc = {"age_ms": float(age_ms), "max_age_ms": float(max_age_ms), "nonce": nonce}
+    if grant:
+        doc["grant"] = grant
+    return msgpack.packb(doc, use_bin_type=True)
 
 
 def parse_attachment(raw: bytes | None) -> tuple[float, float, bytes]:
@@ -542,15 +637,38 @@ def _attachment_bytes(sample) -> bytes | None:
 
 # --- the dispatcher (robot side) --------------------------------------------------------------------
 
+class _KeyPut:
+    """session.put on one key, shaped like a publisher."""
+
+    def __init__(self, session: Any, key: str, qos_: dict[str, Any]):
+        self.session, self.key, self.qos = session, key, qos_
+
+    def put(self, payload: bytes) -> None:
+        self.session.put(self.key, payload, **self.qos)
+
+
 class Dispatcher:
     """frames_rect -> one worker's work key, following the workers' liveliness tokens; each
     worker's map from its result key, checked against the item (results.py), -> `disparity`,
     signed with the robot's key (the segmenter refuses anything else)."""
 
     def __init__(self, node: Node, state: DispatchState, max_age_ms: float, transport: str = "raw",
-                 jpeg_quality: int = 90, fallback: FrameComputer | None = None, sign_key: bytes | None = None):
+                 jpeg_quality: int = 90, fallback: FrameComputer | None = None, sign_key: bytes | None = None,
+                 pool: str = "", pool_patience_s: float = 1.0):
         if transport not in ("raw", "png", "jpeg"):
             raise BallbotError(f"transport: raw, png or jpeg, got {transport!r}")
+        # a fleet pool (fleet.py): its workers are named <instance>@<pool> here and work against grants
+        self.pool, self.pool_patience_s = pool, pool_patience_s
+        self._want_at = 0.0  # last demand sent
+        self._want_since: float | None = None  # wanting without a grant since
+        self._demand_seq = 0
+        self._demand_pub: Any = None
+        self._refused_grants: list[str] = []  # grants add_grant refused, to give back
+        self._frame_interval_s = 1.0  # between the frames that arrive (_input_rate)
+        self._rx = (time.monotonic(), 0)
+        self._inbox: Any = None
+        self._wanted_at = -1e9  # last want with a frame in hand
+        self.pool_load: dict[str, tuple[int, float, int]] = {}  # pool worker -> (robots, our share, queued)
         self.node, self.state = node, state
         self.max_age_ms = max_age_ms
         self.transport, self.jpeg_quality = transport, jpeg_quality
@@ -572,13 +690,28 @@ class Dispatcher:
     def _count(self, key: str, n: float = 1) -> None:
         self.node.extra[key] = self.node.extra.get(key, 0) + n
 
+    def _name(self, key_expr: Any) -> tuple[str, str]:
+        """-> (the worker's name here, its instance) from a key it answers on: a robot's own worker
+        is its instance; a pool worker <instance>@<pool> (the pool's keys end with the instance)."""
+        key = str(key_expr)
+        instance = key.rsplit("/", 1)[-1]
+        if self.pool and key.startswith(POOL_ROOT):
+            return f"{instance}@{self.pool}", instance
+        return instance, instance
+
+    def _instance(self, name: str) -> tuple[str, bool]:
+        """-> (instance, is a pool worker) of a worker's name here."""
+        if self.pool and name.endswith("@" + self.pool):
+            return name[: -len(self.pool) - 1], True
+        return name, False
+
     # callbacks (Zenoh threads: bookkeeping and small checks only)
     def _on_token(self, sample) -> None:
         import zenoh
 
-        name = str(sample.key_expr).rsplit("/", 1)[-1]
+        name, _ = self._name(sample.key_expr)
         if sample.kind == zenoh.SampleKind.PUT:
-            if self.state.add_worker(name):
+            if self.state.add_worker(name, pooled=name != _):
                 log.info("worker %s joined (%d alive); on probation until its first good map", name,
                          self.state.alive())
         else:
@@ -595,11 +728,11 @@ class Dispatcher:
         with the item's nonce; one claiming success is a lie (the map is the answer)."""
         payload = sample.payload.to_bytes()
         self.rates.add("in_work_done", len(payload))
-        name = str(sample.key_expr).rsplit("/", 1)[-1]
+        name, instance = self._name(sample.key_expr)
         msg = self.node.decode_or_drop(payload, WorkDone, "receipt", "receipt")
         if msg is None:
             return
-        if msg.worker != name:
+        if msg.worker != instance:
             self._count("receipts_misnamed")
             self.node.warn("receipt-misnamed", f"dropped a receipt on {name}'s key naming worker {msg.worker}")
             return
@@ -617,7 +750,7 @@ class Dispatcher:
     def _on_result(self, sample) -> None:
         """A worker's map: everything that can be checked without copying or decoding the payload
         is checked here; what passes waits for the results thread."""
-        name = str(sample.key_expr).rsplit("/", 1)[-1]
+        name, _ = self._name(sample.key_expr)
         n = len(sample.payload)
         self.rates.add("in_work_result", n)
         try:
@@ -723,12 +856,108 @@ class Dispatcher:
         with self._recent_lock:
             self.recent.add(valid_fraction, now)
 
+    def _on_grant(self, sample) -> None:
+        """A pool worker lets us send it one frame; kept for the main loop (or given back at once
+        when it is none of ours or holds enough)."""
+        name, instance = self._name(sample.key_expr)
+        if len(sample.payload) > topic("pool_grant").max_bytes:
+            self._count("grants_oversized")
+            return
+        msg = self.node.decode_or_drop(sample.payload.to_bytes(), PoolGrant, "grant", "grant")
+        if msg is None:
+            return
+        if msg.worker != instance:
+            self._count("grants_misnamed")
+            self.node.warn("grant-misnamed", f"dropped a grant on {instance}'s key naming worker {msg.worker}")
+            return
+        self.pool_load[name] = (msg.robots, msg.share, msg.queued)
+        # a little under the worker's ttl: a frame sent at the last moment must still find its grant
+        if not self.state.add_grant(name, msg.grant, 0.8 * msg.ttl_ms / 1e3, msg.wait_ms / 1e3):
+            with self._recent_lock:  # given back by the main loop: no put from a Zenoh callback
+                self._refused_grants.append(msg.grant)
+
+    def _demand(self, want: bool, decline: list[str] = ()) -> None:
+        """Tell every worker of the pool that we hold a frame and no grant (want), and give back
+        grants we cannot use (decline)."""
+        if self._demand_pub is None:
+            return
+        self._demand_seq += 1
+        for i in range(0, max(1, len(decline)), 32):
+            msg = PoolDemand(robot_id=self.rid, seq=self._demand_seq, stamp_ns=time.time_ns(), want=want,
+                             decline=list(decline[i:i + 32]))
+            self._demand_pub.put(codec.encode(msg))
+        if want:
+            self._want_at = time.monotonic()
+            self._count("pool_wants")
+        if decline:
+            self._count("pool_declined", len(decline))
+
+    def _want(self, now: float, ahead: bool = False) -> None:
+        """While we hold a frame and no grant: ask, again every 0.1 s (a worker forgets a want after
+        0.5 s, and a worker that joins learns of it so). ahead: no frame yet, one is due (see
+        _backlogged); a grant that comes first is held for it (_hold_s)."""
+        if not ahead:
+            self._wanted_at = now
+        if self._want_since is None and not ahead:
+            self._want_since = now
+            self._demand(want=True)
+        elif now - self._want_at >= 0.1:
+            self._demand(want=True)
+
+    def _backlogged(self, now: float) -> bool:
+        """Frames come faster than grants: we wanted with a frame in hand lately, and the next
+        frame is due within the time a grant is held."""
+        return now - self._wanted_at < 0.3 and self._frame_interval_s <= 0.5
+
+    def _decline_unused(self, held_s: float = 0.0) -> None:
+        grants = [g for _, g in self.state.take_grants(held_s)]
+        with self._recent_lock:
+            grants += self._refused_grants
+            self._refused_grants = []
+        if grants:
+            self._demand(want=False, decline=grants)
+
+    def _hold_s(self) -> float:
+        """How long a grant that came while we hold no frame is kept for the next one: about one
+        frame interval, and never past the moment its worker would start it (the worker computes
+        another robot's item meanwhile, so the hold costs it nothing and saves a round of decline
+        and re-grant; see DispatchState.take_grants)."""
+        return min(0.5, 1.2 * self._frame_interval_s)
+
+    def _take(self, inbox: Any, timeout: float) -> tuple[StereoFrame, bytes] | None:
+        return self.node.take(inbox, timeout)
+
+    def _input_rate(self, now: float) -> None:
+        """The interval between frames arriving (the inbox counts them all, taken or not)."""
+        if self._inbox is None:
+            return
+        n, dt = self._inbox.received, now - self._rx[0]
+        if dt >= 0.5:
+            arrived = n - self._rx[1]
+            interval = min(1.0, dt / arrived) if arrived else 1.0
+            self._frame_interval_s = 0.5 * self._frame_interval_s + 0.5 * interval
+            self._rx = (now, n)
+
     def start(self) -> None:
         s = self.node.session
         self._subs.append(self.node.subscribe(topic("work_done").pattern(self.rid), self._on_done))
         self._subs.append(self.node.subscribe(topic("work_result").pattern(self.rid), self._on_result))
         self._subs.append(s.liveliness().declare_subscriber(topic("worker").pattern(self.rid), self._on_token,
                                                            history=True))
+        if self.pool:
+            p = self.pool
+            self._subs.append(self.node.subscribe(topic("pool_done").pattern(self.rid, pool=p), self._on_done))
+            self._subs.append(self.node.subscribe(topic("pool_result").pattern(self.rid, pool=p), self._on_result))
+            self._subs.append(self.node.subscribe(topic("pool_grant").pattern(self.rid, pool=p), self._on_grant))
+            self._subs.append(s.liveliness().declare_subscriber(topic("pool_worker").pattern(pool=p), self._on_token,
+                                                               history=True))
+            key = topic("pool_demand").key(self.rid, pool=p)
+            # a put per demand, not a declared publisher: no publisher state that could go stale while
+            # workers come and go (in one bench run a robot's demands stopped reaching the workers
+            # after a worker was replaced; the cause is not established)
+            self._demand_pub = _KeyPut(s, key, qos(topic("pool_demand")))
+            self.node.uses("publishes", key)
+            self.node.uses("publishes", topic("pool_work").pattern(self.rid, pool=p))
         threading.Thread(target=self._results_loop, name="results", daemon=True).start()
 
     def _send(self, name: str, msg: StereoFrame, payload: bytes, nonce: bytes) -> None:
@@ -737,12 +966,21 @@ class Dispatcher:
         if self.transport != "raw" or msg.left.encoding != "raw":
             payload = codec.encode(reencode_frame(msg, self.transport, self.jpeg_quality))
         age_ms = self.node.age_s(msg) * 1e3
-        self.node.session.put(self._work.key(self.rid, instance=name), payload,
-                              congestion_control=zenoh.CongestionControl.DROP, priority=zenoh.Priority.DATA,
-                              attachment=make_attachment(age_ms, self.max_age_ms, nonce))
+        instance, pooled = self._instance(name)
+        key = (topic("pool_work").key(self.rid, pool=self.pool, instance=instance) if pooled
+               else self._work.key(self.rid, instance=name))
+        grant = self.state.grant_of(name, msg.seq) if pooled else ""
+        self.node.session.put(key, payload, congestion_control=zenoh.CongestionControl.DROP,
+                              priority=zenoh.Priority.DATA,
+                              attachment=make_attachment(age_ms, self.max_age_ms, nonce, grant))
         self.rates.add(f"out_work_{name}", len(payload))
 
     def _housekeeping(self, out) -> None:
+        self._input_rate(time.monotonic())
+        if self._refused_grants:
+            with self._recent_lock:
+                refused, self._refused_grants = self._refused_grants, []
+            self._demand(want=False, decline=refused)
         for name, seq in self.state.expire():
             self.node.warn("timeout", f"worker {name}: no map for seq {seq} in time; slot freed")
         alive, trusted = self.state.alive(), self.state.trusted()
@@ -755,14 +993,24 @@ class Dispatcher:
         quarantined = [f"{n} ({w['why']})" for n, w in doubtful.items() if w["trust"] == "quarantined"]
         probation = [n for n, w in doubtful.items() if w["trust"] == "probation"]
         self.node.extra["workers_quarantined"] = float(len(quarantined))
+        if self.pool:
+            pooled = {n: w for n, w in snap["workers"].items() if w["pooled"]}
+            self.node.extra["pool_workers"] = float(len(pooled))
+            self.node.extra["pool_workers_trusted"] = float(sum(w["trust"] == "trusted" for w in pooled.values()))
+            for n in [k for k in self.pool_load if k not in pooled]:
+                self.pool_load.pop(n, None)
+            # our share of each pool worker, as it said in its last grant
+            self.node.extra["pool_share"] = float(sum(share for _, share, _ in list(self.pool_load.values())))
         notes = ([f"quarantined: {', '.join(quarantined)}"] if quarantined else []) + \
                 ([f"on probation: {', '.join(probation)}"] if probation else [])
         note = f"; {'; '.join(notes)}" if notes else ""
         if trusted:
             methods = sorted({m for w, m in list(self.methods.items())
                               if w in snap["workers"] and snap["workers"][w]["trust"] == "trusted"})
+            in_pool = int(self.node.extra.get("pool_workers_trusted", 0))
             self.node.status = (f"ok: {trusted} worker{'s' if trusted > 1 else ''}"
-                                + (f" ({', '.join(methods)})" if methods else "") + note)
+                                + (f" ({', '.join(methods)})" if methods else "")
+                                + (f", {in_pool} of them in pool {self.pool}" if in_pool else "") + note)
         elif self.fallback is not None:
             # One host with no offboard worker is the normal single-machine setup, not a fault.
             what = f"computing onboard ({self.fallback.method}){note}"
@@ -799,7 +1047,7 @@ class Dispatcher:
 
     def run(self) -> None:
         node = self.node
-        inbox = node.latest("frames_rect")
+        inbox = self._inbox = node.latest("frames_rect")
         self.out = node.publisher("disparity", sign_key=self.sign_key)
         if self.sign_key is None:
             log.warning("dispatcher: no BALLBOT_CALIBRATION_KEY: the disparity maps are published unsigned, so the "
@@ -817,28 +1065,71 @@ class Dispatcher:
                 # computes, except for a frame that goes to a worker due for a probe (a new one, or
                 # one back from quarantine).
                 pending = None
-                if self.fallback is None and not self.state.probe_due():
+                if self.fallback is None and not self.state.probe_due() and not self.state.pooled():
                     inbox.take(0.1)  # drain: overwritten frames count as drops; nothing to do
                     continue
-                got = node.take(inbox, 0.1)
+                got = self._take(inbox, 0.1)
                 if got is None or self._too_old(got[0]):
                     continue
                 msg, payload = got
                 name, nonce = self._claim(msg)
+                if name is None and self.state.pooled():
+                    self._want(time.monotonic())  # a pool worker on probation probes only with a grant
+                    if self.fallback is None and self.state.wait_free(0.1):
+                        name, nonce = self._claim(msg)
                 if name is not None:
+                    self._want_since = None
                     self._dispatch(name, msg, payload, nonce)
                 elif self.fallback is not None:
                     self._compute_onboard(msg)
                 continue
+            if self.pool and not self.state.has_free():
+                # Pool workers give work only against grants: hold a frame and ask for one (the
+                # newest is taken, and decoded, only when a grant comes). While frames come faster
+                # than grants, ask a little ahead, so a turn is not skipped for want of a frame
+                # at that instant.
+                if pending is None:
+                    pending = self._take(inbox, 0.05)
+                if pending is not None and self._too_old(pending[0]):
+                    pending = None
+                    continue
+                now = time.monotonic()
+                if pending is None:
+                    if self._backlogged(now):
+                        self._want(now, ahead=True)
+                    else:
+                        self._want_since = None
+                    continue
+                self._want(now)
+                if self.fallback is not None and now - self._want_since > self.pool_patience_s:
+                    # the pool is there but grants us nothing (a full fleet): the robot is not left blind
+                    self._count("pool_starved")
+                    self._compute_onboard(pending[0])
+                    pending, self._want_since = None, None
+                    continue
+                self.state.wait_free(0.05)  # a grant wakes it
+                continue
             if not self.state.wait_free(0.1):
                 continue
-            got = node.take(inbox, 0.0 if pending else 0.1)
+            got = self._take(inbox, 0.0 if pending or self.pool else 0.1)
             if got is not None:
                 if pending is not None:
                     node.extra["replaced_pending"] = node.extra.get("replaced_pending", 0) + 1
                 pending = got
             if pending is None:
-                continue
+                if self.pool:
+                    # nothing to send: a grant held about a frame interval is given back (the pool
+                    # worker then grants another robot)
+                    self._decline_unused(self._hold_s())
+                    self._want_since = None
+                    if not self.state.has_free():
+                        continue
+                    got = self._take(inbox, 0.01 if self.state.holds_grants() else 0.1)
+                    if got is None:
+                        continue
+                    pending = got
+                else:
+                    continue
             msg, payload = pending
             if self._too_old(msg):
                 pending = None
@@ -849,6 +1140,7 @@ class Dispatcher:
                     pending = None  # not a frame a worker can answer
                 continue  # the free worker vanished meanwhile; keep the frame for the next one
             pending = None
+            self._want_since = None
             self._dispatch(name, msg, payload, nonce)
 
     def _dispatch(self, name: str, msg: StereoFrame, payload: bytes, nonce: bytes) -> None:
@@ -867,7 +1159,7 @@ def run_dispatcher(node: Node, settings: Any) -> None:
         fallback = FrameComputer(settings, scale, "raw", label="onboard")
     state = DispatchState(settings.max_in_flight, settings.result_timeout_s)
     Dispatcher(node, state, settings.max_age_ms, settings.transport, settings.jpeg_quality, fallback,
-               calibration_key()).run()
+               calibration_key(), settings.pool, settings.pool_patience_s).run()
 
 
 # --- the worker (any host) ------------------------------------------------------------------------
