@@ -312,7 +312,7 @@ def worker_ceiling(method: str, frames: list, seconds: float = 3.0) -> dict:
     import cv2
 
     from services.disparity.main import DisparitySettings
-    from services.disparity.pool import FrameComputer
+    from services.disparity.computer import FrameComputer
 
     computer = FrameComputer(DisparitySettings(method=method, threads=1), 1.0, "raw")
     before = cv2.getNumThreads()

@@ -42,7 +42,7 @@ def in_process(n: int = 200) -> dict:
     from common.node import _META
     from services.capture.sources import SyntheticSource
     from cores.matching.config import MatcherConfig
-    from services.disparity.pool import FrameComputer
+    from services.disparity.computer import FrameComputer
     from services.disparity.results import Ticket, parse_header, result_header, vet_header, vet_map
     from cores.calibration.rectify import Rectifier
 

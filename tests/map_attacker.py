@@ -32,7 +32,8 @@ from common.messages import CameraModel, DisparityMap, StereoFrame, WorkDone
 from common.node import _META
 from common.zenoh_session import ZenohOptions, open_session
 from cores.matching.config import MatcherConfig
-from services.disparity.pool import FrameComputer, parse_attachment, receipt_attachment
+from services.disparity.computer import FrameComputer
+from services.disparity.envelope import parse_attachment, receipt_attachment
 from services.disparity.results import result_header
 
 WORKER_MODES = ("nan", "inf", "uint8", "invalid", "small", "huge", "future", "liar", "silent")

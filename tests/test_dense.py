@@ -20,7 +20,7 @@ from sim import synthetic as S
 from cores.matching import dense
 from cores.matching.config import auto_num_disparities
 from cores.matching.matchers import MatcherConfig, make_matcher
-from services.disparity.pool import FrameComputer
+from services.disparity.computer import FrameComputer
 from cores.calibration.rectify import Rectifier, camera_model_message
 
 

@@ -15,7 +15,8 @@ import uuid
 
 import pytest
 
-from services.disparity.pool import DispatchState, make_attachment, parse_attachment
+from services.disparity.envelope import make_attachment, parse_attachment
+from services.disparity.state import DispatchState
 from common.errors import DecodeError
 
 
@@ -148,7 +149,7 @@ def test_frames_to_workers_png_is_lossless_jpeg_is_smaller():
 
     from common import codec
     from common.messages import CameraModel, StereoFrame
-    from services.disparity.pool import reencode_frame
+    from services.disparity.computer import reencode_frame
 
     rng = np.random.default_rng(0)
     img = cv2_blur(rng.integers(0, 255, (120, 160), dtype=np.uint8))
@@ -505,7 +506,7 @@ def test_workers_in_another_network_namespace_survive_a_kill():
 
 
 def test_a_workers_queue_is_bounded_in_items_and_bytes():
-    from services.disparity.pool import WorkQueue
+    from services.disparity.worker import WorkQueue
 
     q = WorkQueue(capacity=3, max_bytes=10 << 20)
     for i in range(5):

@@ -6,7 +6,8 @@ import pytest
 
 from common.errors import ConfigError
 from services.disparity.fleet import FairScheduler, attachment_grant, parse_weights
-from services.disparity.pool import DispatchState, make_attachment
+from services.disparity.envelope import make_attachment
+from services.disparity.state import DispatchState
 
 
 class FakeClock:

@@ -20,7 +20,8 @@ from common.keys import topic
 from common.messages import CameraModel, DisparityMap, StereoFrame
 from common.node import _META, FreshnessGate, Inbox, Meta, meta_of
 from cores.matching.config import MatcherConfig
-from services.disparity.pool import DispatchState, FrameComputer
+from services.disparity.computer import FrameComputer
+from services.disparity.state import DispatchState
 from services.disparity.results import (Ticket, max_payload_bytes, measure, parse_header,
                                                        result_header, vet_header, vet_map)
 from services.segmenter.main import ObstacleBuilder, SegmenterSettings

@@ -110,7 +110,7 @@ def test_bad_settings_are_refused():
 
 
 def test_png_results_are_lossless(scene):
-    from services.disparity.pool import FrameComputer
+    from services.disparity.computer import FrameComputer
     from cores.calibration.rectify import camera_model_message
     from common.messages import StereoFrame
 

@@ -15,7 +15,7 @@ from cores.pipeline import Pipeline
 from cores.segmentation.builder import ObstacleBuilder
 from cores.segmentation.settings import SegmenterSettings
 from services.capture.sources import SyntheticSource
-from services.disparity.pool import FrameComputer
+from services.disparity.computer import FrameComputer
 
 
 @pytest.fixture(scope="module")

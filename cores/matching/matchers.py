@@ -1,7 +1,7 @@
 """Disparity cores: OpenCV block matching (SAD, the thesis's method), semi-global matching, and
 `dense` (dense.py: semi-global + edge-aware fill, a confidence for every pixel), with an optional
 left-right check, subpixel output, a vision-range gate and a search-range saturation measure. No
-Zenoh here: the service (main.py, pool.py), the offline `disparity` command and the benchmarks
+Zenoh here: the service (services/disparity: computer.py), the offline `disparity` command and the benchmarks
 share this.
 
 Output convention everywhere: int16 fixed point, disparity_px = value / 16 (OpenCV's 4 fractional

@@ -23,7 +23,7 @@ A frame without a valid grant is dropped unread (counted: `unsolicited`); a gran
 its ttl is reissued to the next robot; a dispatcher that holds no frame when a grant arrives gives
 it back at once (`decline`), so a robot with little to do costs the others nothing.
 
-The dispatcher side (trust, checks, republishing, fallback) is pool.py's Dispatcher and results.py,
+The dispatcher side (trust, checks, republishing, fallback) is dispatcher.py's Dispatcher and results.py,
 unchanged in what they check: a pool worker is one more worker there, named `<instance>@<pool>`,
 that gets work only against its grants.
 
@@ -407,9 +407,10 @@ def _chunk(key: str, index: int) -> str:
 
 def run_pool_worker(node: Node, settings: Any) -> None:
     """A worker of pool settings.pool (and, with serve_robot, of its own robot's work key too)."""
-    import zenoh
 
-    from services.disparity.pool import FrameComputer, Rates, parse_attachment, receipt_attachment
+    from services.disparity.computer import FrameComputer
+    from services.disparity.envelope import parse_attachment, receipt_attachment
+    from services.disparity.rates import Rates
     from services.disparity.results import result_header
 
     pool, me, home = settings.pool, node.instance, node.robot_id

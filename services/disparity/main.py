@@ -1,4 +1,4 @@
-"""disparity: frames_rect -> disparity, by a pool of workers on any host (see pool.py).
+"""disparity: frames_rect -> disparity, by a pool of workers on any host (see dispatcher.py).
 
 `run disparity` (role dispatch, on the robot) follows the workers' liveliness tokens and hands each
 rectified frame to exactly one free worker; with no worker alive it computes onboard (fallback) or
@@ -75,7 +75,8 @@ def node_options(settings: DisparitySettings) -> dict:
 def run(node: Node, settings: DisparitySettings) -> None:
     import cv2
 
-    from services.disparity.pool import run_dispatcher, run_worker
+    from services.disparity.dispatcher import run_dispatcher
+    from services.disparity.worker import run_worker
 
     if settings.threads:
         cv2.setNumThreads(settings.threads)

@@ -33,10 +33,10 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from common import codec
-from cores.matching.disparity import searched_range
 from common.errors import DecodeError
 from common.messages import CameraModel, DisparityMap, StereoFrame
 from cores.matching.config import MAX_NUM_DISPARITIES, SCALE
+from cores.matching.disparity import searched_range
 
 NONCE_BYTES = 16
 HEADER_MAX_BYTES = 1024

@@ -1,0 +1,612 @@
+"""The disparity dispatcher: on the robot, it hands each rectified frame to one of any number of
+workers on any host (worker.py) or computes it onboard, and publishes only maps it checked.
+
+One mechanism, push with checked answers:
+
+    rectify --frames_rect--> dispatcher --work/<w>--> worker w
+                                 ^    |                   |
+                                 |    +--disparity-->  segmenter   (signed with the robot's key)
+                                 +--work_result/<w>-------+   (w's map, answering one item)
+
+* A worker declares a liveliness token `workers/<instance>` once it listens on its own
+  `work/<instance>` key (queryables and subscribers do not load-balance, so each has its own key).
+  The dispatcher follows the tokens: a killed process's token vanishes in milliseconds, a frozen
+  or cut-off host's after the Zenoh lease (2 s by default, see zenoh_session.py).
+* The dispatcher holds only the newest rectified frame (newest-wins inbox). When a worker has a free
+  slot (fewer than max_in_flight items unanswered) it takes the newest frame, drops it if it is
+  older than max_age_ms, and puts it on that one worker's key with a random nonce in the
+  attachment: each frame goes to exactly one worker, is never retried, and a slow worker simply
+  gets fewer frames.
+* The worker publishes its DisparityMap only on its own `work_result/<instance>` key, the nonce
+  echoed in a small header (results.py). The dispatcher takes it only as the answer to an item
+  outstanding at that worker, checks it against the frame (size, format, range, pixels) cheapest
+  first, and republishes it on `disparity` with the frame's stamp, stages and camera, signed
+  (common/signed_payload.py): nothing a worker sends moves the segmenter's ordering reference or
+  freshness clock. Results may arrive out of order; the segmenter never publishes an older seq
+  after a newer one. A worker that drops an item says so with a receipt (work_done, nonce in the
+  attachment).
+* An item without an answer in time is freed (counted as a timeout), so a lost work item or a
+  frozen worker costs its in-flight frames and nothing stalls. "In time" adapts to each worker's
+  measured send-to-answer times (3x their 90th percentile, at least result_timeout_s), so a slow
+  machine or a loaded robot is not taken for a dead one. Answers from unknown workers, without the
+  item's nonce, or twice for one frame are logged, counted and dropped, and cost the worker the
+  key names nothing (anyone may put on its key).
+* A token alone is not a worker: a new one is on probation (one probe frame at a time) until its
+  first accepted map. One that takes work and returns nothing (timeouts, failed receipts) is
+  quarantined: no work but a single probe after a backoff (1 s, doubling to 30 s), until it
+  answers again. One that answers wrongly (a map that does not fit its item, a receipt claiming a
+  map it never sent) is quarantined at once.
+* While no worker is trusted (or every trusted one is paused after a missed answer) the
+  dispatcher computes in-process with the onboard fallback matcher (full or half resolution), or, with fallback none, says "no worker reachable" in its status while
+  the segmenter's heartbeat marks the obstacle stream stale. The fallback is also what makes
+  `ballbot-vision up` a single process per stage: no extra hop when everything runs on one host.
+
+* With `--pool NAME` the dispatcher also uses a fleet pool's workers (fleet.py), named
+  `<instance>@<pool>` here: the same trust, checks and fallback, but a pool worker gets a frame
+  only against one of its grants (DispatchState.add_grant), which the dispatcher asks for while it
+  holds a frame (PoolDemand) and gives back when it has none.
+
+The pieces: state.py (DispatchState, the pure bookkeeping, unit-tested without Zenoh), envelope.py
+(what travels beside an item), results.py (the checks of an answer), computer.py (one frame, for
+workers and the fallback), this file (the dispatcher's Zenoh shell), worker.py (the worker's).
+"""
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from typing import Any
+
+from common import codec
+from common.errors import BallbotError, DecodeError
+from common.keys import POOL_ROOT, topic
+from common.messages import DisparityMap, PoolDemand, PoolGrant, StereoFrame, WorkDone
+from common.node import Node, qos
+from common.signing import calibration_key
+from cores.matching.disparity import RecentValid
+from services.disparity.computer import FrameComputer, reencode_frame
+from services.disparity.envelope import (
+    _attachment_bytes,
+    make_attachment,
+    receipt_nonce,
+)
+from services.disparity.rates import Rates
+from services.disparity.results import (
+    MIN_MEASURED,
+    Ticket,
+    measure,
+    parse_header,
+    vet_header,
+    vet_map,
+)
+from services.disparity.state import DispatchState
+
+log = logging.getLogger("ballbot.pool")
+
+
+class _KeyPut:
+    """session.put on one key, shaped like a publisher."""
+
+    def __init__(self, session: Any, key: str, qos_: dict[str, Any]):
+        self.session, self.key, self.qos = session, key, qos_
+
+    def put(self, payload: bytes) -> None:
+        self.session.put(self.key, payload, **self.qos)
+
+
+class Dispatcher:
+    """frames_rect -> one worker's work key, following the workers' liveliness tokens; each
+    worker's map from its result key, checked against the item (results.py), -> `disparity`,
+    signed with the robot's key (the segmenter refuses anything else)."""
+
+    def __init__(self, node: Node, state: DispatchState, max_age_ms: float, transport: str = "raw",
+                 jpeg_quality: int = 90, fallback: FrameComputer | None = None, sign_key: bytes | None = None,
+                 pool: str = "", pool_patience_s: float = 1.0):
+        if transport not in ("raw", "png", "jpeg"):
+            raise BallbotError(f"transport: raw, png or jpeg, got {transport!r}")
+        # a fleet pool (fleet.py): its workers are named <instance>@<pool> here and work against grants
+        self.pool, self.pool_patience_s = pool, pool_patience_s
+        self._want_at = 0.0  # last demand sent
+        self._want_since: float | None = None  # wanting without a grant since
+        self._demand_seq = 0
+        self._demand_pub: Any = None
+        self._refused_grants: list[str] = []  # grants add_grant refused, to give back
+        self._frame_interval_s = 1.0  # between the frames that arrive (_input_rate)
+        self._rx = (time.monotonic(), 0)
+        self._inbox: Any = None
+        self._wanted_at = -1e9  # last want with a frame in hand
+        self.pool_load: dict[str, tuple[int, float, int]] = {}  # pool worker -> (robots, our share, queued)
+        self.node, self.state = node, state
+        self.max_age_ms = max_age_ms
+        self.transport, self.jpeg_quality = transport, jpeg_quality
+        self.fallback = fallback
+        self.sign_key = sign_key
+        self.rates = Rates(node)
+        self.rid = node.robot_id
+        self._work = topic("work")
+        self._subs: list[Any] = []
+        self.methods: dict[str, str] = {}  # worker -> the method its last map was made with
+        # Maps that passed the cheap checks, waiting for the full ones: at most one per item in
+        # flight (DispatchState.answer lets only the first answer to an item through).
+        self._results: queue.Queue = queue.Queue()
+        self.recent = RecentValid()  # valid fractions of the maps published lately (any source)
+        self.recent_by_worker: dict[str, RecentValid] = {}  # ... and of each worker's own
+        self._recent_lock = threading.Lock()
+        self.out: Any = None
+
+    def _count(self, key: str, n: float = 1) -> None:
+        self.node.extra[key] = self.node.extra.get(key, 0) + n
+
+    def _name(self, key_expr: Any) -> tuple[str, str]:
+        """-> (the worker's name here, its instance) from a key it answers on: a robot's own worker
+        is its instance; a pool worker <instance>@<pool> (the pool's keys end with the instance)."""
+        key = str(key_expr)
+        instance = key.rsplit("/", 1)[-1]
+        if self.pool and key.startswith(POOL_ROOT):
+            return f"{instance}@{self.pool}", instance
+        return instance, instance
+
+    def _instance(self, name: str) -> tuple[str, bool]:
+        """-> (instance, is a pool worker) of a worker's name here."""
+        if self.pool and name.endswith("@" + self.pool):
+            return name[: -len(self.pool) - 1], True
+        return name, False
+
+    # callbacks (Zenoh threads: bookkeeping and small checks only)
+    def _on_token(self, sample) -> None:
+        import zenoh
+
+        name, _ = self._name(sample.key_expr)
+        if sample.kind == zenoh.SampleKind.PUT:
+            if self.state.add_worker(name, pooled=name != _):
+                log.info("worker %s joined (%d alive); on probation until its first good map", name,
+                         self.state.alive())
+        else:
+            lost = self.state.remove_worker(name)
+            self.methods.pop(name, None)
+            with self._recent_lock:
+                self.recent_by_worker.pop(name, None)
+            self.rates.forget(f"out_work_{name}")
+            log.warning("worker %s left (%d alive, %d trusted); %d in-flight frame(s) lost", name, self.state.alive(),
+                        self.state.trusted(), lost)
+
+    def _on_done(self, sample) -> None:
+        """A receipt: a worker says it dropped an item (too old, undecodable, failed). Taken only
+        with the item's nonce; one claiming success is a lie (the map is the answer)."""
+        payload = sample.payload.to_bytes()
+        self.rates.add("in_work_done", len(payload))
+        name, instance = self._name(sample.key_expr)
+        msg = self.node.decode_or_drop(payload, WorkDone, "receipt", "receipt")
+        if msg is None:
+            return
+        if msg.worker != instance:
+            self._count("receipts_misnamed")
+            self.node.warn("receipt-misnamed", f"dropped a receipt on {name}'s key naming worker {msg.worker}")
+            return
+        kind, ticket = self.state.answer(name, msg.seq, receipt_nonce(_attachment_bytes(sample)))
+        if kind not in ("outstanding", "late"):
+            self.node.warn(f"receipt-{kind}", f"dropped receipt from {name} for seq {msg.seq}: {kind}")
+            return
+        if msg.ok:
+            self._refuse(name, msg.seq, "a receipt claiming a map that never came on its result key "
+                                        "(a worker of an older version publishes maps elsewhere)")
+            return
+        if self.state.done(name, msg.seq, False) == "failed":
+            self.node.warn("receipt-failed", f"worker {name} dropped seq {msg.seq}: {msg.reason}")
+
+    def _on_result(self, sample) -> None:
+        """A worker's map: everything that can be checked without copying or decoding the payload
+        is checked here; what passes waits for the results thread."""
+        name, _ = self._name(sample.key_expr)
+        n = len(sample.payload)
+        self.rates.add("in_work_result", n)
+        try:
+            header = parse_header(_attachment_bytes(sample))
+        except DecodeError as e:
+            # anyone can put on a worker's key: costs the named worker nothing
+            self._count("results_unmatched")
+            self.node.warn("result-header", f"dropped a map on {name}'s result key: {e}")
+            return
+        kind, ticket = self.state.answer(name, header.seq, header.nonce)
+        if ticket is None:
+            self._count("results_unmatched")
+            self.node.warn(f"result-{kind}", f"dropped a map on {name}'s result key for seq {header.seq}: {kind} "
+                                             f"(no item in flight there with its nonce)")
+            return
+        why = vet_header(header, ticket, n)
+        if why:
+            self._refuse(name, header.seq, why)
+            return
+        if kind == "late":
+            self.state.done(name, header.seq, True)
+            self.node.warn("result-late", f"worker {name}: map for seq {header.seq} came after its timeout; "
+                                          f"not published")
+            return
+        self._results.put((name, header, ticket, sample.payload.to_bytes()))
+
+    def _refuse(self, name: str, seq: int, why: str) -> None:
+        self.state.reject(name, seq, why)
+        self._count("results_rejected")
+        self.node.warn("result-rejected", f"refused worker {name}'s answer for seq {seq}: {why}; worker quarantined")
+
+    # the results thread: full checks, then republish
+    def _results_loop(self) -> None:
+        while self.node.running:
+            try:
+                name, header, ticket, payload = self._results.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            try:
+                checked = self._check(name, header, ticket, payload)
+            except Exception:  # never leave an item half-settled, never die on a worker's map
+                self.node.errors += 1
+                checked = None
+                self._refuse(name, header.seq, "its map could not be checked (see the dispatcher's log)")
+                if self.node._should_log("result-exception"):
+                    log.exception("dispatcher: checking worker %s's map for seq %s failed", name, header.seq)
+            if checked is not None:
+                with self.node.processing(checked[0]):
+                    self._settle(name, ticket, *checked)
+
+    def _check(self, name: str, header: Any, ticket: Any, payload: bytes) -> tuple[DisparityMap, float] | None:
+        """-> (the map, its valid fraction) when it may reach the robot; else None, the worker refused."""
+        try:
+            m = codec.decode(payload, DisparityMap)
+        except DecodeError as e:
+            self._refuse(name, ticket.seq, str(e))
+            return None
+        why, check = vet_map(m, header, ticket)
+        if not why:
+            why = self._collapsed(name, check.valid_fraction)
+        if why:
+            self._refuse(name, ticket.seq, why)
+            return None
+        return m, check.valid_fraction
+
+    def _collapsed(self, name: str, vf: float) -> str:
+        """Why a worker's map that measured far less than expected is refused ("" if it is not):
+        nothing measured while the robot's maps of the last 2 s (any source) measured plenty, or
+        under half of what that worker's own maps of the last 2 s measured. A scene that really
+        goes blank shows in the fallback's maps too, and the worker's next probe is judged on them;
+        a worker whose method simply measures less than another's is judged on its own."""
+        now = time.monotonic()
+        with self._recent_lock:
+            robot = self.recent.median(now)
+            own = self.recent_by_worker.get(name)
+            own_median = own.median(now) if own is not None else None
+        last = f"of the last {self.recent.window_s:g} s"
+        if robot is not None and vf < MIN_MEASURED and robot >= 10 * MIN_MEASURED:
+            return f"it measured {vf:.1%} of the image, the robot's maps {last} {robot:.1%}"
+        if own_median is not None and vf < self.recent.factor * own_median:
+            return f"it measured {vf:.1%} of the image, its own maps {last} {own_median:.1%}"
+        return ""
+
+    def _settle(self, name: str, ticket: Any, m: DisparityMap, valid_fraction: float) -> None:
+        if self.state.done(name, ticket.seq, True) != "ok":
+            self._count("results_late")  # timed out while being checked
+            return
+        # The frame's own stamp, stages and camera: nothing the worker says moves the robot's clock.
+        out = m.model_copy(update={"robot_id": ticket.robot_id, "seq": ticket.seq, "stamp_ns": ticket.stamp_ns,
+                                   "stages": dict(ticket.stages), "camera": ticket.camera, "worker": name,
+                                   "method": m.method[:64]})
+        self._publish(out, valid_fraction, time.monotonic())
+        with self._recent_lock:
+            self.recent_by_worker.setdefault(name, RecentValid()).add(valid_fraction, time.monotonic())
+        key = f"maps_{out.method}"
+        if key not in self.node.extra and sum(k.startswith("maps_") for k in list(self.node.extra)) >= 16:
+            key = "maps_other"  # a worker naming every map differently must not grow the stats without bound
+        self.node.extra[key] = self.node.extra.get(key, 0) + 1
+        self.methods[name] = out.method
+
+    def _publish(self, m: DisparityMap, valid_fraction: float, now: float) -> None:
+        self.out.put(m)
+        with self._recent_lock:
+            self.recent.add(valid_fraction, now)
+
+    def _on_grant(self, sample) -> None:
+        """A pool worker lets us send it one frame; kept for the main loop (or given back at once
+        when it is none of ours or holds enough)."""
+        name, instance = self._name(sample.key_expr)
+        if len(sample.payload) > topic("pool_grant").max_bytes:
+            self._count("grants_oversized")
+            return
+        msg = self.node.decode_or_drop(sample.payload.to_bytes(), PoolGrant, "grant", "grant")
+        if msg is None:
+            return
+        if msg.worker != instance:
+            self._count("grants_misnamed")
+            self.node.warn("grant-misnamed", f"dropped a grant on {instance}'s key naming worker {msg.worker}")
+            return
+        self.pool_load[name] = (msg.robots, msg.share, msg.queued)
+        # a little under the worker's ttl: a frame sent at the last moment must still find its grant
+        if not self.state.add_grant(name, msg.grant, 0.8 * msg.ttl_ms / 1e3, msg.wait_ms / 1e3):
+            with self._recent_lock:  # given back by the main loop: no put from a Zenoh callback
+                self._refused_grants.append(msg.grant)
+
+    def _demand(self, want: bool, decline: list[str] = ()) -> None:
+        """Tell every worker of the pool that we hold a frame and no grant (want), and give back
+        grants we cannot use (decline)."""
+        if self._demand_pub is None:
+            return
+        self._demand_seq += 1
+        for i in range(0, max(1, len(decline)), 32):
+            msg = PoolDemand(robot_id=self.rid, seq=self._demand_seq, stamp_ns=time.time_ns(), want=want,
+                             decline=list(decline[i:i + 32]))
+            self._demand_pub.put(codec.encode(msg))
+        if want:
+            self._want_at = time.monotonic()
+            self._count("pool_wants")
+        if decline:
+            self._count("pool_declined", len(decline))
+
+    def _want(self, now: float, ahead: bool = False) -> None:
+        """While we hold a frame and no grant: ask, again every 0.1 s (a worker forgets a want after
+        0.5 s, and a worker that joins learns of it so). ahead: no frame yet, one is due (see
+        _backlogged); a grant that comes first is held for it (_hold_s)."""
+        if not ahead:
+            self._wanted_at = now
+        if self._want_since is None and not ahead:
+            self._want_since = now
+            self._demand(want=True)
+        elif now - self._want_at >= 0.1:
+            self._demand(want=True)
+
+    def _backlogged(self, now: float) -> bool:
+        """Frames come faster than grants: we wanted with a frame in hand lately, and the next
+        frame is due within the time a grant is held."""
+        return now - self._wanted_at < 0.3 and self._frame_interval_s <= 0.5
+
+    def _decline_unused(self, held_s: float = 0.0) -> None:
+        grants = [g for _, g in self.state.take_grants(held_s)]
+        with self._recent_lock:
+            grants += self._refused_grants
+            self._refused_grants = []
+        if grants:
+            self._demand(want=False, decline=grants)
+
+    def _hold_s(self) -> float:
+        """How long a grant that came while we hold no frame is kept for the next one: about one
+        frame interval, and never past the moment its worker would start it (the worker computes
+        another robot's item meanwhile, so the hold costs it nothing and saves a round of decline
+        and re-grant; see DispatchState.take_grants)."""
+        return min(0.5, 1.2 * self._frame_interval_s)
+
+    def _take(self, inbox: Any, timeout: float) -> tuple[StereoFrame, bytes] | None:
+        return self.node.take(inbox, timeout)
+
+    def _input_rate(self, now: float) -> None:
+        """The interval between frames arriving (the inbox counts them all, taken or not)."""
+        if self._inbox is None:
+            return
+        n, dt = self._inbox.received, now - self._rx[0]
+        if dt >= 0.5:
+            arrived = n - self._rx[1]
+            interval = min(1.0, dt / arrived) if arrived else 1.0
+            self._frame_interval_s = 0.5 * self._frame_interval_s + 0.5 * interval
+            self._rx = (now, n)
+
+    def start(self) -> None:
+        s = self.node.session
+        self._subs.append(self.node.subscribe(topic("work_done").pattern(self.rid), self._on_done))
+        self._subs.append(self.node.subscribe(topic("work_result").pattern(self.rid), self._on_result))
+        self._subs.append(s.liveliness().declare_subscriber(topic("worker").pattern(self.rid), self._on_token,
+                                                           history=True))
+        if self.pool:
+            p = self.pool
+            self._subs.append(self.node.subscribe(topic("pool_done").pattern(self.rid, pool=p), self._on_done))
+            self._subs.append(self.node.subscribe(topic("pool_result").pattern(self.rid, pool=p), self._on_result))
+            self._subs.append(self.node.subscribe(topic("pool_grant").pattern(self.rid, pool=p), self._on_grant))
+            self._subs.append(s.liveliness().declare_subscriber(topic("pool_worker").pattern(pool=p), self._on_token,
+                                                               history=True))
+            key = topic("pool_demand").key(self.rid, pool=p)
+            # a put per demand, not a declared publisher: no publisher state that could go stale while
+            # workers come and go (in one bench run a robot's demands stopped reaching the workers
+            # after a worker was replaced; the cause is not established)
+            self._demand_pub = _KeyPut(s, key, qos(topic("pool_demand")))
+            self.node.uses("publishes", key)
+            self.node.uses("publishes", topic("pool_work").pattern(self.rid, pool=p))
+        threading.Thread(target=self._results_loop, name="results", daemon=True).start()
+
+    def _send(self, name: str, msg: StereoFrame, payload: bytes, nonce: bytes) -> None:
+        import zenoh
+
+        if self.transport != "raw" or msg.left.encoding != "raw":
+            payload = codec.encode(reencode_frame(msg, self.transport, self.jpeg_quality))
+        age_ms = self.node.age_s(msg) * 1e3
+        instance, pooled = self._instance(name)
+        key = (topic("pool_work").key(self.rid, pool=self.pool, instance=instance) if pooled
+               else self._work.key(self.rid, instance=name))
+        grant = self.state.grant_of(name, msg.seq) if pooled else ""
+        self.node.session.put(key, payload, congestion_control=zenoh.CongestionControl.DROP,
+                              priority=zenoh.Priority.DATA,
+                              attachment=make_attachment(age_ms, self.max_age_ms, nonce, grant))
+        self.rates.add(f"out_work_{name}", len(payload))
+
+    def _housekeeping(self, out) -> None:
+        self._input_rate(time.monotonic())
+        if self._refused_grants:
+            with self._recent_lock:
+                refused, self._refused_grants = self._refused_grants, []
+            self._demand(want=False, decline=refused)
+        for name, seq in self.state.expire():
+            self.node.warn("timeout", f"worker {name}: no map for seq {seq} in time; slot freed")
+        alive, trusted = self.state.alive(), self.state.trusted()
+        snap = self.state.snapshot()
+        self.node.extra.update({f"pool_{k}": float(v) for k, v in snap["counters"].items()})
+        self.node.extra["workers_alive"] = float(alive)
+        self.node.extra["workers_trusted"] = float(trusted)
+        self.node.extra["in_flight"] = float(sum(w["in_flight"] for w in snap["workers"].values()))
+        doubtful = {n: w for n, w in snap["workers"].items() if w["trust"] != "trusted"}
+        quarantined = [f"{n} ({w['why']})" for n, w in doubtful.items() if w["trust"] == "quarantined"]
+        probation = [n for n, w in doubtful.items() if w["trust"] == "probation"]
+        self.node.extra["workers_quarantined"] = float(len(quarantined))
+        if self.pool:
+            pooled = {n: w for n, w in snap["workers"].items() if w["pooled"]}
+            self.node.extra["pool_workers"] = float(len(pooled))
+            self.node.extra["pool_workers_trusted"] = float(sum(w["trust"] == "trusted" for w in pooled.values()))
+            for n in [k for k in self.pool_load if k not in pooled]:
+                self.pool_load.pop(n, None)
+            # our share of each pool worker, as it said in its last grant
+            self.node.extra["pool_share"] = float(sum(share for _, share, _ in list(self.pool_load.values())))
+        notes = ([f"quarantined: {', '.join(quarantined)}"] if quarantined else []) + \
+                ([f"on probation: {', '.join(probation)}"] if probation else [])
+        note = f"; {'; '.join(notes)}" if notes else ""
+        if trusted:
+            methods = sorted({m for w, m in list(self.methods.items())
+                              if w in snap["workers"] and snap["workers"][w]["trust"] == "trusted"})
+            in_pool = int(self.node.extra.get("pool_workers_trusted", 0))
+            self.node.status = (f"ok: {trusted} worker{'s' if trusted > 1 else ''}"
+                                + (f" ({', '.join(methods)})" if methods else "")
+                                + (f", {in_pool} of them in pool {self.pool}" if in_pool else "") + note)
+        elif self.fallback is not None:
+            # One host with no offboard worker is the normal single-machine setup, not a fault.
+            what = f"computing onboard ({self.fallback.method}){note}"
+            self.node.status = f"ok: {what}" if not alive else f"fallback: {what}"
+        else:
+            self.node.status = f"no worker reachable{note}"
+        self.rates.tick()
+
+    def _too_old(self, msg: StereoFrame) -> bool:
+        if self.node.age_s(msg) * 1e3 > self.max_age_ms:
+            self.node.extra["too_old"] = self.node.extra.get("too_old", 0) + 1
+            return True
+        return False
+
+    def _compute_onboard(self, msg: StereoFrame) -> None:
+        node = self.node
+        with node.processing(msg):
+            m = self.fallback.compute(msg, node.instance)
+            raw = codec.array_from_image(m.image, "disparity")
+            vf = measure(raw, m.invalid_value, m.scale, m.min_disparity, m.num_disparities).valid_fraction
+            self._publish(m, vf, time.monotonic())
+            self.fallback.report(node)
+            node.extra["fallback_frames"] = node.extra.get("fallback_frames", 0) + 1
+
+    def _claim(self, msg: StereoFrame) -> tuple[str | None, bytes]:
+        """-> (worker the frame goes to, or None; the item's nonce)."""
+        try:
+            ticket = Ticket.for_frame(msg)
+        except DecodeError as e:
+            self.node.decode_errors += 1
+            self.node.warn("decode", f"dropped frame seq {msg.seq}: {e}")
+            return None, b""
+        return self.state.claim(msg.seq, ticket), ticket.nonce
+
+    def run(self) -> None:
+        node = self.node
+        inbox = self._inbox = node.latest("frames_rect")
+        self.out = node.publisher("disparity", sign_key=self.sign_key)
+        if self.sign_key is None:
+            log.warning("dispatcher: no BALLBOT_CALIBRATION_KEY: the disparity maps are published unsigned, so the "
+                        "segmenter cannot tell them from anyone else's (`up` and the compose files set one)")
+        self.start()
+        pending: tuple[StereoFrame, bytes] | None = None
+        next_house = 0.0
+        while node.running:
+            now = time.monotonic()
+            if now >= next_house:
+                self._housekeeping(self.out)
+                next_house = now + 0.1
+            if self.state.available() == 0:
+                # No proven worker (or every one paused after a missed answer): the onboard fallback
+                # computes, except for a frame that goes to a worker due for a probe (a new one, or
+                # one back from quarantine).
+                pending = None
+                if self.fallback is None and not self.state.probe_due() and not self.state.pooled():
+                    inbox.take(0.1)  # drain: overwritten frames count as drops; nothing to do
+                    continue
+                got = self._take(inbox, 0.1)
+                if got is None or self._too_old(got[0]):
+                    continue
+                msg, payload = got
+                name, nonce = self._claim(msg)
+                if name is None and self.state.pooled():
+                    self._want(time.monotonic())  # a pool worker on probation probes only with a grant
+                    if self.fallback is None and self.state.wait_free(0.1):
+                        name, nonce = self._claim(msg)
+                if name is not None:
+                    self._want_since = None
+                    self._dispatch(name, msg, payload, nonce)
+                elif self.fallback is not None:
+                    self._compute_onboard(msg)
+                continue
+            if self.pool and not self.state.has_free():
+                # Pool workers give work only against grants: hold a frame and ask for one (the
+                # newest is taken, and decoded, only when a grant comes). While frames come faster
+                # than grants, ask a little ahead, so a turn is not skipped for want of a frame
+                # at that instant.
+                if pending is None:
+                    pending = self._take(inbox, 0.05)
+                if pending is not None and self._too_old(pending[0]):
+                    pending = None
+                    continue
+                now = time.monotonic()
+                if pending is None:
+                    if self._backlogged(now):
+                        self._want(now, ahead=True)
+                    else:
+                        self._want_since = None
+                    continue
+                self._want(now)
+                if self.fallback is not None and now - self._want_since > self.pool_patience_s:
+                    # the pool is there but grants us nothing (a full fleet): the robot is not left blind
+                    self._count("pool_starved")
+                    self._compute_onboard(pending[0])
+                    pending, self._want_since = None, None
+                    continue
+                self.state.wait_free(0.05)  # a grant wakes it
+                continue
+            if not self.state.wait_free(0.1):
+                continue
+            got = self._take(inbox, 0.0 if pending or self.pool else 0.1)
+            if got is not None:
+                if pending is not None:
+                    node.extra["replaced_pending"] = node.extra.get("replaced_pending", 0) + 1
+                pending = got
+            if pending is None:
+                if self.pool:
+                    # nothing to send: a grant held about a frame interval is given back (the pool
+                    # worker then grants another robot)
+                    self._decline_unused(self._hold_s())
+                    self._want_since = None
+                    if not self.state.has_free():
+                        continue
+                    got = self._take(inbox, 0.01 if self.state.holds_grants() else 0.1)
+                    if got is None:
+                        continue
+                    pending = got
+                else:
+                    continue
+            msg, payload = pending
+            if self._too_old(msg):
+                pending = None
+                continue
+            name, nonce = self._claim(msg)
+            if name is None:
+                if not nonce:
+                    pending = None  # not a frame a worker can answer
+                continue  # the free worker vanished meanwhile; keep the frame for the next one
+            pending = None
+            self._want_since = None
+            self._dispatch(name, msg, payload, nonce)
+
+    def _dispatch(self, name: str, msg: StereoFrame, payload: bytes, nonce: bytes) -> None:
+        with self.node.processing(msg):
+            try:
+                self._send(name, msg, payload, nonce)
+            except BaseException:
+                self.state.unclaim(name, msg.seq)
+                raise
+
+
+def run_dispatcher(node: Node, settings: Any) -> None:
+    fallback = None
+    if settings.fallback != "none":
+        scale = 0.5 if settings.fallback == "half" else 1.0
+        fallback = FrameComputer(settings, scale, "raw", label="onboard")
+    state = DispatchState(settings.max_in_flight, settings.result_timeout_s)
+    Dispatcher(node, state, settings.max_age_ms, settings.transport, settings.jpeg_quality, fallback,
+               calibration_key(), settings.pool, settings.pool_patience_s).run()
+
+
