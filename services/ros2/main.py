@@ -30,7 +30,6 @@ from typing import Literal
 import numpy as np
 from pydantic import Field, field_validator
 
-from ...common.errors import ConfigError
 from ...common.keys import topic
 from ...common.messages import DisparityMap, ObstacleList
 from ...common.node import Node
@@ -123,6 +122,13 @@ class DisparityCache:
         return None
 
 
+def preflight(settings: Ros2Settings) -> None:
+    """Before the service is up (cli.cmd_run): the ros2 extra is installed."""
+    from ...common.errors import require
+
+    require(("rosbags", "xxhash"), "ros2", "the ROS 2 bridge")
+
+
 def run(node: Node, settings: Ros2Settings) -> None:
     from . import convert, rmw
     from .graph import RosNode
@@ -131,7 +137,10 @@ def run(node: Node, settings: Ros2Settings) -> None:
     try:
         types = types_for(settings.distro)
     except ImportError as e:
-        raise ConfigError(f"ros2: {e.name} is not installed; install the extra: pip install 'ballbot-vision[ros2]'")
+        from ...common.errors import MissingDependency
+
+        raise MissingDependency(f"ros2: {e.name} is not installed; install the extra: "
+                                f"pip install 'ballbot-vision[ros2]'") from None
     s = settings
     qos = rmw.Qos(reliability=s.reliability, depth=s.depth)
     graph = RosNode(node.session, types, s.domain_id, s.namespace, s.node_name)
