@@ -39,6 +39,12 @@ class DisparitySettings(MatcherConfig):
                                                    "for narrow links; invalid 0)")
 
 
+def node_options(settings: DisparitySettings) -> dict:
+    """A worker reports on the workers' own stats and alive keys (keys.py: worker_stats): it may run
+    offboard, where it must not be able to speak for the dispatcher."""
+    return {"worker_keys": settings.role == "worker"}
+
+
 def run(node: Node, settings: DisparitySettings) -> None:
     import cv2
 
