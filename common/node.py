@@ -29,7 +29,7 @@ from typing import Any, Callable, Iterator, TypeVar
 
 from . import codec
 from .errors import BallbotError, DecodeError
-from .keys import Topic, topic
+from .keys import WORKER_SEGMENT, Topic, topic
 from .messages import Message, ServiceStats
 from .zenoh_session import ZenohOptions, open_session
 
@@ -398,6 +398,7 @@ class Publisher:
         self.source = int.from_bytes(os.urandom(8), "big") or 1  # this publisher's id in every attachment
         self.seq = 0
         self.bytes = 0
+        self.put_s_max = 0.0  # longest put() of the stats period: time the service waited on the network
         self._lock = threading.Lock()
 
     def put(self, msg: Message, count: bool = True) -> None:
@@ -407,7 +408,9 @@ class Publisher:
         payload = codec.encode(msg)
         with self._lock:  # a heartbeat thread and the main loop may share a publisher
             self.seq += 1
+            t0 = time.perf_counter()
             self._pub.put(payload, attachment=_META.pack(msg.stamp_ns, self.source, self.seq))
+            self.put_s_max = max(self.put_s_max, time.perf_counter() - t0)
         self.bytes += len(payload)
         if count:
             self.node._published(self.node.age_ns(msg))
@@ -445,8 +448,13 @@ class _Progress:
 class Node:
     def __init__(self, service: str, options: ZenohOptions, robot_id: str, instance: str | None = None,
                  install_signal_handlers: bool = True, clock: Clock | None = None,
-                 limits: FreshnessLimits | None = None):
+                 limits: FreshnessLimits | None = None, worker_keys: bool = False):
+        """worker_keys: publish stats and liveliness on the workers' own keys (worker_stats,
+        worker_alive), the only ones the gateway lets an offboard worker write."""
+        if service == WORKER_SEGMENT:
+            raise ValueError(f"no service may be named '{WORKER_SEGMENT}': its stats key is the workers' own")
         self.service = service
+        self.worker_keys = worker_keys
         self.robot_id = robot_id
         self.instance = instance or f"{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:4]}"
         self.options = options
@@ -484,10 +492,14 @@ class Node:
                 signal.signal(sig, lambda *_: self.stop_event.set())
         release_memory_eagerly()
         self.session = open_session(self.options)
-        self._token = self.session.liveliness().declare_token(
-            topic("alive").key(self.robot_id, service=self.service, instance=self.instance))
-        self._stats_pub = self.session.declare_publisher(
-            topic("stats").key(self.robot_id, service=self.service, instance=self.instance), **qos(topic("stats")))
+        if self.worker_keys:
+            alive = topic("worker_alive").key(self.robot_id, instance=self.instance)
+            stats = topic("worker_stats").key(self.robot_id, instance=self.instance)
+        else:
+            alive = topic("alive").key(self.robot_id, service=self.service, instance=self.instance)
+            stats = topic("stats").key(self.robot_id, service=self.service, instance=self.instance)
+        self._token = self.session.liveliness().declare_token(alive)
+        self._stats_pub = self.session.declare_publisher(stats, **qos(topic("stats")))
         self._stats_thread = threading.Thread(target=self._stats_loop, name="stats", daemon=True)
         self._stats_thread.start()
         self.status = "ok"
@@ -674,6 +686,7 @@ class Node:
                 refused[k] = refused.get(k, 0) + v
         for p in self._publishers:
             self._rate(extra, f"out_{p.topic.name}", p.bytes, window)
+            extra[f"out_{p.topic.name}_put_ms_max"], p.put_s_max = p.put_s_max * 1e3, 0.0
         health, why = self._progress.update(now, inputs, self.published, self.processed,
                                             self.errors + self.decode_errors)
         if why and sum(refused.get(k, 0) for k in REJECTIONS):
