@@ -188,3 +188,19 @@ def test_calibration_publish_signs_with_the_robots_key_and_reports_what_rectify_
     assert no_key.returncode == 2 and "no calibration key" in no_key.stderr and "--key-file" in no_key.stderr
     assert taken.returncode == 0 and ": taken " in taken.stdout, taken.stdout + taken.stderr
     assert refused.returncode == 1 and ": refused " in refused.stdout, refused.stdout + refused.stderr
+
+
+def test_a_deployment_that_names_a_real_source_must_configure_the_rig(capsys, monkeypatch):
+    """The compose files pass CAPTURE_SOURCE to rectify (rectify.source): a real source with no
+    rectify.calibration stops rectify before it is up, naming what to set; synthetic, ros2 and mcap
+    (which send their own, signed) start as before."""
+    from ballbot_vision.cli import main
+    from ballbot_vision.services.rectify.main import preflight
+
+    monkeypatch.delenv("BALLBOT_RECTIFY_CALIBRATION", raising=False)
+    assert main(["run", "rectify", "--source", "cameras", "--connect", "tcp/127.0.0.1:1"]) == 2
+    err = capsys.readouterr().err
+    assert "rectify.source is 'cameras'" in err and "RECTIFY_CALIBRATION" in err and " up (robot" not in err
+    for ok in ("synthetic", "ros2", "mcap", None):
+        preflight(RectifySettings(source=ok))
+    preflight(RectifySettings(source="images", calibration="lifecam-studio"))
