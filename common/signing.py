@@ -83,17 +83,6 @@ def calibration_key(robot_id: str | None = None) -> bytes | None:
     return None
 
 
-def key_origin(robot_id: str | None = None) -> str:
-    """Where calibration_key() finds the key, for messages."""
-    if os.environ.get(KEY_ENV):
-        return KEY_ENV
-    if os.environ.get(KEY_FILE_ENV):
-        return f"{KEY_FILE_ENV} ({os.environ[KEY_FILE_ENV]})"
-    if robot_id is not None and run_key_path(robot_id).exists():
-        return f"the key file of `up` ({run_key_path(robot_id)})"
-    return "nowhere"
-
-
 def _digest(msg: CalibrationUpdate, key: bytes) -> str:
     head = f"{msg.robot_id}\n{msg.stamp_ns}\n{msg.source}\n".encode()
     return hmac.new(key, head + msg.yaml.encode(), hashlib.sha256).hexdigest()
