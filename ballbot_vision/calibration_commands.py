@@ -76,7 +76,110 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         _out(f"{v.name}: " + row_alignment(rl, rr).format())
     except BallbotError as e:
         _out(f"{v.name}: rectification check not possible: {e}")
+    if args.publish:
+        _out()
+        return publish_calibration(args, args.output)
     return 0
+
+
+# --- calibration publish -------------------------------------------------------------------------
+
+def _publish_key(args: argparse.Namespace, rid: str) -> bytes:
+    from common.signing import KEY_ENV, KEY_FILE_ENV, calibration_key, read_key_file, run_key_path
+
+    if args.key_file:
+        try:
+            return read_key_file(args.key_file)
+        except OSError as e:
+            raise BallbotError(f"--key-file {args.key_file}: {e.strerror or e}") from None
+        except ValueError as e:
+            raise BallbotError(f"--key-file {e}") from None
+    key = calibration_key(rid)
+    if key is None:
+        raise BallbotError(f"no calibration key to sign with: rectify takes only calibrations signed with the "
+                           f"robot's key. Give it with --key-file FILE, {KEY_ENV} or {KEY_FILE_ENV} (a deployment's "
+                           f"is in its .env); `ballbot-vision up` keeps its per-run key in {run_key_path(rid)}")
+    return key
+
+
+def publish_calibration(args: argparse.Namespace, path: str) -> int:
+    """Sign a calibration with the robot's key and publish it on the calibration key; report whether
+    rectify took it (its stats count calibrations taken and refused). Exit 0 taken, 1 not."""
+    import threading
+    import time
+
+    import yaml
+
+    from ballbot_vision.cli import robot_id, zenoh_options
+    from common import codec
+    from cores import camera
+    from common.errors import DecodeError
+    from common.keys import topic
+    from common.messages import CalibrationUpdate, ServiceStats
+    from common.signing import sign
+    from common.zenoh_session import open_session
+
+    rid = robot_id(args)
+    cal = camera.load_calibration(path)  # a file rectify could not load is refused here, naming it
+    key = _publish_key(args, rid)
+    text = yaml.safe_dump(camera.calibration_to_dict(cal), sort_keys=False)
+    counts: dict[str, tuple[float, float]] = {}  # rectify instance -> (taken, refused)
+    changed = threading.Condition()
+
+    def on_stats(sample) -> None:
+        try:
+            st = codec.decode(sample.payload.to_bytes(), ServiceStats)
+        except DecodeError:
+            return
+        with changed:
+            counts[st.instance] = (st.extra.get("calibration_generation", 0.0), st.extra.get("calibration_refused", 0.0))
+            changed.notify_all()
+
+    def wait(pred, timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        with changed:
+            while not pred():
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                changed.wait(min(left, 0.2))
+            return True
+
+    with open_session(zenoh_options(args)) as session:
+        session.declare_subscriber(topic("stats").key(rid, service="rectify", instance="*"), on_stats)
+        if not wait(lambda: bool(counts), args.timeout):
+            raise BallbotError(f"no rectify of robot '{rid}' reports within {args.timeout:g} s (is the pipeline up, "
+                               f"and --connect / --robot-id right?)")
+        with changed:
+            before = dict(counts)
+        pub = session.declare_publisher(topic("calibration").key(rid))
+        wait(lambda: pub.matching_status.matching, args.timeout)
+        msg = sign(CalibrationUpdate(robot_id=rid, seq=0, stamp_ns=time.time_ns(), yaml=text,
+                                     source=f"calibration publish {path}"), key)
+        pub.put(codec.encode(msg))
+
+        def outcome() -> dict[str, str]:
+            out = {}
+            for inst, (g, r) in counts.items():
+                g0, r0 = before.get(inst, (g, r))
+                if g > g0:
+                    out[inst] = "taken"
+                elif r > r0:
+                    out[inst] = "refused"
+            return out
+
+        wait(lambda: len(outcome()) >= len(before), args.timeout)
+        with changed:
+            result = outcome()
+    if not result:
+        print(f"published {path} (signed) to robot '{rid}'; no rectify reported taking or refusing it within "
+              f"{args.timeout:g} s", file=sys.stderr)
+        return 1
+    for inst, what in sorted(result.items()):
+        _out(f"rectify {inst}: {what} {path}" + ("" if what == "taken" else " (its log says why: e.g. the baseline or "
+                                                  "focal length moved more than calibration_max_change from the one "
+                                                  "it started with, or another image size)"))
+    return 0 if all(v == "taken" for v in result.values()) else 1
 
 
 # --- calibrate --live ----------------------------------------------------------------------------
@@ -286,6 +389,18 @@ def cmd_rectify(args: argparse.Namespace) -> int:
 
 # --- parser ------------------------------------------------------------------------------------
 
+def _publish_arguments(p: argparse.ArgumentParser, publish_help: str | None) -> None:
+    g = p.add_argument_group("publishing to a running rectify (Zenoh options below)")
+    if publish_help:
+        g.add_argument("--publish", action="store_true", help=publish_help)
+    g.add_argument("--key-file", default=None, metavar="FILE",
+                   help="the robot's calibration key (default: BALLBOT_CALIBRATION_KEY, BALLBOT_CALIBRATION_KEY_FILE, "
+                        "or the key file of `up`)")
+    # calibrate --live already has a --timeout of its own (frames); publishing shares it
+    if publish_help is None:
+        g.add_argument("--timeout", type=float, default=10.0, metavar="S",
+                       help="wait this long for rectify to report (default: 10)")
+
 def register(sub: argparse._SubParsersAction, common) -> None:
     c = sub.add_parser("calibrate", help="chessboard image pairs -> calibration YAML, with an RMS report",
                        description="Detect a chessboard in left/right image pairs (files, or --live from a "
@@ -322,6 +437,8 @@ def register(sub: argparse._SubParsersAction, common) -> None:
     c.add_argument("--alpha", type=float, default=0.0, help="rectification crop: 0 valid pixels only, 1 all")
     c.add_argument("--name", default=None, help="calibration name (default: the output's stem)")
     c.add_argument("-o", "--output", default="calib.yaml", help="calibration YAML to write (default: calib.yaml)")
+    _publish_arguments(c, "then sign the result with the robot's calibration key and publish it to the running "
+                          "rectify (as `calibration publish`)")
     common(c)
     c.set_defaults(func=cmd_calibrate)
 
@@ -358,6 +475,17 @@ def register(sub: argparse._SubParsersAction, common) -> None:
     s.add_argument("--depth-range", type=float, nargs=2, default=[0.5, 3.0], metavar=("NEAR", "FAR"))
     s.add_argument("--alpha", type=float, default=0.0)
     s.set_defaults(func=cmd_show)
+
+    pb = cs.add_parser("publish", help="sign a calibration with the robot's key and send it to the running rectify",
+                       description="Rectify takes a calibration at run time only when it is signed with the robot's "
+                                   "calibration key, and only within calibration_max_change of the one it started "
+                                   "with (restart it for a larger change). The key: --key-file, "
+                                   "BALLBOT_CALIBRATION_KEY, BALLBOT_CALIBRATION_KEY_FILE, or the per-run key file "
+                                   "of `ballbot-vision up` for this robot id. Exit 0 once every rectify took it.")
+    pb.add_argument("calibration", metavar="CAL", help="calibration YAML or built-in profile")
+    _publish_arguments(pb, None)
+    common(pb)
+    pb.set_defaults(func=lambda a: publish_calibration(a, a.calibration))
 
     k = cs.add_parser("check", help="vertical offset of ORB matches after rectification (median, 95th pct.)")
     k.add_argument("left", metavar="LEFT", help="left image, glob or folder")

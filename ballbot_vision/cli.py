@@ -61,7 +61,12 @@ def cmd_run(args: argparse.Namespace) -> int:
         return run_router(zenoh_options(args, "router"), robot_id(args))
     m, settings_cls = service_module(args.service)
     settings = load_settings(settings_cls, config_file(args), args)
-    node_options = getattr(m, "node_options", lambda _: {})(settings)
+    # What can be known before the service is up (a missing optional dependency, a deployment
+    # that lacks a setting) fails here, before it announces itself: `up` and a healthcheck never
+    # see a service come up that could not run.
+    if hasattr(m, "preflight"):
+        m.preflight(settings)
+    node_options = m.node_options(settings) if hasattr(m, "node_options") else {}
     with Node(args.service, zenoh_options(args), robot_id(args), instance=args.instance, **node_options) as node:
         m.run(node, settings)
     return 0
@@ -109,23 +114,36 @@ def cmd_up(args: argparse.Namespace) -> int:
         log.warning("up --nice %d needs root (or CAP_SYS_NICE); the services run at the default priority", args.nice)
     import secrets
 
-    from common.signing import KEY_ENV
+    from common.signing import KEY_ENV, KEY_FILE_ENV, remove_run_key, write_run_key
 
-    # The services of this run share a calibration key: rectify takes calibrations signed by capture
-    # (a ROS camera's CameraInfo, a recording's) and refuses anyone else's jumps.
+    # The services of this run share a calibration key: rectify takes only calibrations signed with
+    # it (capture's, from a ROS camera's CameraInfo or a recording; `calibration publish` by this
+    # user, who finds it in the run's key file). A key given by the user (KEY_ENV, KEY_FILE_ENV) wins.
     env = dict(os.environ)
-    env.setdefault(KEY_ENV, secrets.token_hex(32))
+    own_key = None
+    if not env.get(KEY_ENV) and not env.get(KEY_FILE_ENV):
+        own_key = secrets.token_hex(32)
+        env[KEY_ENV] = own_key
+        key_path = write_run_key(robot_id(args), own_key)
     sup = Supervisor(stop_timeout_s=args.stop_timeout, nice=args.nice, env=env)
     sup.add("router", ["run", "router"] + [a for e in listen for a in ("--listen", e)] + common)
     services = PIPELINE + (["ros2"] if getattr(args, "ros2", False) else [])
     services += ["viewer"] if getattr(args, "viewer", False) else []
     services += ["foxglove"] if getattr(args, "foxglove", False) else []
     for name in services:
-        sup.add(name, ["run", name, "--connect", endpoint] + common, nice_offset=stage_nice(name))
+        sup.add(name, ["run", name, "--connect", endpoint] + common, nice_offset=stage_nice(name),
+                optional=name not in PIPELINE)
     print(f"ballbot-vision: starting {', '.join(['router'] + services)}; router on {', '.join(listen)}", flush=True)
     print(f"ballbot-vision: obstacles are published on ballbot/obstacles/{robot_id(args)} "
           f"(watch them with: ballbot-vision watch --connect {endpoint})", flush=True)
-    return sup.run(wait_for_endpoint=endpoint)
+    if own_key is not None:
+        print(f"ballbot-vision: this run's calibration key is in {key_path} (readable by you only; "
+              f"`ballbot-vision calibration publish CAL` signs with it)", flush=True)
+    try:
+        return sup.run(wait_for_endpoint=endpoint)
+    finally:
+        if own_key is not None:
+            remove_run_key(robot_id(args), own_key)
 
 
 # --- watch / status / schema -------------------------------------------------------------------
@@ -145,7 +163,12 @@ def cmd_status(args: argparse.Namespace) -> int:
 def cmd_healthcheck(args: argparse.Namespace) -> int:
     """Exit 0 once every service on this host (a container's own) reports healthy stats: published
     stats whose health is ok. A service that is up but makes no progress (input arrives and nothing
-    is published, or every input fails) fails the check, with its reason on stderr."""
+    is published, or every input fails) fails the check, with its reason on stderr.
+
+    Only stats from a service's own key count, and only when the message names that service
+    (status.stats_source): an offboard worker may write nothing but the workers' key, so it cannot
+    make a robot service look healthy. `--worker` checks this host's disparity workers instead,
+    from that key (what an offboard worker's container runs)."""
     import socket
     import threading
     import time
@@ -160,11 +183,22 @@ def cmd_healthcheck(args: argparse.Namespace) -> int:
     seen: dict[str, ServiceStats] = {}
     changed = threading.Condition()
 
+    from ballbot_vision.status import as_worker, stats_source
+
+    untrusted: list[str] = []
+
     def on_stats(sample) -> None:
         try:
             st = codec.decode(sample.payload.to_bytes(), ServiceStats)
         except DecodeError:
             return
+        where = stats_source(str(sample.key_expr), st)
+        if where is None or where[1] == args.worker:  # forged, or a key of the other kind
+            if where is None or not args.worker:
+                with changed:
+                    untrusted.append(str(sample.key_expr))
+            return
+        st = st if where[1] else as_worker(st)
         if st.host == host and (args.service is None or st.service == args.service):
             with changed:
                 seen[st.instance] = st
@@ -180,7 +214,8 @@ def cmd_healthcheck(args: argparse.Namespace) -> int:
         o.listen = []
     deadline = time.monotonic() + args.timeout
     with open_session(o) as session:
-        session.declare_subscriber(topic("stats").pattern(robot_id(args)), on_stats)
+        session.declare_subscriber(topic("worker_stats" if args.worker else "stats").pattern(robot_id(args)),
+                                   on_stats)
         session.declare_subscriber(topic("pool_stats").pattern(), on_stats)  # a fleet pool's worker
         with changed:
             while True:
@@ -192,9 +227,11 @@ def cmd_healthcheck(args: argparse.Namespace) -> int:
     if bad:
         print("unhealthy: " + "; ".join(bad), file=sys.stderr)
     elif not ok:
-        what = args.service or "any service"
+        what = "any disparity worker" if args.worker else (args.service or "any service")
         print(f"no healthy stats from {what} on host {host} within {args.timeout:g} s"
-              + (f" (last: {', '.join(s.status for s in seen.values())})" if seen else ""), file=sys.stderr)
+              + (f" (last: {', '.join(s.status for s in seen.values())})" if seen else "")
+              + (f"; not trusted: {len(untrusted)} message(s) from workers' keys or that do not match their key"
+                 if untrusted else ""), file=sys.stderr)
     return 0 if ok else 1
 
 
@@ -351,6 +388,8 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
         hc = common(sub.add_parser("healthcheck", help="exit 0 if the services on this host report progress "
                                                                 "(containers)"))
         hc.add_argument("--service", default=None, help="only this service")
+        hc.add_argument("--worker", action="store_true", help="check this host's disparity workers (their own, "
+                        "self-reported stats key) instead of the robot's services")
         hc.add_argument("--timeout", type=float, default=3.0)
         hc.set_defaults(func=cmd_healthcheck)
     else:

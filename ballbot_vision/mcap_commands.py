@@ -13,11 +13,10 @@ from common.errors import BallbotError
 
 
 def _need_mcap() -> None:
-    try:
-        import mcap  # noqa: F401
-    except ImportError:
-        raise BallbotError("recordings need the `mcap` package, a dependency of ballbot-vision: install it again "
-                           "(pip install -e . in the checkout)") from None
+    """Before anything starts (exit status 3, common/errors.py MissingDependency)."""
+    from common.errors import require
+
+    require(("mcap",), "record", "recordings")
 
 
 # --- record ------------------------------------------------------------------------------------

@@ -31,6 +31,29 @@ class ConnectError(BallbotError):
     exit_status = 1
 
 
+class MissingDependency(BallbotError):
+    """An optional dependency of a service or command is not installed. Installing it is the fix,
+    restarting is not: exit status 3, on which `up` disables that service (an optional one such as
+    the viewer or the ROS 2 bridge) and keeps the others running."""
+
+    exit_status = 3
+
+
+def require(modules: tuple[str, ...], extra: str, who: str) -> None:
+    """Raise MissingDependency naming the pip extra if any of `modules` cannot be imported."""
+    import importlib
+
+    missing = []
+    for name in modules:
+        try:
+            importlib.import_module(name)
+        except ImportError:
+            missing.append(name)
+    if missing:
+        raise MissingDependency(f"{who} needs {' and '.join(missing)}, which {'is' if len(missing) == 1 else 'are'} "
+                                f"not installed: pip install 'ballbot-vision[{extra}]'")
+
+
 class FileError(BallbotError):
     """A file the user gave that is missing, unreadable, empty, binary, truncated, corrupt or of an
     impossible size (see common/files.py for the one wording every command uses)."""

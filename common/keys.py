@@ -100,11 +100,23 @@ TOPICS: dict[str, Topic] = {t.name: t for t in [
           ("status",), "per-instance rate, latency, drops and errors, once a second", max_bytes=256 << 10),
     Topic("alive", "ballbot/{robot_id}/alive/{service}/{instance}", None, "every service", 0.0,
           ("status",), "liveliness token of a running instance"),
+    # An offboard worker's own keys, apart from the robot services' (service segment WORKER_SEGMENT,
+    # which no service is named): the gateway's worker role may write these and no other stats or
+    # alive key, so a worker can never pose as the dispatcher or any robot service, and `status` /
+    # `healthcheck` show what comes from here as self-reported.
+    Topic("worker_stats", "ballbot/{robot_id}/stats/worker/{instance}", ServiceStats, "disparity (worker)", 1.0,
+          ("status",), "a disparity worker's own stats, once a second (self-reported: never a robot service's)",
+          max_bytes=256 << 10),
+    Topic("worker_alive", "ballbot/{robot_id}/alive/worker/{instance}", None, "disparity (worker)", 0.0,
+          ("status",), "liveliness token of a running disparity worker"),
     Topic("calibration", "ballbot/{robot_id}/calibration", CalibrationUpdate, "calibrate, capture", 0.0, ("rectify",),
           "a new calibration (YAML text) for rectify, applied between frames without a restart", max_bytes=2 << 20),
     Topic("replay_control", "ballbot/{robot_id}/replay/control", ReplayControl, "viewer, replay", 0.0, ("capture",),
           "play / pause / step a replayed recording (capture --source mcap)", max_bytes=64 << 10),
 ]}
+
+# The service segment of the workers' stats and alive keys; no service may be named so.
+WORKER_SEGMENT = "worker"
 
 OBSTACLES_ALL = "ballbot/obstacles/**"
 POOL_ROOT = "ballbot/pool/"  # every fleet pool's keys start so (the pool_* topics above)

@@ -29,7 +29,7 @@ from typing import Any, Callable, Iterator, TypeVar
 
 from common import codec, signed_payload
 from common.errors import BallbotError, DecodeError
-from common.keys import Topic, topic, topics_of
+from common.keys import WORKER_SEGMENT, Topic, topic, topics_of
 from common.messages import Message, ServiceStats
 from common.zenoh_session import ZenohOptions, open_session
 
@@ -424,6 +424,7 @@ class Publisher:
         self.source = int.from_bytes(os.urandom(8), "big") or 1  # this publisher's id in every attachment
         self.seq = 0
         self.bytes = 0
+        self.put_s_max = 0.0  # longest put() of the stats period: time the service waited on the network
         self._lock = threading.Lock()
 
     def put(self, msg: Message, count: bool = True) -> None:
@@ -436,7 +437,9 @@ class Publisher:
             attachment = _META.pack(msg.stamp_ns, self.source, self.seq)
             if self.sign_key is not None:
                 attachment = signed_payload.seal(self.sign_key, self.key, attachment, payload)
+            t0 = time.perf_counter()
             self._pub.put(payload, attachment=attachment)
+            self.put_s_max = max(self.put_s_max, time.perf_counter() - t0)
         self.bytes += len(payload)
         if count:
             self.node._published(self.node.age_ns(msg))
@@ -474,9 +477,15 @@ class _Progress:
 class Node:
     def __init__(self, service: str, options: ZenohOptions, robot_id: str, instance: str | None = None,
                  install_signal_handlers: bool = True, clock: Clock | None = None,
-                 limits: FreshnessLimits | None = None, pool: str | None = None):
+                 limits: FreshnessLimits | None = None, pool: str | None = None, worker_keys: bool = False):
+        """pool: a fleet pool's worker: its stats and token live under the pool's keys. worker_keys:
+        publish stats and liveliness on the workers' own keys (worker_stats, worker_alive), the only
+        ones the gateway lets an offboard worker write."""
+        if service == WORKER_SEGMENT:
+            raise ValueError(f"no service may be named '{WORKER_SEGMENT}': its stats key is the workers' own")
         self.service = service
-        self.pool = pool  # a fleet pool's worker: its stats and token live under the pool's keys
+        self.pool = pool
+        self.worker_keys = worker_keys
         self.robot_id = robot_id
         self.instance = instance or f"{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:4]}"
         self.options = options
@@ -520,6 +529,10 @@ class Node:
             alive_key = topic("pool_alive").key(self.robot_id, pool=self.pool, instance=self.instance)
             stats_key = topic("pool_stats").key(self.robot_id, pool=self.pool, instance=self.instance)
             self._publishes = {"pool_stats", "pool_alive"}
+        elif self.worker_keys:
+            alive_key = topic("worker_alive").key(self.robot_id, instance=self.instance)
+            stats_key = topic("worker_stats").key(self.robot_id, instance=self.instance)
+            self._publishes = {"worker_stats", "worker_alive"}
         else:
             alive_key = topic("alive").key(self.robot_id, service=self.service, instance=self.instance)
             stats_key = topic("stats").key(self.robot_id, service=self.service, instance=self.instance)
@@ -740,6 +753,7 @@ class Node:
                 refused[k] = refused.get(k, 0) + v
         for p in self._publishers:
             self._rate(extra, f"out_{p.topic.name}", p.bytes, window)
+            extra[f"out_{p.topic.name}_put_ms_max"], p.put_s_max = p.put_s_max * 1e3, 0.0
         health, why = self._progress.update(now, inputs, self.published, self.processed,
                                             self.errors + self.decode_errors)
         if why and sum(refused.get(k, 0) for k in REJECTIONS):

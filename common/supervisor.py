@@ -79,6 +79,8 @@ class Child:
     backoff_s: float = field(default=0.5)
     started_at: float = 0.0
     nice_offset: int = 0  # added to the supervisor's nice for this child (see cli.stage_nice)
+    optional: bool = False  # not part of the pipeline (viewer, ros2): a missing dependency disables it alone
+    disabled: str = ""  # why it is no longer started
 
 
 INITIAL_BACKOFF_S = 0.5
@@ -101,8 +103,8 @@ class Supervisor:
         self.stop_timeout_s = stop_timeout_s
         self.healthy_after_s = healthy_after_s
 
-    def add(self, name: str, argv: list[str], nice_offset: int = 0) -> None:
-        self.children.append(Child(name, argv, nice_offset=nice_offset))
+    def add(self, name: str, argv: list[str], nice_offset: int = 0, optional: bool = False) -> None:
+        self.children.append(Child(name, argv, nice_offset=nice_offset, optional=optional))
 
     def _start(self, c: Child) -> None:
         nice = self.nice + c.nice_offset
@@ -139,8 +141,10 @@ class Supervisor:
             while not self.stop.wait(0.1):
                 failed = self._restart_dead()
                 if failed:
-                    log.error("%s refused to start (exit status 2: a usage or configuration error, see "
-                              "above); stopping everything", failed)
+                    log.error("%s refused to start (exit status %s: %s, see above); stopping everything", failed,
+                              self._child(failed).proc.returncode,
+                              "a missing dependency" if self._child(failed).proc.returncode == 3 else
+                              "a usage or configuration error")
                     return 2
         finally:
             self.stop_all()
@@ -148,9 +152,21 @@ class Supervisor:
 
     def _restart_dead(self) -> str | None:
         """Restart crashed children with backoff; returns the name of one that exited with status 2
-        (bad settings or input: restarting cannot help)."""
+        (bad settings or input: restarting cannot help), or with status 3 (a missing dependency) if
+        the pipeline needs it. An optional child that exits with status 3 is disabled: never
+        restarted, the others keep running."""
         now = time.monotonic()
         for c in self.children:
+            if c.disabled:
+                continue
+            if c.proc is not None and c.proc.poll() == 3:
+                if not c.optional:
+                    return c.name
+                c.disabled = "a dependency is missing"
+                c.proc = None
+                log.error("%s is disabled: it needs a dependency that is not installed (its message above says "
+                          "what to install); the other services keep running", c.name)
+                continue
             if c.proc is not None and c.proc.poll() == 2:
                 return c.name
             if c.proc is not None and c.proc.poll() is not None:
@@ -166,6 +182,9 @@ class Supervisor:
             elif c.proc is None and now >= c.next_start:
                 self._start(c)
         return None
+
+    def _child(self, name: str) -> Child:
+        return next(c for c in self.children if c.name == name)
 
     def stop_all(self) -> None:
         live = [c for c in self.children if c.proc is not None and c.proc.poll() is None]

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 
 DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
 MAX_MESSAGE_BYTES = 128 << 20
+DATA_QUEUE_BATCHES = 16  # per link, of 64 KB: the image streams' priority (see make_config)
 
 
 @dataclass
@@ -106,6 +107,13 @@ def make_config(o: ZenohOptions):
     # Zenoh reassembles a fragmented message of up to 1 GB by default before anyone can look at
     # it; no message of ours comes near 128 MB (the per-key caps in keys.py are tighter still).
     settings.append(("", "transport/link/rx/max_message_size", str(MAX_MESSAGE_BYTES)))
+    # A slow subscriber (a peer whose callback takes 1 s) keeps its link's DATA queue full; each time
+    # it drains a batch, the publisher's next fragmented image waits there for up to Zenoh's fragment
+    # deadline, and under CPU load healthy subscribers of the same put then lost frames too: with
+    # 2 batches (128 KB) per priority, 3-50 of ~480 1.8 MB frames per 20 s on a loaded 2-core
+    # machine; with 16 (1 MB, allocated lazily, Zenoh's maximum) 0-6, and the publisher waited 21-25 %
+    # of the time instead of 28-39 % (issue 25, tests/test_reliability.py measures it in the pipeline).
+    settings.append(("", "transport/link/tx/queue/size/data", str(DATA_QUEUE_BATCHES)))
     for option, key, value in settings:
         try:
             conf.insert_json5(key, value)

@@ -112,7 +112,7 @@ def test_a_run_time_calibration_that_rescales_every_distance_is_refused():
     half = _doc()
     half["T"] = [t / 2 for t in half["T"]]
     assert h.offer_yaml(yaml.safe_dump(half), "the calibration key") is False
-    assert "baseline" in h.last_error and "50%" in h.last_error and "restart" in h.last_error
+    assert "baseline" in h.last_error and "50.0%" in h.last_error and "restart" in h.last_error
     focal = _doc()
     for cam in ("left", "right"):
         focal[cam]["K"] = [v * 1.2 if i in (0, 4) else v for i, v in enumerate(focal[cam]["K"])]
@@ -122,6 +122,38 @@ def test_a_run_time_calibration_that_rescales_every_distance_is_refused():
     tweak["T"] = [t * 1.01 for t in tweak["T"]]
     assert h.offer_yaml(yaml.safe_dump(tweak), "the calibration key") is True
     assert h.current().model.baseline_m == pytest.approx(before.model.baseline_m * 1.01, rel=1e-3)
+
+
+def test_drift_is_bounded_against_the_calibration_rectify_started_with_not_step_by_step():
+    """18 updates of -4 % each pass a 5 % step check one by one and end at 48 % of the baseline;
+    against the calibration rectify started with, the second one already goes too far."""
+    h = CalibrationHolder("lifecam-studio")
+    h.note_frame(640, 480)
+    start = h.current().model.baseline_m
+    doc, taken = _doc(), []
+    for _ in range(18):
+        doc["T"] = [t * 0.96 for t in doc["T"]]
+        taken.append(h.offer_yaml(yaml.safe_dump(doc), "the calibration key"))
+    assert taken == [True] + [False] * 17, taken
+    assert "the calibration rectify started with" in h.last_error
+    assert h.current().model.baseline_m == pytest.approx(start * 0.96, rel=1e-3)
+    assert h.refused == 17
+
+
+def test_an_assumed_rig_becomes_the_reference_once_it_rectified_a_frame():
+    """Without a configured calibration nothing is drifted from until a frame was rectified with the
+    assumed rig; from then on (a forged "camera" frame or not) a half-baseline one is a jump."""
+    half = _doc()
+    half["T"] = [t / 2 for t in half["T"]]
+    fresh = CalibrationHolder("lifecam-studio", started=False)
+    assert fresh.reference is None and fresh.offer_yaml(yaml.safe_dump(half), "the first one")  # a real rig's first
+    used = CalibrationHolder("lifecam-studio", started=False)
+    used.note_frame(640, 480)
+    used.mark_used()
+    assert used.offer_yaml(yaml.safe_dump(half), "after a frame") is False and "50.0%" in used.last_error
+    wrong = CalibrationHolder("lifecam-studio", started=False)
+    wrong.note_frame(320, 240)  # the first calibration must fit the frames
+    assert wrong.offer_yaml(yaml.safe_dump(_doc()), "another size") is False and "320x240" in wrong.last_error
 
 
 def test_swap_never_tears_a_frame():

@@ -210,17 +210,205 @@ def test_a_calibration_with_half_the_baseline_published_on_the_key_is_refused(pi
     st = pipeline.stream
     t0 = time.monotonic()
     st.wait_new(5, t0, 60)
+    generation0, refused0 = st.extra("rectify", "calibration_generation"), st.extra("rectify", "calibration_refused")
     before = [o.distance_m for _, m in st.new(t0)[-3:] for o in m.obstacles]
     doc = camera.calibration_to_dict(camera.load_calibration("lifecam-studio"))
     doc["T"] = [t / 2 for t in doc["T"]]
     pipeline.session.put(pipeline.key("calibration"), codec.encode(CalibrationUpdate(
         robot_id=pipeline.rid, seq=0, stamp_ns=time.time_ns(), yaml=yaml.safe_dump(doc), source="an attacker")))
-    st.wait(lambda: st.extra("rectify", "calibration_refused") >= 1, 30, "rectify to refuse the calibration")
+    st.wait(lambda: st.extra("rectify", "calibration_refused") >= refused0 + 1, 30, "rectify to refuse the calibration")
     t1 = time.monotonic()
     st.wait_new(10, t1, 60)
     after = [o.distance_m for _, m in st.new(t1)[-3:] for o in m.obstacles]
-    assert st.extra("rectify", "calibration_generation") == 0
+    assert st.extra("rectify", "calibration_generation") == generation0
     assert after and abs(sum(after) / len(after) - sum(before) / len(before)) < 0.1 * sum(before) / len(before)
+
+
+# --- calibration is configuration (issue 25) ---------------------------------------------------------
+
+def nearest_m(st: Stream, after: float) -> float:
+    """Median over the new lists since `after` of the nearest obstacle's distance: the robot's truth."""
+    import statistics
+
+    d = [min(o.distance_m for o in m.obstacles) for _, m in st.new(after) if m.obstacles and not m.stale]
+    assert d, "no fresh list with an obstacle"
+    return statistics.median(d)
+
+
+def publish_calibrations(pipeline: Pipeline, docs: list[dict], key: bytes | None, what: str) -> list[str]:
+    """Publish each calibration (signed with key, if any) and wait until rectify took or refused it.
+    -> 'taken' / 'refused' per calibration, from rectify's own counts."""
+    import yaml
+
+    from common.messages import CalibrationUpdate
+    from common.signing import sign
+
+    st = pipeline.stream
+    out = []
+    for i, doc in enumerate(docs):
+        g0, r0 = st.extra("rectify", "calibration_generation"), st.extra("rectify", "calibration_refused")
+        msg = CalibrationUpdate(robot_id=pipeline.rid, seq=i, stamp_ns=time.time_ns(), yaml=yaml.safe_dump(doc),
+                                source=what)
+        pipeline.session.put(pipeline.key("calibration"), codec.encode(sign(msg, key) if key else msg))
+        st.wait(lambda: st.extra("rectify", "calibration_generation") + st.extra("rectify", "calibration_refused")
+                > g0 + r0, 30, f"rectify to take or refuse {what} {i + 1}")
+        out.append("taken" if st.extra("rectify", "calibration_generation") > g0 else "refused")
+    return out
+
+
+def drift_steps(n: int = 18, factor: float = 0.96) -> list[dict]:
+    """The issue's attack: n calibrations of the thesis rig, each baseline 4 % shorter than the last
+    (each step passes a 5 % step check; together they end at 48 %)."""
+    from cores import camera
+
+    doc = camera.calibration_to_dict(camera.load_calibration("lifecam-studio"))
+    out = []
+    for _ in range(n):
+        doc = dict(doc, T=[t * factor for t in doc["T"]])
+        out.append(doc)
+    return out
+
+
+def run_drift(pipeline: Pipeline, key: bytes | None, label: str) -> tuple[list[str], float, float]:
+    """-> (outcomes, baseline after / before from rectify's stats, nearest obstacle after / before)."""
+    st = pipeline.stream
+    t0 = time.monotonic()
+    st.wait_new(10, t0, 90, "lists before the attack")
+    b0, d0 = st.extra("rectify", "calibration_baseline_mm"), nearest_m(st, t0)
+    t_attack = time.monotonic()
+    outcomes = publish_calibrations(pipeline, drift_steps(), key, label)
+    took_s = time.monotonic() - t_attack
+    t1 = time.monotonic()
+    st.wait_new(10, t1, 90, "lists after the attack")
+    b1, d1 = st.extra("rectify", "calibration_baseline_mm"), nearest_m(st, t1)
+    print(f"{label}: 18 x -4 % baseline in {took_s:.0f} s: {outcomes.count('taken')} taken, "
+          f"{outcomes.count('refused')} refused; rectify's baseline {b0:.2f} -> {b1:.2f} mm; nearest obstacle "
+          f"{d0:.2f} -> {d1:.2f} m")
+    return outcomes, b1 / b0, d1 / d0
+
+
+def test_unsigned_calibration_drift_is_refused_step_by_step_in_the_default_up(pipeline):
+    """The issue: 18 unsigned updates of -4 % each moved the nearest obstacle from 1.77 to 0.85 m in
+    the default `up`. Unsigned, every one is refused now, and counted as such."""
+    u0 = pipeline.stream.extra("rectify", "calibration_unsigned_refused")
+    outcomes, baseline, nearest = run_drift(pipeline, None, "unsigned drift")
+    assert outcomes == ["refused"] * 18
+    assert pipeline.stream.extra("rectify", "calibration_unsigned_refused") - u0 == 18
+    assert baseline == 1.0 and 0.93 < nearest < 1.07
+
+
+def forge_camera_frame(pipeline: Pipeline, like: bytes) -> None:
+    """One raw frame marked as a camera source (an attacker's), until rectify has looked at one: it
+    counts it as an error (no calibration for a camera source) or, once it took a run-time
+    calibration, rectifies it (then it is on frames/rectified with the forged stamp)."""
+    from common.messages import StereoFrame
+    from common.node import stamp_of
+
+    st = pipeline.stream
+    frame = codec.decode(like, StereoFrame)
+    e0 = st.stats["rectify"].errors
+    stamps: set[int] = set()
+    rectified = threading.Event()
+
+    def on_rect(sample) -> None:
+        if stamp_of(sample.attachment) in stamps:
+            rectified.set()
+
+    sub = pipeline.session.declare_subscriber(pipeline.key("frames_rect"), on_rect)
+    try:
+        deadline = time.monotonic() + 60
+        n = 0
+        while st.stats["rectify"].errors == e0 and not rectified.is_set() and time.monotonic() < deadline:
+            # stamped 0.1 s ahead (within what rectify accepts), so the real frames that follow do
+            # not displace it from rectify's newest-wins slot before rectify looks at it
+            n += 1
+            stamp = time.time_ns() + 100_000_000
+            stamps.add(stamp)
+            pipeline.session.put(pipeline.key("frames_raw"), codec.encode(frame.model_copy(
+                update={"stamp_ns": stamp, "seq": frame.seq + 10**6, "source": "cameras"})),
+                attachment=struct.pack(">QQQ", stamp, 4343, n))
+            st.hold(0.5)
+    finally:
+        sub.undeclare()
+    assert st.stats["rectify"].errors > e0 or rectified.is_set(), "rectify never saw the forged camera frame"
+
+
+def raw_frame(pipeline: Pipeline) -> bytes:
+    got: list[bytes] = []
+    ev = threading.Event()
+
+    def keep(sample) -> None:
+        if not got:
+            got.append(sample.payload.to_bytes())
+            ev.set()
+
+    sub = pipeline.session.declare_subscriber(pipeline.key("frames_raw"), keep)
+    assert ev.wait(60), "no raw frame"
+    sub.undeclare()
+    return got[0]
+
+
+def half_baseline() -> dict:
+    from cores import camera
+
+    doc = camera.calibration_to_dict(camera.load_calibration("lifecam-studio"))
+    return dict(doc, T=[t / 2 for t in doc["T"]])
+
+
+def test_a_forged_camera_frame_does_not_make_the_next_calibration_the_first(pipeline):
+    """The issue: one forged raw frame marked as a camera source, then a half-baseline calibration,
+    was taken at once as "the first calibration" of a real source. Now: unsigned, refused; signed
+    with the robot's key, still refused (the thesis rig rectified the synthetic frames, so it is what
+    rectify started with, and half of it is a 50 % jump)."""
+    from common.signing import calibration_key
+
+    st = pipeline.stream
+    like = raw_frame(pipeline)
+    t0 = time.monotonic()
+    st.wait_new(10, t0, 90)
+    b0, d0 = st.extra("rectify", "calibration_baseline_mm"), nearest_m(st, t0)
+    outcomes = []
+    for key in (None, calibration_key(pipeline.rid)):
+        forge_camera_frame(pipeline, like)
+        outcomes += publish_calibrations(pipeline, [half_baseline()], key, "half baseline after a camera frame")
+    t1 = time.monotonic()
+    st.wait_new(10, t1, 90)
+    b1, d1 = st.extra("rectify", "calibration_baseline_mm"), nearest_m(st, t1)
+    print(f"forged camera frame + half baseline (unsigned, signed): {outcomes}; rectify's baseline {b0:.2f} -> "
+          f"{b1:.2f} mm; nearest obstacle {d0:.2f} -> {d1:.2f} m")
+    assert outcomes == ["refused", "refused"]
+    assert b1 == b0 and 0.93 < d1 / d0 < 1.07
+
+
+def test_signed_calibration_drift_is_bounded_by_the_calibration_rectify_started_with(pipeline):
+    """The same 18 steps signed with the robot's own key (what a compromised or buggy holder of it
+    would send): the first step (-4 %) is within 5 % of the calibration rectify started with and is
+    taken; the second (-7.8 % in all) and every later one are refused."""
+    from common.signing import calibration_key
+
+    key = calibration_key(pipeline.rid)  # `up`'s per-run key file: the local user's
+    assert key, "the test plays the local key holder: `up` keeps its key where the CLI finds it"
+    outcomes, baseline, nearest = run_drift(pipeline, key, "signed drift")
+    assert outcomes == ["taken"] + ["refused"] * 17
+    assert baseline == pytest.approx(0.96, abs=1e-3)
+    assert nearest > 0.9  # the attack aimed at 0.48
+
+
+def test_insecure_unsigned_calibrations_are_still_bounded_and_never_a_first_one(tmp_path):
+    """With the explicit opt-in (rectify.insecure_unsigned_calibrations), unsigned updates get in, but
+    only as far as a signed one would: drift bounded against the start, no forged "first" one."""
+    p = Pipeline("insecure", {"BALLBOT_RECTIFY_INSECURE_UNSIGNED_CALIBRATIONS": "true"})
+    try:
+        p.stream.wait_new(10, 0.0, 180, "the pipeline to start")
+        forge_camera_frame(p, raw_frame(p))
+        race = publish_calibrations(p, [half_baseline()], None, "half baseline after a camera frame, insecure opt-in")
+        print(f"forged camera frame + unsigned half baseline, insecure opt-in: {race}")
+        assert race == ["refused"]
+        outcomes, baseline, nearest = run_drift(p, None, "unsigned drift, insecure opt-in")
+        assert outcomes == ["taken"] + ["refused"] * 17 and baseline == pytest.approx(0.96, abs=1e-3)
+        assert nearest > 0.9
+    finally:
+        p.close()
 
 
 SLOW_PEER = r"""
@@ -239,26 +427,53 @@ with open_session(ZenohOptions(mode="peer", connect=[endpoint], listen=["tcp/127
 
 
 def test_a_peer_that_takes_1_s_per_sample_does_not_stall_the_obstacle_stream(pipeline):
-    """With BLOCK, one such peer made 6-12 s gaps in the obstacle stream for everyone."""
+    """With BLOCK, one such peer made 6-12 s gaps in the obstacle stream for everyone; issue 25 still
+    measured 0.44-1.1 s gaps with it. Its cost to the robot: the publishers of 1.8 MB frames wait on
+    its link (Zenoh's fragment deadline) and, under load, healthy subscribers lost frames. Measured
+    here in alternating windows without and with the peer (the machine's load is shared by both):
+    the longest gap between new lists, the rate, rectify's longest put and the frames the
+    dispatcher lost."""
+    import statistics
+
     st = pipeline.stream
-    t0 = time.monotonic()
-    st.hold(8.0)
-    base_gap = max_gap([t for t, _ in st.new(t0)], t0 + 0.5, time.monotonic())
-    peer = subprocess.Popen([sys.executable, "-c", SLOW_PEER, pipeline.rid, pipeline.up.endpoint],
-                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
-    try:
-        assert peer.stdout.readline().strip() == "ready"
+
+    def window(seconds: float) -> dict:
+        lost0 = st.extra("dispatcher", "in_frames_rect_lost")
+        t0 = time.monotonic()
+        puts = []
+        end = t0 + seconds
+        while time.monotonic() < end:
+            st.hold(min(1.0, end - time.monotonic()))
+            puts.append(st.extra("rectify", "out_frames_rect_put_ms_max"))
         t1 = time.monotonic()
-        st.hold(15.0)
-        gap = max_gap([t for t, _ in st.new(t1)], t1, time.monotonic())
-        rate = len(st.new(t1)) / (time.monotonic() - t1)
-        print(f"longest gap between new lists: {base_gap:.2f} s before the slow peer, {gap:.2f} s with it "
-              f"({rate:.1f} lists/s)")
-        assert gap < max(2.0, 2 * base_gap), f"the slow peer stalled the obstacle stream for {gap:.1f} s"
-    finally:
-        peer.stdin.close()
-        peer.terminate()
-        peer.wait(30)
+        times = [t for t, _ in st.new(t0, t1)]
+        gaps = sorted(b - a for a, b in zip([t0] + times, times + [t1]))
+        return {"gap": gaps[-1], "p95": gaps[int(0.95 * (len(gaps) - 1))], "rate": len(times) / (t1 - t0),
+                "put_ms": max(puts), "lost": st.extra("dispatcher", "in_frames_rect_lost") - lost0}
+
+    base, slow = [], []
+    for _ in range(2):
+        base.append(window(8.0))
+        peer = subprocess.Popen([sys.executable, "-c", SLOW_PEER, pipeline.rid, pipeline.up.endpoint],
+                                stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        try:
+            assert peer.stdout.readline().strip() == "ready"
+            slow.append(window(12.0))
+        finally:
+            peer.stdin.close()
+            peer.terminate()
+            peer.wait(30)
+    base.append(window(8.0))
+    for name, ws in (("without the slow peer", base), ("with the slow peer", slow)):
+        print(f"{name:22}: longest gap {max(w['gap'] for w in ws):.2f} s (p95 "
+              f"{statistics.median(w['p95'] for w in ws):.2f} s), {statistics.mean(w['rate'] for w in ws):.1f} new "
+              f"lists/s, rectify's longest put {max(w['put_ms'] for w in ws):.0f} ms, frames the dispatcher lost "
+              f"{sum(w['lost'] for w in ws):.0f} in {len(ws)} windows")
+    gap_base, gap_slow = max(w["gap"] for w in base), max(w["gap"] for w in slow)
+    print(f"the slow peer's cost: {gap_slow - gap_base:+.2f} s on the longest gap")
+    # generous on purpose: the machine's load moves both by more than the peer does
+    assert gap_slow < max(1.0, gap_base + 0.5), f"the slow peer stalled the obstacle stream for {gap_slow:.2f} s"
+    assert statistics.mean(w["rate"] for w in slow) > 0.6 * statistics.mean(w["rate"] for w in base)
 
 
 def rss_mb(pid: int) -> float:

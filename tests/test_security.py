@@ -31,6 +31,7 @@ from helpers import REPO, free_port, wait_port
 
 pytestmark = pytest.mark.system
 RID = "sec"
+ROBOT_KEY = b"the-robots-own-calibration-key"
 NOTHING_S = 3.0  # bounded wait for "nothing arrives" (stated; everything else waits on events)
 
 
@@ -79,6 +80,7 @@ def robot(tmp_path_factory):
     procs: dict[str, subprocess.Popen] = {}
     env = dict(os.environ, BALLBOT_LOG="INFO", PYTHONUNBUFFERED="1", BALLBOT_LEASE_MS="2000")
     env.pop("BALLBOT_ZENOH_CONFIG", None)
+    env["BALLBOT_CALIBRATION_KEY"] = ROBOT_KEY.decode()  # the robot's containers share one (compose)
 
     def start(name: str, *args: str) -> subprocess.Popen:
         log = open(tmp / f"{name}.log", "w")
@@ -95,8 +97,12 @@ def robot(tmp_path_factory):
         start("rectify", "rectify", *c)
         start("dispatch", "disparity", *c, "--fallback", "none", "--max-age-ms", "1500")
         start("segmenter", "segmenter", *c)
-        start("worker", "disparity", "--role", "worker", "--zenoh-config", str(certs / "pc1.json5"),
-              "--mode", "client", "--connect", f"tls/127.0.0.1:{external}")
+        worker_env = {k: v for k, v in env.items() if k != "BALLBOT_CALIBRATION_KEY"}  # offboard: no key
+        log = open(tmp / "worker.log", "w")
+        procs["worker"] = subprocess.Popen(
+            [sys.executable, "-m", "ballbot_vision.cli", "run", "disparity", "--role", "worker", "--robot-id", RID,
+             "--zenoh-config", str(certs / "pc1.json5"), "--mode", "client", "--connect", f"tls/127.0.0.1:{external}"],
+            stdout=log, stderr=subprocess.STDOUT, env=worker_env, cwd=REPO)
         yield {"certs": certs, "internal": f"tcp/127.0.0.1:{internal}", "external": f"tls/127.0.0.1:{external}",
                "tmp": tmp, "procs": procs}
     finally:
@@ -217,3 +223,112 @@ def test_authenticated_users_get_only_what_their_role_allows(robot):
         assert not viewer_frames.keys and not viewer_work.keys, "viewer read frames or work items"
         assert forged not in inside_obst.payloads, "a forged obstacle list reached the robot"
         assert len(inside_frames.keys) > 5 and len(inside_obst.keys) >= 3
+
+
+def _status_json(robot) -> dict:
+    import json
+
+    r = subprocess.run([sys.executable, "-m", "ballbot_vision.cli", "status", "--connect", robot["internal"],
+                        "--mode", "client", "--robot", RID, "--json", "--wait", "4"],
+                       capture_output=True, text=True, timeout=120, cwd=REPO)
+    return json.loads(r.stdout)
+
+
+def _healthcheck(robot, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "ballbot_vision.cli", "healthcheck", "--connect", robot["internal"],
+                           "--robot-id", RID, "--timeout", "8", *args], capture_output=True, text=True, timeout=120,
+                          cwd=REPO)
+
+
+def test_a_worker_cannot_pose_as_a_robot_service_in_status_or_healthcheck(robot):
+    """Issue 25: the worker role could write the dispatcher's stats key, so forged stats could make
+    `status` and `healthcheck` lie. Now the worker role writes only the workers' own stats key: its
+    forgeries on the dispatcher's and the segmenter's keys never reach the robot, and what it says on
+    its own key (even claiming to be a healthy robot service on this host) is shown as
+    self-reported and never counted: `healthcheck --service ros2` (no such service runs) still fails."""
+    import json
+    import socket
+
+    from common.messages import ServiceStats
+
+    certs = robot["certs"]
+    forged_status = "FORGED by an authenticated worker"
+    # the dispatcher's real instance (read inside here; an attacker would guess it or learn it elsewhere)
+    with internal_session(robot) as inside:
+        stats = Counter()
+        inside.declare_subscriber(topic("stats").pattern(RID), stats)
+        assert stats.wait(lambda c: any("/stats/disparity/" in k for k in c.keys), 60), "no dispatcher stats"
+        dispatcher = next(k for k in stats.keys if "/stats/disparity/" in k).rsplit("/", 1)[1]
+
+        def forged(service: str, instance: str, role: str = "") -> bytes:
+            return codec.encode(ServiceStats(robot_id=RID, service=service, role=role, instance=instance,
+                                             host=socket.gethostname(), pid=1, stamp_ns=time.time_ns(), uptime_s=999,
+                                             rate_hz=30.0, proc_ms_p50=5.0, age_ms_p50=40.0, processed=999,
+                                             published=999, drops=0, decode_errors=0, errors=0,
+                                             status=forged_status, health="ok"))
+
+        n0 = len(stats.keys)
+        with external_session(robot, str(certs / "worker.json5")) as worker:
+            done = threading.Event()
+
+            def forge() -> None:  # a paced stream of forgeries, twice a second, while status looks
+                while not done.wait(0.5):
+                    worker.put(topic("stats").key(RID, service="disparity", instance=dispatcher),
+                               forged("disparity", dispatcher, "dispatcher"))
+                    worker.put(topic("stats").key(RID, service="segmenter", instance="forged"),
+                               forged("segmenter", "forged"))
+                    worker.put(topic("worker_stats").key(RID, instance="forged"), forged("ros2", "forged"))
+
+            forger = threading.Thread(target=forge, daemon=True)
+            forger.start()
+            try:
+                status = _status_json(robot)
+                hc_forged = _healthcheck(robot, "--service", "ros2")
+                hc_workers = _healthcheck(robot, "--worker")
+                hc_robot = _healthcheck(robot, "--service", "segmenter")
+            finally:
+                done.set()
+                forger.join(10)
+        arrived = [k for k, p in zip(stats.keys[n0:], stats.payloads[n0:]) if forged_status.encode() in p]
+    rows = {(r["name"], r["instance"]): r for r in status["instances"]}
+    print(f"forged stats that reached the robot: {sorted(set(arrived))}")
+    print(f"status: {status['pipeline']}; rows: "
+          + ", ".join(f"{n}/{i[:12]} {'trusted' if r['trusted'] else 'self-reported'} {r['status'][:30]!r}"
+                      for (n, i), r in rows.items()))
+    print(f"healthcheck --service ros2 -> {hc_forged.returncode} ({hc_forged.stderr.strip()[:160]}); "
+          f"--worker -> {hc_workers.returncode}; --service segmenter -> {hc_robot.returncode}")
+    assert arrived == [topic("worker_stats").key(RID, instance="forged")] * len(arrived) and arrived, arrived
+    trusted_forged = [r for r in status["instances"] if r["trusted"] and r["status"] == forged_status]
+    assert not trusted_forged, trusted_forged
+    f = rows[("worker", "forged")]
+    assert not f["trusted"] and f["service"] == "disparity" and f["role"] == "worker"
+    assert any(n == "worker" and i != "forged" and not r["trusted"] for (n, i), r in rows.items()), \
+        "the real worker's own stats did not reach status through the gateway"
+    assert status["pipeline"]["health"] in ("ok", "degraded") and "ros2" not in json.dumps(status["pipeline"])
+    assert hc_forged.returncode == 1 and "not trusted" in hc_forged.stderr, hc_forged.stderr
+    assert hc_workers.returncode == 0, hc_workers.stderr
+    assert hc_robot.returncode == 0, hc_robot.stderr
+
+
+def test_a_worker_cannot_publish_a_calibration_through_the_gateway(robot):
+    """Calibration is configuration: no offboard user may put one (gateway ACL); rectify counts none."""
+    from cores import camera
+    from common.messages import CalibrationUpdate
+    from common.signing import sign
+
+    import yaml
+
+    doc = camera.calibration_to_dict(camera.load_calibration("lifecam-studio"))
+    doc["T"] = [t / 2 for t in doc["T"]]
+    with internal_session(robot) as inside, external_session(robot, str(robot["certs"] / "worker.json5")) as worker:
+        seen = Counter()
+        inside.declare_subscriber(topic("calibration").key(RID), seen)
+        deadline = time.monotonic() + NOTHING_S
+        while time.monotonic() < deadline:
+            msg = CalibrationUpdate(robot_id=RID, seq=0, stamp_ns=time.time_ns(), yaml=yaml.safe_dump(doc),
+                                    source="a worker")
+            worker.put(topic("calibration").key(RID), codec.encode(msg))
+            worker.put(topic("calibration").key(RID), codec.encode(sign(msg, b"a guessed key")))
+            time.sleep(0.2)  # paced forgeries over the stated NOTHING_S window
+    print(f"calibrations from the worker role that reached the robot: {len(seen.keys)}")
+    assert not seen.keys

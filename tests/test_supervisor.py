@@ -87,3 +87,57 @@ def test_a_child_runs_at_the_supervisors_nice_plus_its_offset(tmp_path):
         assert nice_of(sup.children[0].proc.pid) == 5
     finally:
         sup.stop_all()
+
+
+def test_a_missing_dependency_disables_an_optional_child_and_stops_a_required_one():
+    """Exit status 3 (common/errors.py MissingDependency): installing is the fix, not restarting."""
+    sup = Supervisor()
+    viewer, capture = Child("viewer", [], optional=True), Child("capture", [])
+    sup.children += [viewer, capture]
+    viewer.proc = Exited(3)
+    assert sup._restart_dead() is None and viewer.disabled and viewer.proc is None
+    assert sup._restart_dead() is None and viewer.proc is None and viewer.restarts == 0  # never started again
+    capture.proc = Exited(3)
+    assert sup._restart_dead() == "capture"
+
+
+@pytest.mark.system
+def test_up_viewer_without_aiohttp_keeps_the_pipeline_and_says_what_to_install(tmp_path):
+    """Issue 25: a missing optional dependency stopped every service of `up --viewer`. Now the viewer
+    alone is disabled (once: no restart loop) before it ever says it is up, the log names the extra to
+    install, and the pipeline keeps publishing fresh obstacle lists. aiohttp is hidden from the
+    services by a package of that name earlier on their path that fails to import, as a missing
+    one does."""
+    import os
+    import time
+
+    from common.keys import topic
+    from common.messages import ObstacleList
+
+    from helpers import Collector, Up, free_port
+
+    hidden = tmp_path / "hide" / "aiohttp"
+    hidden.mkdir(parents=True)
+    (hidden / "__init__.py").write_text("raise ImportError(\"No module named 'aiohttp'\", name='aiohttp')\n")
+    env = {"PYTHONPATH": os.pathsep.join(filter(None, [str(hidden.parent), os.environ.get("PYTHONPATH")])),
+           "BALLBOT_VIEWER_PORT": str(free_port())}
+    up = Up(robot_id="noaiohttp", extra_env=env, extra_args=["--viewer"])
+    lists = Collector(ObstacleList)
+    try:
+        with up.session() as s:
+            s.declare_subscriber(topic("obstacles").key(up.robot_id), lists)
+            assert lists.wait_for(lambda items: sum(not m.stale for m in items) >= 20, 180), up.log_path.read_text()[-3000:]
+            n = len(lists.items)
+            t0 = time.monotonic()
+            assert lists.wait_for(lambda items: sum(not m.stale for m in items[n:]) >= 30, 120)
+            seconds = time.monotonic() - t0
+        log = up.log_path.read_text()
+        assert up.proc.poll() is None, "up stopped"
+    finally:
+        up.stop()
+    viewer_starts = log.count("started viewer")
+    print(f"up --viewer without aiohttp: {len(lists.items)} obstacle lists ({sum(not m.stale for m in lists.items)} "
+          f"fresh; 30 new ones in {seconds:.1f} s after the viewer was disabled); viewer started {viewer_starts} time(s)")
+    assert "viewer is disabled" in log and "pip install 'ballbot-vision[viewer]'" in log
+    assert viewer_starts == 1, log[-3000:]
+    assert " viewer " not in "".join(line for line in log.splitlines(True) if line.rstrip().endswith(f"up (robot {up.robot_id})"))

@@ -167,6 +167,106 @@ def test_the_server_sends_latest_frames_only_and_survives_bad_clients():
         up.stop()
 
 
+async def _attempt(url: str, origin: str | None = None, host: str | None = None, seconds: float = 30.0,
+                   frames: int = 1) -> dict:
+    """Open the viewer's WebSocket as a browser on another page (or rebinding) would: -> the HTTP status
+    of the handshake, whether a picture of the robot's camera arrived, and a replay command sent."""
+    headers = {k: v for k, v in (("Origin", origin), ("Host", host)) if v is not None}
+    async with aiohttp.ClientSession() as http:
+        try:
+            async with http.ws_connect(url, headers=headers) as ws:
+                await ws.send_str(json.dumps({"replay": "step", "frames": frames}))
+                deadline = time.monotonic() + seconds
+                while time.monotonic() < deadline:
+                    msg = await ws.receive(timeout=max(0.1, deadline - time.monotonic()))
+                    if msg.type == aiohttp.WSMsgType.BINARY:
+                        _, blobs = core.unpack(msg.data)
+                        await ws.send_str('{"ack":1}')
+                        if "left" in blobs:
+                            return {"status": 101, "picture": True}
+                return {"status": 101, "picture": False}
+        except aiohttp.WSServerHandshakeError as e:
+            return {"status": e.status, "picture": False}
+
+
+async def _get(url: str, host: str | None = None) -> int:
+    async with aiohttp.ClientSession() as http:
+        async with http.get(url, headers={"Host": host} if host else {}) as r:
+            return r.status
+
+
+@pytest.mark.system
+def test_cross_origin_pages_rebinding_and_tokenless_clients_get_nothing():
+    """Issue 25: any web page the operator opened could read the camera stream over the viewer's
+    WebSocket and send replay commands (no Origin check), and DNS rebinding could do the same (no
+    Host check). Now: a page of another origin and a Host that is not this machine's are refused,
+    the viewer's own page (Origin = Host) and non-browser clients get pictures; bound beyond loopback
+    every client needs the token printed at start; allowed_origins opens the door on purpose."""
+    import re as _re
+
+    up = Up(robot_id="viewgate")
+    port, open_port, allow_port = free_port(), free_port(), free_port()
+    viewers = []
+    controls = Collector(ReplayControl)
+    try:
+        viewers.append(start_viewer(up, port))
+        viewers.append(start_viewer(up, open_port, "--host", "0.0.0.0"))
+        viewers.append(start_viewer(up, allow_port, "--allowed-origins", '["http://dash.example:9000"]'))
+        with up.session() as s:
+            s.declare_subscriber(topic("replay_control").key(up.robot_id), controls)
+            ws = f"http://127.0.0.1:{port}/ws"
+            here = f"http://127.0.0.1:{port}"
+            bad = 66  # the replay step a refused page asks for
+            cases = {
+                "own page (Origin = Host)": asyncio.run(_attempt(ws, origin=here)),
+                "no Origin (not a browser)": asyncio.run(_attempt(ws)),
+                "page of another origin": asyncio.run(_attempt(ws, origin="https://evil.example", frames=bad)),
+                "another port of this host": asyncio.run(_attempt(ws, origin=f"http://127.0.0.1:{free_port()}",
+                                                                  frames=bad)),
+                "sandboxed page (Origin null)": asyncio.run(_attempt(ws, origin="null", frames=bad)),
+                "DNS rebinding (Host = Origin = evil)": asyncio.run(_attempt(
+                    ws, origin=f"http://evil.example:{port}", host=f"evil.example:{port}", frames=bad)),
+                "allowed origin (flag)": asyncio.run(_attempt(f"http://127.0.0.1:{allow_port}/ws",
+                                                              origin="http://dash.example:9000")),
+            }
+            page_rebound = asyncio.run(_get(f"http://127.0.0.1:{port}/", host=f"evil.example:{port}"))
+            # beyond loopback: the token the viewer printed
+            log = Path(f"/tmp/ballbot-viewer-{open_port}.log")
+            deadline = time.monotonic() + 60
+            while not _re.search(r"\?token=(\S+)", log.read_text()) and time.monotonic() < deadline:
+                time.sleep(0.2)  # the viewer prints its URL once listening: poll its log
+            token = _re.search(r"\?token=(\S+)", log.read_text()).group(1)
+            wide = f"http://127.0.0.1:{open_port}"
+            cases["0.0.0.0 without the token"] = asyncio.run(_attempt(f"{wide}/ws", origin=wide, frames=bad))
+            cases["0.0.0.0 with a wrong token"] = asyncio.run(_attempt(f"{wide}/ws?token=guess", origin=wide,
+                                                                       frames=bad))
+            cases["0.0.0.0 with the token"] = asyncio.run(_attempt(f"{wide}/ws?token={token}", origin=wide))
+            page_tokenless = asyncio.run(_get(f"{wide}/"))
+            page_token = asyncio.run(_get(f"{wide}/?token={token}"))
+            # the accepted clients' replay steps reach the key (the test listens as a replay would);
+            # a refused page's would have arrived among them
+            assert controls.wait_for(lambda items: len(items) >= 4, 30)
+        for name, r in cases.items():
+            print(f"{name:40} handshake {r['status']}, camera picture {'received' if r['picture'] else 'none'}")
+        print(f"page with a rebound Host: {page_rebound}; beyond loopback, page without token: {page_tokenless}, "
+              f"with: {page_token}; replay commands that reached the robot: {len(controls.items)}, from refused "
+              f"pages: {sum(c.frames == bad for c in controls.items)}")
+        for name in ("own page (Origin = Host)", "no Origin (not a browser)", "allowed origin (flag)",
+                     "0.0.0.0 with the token"):
+            assert cases[name] == {"status": 101, "picture": True}, (name, cases[name])
+        for name in ("page of another origin", "another port of this host", "sandboxed page (Origin null)",
+                     "DNS rebinding (Host = Origin = evil)", "0.0.0.0 without the token", "0.0.0.0 with a wrong token"):
+            assert cases[name]["status"] in (401, 403) and not cases[name]["picture"], (name, cases[name])
+        assert page_rebound == 403 and page_tokenless == 401 and page_token == 200
+        assert not [c for c in controls.items if c.frames == bad], "a refused page's replay command reached the robot"
+        assert all(v.poll() is None for v in viewers)
+    finally:
+        for v in viewers:
+            v.terminate()
+            v.wait(30)
+        up.stop()
+
+
 def test_a_taken_port_is_a_clear_error():
     import socket
 

@@ -79,7 +79,8 @@ class Rectifier:
 log = logging.getLogger("ballbot.rectify")
 
 
-def implausible_change(old: camera.RectifiedModel, new: camera.RectifiedModel, max_change: float) -> str:
+def implausible_change(old: camera.RectifiedModel, new: camera.RectifiedModel, max_change: float,
+                       old_name: str = "the one in use") -> str:
     """Why swapping `old` for `new` at run time is implausible, or "" if it is not. Every distance
     is f*B/d: a baseline or focal length that changes by more than max_change (a fraction) between
     two calibrations of the same rig is a different rig or a mistake, and would silently rescale
@@ -89,8 +90,8 @@ def implausible_change(old: camera.RectifiedModel, new: camera.RectifiedModel, m
     for what, a, b, unit, k in (("baseline", old.baseline_m, new.baseline_m, "mm", 1000.0),
                                 ("focal length", old.focal_px, new.focal_px, "px", 1.0)):
         if abs(b - a) > max_change * abs(a):
-            return (f"its {what} {b * k:.2f} {unit} differs from the one in use ({a * k:.2f} {unit}) by "
-                    f"{abs(b - a) / abs(a):.0%}, more than {max_change:.0%}")
+            return (f"its {what} {b * k:.2f} {unit} differs from {old_name} ({a * k:.2f} {unit}) by "
+                    f"{abs(b - a) / abs(a):.1%}, more than {max_change:.0%}")
     return ""
 
 
@@ -103,14 +104,22 @@ class CalibrationHolder:
     object for both images, so a pair is never rectified half with the old and half with the new
     calibration. A calibration that does not load, or whose image size differs from the stream's,
     is logged and refused; the old one stays in use.
+
+    Drift is bounded against the calibration the robot started with (`reference`), never step by
+    step: 18 updates of -4 % each pass a step check one by one and halve every distance in the end.
+    The reference is the configured calibration (started=True), or else the assumed rig once it
+    rectified a frame (`mark_used`), or else the first calibration taken at run time: until then
+    there is nothing to drift from.
     """
 
-    def __init__(self, spec: str, alpha: float = 0.0, max_change: float = 0.05):
+    def __init__(self, spec: str, alpha: float = 0.0, max_change: float = 0.05, started: bool = True):
         self.alpha = alpha
         self.max_change = max_change
         self.spec = spec
         self._lock = threading.Lock()  # serialises offers (file watcher vs. messages), not frames
         self._rectifier = Rectifier(camera.load_calibration(spec), alpha)
+        self.reference: camera.RectifiedModel | None = self._rectifier.model if started else None
+        self.reference_name = (self._rectifier.calibration.name or spec) if started else ""
         self._path = Path(spec) if spec not in camera.PROFILES and Path(spec).exists() else None
         self._mtime = self._stat()
         self.stream_size: tuple[int, int] | None = None
@@ -126,6 +135,15 @@ class CalibrationHolder:
         """The stream's image size, so a calibration for another size can be refused up front."""
         self.stream_size = (int(width), int(height))
 
+    def mark_used(self) -> None:
+        """A frame was rectified with the calibration in use: if the robot had no reference yet
+        (an assumed rig), this one is what it started with."""
+        if self.reference is None:
+            with self._lock:
+                if self.reference is None:
+                    self.reference = self._rectifier.model
+                    self.reference_name = self._rectifier.calibration.name or self.spec
+
     def _refuse(self, origin: str, why: str) -> bool:
         self.refused += 1
         self.last_error = f"{origin}: {why}"
@@ -133,7 +151,7 @@ class CalibrationHolder:
                     self._rectifier.calibration.name or self.spec, why)
         return False
 
-    def offer(self, cal: camera.Calibration, origin: str, check_change: bool = True) -> bool:
+    def offer(self, cal: camera.Calibration, origin: str) -> bool:
         """Build a Rectifier for `cal` and swap it in; False (and logged) if refused."""
         with self._lock:
             if self.stream_size is not None and tuple(cal.image_size) != self.stream_size:
@@ -145,18 +163,25 @@ class CalibrationHolder:
                 return self._refuse(origin, str(e))
             except cv2.error as e:
                 return self._refuse(origin, f"OpenCV cannot rectify with it: {str(e).strip().splitlines()[-1]}")
-            jump = implausible_change(self._rectifier.model, new.model, self.max_change) if check_change else ""
-            if jump:
-                return self._refuse(origin, f"{jump}; a change this large is not applied at run time "
-                                            f"(restart rectify with the new calibration if it is right)")
+            first = self.reference is None
+            if not first:
+                jump = implausible_change(self.reference, new.model, self.max_change,
+                                          f"the calibration rectify started with ('{self.reference_name}')")
+                if jump:
+                    return self._refuse(origin, f"{jump}; a change this large is not applied at run time "
+                                                f"(restart rectify with the new calibration if it is right)")
             self._rectifier = new  # the swap: one reference assignment, between two frames
             self.generation += 1
+            if first:
+                self.reference, self.reference_name = new.model, cal.name or origin
             m = new.model
-            log.info("rectify: calibration '%s' from %s in use (f %.2f px, baseline %.2f mm)",
-                     cal.name or "?", origin, m.focal_px, m.baseline_m * 1000)
+            log.info("rectify: calibration '%s' from %s in use (f %.2f px, baseline %.2f mm)%s",
+                     cal.name or "?", origin, m.focal_px, m.baseline_m * 1000,
+                     "; the first one: later ones may differ from it by at most "
+                     f"{self.max_change:.0%}" if first and self.max_change > 0 else "")
             return True
 
-    def offer_yaml(self, text: str, origin: str, check_change: bool = True) -> bool:
+    def offer_yaml(self, text: str, origin: str) -> bool:
         from common.errors import FileError
         from common.files import parse_yaml
 
@@ -168,7 +193,7 @@ class CalibrationHolder:
             cal = camera.calibration_from_dict(doc, where=origin)
         except CalibrationError as e:
             return self._refuse(origin, str(e))
-        return self.offer(cal, origin, check_change)
+        return self.offer(cal, origin)
 
     def _stat(self) -> tuple[float, int] | None:
         if self._path is None:

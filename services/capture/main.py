@@ -25,6 +25,16 @@ SUBSCRIBES: list[str] = []
 PUBLISHES = ["frames_raw", "truth"]
 
 
+def preflight(s: CaptureSettings) -> None:
+    """Before the service is up (cli.cmd_run): the optional dependency of the chosen source."""
+    from common.errors import require
+
+    if s.source == "mcap":
+        require(("mcap",), "record", "capture --source mcap")
+    elif s.source == "ros2":
+        require(("rosbags", "xxhash"), "ros2", "capture --source ros2")
+
+
 def open_source(s: CaptureSettings, ctx: SourceContext | None = None, opener=None):
     """The source the settings name. `opener` replaces cv2.VideoCapture for cameras/sbs (tests)."""
     ctx = ctx or SourceContext()

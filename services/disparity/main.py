@@ -68,8 +68,11 @@ class DisparitySettings(MatcherConfig):
 
 def node_options(settings: DisparitySettings) -> dict:
     """A pool worker's stats and liveliness go to its pool's keys, so no robot's `status` takes it
-    for one of its own services."""
-    return {"pool": settings.pool} if settings.role == "worker" and settings.pool else {}
+    for one of its own services; any other worker reports on the workers' own stats and alive keys
+    (keys.py: worker_stats): it may run offboard, where it must not be able to speak for the dispatcher."""
+    if settings.role == "worker" and settings.pool:
+        return {"pool": settings.pool}
+    return {"worker_keys": settings.role == "worker"}
 
 
 def run(node: Node, settings: DisparitySettings) -> None:

@@ -2,20 +2,23 @@
 
 A new calibration is taken at run time, without a restart and without a torn frame: the
 calibration file changed on disk (checked once a second), or one published on the `calibration`
-key (a CalibrationUpdate with the YAML text). Anyone who can put on the robot's Zenoh network could
-publish one, so the key is trusted only where it must be. Calibrations signed with the robot's
-calibration key (common/signing.py: capture --source ros2 from CameraInfo, --source mcap from a
-recording; `up` makes a key per run) are the robot's own and always taken. Unsigned ones
-(`calibration_updates`):
-  auto (default)  only while rectify has no calibration of its own (rectify.calibration unset);
-  on              always (only where untrusted peers cannot publish it, e.g. behind the TLS
-                  gateway, whose ACL lets no offboard user put it);
-  off             never (signed ones neither).
-Every run-time calibration (key or file) whose baseline or focal length differs from the one in
-use by more than `calibration_max_change` is refused (a restart takes it): half the baseline would
-silently halve every distance. The exceptions: the first calibration for a real source that rectify
-had none for (its frames were refused until then), and the first signed one. One that does not load or fits another image
-size is refused too; the old one stays in use.
+key (a CalibrationUpdate with the YAML text). The calibration is configuration, not a message
+anyone on the robot's network may send:
+- on the key, only calibrations signed with the robot's calibration key are taken
+  (common/signing.py: capture signs a ROS camera's CameraInfo and a recording's calibration;
+  `calibration publish` / `calibrate --publish` sign with the key of the local user; `up` makes a
+  key per run, a deployment shares one). Unsigned ones are refused, counted and logged, whatever
+  `calibration_updates` says, unless `insecure_unsigned_calibrations` is set (a network nobody
+  else can reach); `calibration_updates: off` refuses every one.
+- drift is bounded against the calibration rectify STARTED with (CalibrationHolder.reference),
+  not step by step: a run-time calibration (key or file) whose baseline or focal length differs
+  from it by more than `calibration_max_change` is refused, however small each step was; a
+  restart takes any calibration.
+- a real source's first calibration comes from the configuration or a signed update, and must fit
+  the frames' size. Without rectify.calibration the thesis rig is assumed for synthetic frames only;
+  once it rectified one, it is what rectify started with, so a forged "camera" frame cannot turn
+  the next update into a first one.
+A refused one leaves the one in use in place.
 """
 from __future__ import annotations
 
@@ -33,7 +36,7 @@ from common.keys import topic
 from common.messages import CalibrationUpdate, StereoFrame
 from common.node import Node
 from common.settings import ServiceSettings
-from common.signing import calibration_key, signed
+from common.signing import KEY_ENV, calibration_key, signed
 from cores.calibration.rectify import CalibrationHolder
 
 log = logging.getLogger("ballbot")
@@ -50,19 +53,28 @@ class RectifySettings(ServiceSettings):
     alpha: float = Field(0.0, ge=0.0, le=1.0, description="0: crop to valid pixels, 1: keep all source pixels")
     watch_s: float = Field(1.0, ge=0.0, le=3600.0, description="check the calibration file for changes this often (0: never)")
     calibration_updates: Literal["auto", "on", "off"] = Field(
-        "auto", description="accept calibrations published on the calibration key: auto: only while no "
-                            "calibration is set (the source provides it); on: always (only where untrusted peers "
-                            "cannot publish it); off: never")
+        "auto", description="calibrations published on the calibration key: auto, on: take those signed with "
+                            "the robot's calibration key (BALLBOT_CALIBRATION_KEY), within calibration_max_change "
+                            "of the one rectify started with; off: take none. Unsigned ones are refused either way "
+                            "(see insecure_unsigned_calibrations)")
+    insecure_unsigned_calibrations: bool = Field(
+        False, description="INSECURE: also take UNSIGNED calibrations from the calibration key, from anyone who "
+                           "can publish on the robot's network (still within calibration_max_change); only where "
+                           "nobody else can reach that network")
     calibration_max_change: float = Field(0.05, ge=0.0, le=10.0, description="refuse a run-time calibration whose "
-                                          "baseline or focal length differs from the one in use by more than this "
-                                          "fraction (0: no limit); a restart takes any calibration")
+                                          "baseline or focal length differs from the one rectify started with by "
+                                          "more than this fraction (0: no limit); a restart takes any calibration")
+    source: Literal["synthetic", "cameras", "sbs", "video", "images", "ros2", "mcap"] | None = Field(
+        None, description="the capture source this rectify serves, when the deployment knows it (the compose files "
+                          "set it from CAPTURE_SOURCE): cameras, sbs, video and images need rectify.calibration and "
+                          "rectify refuses to start without it; ros2 and mcap send theirs, signed; null: unknown "
+                          "(frames of a real source are refused until a calibration is set or signed)")
 
 
 def reloader(node: Node, holder: CalibrationHolder, updates: "queue.Queue[tuple[CalibrationUpdate, bool]]",
-             watch_s: float, configured: bool = True) -> None:
-    """Off the frame loop: applies calibration messages (with whether they are signed) and watches
-    the calibration file."""
-    state = {"signed_taken": False}
+             watch_s: float) -> None:
+    """Off the frame loop: applies vetted calibration messages (with whether they are signed) and
+    watches the calibration file."""
     next_poll = time.monotonic() + watch_s
     while node.running:
         timeout = max(0.0, next_poll - time.monotonic()) if watch_s > 0 else 0.5
@@ -72,22 +84,21 @@ def reloader(node: Node, holder: CalibrationHolder, updates: "queue.Queue[tuple[
             upd = None
         if upd is not None:
             upd, is_signed = upd
-            # The first one replaces a rig that was only assumed (a real source's frames are refused
-            # until then; a replay or a ROS camera sends its calibration before its first frame), and
-            # the first signed one (the robot's own source: a ROS camera's CameraInfo, a recording)
-            # replaces a configured one: no jump check against those. Once synthetic frames flow,
-            # their rig is the right one.
-            first_for_real_source = (not configured and holder.generation == 0
-                                     and holder.stream_source != "synthetic")
-            first_signed = is_signed and not state["signed_taken"]
-            origin = f"the calibration key ({upd.source or 'message'}{', signed' if is_signed else ''})"
-            if holder.offer_yaml(upd.yaml, origin, check_change=not (first_for_real_source or first_signed)):
-                state["signed_taken"] = state["signed_taken"] or is_signed
+            origin = f"the calibration key ({upd.source or 'message'}, {'signed' if is_signed else 'UNSIGNED'})"
+            holder.offer_yaml(upd.yaml, origin)
         if watch_s > 0 and time.monotonic() >= next_poll:
             holder.poll_file()
             next_poll = time.monotonic() + watch_s
-        node.extra["calibration_generation"] = float(holder.generation)
-        node.extra["calibration_refused"] = float(holder.refused)
+        publish_calibration_stats(node, holder)
+
+
+def publish_calibration_stats(node: Node, holder: CalibrationHolder) -> None:
+    """What status (and an attack test) can read: swaps, refusals, and the rig in use."""
+    m = holder.current().model
+    node.extra["calibration_generation"] = float(holder.generation)
+    node.extra["calibration_refused"] = float(holder.refused)
+    node.extra["calibration_baseline_mm"] = m.baseline_m * 1000.0
+    node.extra["calibration_focal_px"] = m.focal_px
 
 
 # The rig the synthetic scene renders; assumed only for frames from that source.
@@ -101,57 +112,94 @@ def check_assumed_calibration(source: str, holder: CalibrationHolder, configured
         return
     raise CalibrationError(f"frames from a '{source or 'unknown'}' source need this rig's calibration: set "
                            f"rectify.calibration (--calibration FILE, BALLBOT_RECTIFY_CALIBRATION or the config "
-                           f"file) or publish one on the calibration key; the built-in '{SYNTHETIC_RIG}' profile "
-                           f"is assumed only for the synthetic scene")
+                           f"file) or publish one signed with the robot's key (ballbot-vision calibration publish); "
+                           f"the built-in '{SYNTHETIC_RIG}' profile is assumed only for the synthetic scene")
+
+
+# Sources that send rectify their own calibration, signed (capture's ros2.py and mcap_source.py).
+SELF_CALIBRATING = ("ros2", "mcap")
+
+
+def preflight(settings: RectifySettings) -> None:
+    """Before the service is up (cli.cmd_run calls it before the Node opens): a deployment that names
+    a real source must configure its rig."""
+    if settings.calibration is None and settings.source not in (None, "synthetic", *SELF_CALIBRATING):
+        raise CalibrationError(f"rectify.source is '{settings.source}' and rectify.calibration is not set: a real "
+                               f"rig's calibration is configuration (--calibration FILE, BALLBOT_RECTIFY_CALIBRATION, "
+                               f"or RECTIFY_CALIBRATION in the compose files); the built-in '{SYNTHETIC_RIG}' profile "
+                               f"fits the synthetic scene only")
 
 
 def run(node: Node, settings: RectifySettings) -> None:
+    preflight(settings)
     configured = settings.calibration is not None
-    holder = CalibrationHolder(settings.calibration or SYNTHETIC_RIG, settings.alpha, settings.calibration_max_change)
-    accept_key = settings.calibration_updates == "on" or (settings.calibration_updates == "auto" and not configured)
+    holder = CalibrationHolder(settings.calibration or SYNTHETIC_RIG, settings.alpha, settings.calibration_max_change,
+                               started=configured)
     # the size cap of frames_raw follows from the calibrated image size (two colour images, any dtype);
     # without a calibration of its own the source's may be any size: the key table's cap stands
     w, h = holder.current().size
     frame_cap = 2 * w * h * 3 * 4 + (1 << 20) if configured else None
     if not configured:
         log.info("rectify: no calibration set: '%s' is assumed for the synthetic scene only; frames from any "
-                 "other source are refused until one is set", SYNTHETIC_RIG)
+                 "other source are refused until one is set or a signed one arrives", SYNTHETIC_RIG)
     updates: queue.Queue[tuple[CalibrationUpdate, bool]] = queue.Queue(maxsize=8)
 
     key = calibration_key()
+    take = settings.calibration_updates != "off"
+    unsigned_ok = take and settings.insecure_unsigned_calibrations
+    if not take:
+        log.info("rectify: calibration_updates is off: calibrations on the calibration key are refused")
+    elif unsigned_ok:
+        log.warning("rectify: insecure_unsigned_calibrations is set: anyone who can publish on this robot's network "
+                    "may change its calibration (within %.0f %% of the one it started with)",
+                    settings.calibration_max_change * 100)
+    elif key is None:
+        log.warning("rectify: no calibration key (%s): calibrations on the calibration key cannot be verified and "
+                    "are refused", KEY_ENV)
     last_signed = {"stamp_ns": -1}
+    node.extra["calibration_unsigned_refused"] = 0.0
+    publish_calibration_stats(node, holder)
 
-    def refuse(why: str) -> None:
+    def refuse(why: str, unsigned: bool = False) -> None:
         holder.refused += 1
         node.extra["calibration_refused"] = float(holder.refused)
+        if unsigned:
+            node.extra["calibration_unsigned_refused"] += 1.0
         node.warn("calibration", f"refused a calibration published on the calibration key: {why}")
 
     def on_calibration(sample) -> None:  # Zenoh's thread: decode, vet and hand over, nothing heavy
         msg = node.decode_or_drop(sample.payload.to_bytes(), CalibrationUpdate, "calibration message", "calibration")
         if msg is None:
             return
-        is_signed = settings.calibration_updates != "off" and signed(msg, key)
+        if not take:
+            return refuse("calibration_updates is off")
+        is_signed = signed(msg, key)
         if is_signed:
             if msg.stamp_ns <= last_signed["stamp_ns"]:
                 return refuse("a replay of an older signed one")
             last_signed["stamp_ns"] = msg.stamp_ns
-        elif not accept_key:
-            return refuse(f"unsigned, rectify has a calibration of its own and calibration_updates is "
-                          f"{settings.calibration_updates} (on: accept unsigned ones)"
-                          if settings.calibration_updates != "off" else "calibration_updates is off")
+        elif not unsigned_ok:
+            why = ("its signature does not verify with this robot's calibration key" if msg.signature else
+                   "it is not signed with this robot's calibration key")
+            if key is None:
+                why += f" (rectify has no key: {KEY_ENV} is not set)"
+            return refuse(f"{why}; calibrations are configuration (rectify.calibration, or `ballbot-vision "
+                          f"calibration publish` with the key)", unsigned=True)
         try:
             updates.put_nowait((msg, is_signed))
         except queue.Full:
             node.warn("calibration", "calibration messages arrive faster than they can be applied; dropped one")
 
     node.subscribe(topic("calibration").key(node.robot_id), on_calibration)
-    threading.Thread(target=reloader, args=(node, holder, updates, settings.watch_s, configured), name="calibration",
+    threading.Thread(target=reloader, args=(node, holder, updates, settings.watch_s), name="calibration",
                      daemon=True).start()
     inbox = node.latest("frames_raw", max_bytes=frame_cap)
     out = node.publisher("frames_rect")
     for msg in node.receive(inbox):
         holder.stream_source = msg.source
         with node.processing(msg):
+            # the size of what arrives, so the first calibration for a real source must fit it
+            holder.note_frame(msg.left.width, msg.left.height)
             try:
                 check_assumed_calibration(msg.source, holder, configured)
             except CalibrationError:
@@ -160,10 +208,10 @@ def run(node: Node, settings: RectifySettings) -> None:
             if node.status.startswith("error: no calibration"):
                 node.status = "ok"
             rectifier = holder.current()  # one calibration for the whole pair
-            holder.note_frame(msg.left.width, msg.left.height)
             left = codec.array_from_image(msg.left, "left")
             right = codec.array_from_image(msg.right, "right")
             rl, rr = rectifier.rectify(left, right)
+            holder.mark_used()
             out.put(StereoFrame(robot_id=msg.robot_id, seq=msg.seq, stamp_ns=msg.stamp_ns, stages=msg.stages,
                                 left=codec.image_from_array(rl), right=codec.image_from_array(rr),
                                 camera=rectifier.model_message, source=msg.source))

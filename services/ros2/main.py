@@ -123,6 +123,13 @@ class DisparityCache:
         return None
 
 
+def preflight(settings: Ros2Settings) -> None:
+    """Before the service is up (cli.cmd_run): the ros2 extra is installed."""
+    from common.errors import require
+
+    require(("rosbags", "xxhash"), "ros2", "the ROS 2 bridge")
+
+
 def run(node: Node, settings: Ros2Settings) -> None:
     from common.ros2 import rmw
     from cores import ros2_convert as convert
@@ -132,7 +139,10 @@ def run(node: Node, settings: Ros2Settings) -> None:
     try:
         types = types_for(settings.distro)
     except ImportError as e:
-        raise ConfigError(f"ros2: {e.name} is not installed; install the extra: pip install 'ballbot-vision[ros2]'")
+        from common.errors import MissingDependency
+
+        raise MissingDependency(f"ros2: {e.name} is not installed; install the extra: "
+                                f"pip install 'ballbot-vision[ros2]'") from None
     s = settings
     qos = rmw.Qos(reliability=s.reliability, depth=s.depth)
     graph = RosNode(node.session, types, s.domain_id, s.namespace, s.node_name)

@@ -41,14 +41,22 @@ STATIC = Path(__file__).resolve().parent / "static"
 
 class ViewerSettings(ServiceSettings):
     section = "viewer"
-    host: str = Field("127.0.0.1", description="address to bind (0.0.0.0: every interface; the page has "
-                                                "no login, so only on networks you trust)")
+    host: str = Field("127.0.0.1", description="address to bind (0.0.0.0: every interface; beyond loopback "
+                                                "every page needs the token)")
     port: int = Field(8080, ge=0, le=65535, description="HTTP and WebSocket port (0: any free port)")
     max_fps: float = Field(15.0, gt=0, le=60, description="page updates per second at most")
     jpeg_quality: int = Field(80, ge=10, le=100, description="JPEG quality of the pictures sent")
     controls: bool = Field(True, description="let pages play/pause/step a replay (capture --source mcap)")
     idle_unsubscribe_s: float = Field(5.0, ge=0, le=3600, description="drop the image subscriptions this long "
                                       "after the last page closed")
+    token: str = Field("", description="secret every page must carry (/?token=...); required when bound beyond "
+                                       "loopback: empty then makes a random one at start and prints the URL with it")
+    allowed_origins: list[str] = Field([], description="INSECURE beyond the default: other origins (scheme://host"
+                                       "[:port]) whose pages may open the WebSocket; [\"*\"]: any. Default: only "
+                                       "the viewer's own page")
+    allowed_hosts: list[str] = Field([], description="names (besides IP addresses, localhost and this machine's "
+                                     "name) under which the viewer is reached, e.g. a DNS name of the robot; any "
+                                     "other Host header is refused (DNS rebinding)")
 
 
 class Hub:
@@ -214,7 +222,118 @@ class Viewer:
 
 # -- web ------------------------------------------------------------------------------------------
 
-def make_app(viewer: Viewer, hub: Hub):
+LOOPBACK_NAMES = ("localhost",)
+
+
+def is_loopback(host: str) -> bool:
+    import ipaddress
+
+    if host.lower() in LOOPBACK_NAMES:
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
+
+
+def split_host(value: str) -> tuple[str, int | None]:
+    """'name:8080' / '[::1]:8080' / 'name' -> (lowercase name, port or None); ('', None) if malformed."""
+    value = value.strip().lower()
+    if value.startswith("["):
+        name, _, rest = value[1:].partition("]")
+        port = rest[1:] if rest.startswith(":") else ""
+        if rest and not rest.startswith(":"):
+            return "", None
+    else:
+        name, _, port = value.partition(":")
+    if port and not port.isdigit():
+        return "", None
+    return name.rstrip("."), int(port) if port else None
+
+
+class Gate:
+    """Who may talk to the viewer. A browser lets any web page open a WebSocket to any address, and
+    DNS rebinding lets a page on the attacker's name reach 127.0.0.1 as if same-origin; so:
+    - every request's Host must be an IP address, localhost, this machine's name or an allowed
+      host (a rebinding page always arrives with the attacker's name);
+    - a WebSocket from a browser must come from the viewer's own page (Origin = Host) or an
+      allowed origin; non-browser clients send no Origin;
+    - with a token (required beyond loopback) the page and the WebSocket must carry it."""
+
+    def __init__(self, settings: ViewerSettings, node: Node):
+        import secrets
+        import socket
+
+        self.settings, self.node = settings, node
+        self.hosts = {h.lower().rstrip(".") for h in settings.allowed_hosts}
+        me = socket.gethostname().lower()
+        self.hosts |= {me, me + ".local", *LOOPBACK_NAMES}
+        self.origins = {o.rstrip("/").lower() for o in settings.allowed_origins}
+        self.token = settings.token or ("" if is_loopback(settings.host) else secrets.token_urlsafe(18))
+        for k in ("refused_host", "refused_origin", "refused_token"):
+            node.extra[k] = 0.0
+
+    def refuse(self, kind: str, why: str):
+        from aiohttp import web
+
+        self.node.extra[f"refused_{kind}"] += 1
+        self.node.warn(f"refused-{kind}", f"refused a request: {why}")
+        return web.Response(status=403 if kind != "token" else 401, text=f"ballbot-vision viewer: {why}\n")
+
+    def host_ok(self, host: str | None) -> bool:
+        import ipaddress
+
+        name, _ = split_host(host or "")
+        if not name:
+            return False
+        try:
+            ipaddress.ip_address(name)
+            return True  # an address cannot be rebound to another machine
+        except ValueError:
+            return name in self.hosts
+
+    def origin_ok(self, origin: str | None, host: str) -> bool:
+        if origin is None:
+            return True  # not a browser: nothing to forge on a user's behalf
+        o = origin.rstrip("/").lower()
+        if "*" in self.origins or o in self.origins:
+            return True
+        scheme, sep, rest = o.partition("://")
+        if not sep or scheme not in ("http", "https"):
+            return False  # "null" (sandboxed frames, files) and anything odd
+        default = 443 if scheme == "https" else 80
+        oname, oport = split_host(rest)
+        hname, hport = split_host(host)
+        return bool(oname) and oname == hname and (oport or default) == (hport or default)
+
+    def token_ok(self, request) -> bool:
+        import hmac
+
+        if not self.token:
+            return True
+        given = request.query.get("token", "")
+        return hmac.compare_digest(given.encode(), self.token.encode())
+
+    def middleware(self):
+        from aiohttp import web
+
+        @web.middleware
+        async def check(request, handler):
+            host = request.headers.get("Host")
+            if not self.host_ok(host):
+                return self.refuse("host", f"Host {host!r} is not a name this viewer answers to (allowed_hosts)")
+            if request.path in ("/", "/ws") and not self.token_ok(request):
+                return self.refuse("token", "a token is required: open the URL the viewer printed at start "
+                                            "(/?token=...)")
+            if request.path == "/ws" and not self.origin_ok(request.headers.get("Origin"), host or ""):
+                return self.refuse("origin", f"a WebSocket from the page of {request.headers.get('Origin')!r}, "
+                                             f"not this viewer's (allowed_origins)")
+            return await handler(request)
+
+        return check
+
+
+def make_app(viewer: Viewer, hub: Hub, gate: Gate | None = None):
     from aiohttp import WSMsgType, web
 
     async def index(_request):
@@ -274,7 +393,7 @@ def make_app(viewer: Viewer, hub: Hub):
             hub.clients -= 1
         return ws
 
-    app = web.Application()
+    app = web.Application(middlewares=[gate.middleware()] if gate is not None else [])
     app.router.add_get("/", index)
     app.router.add_get("/healthz", health)
     app.router.add_get("/favicon.ico", lambda _request: web.Response(status=204))
@@ -288,7 +407,8 @@ async def serve(node: Node, settings: ViewerSettings, viewer: Viewer, hub: Hub,
     from aiohttp import web
 
     hub.bind(asyncio.get_running_loop())
-    runner = web.AppRunner(make_app(viewer, hub), access_log=None)
+    gate = Gate(settings, node)
+    runner = web.AppRunner(make_app(viewer, hub, gate), access_log=None)
     await runner.setup()
     site = web.TCPSite(runner, settings.host, settings.port)
     try:
@@ -300,8 +420,12 @@ async def serve(node: Node, settings: ViewerSettings, viewer: Viewer, hub: Hub,
     sockets = [s.getsockname() for s in site._server.sockets] if site._server else []
     port = sockets[0][1] if sockets else settings.port
     node.extra["port"] = float(port)
-    url = f"http://{'127.0.0.1' if settings.host in ('0.0.0.0', '') else settings.host}:{port}/"
+    url = f"http://{'127.0.0.1' if settings.host in ('0.0.0.0', '::', '') else settings.host}:{port}/"
+    url += f"?token={gate.token}" if gate.token else ""
     print(f"viewer: open {url}", flush=True)
+    if gate.token and not settings.token:
+        print("viewer: listening beyond loopback: every page needs this token (set your own with "
+              "BALLBOT_VIEWER_TOKEN / --token)", flush=True)
     log.info("viewer listening on %s:%d", settings.host, port)
     if started is not None:
         started.set()
@@ -311,11 +435,16 @@ async def serve(node: Node, settings: ViewerSettings, viewer: Viewer, hub: Hub,
         await runner.cleanup()
 
 
+def preflight(settings: ViewerSettings) -> None:
+    """Before the service is up (cli.cmd_run): the viewer's optional dependency is installed. `up
+    --viewer` then disables the viewer alone (exit status 3) and keeps the pipeline running."""
+    from common.errors import require
+
+    require(("aiohttp",), "viewer", "the viewer")
+
+
 def run(node: Node, settings: ViewerSettings) -> None:
-    try:
-        import aiohttp  # noqa: F401
-    except ImportError:
-        raise BallbotError("the viewer needs aiohttp: pip install 'ballbot-vision[viewer]'") from None
+    preflight(settings)
     hub = Hub()
     viewer = Viewer(node, settings, hub)
     viewer.subscribe_small()

@@ -231,8 +231,13 @@ async function render(doc, blobs) {
   state.updates += 1;
 }
 
+// The viewer's token (required when it listens beyond loopback) comes in the page's own URL, as
+// printed at start: /?token=...; the WebSocket carries it on.
+const token = new URLSearchParams(location.search).get("token") || "";
+
 function connect() {
-  const ws = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/ws`);
+  const query = token ? `?token=${encodeURIComponent(token)}` : "";
+  const ws = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/ws${query}`);
   ws.binaryType = "arraybuffer";
   socket = ws;
   ws.onopen = () => {
