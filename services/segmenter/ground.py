@@ -43,7 +43,9 @@ MAX_PITCH_DEG = 60.0  # a floor seen more steeply is not one (a wall seen from a
 # A balancing robot leans by about 10 degrees, a car's camera hardly rolls: a plane rolled more is a
 # slope beside the way (a snow bank, an embankment), not the floor under the robot.
 MAX_ROLL_DEG = 15.0
-UNDER_M = 0.25  # a pixel this far below a plane (and 1 px) is seen through it: the plane is no floor
+UNDER_M = 0.25  # a pixel this far below a plane (and BELOW_PX) is seen through it: the plane is no floor
+NEAR_PX = 10.0
+BELOW_PX = 2.5  # and this much disparity: block matching errs by a pixel or two on a far road
 BELOW_WEIGHT = 3.0  # score = support - BELOW_WEIGHT * share of pixels under the plane
 MIN_SUPPORT = 0.04  # a floor carries at least this share of the valid pixels ...
 MIN_INLIERS = 100  # ... and this many pixels
@@ -85,17 +87,20 @@ def frame_mount(ground: GroundEstimate | None, settings: MountSettings) -> Mount
     return settings.mount()
 
 
-def lstsq_plane(u: np.ndarray, v: np.ndarray, d: np.ndarray) -> np.ndarray:
-    """Least-squares (a, b, c) of d = a u + b v + c, by the 3x3 normal equations (centred)."""
+def lstsq_plane(u: np.ndarray, v: np.ndarray, d: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
+    """Least-squares (a, b, c) of d = a u + b v + c (weights w), by the 3x3 normal equations (centred)."""
     u = u.astype(np.float64)
     v = v.astype(np.float64)
     d = d.astype(np.float64)
-    mu, mv, md = u.mean(), v.mean(), d.mean()
+    w = np.ones_like(d) if w is None else w.astype(np.float64)
+    sw = w.sum()
+    mu, mv, md = (w @ u) / sw, (w @ v) / sw, (w @ d) / sw
     u -= mu
     v -= mv
     d -= md
-    A = np.array([[u @ u, u @ v], [u @ v, v @ v]])
-    a, b = np.linalg.solve(A + 1e-9 * np.eye(2), np.array([u @ d, v @ d]))
+    wu, wv = w * u, w * v
+    A = np.array([[wu @ u, wu @ v], [wu @ v, wv @ v]])
+    a, b = np.linalg.solve(A + 1e-9 * np.eye(2), np.array([wu @ d, wv @ d]))
     return np.array([a, b, md - a * mu - b * mv])
 
 
@@ -233,7 +238,8 @@ def _judge(p: np.ndarray, u: np.ndarray, v: np.ndarray, d: np.ndarray, model: ca
     inl = (pred > 0) & (np.abs(d - pred) <= _tolerance(pred, 0.04))
     # seen through the plane: farther along the ray than the floor by more than a kerb and matching
     # noise (a real road is not quite a plane: it drains to its sides)
-    below = (pred > 0) & (d < np.minimum(pred - np.float32(1.5), pred * np.float32(height / (height + UNDER_M))))
+    # (only where the plane's disparity is NEAR_PX or more: farther, matching noise is the plane's height)
+    below = (pred >= NEAR_PX) & (d < np.minimum(pred - np.float32(BELOW_PX), pred * np.float32(height / (height + UNDER_M))))
     k = int(np.count_nonzero(inl))
     if k < MIN_INLIERS:
         return None

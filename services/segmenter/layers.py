@@ -253,7 +253,8 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
     h, w = dm.shape
     f, B = model.focal_px, model.baseline_m
     fB = f * B
-    keep = cv2.inRange(dm, fB / cfg.range_m, fB / cfg.min_range_m) > 0
+    range_m = cfg.range_for(model)
+    keep = cv2.inRange(dm, fB / range_m, fB / cfg.min_range_m) > 0
     dk = np.where(keep, dm, np.float32(0))
     floor, estimate = None, None
     if cfg.floor_removal:
@@ -317,6 +318,8 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
     measured = np.flatnonzero(d0.any(0))  # columns the matcher measured (not its blind left band)
     left_edge, right_edge = (int(measured[0]), int(measured[-1])) if measured.size else (0, w - 1)
     for r in regions:
+        if floor is None and cfg.floor_removal and _floor_like(r.pts):
+            continue  # no ground to tell it by: a patch of floor is still no obstacle (the list says no-ground)
         size = r.hi - r.lo
         if max(size[0], size[1]) < cfg.min_size_m or r.area * (float(np.mean(r.pts[:, 2])) / f * step) ** 2 < cfg.min_area_m2:
             continue
@@ -331,12 +334,24 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
                              confidence=float(min(1.0, r.valid / max(1, r.area))),
                              # cut at the sides or by the range: its footprint is partial (a cut at the
                              # top or bottom changes its height, not where it stands)
-                             cut=(x0 <= left_edge + 1, x1 - 1 >= right_edge - 1, bool(r.hi[2] >= 0.97 * cfg.range_m)),
+                             cut=(x0 <= left_edge + 1, x1 - 1 >= right_edge - 1, bool(r.hi[2] >= 0.97 * range_m)),
                              edges=_edges(sub, model)))
         points.append(r.pts)
     if cfg.edge_refine and image is not None and out:
         out = [_refine_box(det, image) for det in out]
     return LayersFrame(out, points, floor, estimate, floor_points)
+
+
+def _floor_like(pts: np.ndarray, max_tilt_deg: float = 45.0) -> bool:
+    """A region whose points lie on one plane (within 5 cm + 1 % of their depth) facing the camera's
+    y axis (within max_tilt_deg): a patch of floor or road, told apart without a ground estimate."""
+    sub = pts[::max(1, len(pts) // _STAT_SAMPLES)]
+    if len(sub) < 10:
+        return False
+    c = sub - sub.mean(0)
+    w, V = np.linalg.eigh(c.T @ c / len(c))
+    thin = np.sqrt(max(float(w[0]), 0.0)) < 0.05 + 0.01 * float(np.median(sub[:, 2]))
+    return bool(thin and abs(V[1, 0]) > np.cos(np.radians(max_tilt_deg)))
 
 
 def _drivable(floor: FloorPlane, df: np.ndarray, seen_floor: np.ndarray, standing: np.ndarray, dk: np.ndarray,
@@ -352,7 +367,7 @@ def _drivable(floor: FloorPlane, df: np.ndarray, seen_floor: np.ndarray, standin
         zd = np.where(dk > 0, fB / np.maximum(dk, 1e-6), np.inf).astype(np.float32)
     far = np.where(seen_floor, zf, 0).max(0)
     near_standing = np.where(standing, zd, np.inf).min(0)
-    limit = np.minimum(np.minimum(far, near_standing), cfg.range_m)
+    limit = np.minimum(np.minimum(far, near_standing), cfg.range_for(model))
     near = zf[-1]  # the floor at the image's bottom edge
     cols = np.nonzero(np.isfinite(near) & (limit > near))[0]
     if not cols.size:

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from dataclasses import dataclass
@@ -15,7 +16,7 @@ from ...common.keys import topic
 from ...common.node import Node
 from ...common.disparity import to_float
 from . import freespace, layers, seed
-from .ground import GroundEstimator, frame_mount, plane_from_mount
+from .ground import TRUSTED, GroundEstimator, frame_mount, plane_from_mount
 from .mount import FloorPlane, Mount
 from .seed import Detection
 from .settings import METHODS, SegmenterSettings  # noqa: F401  (SegmenterSettings: cli's service table)
@@ -27,6 +28,36 @@ SUBSCRIBES = ["disparity", "odometry"]
 # A map measuring less of the image than this saw nothing it could vouch for: the list says so.
 MIN_VALID_FRACTION = 0.01
 PUBLISHES = ["obstacles", "freespace"]
+
+
+@dataclass(frozen=True)
+class Reach:
+    """Whether a disparity search (min_disparity, num_disparities px) can measure the segmenter's
+    vision range (min_range_m..range_m) with this camera: `unreachable` when the two do not overlap
+    at all (every list from such a map says "range-unreachable"), `message` also when the search
+    misses the near part of the range (a warning: things that near are not measured)."""
+
+    unreachable: bool
+    message: str
+
+
+def search_reach(model: camera.RectifiedModel, min_disparity: int, num_disparities: int,
+                 settings: SegmenterSettings) -> Reach:
+    fB = model.focal_px * abs(model.baseline_m)
+    d_max = min_disparity + num_disparities - 1  # largest disparity searched: the nearest depth measured
+    near_m = fB / d_max if d_max > 0 else float("inf")
+    far_m = fB / min_disparity if min_disparity > 0 else float("inf")
+    lo, hi = settings.min_range_m, settings.range_for(model)
+    search = (f"the disparity search ({min_disparity}..{d_max} px with f*B = {fB:.1f} px m) measures "
+              f"{near_m:.2f} m" + (f"..{far_m:.2f} m" if math.isfinite(far_m) else " and farther"))
+    if near_m > hi or far_m < lo:
+        return Reach(True, f"{search}, the segmenter's vision range is {lo:g}..{hi:g} m: they do not overlap, "
+                           "nothing in view can be measured; raise num_disparities (auto: from the calibration "
+                           "and min_range_m) or change the range")
+    if near_m > 2.0 * lo:  # a few cm short of min_range_m is no news; half the near range is
+        return Reach(False, f"{search}: nothing nearer than {near_m:.2f} m is measured, though the vision range "
+                            f"starts at {lo:g} m (raise num_disparities, or num_disparities auto)")
+    return Reach(False, "")
 
 
 def camera_to_base(p: np.ndarray, height_m: float, pitch_deg: float) -> tuple[float, float, float]:
@@ -86,6 +117,20 @@ class ObstacleBuilder:
                                confirm_n=settings.track_confirm_n)
         self._track_frame = ""  # "base" or "camera": the frame the tracks are kept in
         self._last_t: float | None = None
+        self.reach = Reach(False, "")  # of the last map's disparity search
+        self._reach_logged: set[str] = set()
+
+    def check_search(self, model: camera.RectifiedModel, min_disparity: int, num_disparities: int,
+                     quiet: bool = False) -> Reach:
+        """The disparity search of a map against the vision range; each new finding is logged once
+        (quiet: the caller says it itself)."""
+        reach = search_reach(model, min_disparity, num_disparities, self.settings)
+        if reach.message and reach.message not in self._reach_logged:
+            self._reach_logged.add(reach.message)
+            if not quiet:
+                log.warning("segmenter: %s", reach.message)
+        self.reach = reach
+        return reach
 
     def decode(self, msg: DisparityMap) -> tuple[np.ndarray, camera.RectifiedModel, np.ndarray | None]:
         """A disparity message -> (disparity px float32 with NaN invalid, camera model, confidence)."""
@@ -130,11 +175,13 @@ class ObstacleBuilder:
     def process(self, disparity: np.ndarray, model: camera.RectifiedModel, *, t_s: float, seq: int, stamp_ns: int,
                 robot_id: str = "offline", confidence: np.ndarray | None = None, odometry: Odometry | None = None,
                 image: np.ndarray | None = None, stale: bool = False,
-                stages: dict[str, int] | None = None) -> FrameResult:
+                stages: dict[str, int] | None = None, search: tuple[int, int] | None = None) -> FrameResult:
         """disparity: (H, W) float32 px, NaN = invalid, matching `model`; t_s: the frame's time on a
         clock that never goes backwards (the service: Node.frame_time_s; offline: the capture time);
-        odometry: the robot's motion at this frame, if known (velocities are then over the ground)."""
+        odometry: the robot's motion at this frame, if known (velocities are then over the ground);
+        search: the map's (min_disparity, num_disparities), checked against the vision range."""
         cfg = self.settings
+        reach = self.check_search(model, *search) if search is not None else Reach(False, "")
         frame = self.segment(disparity, model, confidence, image)
         mount = frame_mount(frame.ground, cfg)
         track_frame = "base" if mount is not None else "camera"
@@ -175,13 +222,21 @@ class ObstacleBuilder:
         degraded = []
         if valid_fraction < MIN_VALID_FRACTION:
             degraded.append("no-valid-disparity")
+        if reach.unreachable:
+            degraded.append("range-unreachable")
+        if cfg.method == "layers" and cfg.floor_removal:
+            g = frame.ground
+            if g is None or g.source == "none":
+                degraded.append("no-ground")  # nothing told floor from obstacle: what stands low is not known
+            elif g.confidence < TRUSTED:
+                degraded.append("ground-uncertain")
         out = ObstacleList(robot_id=robot_id, seq=seq, stamp_ns=stamp_ns, stages=dict(stages or {}), publish_ns=now,
                            stale=stale, degraded=degraded, valid_fraction=valid_fraction, method=cfg.method,
                            obstacles=obstacles, ground=frame.ground,
                            velocity_reference="ground" if over_ground else "camera")
         free = None
         if cfg.freespace and mount is not None and frame.floor is not None and cfg.method == "layers":
-            g = freespace.occupancy(frame.floor_points, frame.points, mount, model, cfg.range_m,
+            g = freespace.occupancy(frame.floor_points, frame.points, mount, model, cfg.range_for(model),
                                     cfg.freespace_resolution_m)
             free = FreeSpace(robot_id=robot_id, seq=seq, stamp_ns=stamp_ns, stages=dict(stages or {}), publish_ns=now,
                              resolution_m=g.resolution_m, width=g.width, height=g.height,
@@ -195,7 +250,7 @@ class ObstacleBuilder:
         disparity, model, confidence = self.decode(msg)
         return self.process(disparity, model, t_s=msg.stamp_ns / 1e9 if t_s is None else t_s, seq=msg.seq,
                             stamp_ns=msg.stamp_ns, robot_id=msg.robot_id, confidence=confidence, odometry=odometry,
-                            stale=stale, stages=msg.stages)
+                            stale=stale, stages=msg.stages, search=(msg.min_disparity, msg.num_disparities))
 
 
 def _footprint(mount: Mount, points_camera: np.ndarray) -> np.ndarray:
@@ -265,4 +320,10 @@ def run(node: Node, settings: SegmenterSettings) -> None:
                 free_out.put(result.freespace, count=False)
             g = result.obstacles.ground
             node.extra["ground_height_m"] = g.height_m if g is not None else 0.0
-            node.status = "stale: input too old" if stale else "ok"
+            reach = builder.reach
+            if stale:
+                node.status = "stale: input too old"
+            elif reach.unreachable:
+                node.status = f"range-unreachable: {reach.message}"
+            else:
+                node.status = f"ok; warning: {reach.message}" if reach.message else "ok"

@@ -16,6 +16,9 @@ from .mount import Mount
 METHODS = ("layers", "seed")
 # The thesis's 3 m vision range for seed; the default method's own range.
 DEFAULT_RANGE_M = {"seed": 3.0, "layers": 4.5}
+# Unset, layers' range grows with the rig out to where it still measures this disparity (depth to
+# about 6 % per px): 4.5 m stays for a small robot's rig, a car's wide baseline sees ~23 m.
+FAR_DISPARITY_PX = 16.0
 
 
 class MountSettings(ServiceSettings):
@@ -104,5 +107,13 @@ class SegmenterSettings(MountSettings):
 
     @property
     def range_m(self) -> float:
+        """The configured range, or the method's own (without a camera to fit it to)."""
         return self.max_range_m if self.max_range_m is not None else DEFAULT_RANGE_M[self.method]
+
+    def range_for(self, model) -> float:
+        """The vision range for this camera (a RectifiedModel): the configured one, or the method's
+        own, for layers at least as far as the rig measures FAR_DISPARITY_PX."""
+        if self.max_range_m is not None or self.method != "layers":
+            return self.range_m
+        return max(self.range_m, model.focal_px * abs(model.baseline_m) / FAR_DISPARITY_PX)
 
