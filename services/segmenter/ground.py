@@ -46,17 +46,17 @@ MAX_ROLL_DEG = 15.0
 UNDER_M = 0.25  # a pixel this far below a plane (and BELOW_PX) is seen through it: the plane is no floor
 NEAR_PX = 10.0
 BELOW_PX = 2.5  # and this much disparity: block matching errs by a pixel or two on a far road
-BELOW_WEIGHT = 3.0  # score = support - BELOW_WEIGHT * share of pixels under the plane
+BELOW_WEIGHT = 1.0  # score = support - BELOW_WEIGHT * share of pixels under the plane
 MIN_SUPPORT = 0.04  # a floor carries at least this share of the valid pixels ...
 MIN_INLIERS = 100  # ... and this many pixels
 TRACK_BONUS = 0.05  # score bonus of a candidate agreeing with the last frames
 # A real road is not a plane: a plane rolled across it fits its drained sides and a plaza beside it a
 # little better than the road itself. Roll away from the last frames' (level without any) costs score.
-ROLL_COST = 0.01  # per degree beyond ROLL_FREE_DEG
+ROLL_COST = 0.02  # per degree beyond ROLL_FREE_DEG
 ROLL_FREE_DEG = 2.0
 TRUSTED = 0.3  # below this confidence a list says "ground-uncertain"
-RANSAC_HYPOTHESES = 128
-SCORE_SAMPLES = 3000  # RANSAC hypotheses are scored on this many pixels; the refinement uses all
+RANSAC_HYPOTHESES = 96
+SCORE_SAMPLES = 2000  # RANSAC hypotheses are scored on this many pixels; the refinement uses all
 
 
 def grid(h: int, w: int, step: int) -> tuple[np.ndarray, np.ndarray]:
@@ -139,11 +139,12 @@ def ransac_planes(u: np.ndarray, v: np.ndarray, d: np.ndarray, rng: np.random.Ge
     pred = planes[:, 0:1] * us[None] + planes[:, 1:2] * vs[None] + planes[:, 2:3]
     score = ((pred > 0) & (np.abs(pred - ds[None]) < np.maximum(1.0, 0.05 * pred))).sum(1)
     out: list[np.ndarray] = []
-    for q in np.argsort(-score):
+    uc, vc = us[:256], vs[:256]  # enough to tell two planes apart
+    for q in np.argsort(-score)[:24]:  # the best few: most hypotheses are one floor drawn again
         if score[q] < 10 or len(out) >= keep:
             break
         p = planes[q]
-        if all(not _similar_planes(p, o, us, vs) for o in out):
+        if all(not _similar_planes(p, o, uc, vc) for o in out):
             out.append(p)
     return out
 
@@ -155,7 +156,7 @@ def _similar_planes(p: np.ndarray, q: np.ndarray, u: np.ndarray, v: np.ndarray) 
     m = (dp > 0) | (dq > 0)
     if not m.any():
         return True
-    return bool(np.median(np.abs(dp[m] - dq[m]) / np.maximum(np.abs(dq[m]), 1.0)) < 0.05)
+    return bool(np.mean(np.abs(dp[m] - dq[m]) / np.maximum(np.abs(dq[m]), 1.0)) < 0.05)
 
 
 def vdisparity_planes(u: np.ndarray, v: np.ndarray, d: np.ndarray, model: camera.RectifiedModel,
@@ -270,10 +271,17 @@ def fit_candidates(dm: np.ndarray, model: camera.RectifiedModel, step: int, gues
     starts: list[tuple[str, np.ndarray]] = [(name, np.array([g.a, g.b, g.c])) for name, g in guesses.items()]
     starts += [("ransac", p) for p in ransac_planes(u, v, d, rng)]
     starts += [("v-disparity", p) for p in vdisparity_planes(u, v, d, model, rng)]
-    fits = []
+    fits: list[Fit] = []
+    refined: list[np.ndarray] = []
+    uc, vc = u[::max(1, u.size // 256)], v[::max(1, v.size // 256)]
     for origin, p0 in starts:
+        if any(_similar_planes(p0, q, uc, vc) for q in refined):
+            continue  # it would refine to a plane already judged
         p = _refine(p0, u, v, d)
-        fit = None if p is None else _judge(p, u, v, d, model, origin)
+        if p is None or any(_similar_planes(p, q, uc, vc) for q in refined):
+            continue
+        refined.append(p)
+        fit = _judge(p, u, v, d, model, origin)
         if fit is not None:
             fits.append(fit)
     fits.sort(key=lambda f: -f.score)

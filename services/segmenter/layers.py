@@ -22,7 +22,8 @@ only what stands on it counts, and objects are grouped where they stand.
     occupied when its standing pixels cover min_cell_height_m; touching cells are one object.
     In metres this is a polar grid on the ground as fine as the matcher can see: a car, a wall
     seen obliquely, a person stay whole; a person in front of a wall stays apart
- 8. objects smaller than min_size_m / min_area_m2, or whose top is below min_height_m, are dropped
+ 8. objects smaller than min_size_m / min_area_m2, or whose top is below min_height_m (plus what the
+    floor's fit can be off at their distance: _floor_doubt), are dropped
  9. per object, its 3D points; where a column ends within floor_margin_m (+4 cm) of the floor the
     object stands on it and the strip the band cut off is filled back in along the floor normal
 10. objects whose 3D extents come within merge_gap_m are one (a chair's back leg seen between its
@@ -295,7 +296,8 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
             continue
         if area * px_m * px_m < 0.25 * cfg.min_area_m2:
             continue
-        if above is not None and float(np.percentile(above[gy, gx], 98)) < cfg.min_height_m:
+        if above is not None and float(np.percentile(above[gy, gx], 98)) < cfg.min_height_m + _floor_doubt(
+                floor, med, fB):
             continue  # nothing of it stands up: a marking, a shadow, a mat
         pts = _points(gy, gx, gd, model, step)
         valid = (int(np.count_nonzero(d0[gy, gx])) if confidence is None
@@ -340,6 +342,18 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
     if cfg.edge_refine and image is not None and out:
         out = [_refine_box(det, image) for det in out]
     return LayersFrame(out, points, floor, estimate, floor_points)
+
+
+FLOOR_TILT_DOUBT_DEG = 0.5  # how far a fitted floor's tilt can be off: a real road is no plane (the v-disparity
+# road profile of consecutive Karlsruhe frames differs by up to 0.7 deg)
+
+
+def _floor_doubt(floor: FloorPlane, d: float, fB: float) -> float:
+    """How far the fitted floor can be off, in height, at the depth of disparity d: its tilt's doubt
+    over the distance, and half a pixel of disparity (at 20 m from a car: ~15 cm, at 3 m from a small
+    robot: ~3 cm). A top lower than min_height_m plus this cannot be told from the floor."""
+    z = fB / max(d, 1e-3)
+    return z * float(np.tan(np.radians(FLOOR_TILT_DOUBT_DEG))) + floor.height_m * 0.5 / max(d, 1e-3)
 
 
 def _floor_like(pts: np.ndarray, max_tilt_deg: float = 45.0) -> bool:
