@@ -344,7 +344,7 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
     return LayersFrame(out, points, floor, estimate, floor_points)
 
 
-FLOOR_TILT_DOUBT_DEG = 0.5  # how far a fitted floor's tilt can be off: a real road is no plane (the v-disparity
+FLOOR_TILT_DOUBT_DEG = 0.25  # how far a fitted floor's tilt can be off: a real road is no plane (the v-disparity
 # road profile of consecutive Karlsruhe frames differs by up to 0.7 deg)
 
 
