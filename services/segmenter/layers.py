@@ -13,9 +13,10 @@ only what stands on it counts, and objects are grouped where they stand.
  4. the ground: a plane d = a u + b v + c in disparity space, fitted this frame (ground.py: the
     last frames' estimate, the configured mount or RANSAC as the first guess; checked, smoothed,
     published as height / pitch / roll)
- 5. height band: a pixel stands when it is more than floor_margin_m (and ground_noise_px of
-    disparity) above the floor and at most robot_height_m above it; markings, shadows, mats are
-    floor, canopy and ceilings are above the robot
+ 5. height band: a pixel stands when it is more than floor_margin_m (plus what the floor's tilt can
+    be off at its distance, and ground_noise_px of disparity) above the floor and at most
+    robot_height_m above it; markings, shadows, mats are floor, canopy and ceilings are above the
+    robot
  6. a standing pixel with a 4-neighbour nearer by more than step_px + step_rel * d sits on a depth
     step, where block matching blends two depths into a phantom: it is not grouped
  7. grouping on the column-disparity grid (u-disparity): a cell (column, disparity bin) is
@@ -88,7 +89,7 @@ def _fill_to_floor(mask: np.ndarray, d_box: np.ndarray, x0: int, y0: int, floor:
     z = f * B / db
     P = np.stack([(u - cx) * z / f, (v - cy) * z / f, z], 1)
     height = floor.height_m - P @ n_down  # above the floor
-    reach = cfg.floor_margin_m + 0.04
+    reach = cfg.floor_margin_m + 0.04 + _tilt_doubt(P[:, 2])  # as far as the height band reaches
     on_floor = (height > -0.02) & (height <= reach)
     if not on_floor.any():
         return None
@@ -265,8 +266,11 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
     if floor is not None:
         u, v = grid(h, w, step)
         df = np.float32(floor.a) * u + (np.float32(floor.b) * v + np.float32(floor.c))
-        k = 1.0 / max(1e-3, 1.0 - cfg.floor_margin_m / floor.height_m)
-        on_floor = dk <= np.maximum(df * np.float32(k), df + np.float32(cfg.ground_noise_px))
+        # the margin grows with distance by what the floor's tilt can be off there (_tilt_doubt)
+        with np.errstate(divide="ignore"):
+            margin = np.float32(cfg.floor_margin_m) + _tilt_doubt(np.float32(fB) / df)
+        k = 1.0 / np.maximum(np.float32(1e-3), 1.0 - margin / np.float32(floor.height_m))
+        on_floor = dk <= np.maximum(df * k, df + np.float32(cfg.ground_noise_px))
         with np.errstate(divide="ignore", invalid="ignore"):
             above = np.float32(floor.height_m) * (1 - df / dk)  # height above the floor, m
         stand = keep & ~on_floor & (above <= cfg.robot_height_m)
@@ -344,16 +348,22 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
     return LayersFrame(out, points, floor, estimate, floor_points)
 
 
-FLOOR_TILT_DOUBT_DEG = 0.25  # how far a fitted floor's tilt can be off: a real road is no plane (the v-disparity
-# road profile of consecutive Karlsruhe frames differs by up to 0.7 deg)
+# How far a fitted floor's tilt can be off at a distance: a real road is no plane, its grade changes
+# over tens of metres (0.15 deg leaves the far ends of parked-car rows and kerbs standing on the street).
+FLOOR_TILT_DOUBT_DEG = 0.25
+
+
+def _tilt_doubt(z):
+    """Height (m) by which a floor whose tilt is FLOOR_TILT_DOUBT_DEG off misses at depth z (a far
+    road's grade changes: at 20 m ~9 cm, at 3 m ~1 cm)."""
+    return z * np.float32(np.tan(np.radians(FLOOR_TILT_DOUBT_DEG)))
 
 
 def _floor_doubt(floor: FloorPlane, d: float, fB: float) -> float:
     """How far the fitted floor can be off, in height, at the depth of disparity d: its tilt's doubt
-    over the distance, and half a pixel of disparity (at 20 m from a car: ~15 cm, at 3 m from a small
-    robot: ~3 cm). A top lower than min_height_m plus this cannot be told from the floor."""
-    z = fB / max(d, 1e-3)
-    return z * float(np.tan(np.radians(FLOOR_TILT_DOUBT_DEG))) + floor.height_m * 0.5 / max(d, 1e-3)
+    and half a pixel of disparity (20 m ahead of a car: ~15 cm, 3 m from a small robot: ~3 cm). A
+    top lower than min_height_m plus this cannot be told from the floor."""
+    return float(_tilt_doubt(fB / max(d, 1e-3))) + floor.height_m * 0.5 / max(d, 1e-3)
 
 
 def _floor_like(pts: np.ndarray, max_tilt_deg: float = 45.0) -> bool:
