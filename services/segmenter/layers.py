@@ -89,7 +89,7 @@ def _fill_to_floor(mask: np.ndarray, d_box: np.ndarray, x0: int, y0: int, floor:
     z = f * B / db
     P = np.stack([(u - cx) * z / f, (v - cy) * z / f, z], 1)
     height = floor.height_m - P @ n_down  # above the floor
-    reach = cfg.floor_margin_m + 0.04 + _tilt_doubt(P[:, 2])  # as far as the height band reaches
+    reach = cfg.floor_margin_m + 0.04 + _tilt_doubt(P[:, 2], floor.height_m)  # as far as the height band reaches
     on_floor = (height > -0.02) & (height <= reach)
     if not on_floor.any():
         return None
@@ -268,7 +268,7 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
         df = np.float32(floor.a) * u + (np.float32(floor.b) * v + np.float32(floor.c))
         # the margin grows with distance by what the floor's tilt can be off there (_tilt_doubt)
         with np.errstate(divide="ignore"):
-            margin = np.float32(cfg.floor_margin_m) + _tilt_doubt(np.float32(fB) / df)
+            margin = np.float32(cfg.floor_margin_m) + _tilt_doubt(np.float32(fB) / df, floor.height_m)
         k = 1.0 / np.maximum(np.float32(1e-3), 1.0 - margin / np.float32(floor.height_m))
         on_floor = dk <= np.maximum(df * k, df + np.float32(cfg.ground_noise_px))
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -351,19 +351,22 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
 # How far a fitted floor's tilt can be off at a distance: a real road is no plane, its grade changes
 # over tens of metres (0.15 deg leaves the far ends of parked-car rows and kerbs standing on the street).
 FLOOR_TILT_DOUBT_DEG = 0.25
+PIVOT_HEIGHTS = 2.0
 
 
-def _tilt_doubt(z):
-    """Height (m) by which a floor whose tilt is FLOOR_TILT_DOUBT_DEG off misses at depth z (a far
-    road's grade changes: at 20 m ~9 cm, at 3 m ~1 cm)."""
-    return z * np.float32(np.tan(np.radians(FLOOR_TILT_DOUBT_DEG)))
+def _tilt_doubt(z, height_m: float):
+    """Height (m) by which a floor whose tilt is FLOOR_TILT_DOUBT_DEG off misses at depth z: nothing
+    within PIVOT_HEIGHTS camera heights (the floor seen more than ~27 deg below the horizon, densely:
+    where the fit rests), growing beyond (20 m ahead of a car: ~7 cm)."""
+    return (np.maximum(z - np.float32(PIVOT_HEIGHTS * height_m), 0)
+            * np.float32(np.tan(np.radians(FLOOR_TILT_DOUBT_DEG))))
 
 
 def _floor_doubt(floor: FloorPlane, d: float, fB: float) -> float:
     """How far the fitted floor can be off, in height, at the depth of disparity d: its tilt's doubt
-    and half a pixel of disparity (20 m ahead of a car: ~15 cm, 3 m from a small robot: ~3 cm). A
+    and half a pixel of disparity (20 m ahead of a car: ~11 cm, 3 m from a small robot: ~3 cm). A
     top lower than min_height_m plus this cannot be told from the floor."""
-    return float(_tilt_doubt(fB / max(d, 1e-3))) + floor.height_m * 0.5 / max(d, 1e-3)
+    return float(_tilt_doubt(fB / max(d, 1e-3), floor.height_m)) + floor.height_m * 0.5 / max(d, 1e-3)
 
 
 def _floor_like(pts: np.ndarray, max_tilt_deg: float = 45.0) -> bool:
