@@ -57,6 +57,7 @@ ROLL_FREE_DEG = 2.0
 TRUSTED = 0.3  # below this confidence a list says "ground-uncertain"
 RANSAC_HYPOTHESES = 96
 SCORE_SAMPLES = 2000  # RANSAC hypotheses are scored on this many pixels; the refinement uses all
+SEARCH_EVERY = 4  # frames: a full search at least this often (in between, the last frames' ground refined)
 
 
 def grid(h: int, w: int, step: int) -> tuple[np.ndarray, np.ndarray]:
@@ -225,7 +226,7 @@ def _refine(p: np.ndarray, u: np.ndarray, v: np.ndarray, d: np.ndarray,
     return p
 
 
-def _polish(p: np.ndarray, u: np.ndarray, v: np.ndarray, d: np.ndarray, iterations: int = 4) -> np.ndarray:
+def _polish(p: np.ndarray, u: np.ndarray, v: np.ndarray, d: np.ndarray, iterations: int = 2) -> np.ndarray:
     """The chosen plane settled on its surface: iteratively reweighted least squares with Cauchy
     weights on the residual relative to 3 % of the plane's disparity (0.3 px at least), so that
     starts a little apart on one road end on one plane, frame after frame (band fits stop wherever
@@ -282,12 +283,18 @@ def fit_candidates(dm: np.ndarray, model: camera.RectifiedModel, step: int, gues
                    rng: np.random.Generator) -> list[Fit]:
     """Every acceptable floor candidate of a working-resolution disparity map dm (0 = invalid), best
     score first: from the guesses (name -> plane), RANSAC and the v-disparity histogram."""
-    u, v, d = _points(dm, step)
+    return _candidates(*_points(dm, step), model, guesses, rng)
+
+
+def _candidates(u: np.ndarray, v: np.ndarray, d: np.ndarray, model: camera.RectifiedModel,
+                guesses: dict[str, FloorPlane], rng: np.random.Generator, search: bool = True) -> list[Fit]:
+    """fit_candidates on the pixels (u, v, d); search False: from the guesses alone."""
     if d.size < MIN_INLIERS:
         return []
     starts: list[tuple[str, np.ndarray]] = [(name, np.array([g.a, g.b, g.c])) for name, g in guesses.items()]
-    starts += [("ransac", p) for p in ransac_planes(u, v, d, rng)]
-    starts += [("v-disparity", p) for p in vdisparity_planes(u, v, d, model, rng)]
+    if search:
+        starts += [("ransac", p) for p in ransac_planes(u, v, d, rng)]
+        starts += [("v-disparity", p) for p in vdisparity_planes(u, v, d, model, rng)]
     fits: list[Fit] = []
     refined: list[np.ndarray] = []
     uc, vc = u[::max(1, u.size // 256)], v[::max(1, v.size // 256)]
@@ -337,6 +344,7 @@ class GroundEstimator:
         self.smooth_h = 0.0
         self.confidence = 0.0  # of the smoothed estimate
         self.missed = 0  # frames in a row without an acceptable fit
+        self.since_search = 0  # frames since every candidate last competed
         self.prior_disagreement_logged = False
         self.rng = np.random.default_rng(0)
 
@@ -367,12 +375,10 @@ class GroundEstimator:
                 return None, self._none()
             # the user chose the configured mount over fitting: trusted as far as a mount measured once can be
             return plane_from_mount(self.prior, model), self._estimate(prior_n, prior_h, "prior", confidence=0.5)
+        u, v, d = _points(dm, step)
         guesses = {}
         if self.smooth_n is not None:
             guesses["tracked"] = self._plane(self.smooth_n, self.smooth_h, model)
-        if self.prior is not None:
-            guesses["prior"] = plane_from_mount(self.prior, model)
-        fits = fit_candidates(dm, model, step, guesses, self.rng)
         consistent = None
         ref_roll = pitch_roll(self.smooth_n)[1] if self.smooth_n is not None else 0.0
 
@@ -391,12 +397,26 @@ class GroundEstimator:
         def rank(f: Fit) -> float:
             roll = abs(f.pitch_roll[1] - ref_roll)
             return f.score - ROLL_COST * max(0.0, roll - ROLL_FREE_DEG) + TRACK_BONUS * closeness(f)
+        # Between full searches the last frames' ground, refined on this frame, is enough while it
+        # stays a trusted floor close to them; every SEARCH_EVERY frames (and whenever it is not)
+        # every candidate competes, so a wrong lock lasts a few frames at most.
+        self.since_search += 1
+        fits: list[Fit] = []
+        if guesses and self.since_search < SEARCH_EVERY:
+            fits = _candidates(u, v, d, model, guesses, self.rng, search=False)
+            if not (fits and closeness(fits[0]) > 0 and fits[0].inlier_fraction >= MIN_SUPPORT
+                    and fit_confidence(fits[0], True) >= TRUSTED):
+                fits = []
+        if not fits:
+            self.since_search = 0
+            if self.prior is not None:
+                guesses["prior"] = plane_from_mount(self.prior, model)
+            fits = _candidates(u, v, d, model, guesses, self.rng)
         fits.sort(key=lambda f: -rank(f))
         if fits and self.smooth_n is not None:
             consistent = agrees(fits[0])
         fit = fits[0] if fits and fits[0].inlier_fraction >= MIN_SUPPORT else None
         if fit is not None:
-            u, v, d = _points(dm, step)
             polished = _judge(_polish(np.array([fit.plane.a, fit.plane.b, fit.plane.c]), u, v, d), u, v, d, model,
                               fit.origin)
             if polished is not None:
