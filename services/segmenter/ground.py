@@ -57,6 +57,8 @@ ROLL_FREE_DEG = 2.0
 TRUSTED = 0.3  # below this confidence a list says "ground-uncertain"
 RANSAC_HYPOTHESES = 96
 SCORE_SAMPLES = 2000  # RANSAC hypotheses are scored on this many pixels; the refinement uses all
+TILT_RATE = 0.2  # weight of a new fit in the running tilt doubt
+MAX_TILT_DOUBT_DEG = 1.0
 SEARCH_EVERY = 4  # frames: a full search at least this often (in between, the last frames' ground refined)
 
 
@@ -345,8 +347,16 @@ class GroundEstimator:
         self.confidence = 0.0  # of the smoothed estimate
         self.missed = 0  # frames in a row without an acceptable fit
         self.since_search = 0  # frames since every candidate last competed
+        self.tilt_var = 0.0  # running mean square (deg^2) of each fit's tilt from the last frames' ground
         self.prior_disagreement_logged = False
         self.rng = np.random.default_rng(0)
+
+    @property
+    def tilt_doubt_deg(self) -> float:
+        """How far this frame's fitted tilt may be off: the rms of the fits' tilts from the last
+        frames' ground (a fit on a real road moves by a few tenths of a degree; an exact plane by
+        hardly any), at most MAX_TILT_DOUBT_DEG. The segmenter widens its floor band by it at a distance."""
+        return float(min(MAX_TILT_DOUBT_DEG, np.sqrt(self.tilt_var)))
 
     def _plane(self, n: np.ndarray, h: float, model: camera.RectifiedModel) -> FloorPlane:
         return FloorPlane.from_normal(n, h, model.focal_px, model.cx, model.cy, model.baseline_m)
@@ -423,6 +433,9 @@ class GroundEstimator:
                 fit = polished
         if fit is not None:
             self.missed = 0
+            if consistent:
+                tilt = float(np.degrees(np.arccos(np.clip(fit.normal @ self.smooth_n, -1, 1))))
+                self.tilt_var = (1 - TILT_RATE) * self.tilt_var + TILT_RATE * tilt * tilt
             a = cfg.ground_smoothing
             if self.smooth_n is None or not consistent:
                 self.smooth_n, self.smooth_h = fit.normal.copy(), fit.plane.height_m  # the world changed

@@ -24,7 +24,8 @@ only what stands on it counts, and objects are grouped where they stand.
     In metres this is a polar grid on the ground as fine as the matcher can see: a car, a wall
     seen obliquely, a person stay whole; a person in front of a wall stays apart
  8. objects smaller than min_size_m / min_area_m2, or whose top is below min_height_m (plus what the
-    floor's fit can be off at their distance: _floor_doubt), are dropped
+    floor's fit can be off at their distance: _floor_doubt, from how much the fitted tilt moves
+    from frame to frame), are dropped
  9. per object, its 3D points; where a column ends within floor_margin_m (+4 cm) of the floor the
     object stands on it and the strip the band cut off is filled back in along the floor normal
 10. objects whose 3D extents come within merge_gap_m are one (a chair's back leg seen between its
@@ -66,7 +67,7 @@ class _Region:
 
 
 def _fill_to_floor(mask: np.ndarray, d_box: np.ndarray, x0: int, y0: int, floor: FloorPlane, cfg: SegmenterSettings,
-                   model: camera.RectifiedModel, step: int) -> np.ndarray | None:
+                   model: camera.RectifiedModel, step: int, doubt_deg: float = 0.0) -> np.ndarray | None:
     """The strip of an object that floor removal cut off: where a column of the region ends less
     than floor_margin_m (+4 cm) above the floor, the object is taken to stand on it, and points
     are added straight down (along the floor normal: a vertical face) to the floor, one per
@@ -89,7 +90,7 @@ def _fill_to_floor(mask: np.ndarray, d_box: np.ndarray, x0: int, y0: int, floor:
     z = f * B / db
     P = np.stack([(u - cx) * z / f, (v - cy) * z / f, z], 1)
     height = floor.height_m - P @ n_down  # above the floor
-    reach = cfg.floor_margin_m + 0.04 + _tilt_doubt(P[:, 2], floor.height_m)  # as far as the height band reaches
+    reach = cfg.floor_margin_m + 0.04 + _tilt_doubt(P[:, 2], floor.height_m, doubt_deg)  # as far as the band reaches
     on_floor = (height > -0.02) & (height <= reach)
     if not on_floor.any():
         return None
@@ -262,13 +263,14 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
     if cfg.floor_removal:
         ground = ground or GroundEstimator(cfg)
         floor, estimate = ground.update(dk, model, step)
+    doubt_deg = ground.tilt_doubt_deg if floor is not None else 0.0
     floor_points = np.zeros((0, 3))
     if floor is not None:
         u, v = grid(h, w, step)
         df = np.float32(floor.a) * u + (np.float32(floor.b) * v + np.float32(floor.c))
         # the margin grows with distance by what the floor's tilt can be off there (_tilt_doubt)
         with np.errstate(divide="ignore"):
-            margin = np.float32(cfg.floor_margin_m) + _tilt_doubt(np.float32(fB) / df, floor.height_m)
+            margin = np.float32(cfg.floor_margin_m) + _tilt_doubt(np.float32(fB) / df, floor.height_m, doubt_deg)
         k = 1.0 / np.maximum(np.float32(1e-3), 1.0 - margin / np.float32(floor.height_m))
         on_floor = dk <= np.maximum(df * k, df + np.float32(cfg.ground_noise_px))
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -301,7 +303,7 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
         if area * px_m * px_m < 0.25 * cfg.min_area_m2:
             continue
         if above is not None and float(np.percentile(above[gy, gx], 98)) < cfg.min_height_m + _floor_doubt(
-                floor, med, fB):
+                floor, med, fB, doubt_deg):
             continue  # nothing of it stands up: a marking, a shadow, a mat
         pts = _points(gy, gx, gd, model, step)
         valid = (int(np.count_nonzero(d0[gy, gx])) if confidence is None
@@ -311,7 +313,7 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
             mask = np.zeros((y1 - y0, x1 - x0), bool)
             mask[gy - y0, gx - x0] = True
             extra = _fill_to_floor(mask, np.where(mask, dm[y0:y1, x0:x1], np.float32(0)), x0, y0, floor, cfg,
-                                   model, step)
+                                   model, step, doubt_deg)
             if extra is not None:
                 pts = np.concatenate([pts, extra])
                 filled = len(extra)
@@ -348,25 +350,20 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
     return LayersFrame(out, points, floor, estimate, floor_points)
 
 
-# How far a fitted floor's tilt can be off at a distance: a real road is no plane, its grade changes
-# over tens of metres (0.15 deg leaves the far ends of parked-car rows and kerbs standing on the street).
-FLOOR_TILT_DOUBT_DEG = 0.25
 PIVOT_HEIGHTS = 2.0
 
 
-def _tilt_doubt(z, height_m: float):
-    """Height (m) by which a floor whose tilt is FLOOR_TILT_DOUBT_DEG off misses at depth z: nothing
-    within PIVOT_HEIGHTS camera heights (the floor seen more than ~27 deg below the horizon, densely:
-    where the fit rests), growing beyond (20 m ahead of a car: ~7 cm)."""
-    return (np.maximum(z - np.float32(PIVOT_HEIGHTS * height_m), 0)
-            * np.float32(np.tan(np.radians(FLOOR_TILT_DOUBT_DEG))))
+def _tilt_doubt(z, height_m: float, doubt_deg: float):
+    """Height (m) by which a floor whose tilt is doubt_deg off misses at depth z: nothing within
+    PIVOT_HEIGHTS camera heights (the floor seen more than ~27 deg below the horizon, densely: where
+    the fit rests), growing beyond (a real road is no plane: its grade changes over tens of metres)."""
+    return np.maximum(z - np.float32(PIVOT_HEIGHTS * height_m), 0) * np.float32(np.tan(np.radians(doubt_deg)))
 
 
-def _floor_doubt(floor: FloorPlane, d: float, fB: float) -> float:
+def _floor_doubt(floor: FloorPlane, d: float, fB: float, doubt_deg: float) -> float:
     """How far the fitted floor can be off, in height, at the depth of disparity d: its tilt's doubt
-    and half a pixel of disparity (20 m ahead of a car: ~11 cm, 3 m from a small robot: ~3 cm). A
-    top lower than min_height_m plus this cannot be told from the floor."""
-    return float(_tilt_doubt(fB / max(d, 1e-3), floor.height_m)) + floor.height_m * 0.5 / max(d, 1e-3)
+    and half a pixel of disparity. A top lower than min_height_m plus this cannot be told from the floor."""
+    return float(_tilt_doubt(fB / max(d, 1e-3), floor.height_m, doubt_deg)) + floor.height_m * 0.5 / max(d, 1e-3)
 
 
 def _floor_like(pts: np.ndarray, max_tilt_deg: float = 45.0) -> bool:
