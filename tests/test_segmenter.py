@@ -430,3 +430,22 @@ def test_lists_say_when_the_search_cannot_reach_the_range_or_there_is_no_ground(
     wall = np.full((MODEL.height, MODEL.width), FB / 2.0, np.float32)  # no floor in view, no history, no mount
     lst = ObstacleBuilder(SegmenterSettings()).process(wall, MODEL, t_s=0.0, seq=0, stamp_ns=0).obstacles
     assert lst.ground.source == "none" and lst.ground.confidence == 0.0 and "no-ground" in lst.degraded
+
+
+def test_walls_beside_the_way_filling_most_of_the_view_never_become_the_ground():
+    """A corridor: walls 0.8 m to either side, parallel to the heading, cover more pixels than the
+    floor between them; the ground is still the floor, from no mount and from a mount 50 % too high."""
+    truth = Mount(1.0, 5.0)
+    v, u = np.mgrid[0:MODEL.height, 0:MODEL.width].astype(np.float32)
+    floor_d = floor_plane(truth).disparity(u, v)
+    x = (u - MODEL.cx) / MODEL.focal_px  # a wall at lateral offset w is seen at depth w / |x|: d = B |x| f / w
+    wall_d = MODEL.baseline_m * np.abs(x) * MODEL.focal_px / 0.8
+    d = np.maximum(floor_d, wall_d).astype(np.float32)  # whichever is nearer along the ray
+    d[d < FB / 8.0] = np.nan  # nothing beyond 8 m
+    d += np.random.default_rng(0).normal(0, 0.08, d.shape).astype(np.float32)
+    wall = np.isfinite(d) & (wall_d > floor_d)
+    assert np.count_nonzero(wall) > np.count_nonzero(np.isfinite(d) & ~wall)  # more wall than floor in view
+    for told in ({}, dict(mount_height_m=1.5, mount_pitch_deg=5.0)):
+        g = _frame(d, SegmenterSettings(max_range_m=8.0, **told)).ground
+        assert g.source == "fitted" and abs(g.height_m - 1.0) < 0.05 and abs(g.pitch_deg - 5.0) < 1.0, (told, g)
+        assert abs(g.roll_deg) < 1.0
