@@ -102,8 +102,12 @@ def lstsq_plane(u: np.ndarray, v: np.ndarray, d: np.ndarray, w: np.ndarray | Non
     v -= mv
     d -= md
     wu, wv = w * u, w * v
-    A = np.array([[wu @ u, wu @ v], [wu @ v, wv @ v]])
-    a, b = np.linalg.solve(A + 1e-9 * np.eye(2), np.array([wu @ d, wv @ d]))
+    p, q, r = wu @ u + 1e-9, wu @ v, wv @ v + 1e-9  # the 2x2 normal equations, solved by hand
+    x, y = wu @ d, wv @ d
+    det = p * r - q * q
+    if abs(det) < 1e-12:
+        det = 1e-12
+    a, b = (r * x - q * y) / det, (p * y - q * x) / det
     return np.array([a, b, md - a * mu - b * mv])
 
 
@@ -129,11 +133,19 @@ def ransac_planes(u: np.ndarray, v: np.ndarray, d: np.ndarray, rng: np.random.Ge
     k[:near] = np.clip(i[:near] + rng.integers(-span, span + 1, near), 0, n - 1)
     j[near:], k[near:] = rng.integers(0, n, size=(2, n_hyp - near))
     idx = np.stack([i, j, k], 1)
-    A = np.stack([u[idx], v[idx], np.ones((n_hyp, 3), np.float32)], -1).astype(np.float64)
-    ok = np.abs(np.linalg.det(A)) > 1e-3
+    # each triple's plane by Cramer's rule, written out (np.linalg on stacks of 3x3 costs milliseconds)
+    uu, vv, dd = u[idx].astype(np.float64), v[idx].astype(np.float64), d[idx].astype(np.float64)
+
+    def det3(c0: np.ndarray, c1: np.ndarray, c2: np.ndarray) -> np.ndarray:  # columns of the 3x3 systems
+        return (c0[:, 0] * (c1[:, 1] * c2[:, 2] - c1[:, 2] * c2[:, 1])
+                - c0[:, 1] * (c1[:, 0] * c2[:, 2] - c1[:, 2] * c2[:, 0])
+                + c0[:, 2] * (c1[:, 0] * c2[:, 1] - c1[:, 1] * c2[:, 0]))
+    one = np.ones_like(uu)
+    det = det3(uu, vv, one)
+    ok = np.abs(det) > 1e-3
     if not ok.any():
         return []
-    planes = np.linalg.solve(A[ok], d[idx][ok][..., None].astype(np.float64))[..., 0]
+    planes = (np.stack([det3(dd, vv, one), det3(uu, dd, one), det3(uu, vv, dd)], 1) / np.where(ok, det, 1.0)[:, None])[ok]
     planes = planes[(planes[:, 1] > 1e-4) & (np.abs(planes[:, 0]) <= np.tan(np.radians(MAX_ROLL_DEG)) * planes[:, 1])]
     if not len(planes):
         return []

@@ -264,14 +264,18 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
         ground = ground or GroundEstimator(cfg)
         floor, estimate = ground.update(dk, model, step)
     doubt_deg = ground.tilt_doubt_deg if floor is not None else 0.0
+    doubt_deg = doubt_deg if doubt_deg >= MIN_DOUBT_DEG else 0.0
     floor_points = np.zeros((0, 3))
     if floor is not None:
         u, v = grid(h, w, step)
         df = np.float32(floor.a) * u + (np.float32(floor.b) * v + np.float32(floor.c))
         # the margin grows with distance by what the floor's tilt can be off there (_tilt_doubt)
-        with np.errstate(divide="ignore"):
-            margin = np.float32(cfg.floor_margin_m) + _tilt_doubt(np.float32(fB) / df, floor.height_m, doubt_deg)
-        k = 1.0 / np.maximum(np.float32(1e-3), 1.0 - margin / np.float32(floor.height_m))
+        if doubt_deg >= MIN_DOUBT_DEG:
+            with np.errstate(divide="ignore"):
+                margin = np.float32(cfg.floor_margin_m) + _tilt_doubt(np.float32(fB) / df, floor.height_m, doubt_deg)
+            k = 1.0 / np.maximum(np.float32(1e-3), 1.0 - margin / np.float32(floor.height_m))
+        else:  # a floor that holds still: one margin everywhere (and no per-pixel work)
+            k = np.float32(1.0 / max(1e-3, 1.0 - cfg.floor_margin_m / floor.height_m))
         on_floor = dk <= np.maximum(df * k, df + np.float32(cfg.ground_noise_px))
         with np.errstate(divide="ignore", invalid="ignore"):
             above = np.float32(floor.height_m) * (1 - df / dk)  # height above the floor, m
@@ -351,6 +355,7 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
 
 
 PIVOT_HEIGHTS = 2.0
+MIN_DOUBT_DEG = 0.02  # below this the floor band widens by less than a centimetre within 20 m
 
 
 def _tilt_doubt(z, height_m: float, doubt_deg: float):
