@@ -67,13 +67,15 @@ class SegmenterSettings(MountSettings):
     # layers
     fit_floor: bool = Field(True, description="layers: fit the floor plane to the disparity (mount as prior/fallback)")
     max_tilt_deg: float = Field(15.0, ge=0, le=90, description="layers: a fitted floor tilted more than this "
-                                "from the configured mount's is refused")
-    ground_step_deg: float = Field(8.0, ge=0, le=90, description="layers: a fitted floor tilted more than this "
-                                   "from the last frames' is refused (the smoothed estimate stands in)")
+                                "(or 30 % of the height) from the configured mount's disagrees with it: logged once, "
+                                "published as GroundEstimate.prior_agrees false; the data are used either way")
+    ground_step_deg: float = Field(8.0, ge=0, le=90, description="layers: a floor candidate tilted this much "
+                                   "from the last frames' ground gets no share of the bonus for agreeing with them")
     ground_smoothing: float = Field(0.3, gt=0, le=1, description="layers: weight of a new fit in the smoothed "
                                     "ground estimate")
-    ground_reinit_frames: int = Field(8, ge=1, le=1000, description="layers: after this many refused or failed "
-                                      "fits in a row the ground is searched afresh")
+    ground_reinit_frames: int = Field(8, ge=1, le=1000, description="layers: for this many frames in a row "
+                                      "without an acceptable fit the last frames' ground stands in (tracked), then "
+                                      "the configured mount or none")
     step_px: float = Field(0.6, ge=0, le=50, description="layers: neighbours differing by more than "
                            "step_px + step_rel * d belong to different objects")
     step_rel: float = Field(0.03, ge=0, le=1, description="layers: relative part of the similarity tolerance")
