@@ -81,6 +81,35 @@ def _make_matcher(mcfg, model):
     return cfg, make_matcher(cfg), gate_for_range(cfg.max_range_m, model.focal_px, model.baseline_m)
 
 
+def _obstacles_matcher_settings(args: argparse.Namespace):
+    """The disparity settings for `obstacles`: as configured, with the search range following the
+    calibration (num_disparities auto) unless one was set."""
+    from common.settings import load_settings
+    from cores.matching.config import MatcherConfig
+
+    over = {k: v for k, v in REAL_DISPARITY_DEFAULTS.items() if k not in _explicit(MatcherConfig, args)}
+    return load_settings(MatcherConfig, getattr(args, "config", None), args, prefix="disparity-", **over)
+
+
+def _warn_reach(builder, model, mcfg) -> None:
+    """Say at the start, on stderr, when the disparity search cannot measure (all or the near part
+    of) the segmenter's vision range: the lists then carry "range-unreachable"."""
+    reach = builder.check_search(model, mcfg.min_disparity, mcfg.num_disparities, quiet=True)
+    if reach.message:
+        print(f"warning: {reach.message}", file=sys.stderr, flush=True)
+
+
+def _warn_recording_reach(rec, seg, disp, alpha: float) -> None:
+    from cores.calibration.rectify import Rectifier
+    from cores.segmentation.builder import search_reach
+
+    model = Rectifier(rec.calibration, alpha).model
+    cfg = disp.resolved(model.focal_px, model.baseline_m, model.width)
+    reach = search_reach(model, cfg.min_disparity, cfg.num_disparities, seg)
+    if reach.message:
+        print(f"warning: {reach.message}", file=sys.stderr, flush=True)
+
+
 def _write_picture(path: Path, picture) -> None:
     import cv2
 
@@ -124,8 +153,9 @@ def cmd_obstacles(args: argparse.Namespace) -> int:
                 yield lp, rp, left, right, k / args.fps
         pairs = read_pairs()
     rect = Rectifier(cal, args.alpha)
-    mcfg, matcher, gate = _make_matcher(_matcher_settings(args), rect.model)
+    mcfg, matcher, gate = _make_matcher(_obstacles_matcher_settings(args), rect.model)
     builder = ObstacleBuilder(settings)
+    _warn_reach(builder, rect.model, mcfg)
     draw_dir = Path(args.draw) if args.draw else None
     for k, (lp, rp, left, right, stamp_s) in enumerate(pairs):
         rect.check_size(left, str(lp))  # a recording's pairs: named by file and seq
@@ -135,7 +165,8 @@ def cmd_obstacles(args: argparse.Namespace) -> int:
         d = to_float(match.disparity, SCALE, mcfg.invalid_value)
         t0 = time.perf_counter()
         result = builder.process(d, rect.model, t_s=stamp_s, seq=k, stamp_ns=int(stamp_s * 1e9),
-                                 confidence=match.confidence, image=left)
+                                 confidence=match.confidence, image=left,
+                                 search=(mcfg.min_disparity, mcfg.num_disparities))
         ms = (time.perf_counter() - t0) * 1e3
         msg = result.obstacles
         if draw_dir is not None:
@@ -152,6 +183,8 @@ def cmd_obstacles(args: argparse.Namespace) -> int:
                                                  f"{ms:.1f} ms (camera frame: x right, y down, z forward)"))
             _out(format_ground(msg.ground))
             _out(format_freespace(result.freespace))
+            if msg.degraded:
+                _out(f"  degraded: {', '.join(msg.degraded)}")
     return 0
 
 
@@ -193,10 +226,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 
 # Settings for real recordings where the user set none (flag, environment or --config): a car's or a
-# room's range rather than a small robot's, and a search range covering a few metres at a car's
-# baseline (64 px ends at 5.8 m on Karlsruhe: nearer parked cars saturate it).
+# room's range rather than a small robot's, and a search range that follows the calibration (64 px
+# ends at 5.8 m on Karlsruhe: nearer parked cars saturate it).
 REAL_SEGMENTER_DEFAULTS = {"max_range_m": 30.0}
-REAL_DISPARITY_DEFAULTS = {"num_disparities": 128}
+REAL_DISPARITY_DEFAULTS = {"num_disparities": "auto"}
 
 
 def _explicit(cls, args: argparse.Namespace) -> set[str]:
@@ -264,6 +297,7 @@ def cmd_eval_real(args: argparse.Namespace) -> int:
         if applied:
             _out(_describe_defaults(applied))
         on_frame = lambda fr: _out(R.format_frame(fr))  # noqa: E731
+    _warn_recording_reach(rec, seg, disp, args.alpha)
     report = R.evaluate_recording(rec, seg, disp, frames=args.frames, draw_dir=args.draw, alpha=args.alpha,
                                   on_frame=on_frame)
     if args.json:

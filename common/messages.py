@@ -15,7 +15,8 @@ from pydantic import BaseModel, ConfigDict, Field
 
 # 2: ground estimate, track confirmation, truncation and base-frame velocities in ObstacleList;
 #    FreeSpace; Odometry; an optional confidence image beside a disparity map.
-# 3: ObstacleList.degraded and valid_fraction (can this list be trusted); GroundEstimate.confidence.
+# 3: ObstacleList.degraded and valid_fraction (can this list be trusted); GroundEstimate.confidence and the
+#    configured mount beside the fitted ground (prior_*).
 SCHEMA_VERSION = 3
 
 Vec3 = tuple[float, float, float]
@@ -166,6 +167,14 @@ class GroundEstimate(BaseModel):
     confidence: float = Field(0.0, ge=0, le=1, description="how far the ground can be trusted for this frame: 0 = "
                               "not at all (no floor seen, a guess), 1 = a well-supported fit agreeing with the "
                               "recent frames")
+    # The configured mount is a prior, never a cage: where the data disagree the fitted ground is used,
+    # and what was configured stays visible beside it.
+    prior_height_m: float | None = Field(None, description="the configured mount's camera height, m (None: no "
+                                         "mount configured)")
+    prior_pitch_deg: float | None = Field(None, description="the configured mount's pitch, deg")
+    prior_roll_deg: float | None = Field(None, description="the configured mount's roll, deg")
+    prior_agrees: bool | None = Field(None, description="the fitted ground agrees with the configured mount (within "
+                                      "max_tilt_deg and 30 % of the height); None: no mount, or nothing fitted")
 
 
 class ObstacleList(Message):

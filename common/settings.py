@@ -113,7 +113,9 @@ def add_settings_arguments(p: argparse.ArgumentParser, cls: type[ServiceSettings
         kw: dict[str, Any] = {"nargs": "?", "const": "true", "metavar": "BOOL"} if _is_bool(f.annotation) \
             else {"metavar": "V"}
         g.add_argument(cls.flag(name, prefix), dest=_dest(cls, name), default=argparse.SUPPRESS,
-                       help=f"{f.description or ''} (default: {_show(default)}) [{cls.env_var(name)}]", **kw)
+                       # argparse %-formats help texts: a "50 %" in a description is text, not a format
+                       help=f"{f.description or ''} (default: {_show(default)}) [{cls.env_var(name)}]".replace("%", "%%"),
+                       **kw)
 
 
 def _dest(cls: type[ServiceSettings], name: str) -> str:

@@ -82,13 +82,15 @@ class Pipeline:
                 confidence: np.ndarray | None = None) -> FrameResult:
         """A disparity (the stage's result, or a float px map with NaN invalid) -> the segmenter's
         FrameResult. t_s: the pair's time (s, never going backwards)."""
+        search = None
         if isinstance(stage, StageResult):
             disparity, confidence = stage.disparity_px(), stage.match.confidence
+            search = (stage.min_disparity, stage.num_disparities)
         else:
             disparity = stage
         return self.builder.process(disparity, self.model, t_s=t_s, seq=seq,
                                     stamp_ns=int(round(t_s * 1e9)) if stamp_ns is None else stamp_ns,
-                                    confidence=confidence, odometry=odometry, image=image)
+                                    confidence=confidence, odometry=odometry, image=image, search=search)
 
     def process(self, left: np.ndarray, right: np.ndarray, *, t_s: float, seq: int = 0, stamp_ns: int | None = None,
                 odometry: Odometry | None = None, names: tuple[str, str] = ("left", "right"),
@@ -103,7 +105,8 @@ class Pipeline:
         disparity = stage.disparity_px()
         result = self.builder.process(disparity, self.model, t_s=t_s, seq=seq,
                                       stamp_ns=int(round(t_s * 1e9)) if stamp_ns is None else stamp_ns,
-                                      confidence=stage.match.confidence, odometry=odometry, image=left)
+                                      confidence=stage.match.confidence, odometry=odometry, image=left,
+                                      search=(stage.min_disparity, stage.num_disparities))
         t3 = time.perf_counter()
         return PipelineFrame(seq, left, right, stage, disparity, result, (t1 - t0) * 1e3, (t2 - t1) * 1e3,
                              (t3 - t2) * 1e3)

@@ -317,6 +317,7 @@ class FrameRecord:
     saturated: float
     freespace_free: int = 0
     freespace_occupied: int = 0
+    degraded: list[str] = field(default_factory=list)  # the list's reasons it cannot be trusted
 
 
 @dataclass
@@ -387,7 +388,7 @@ def process_recording(rec: Recording, seg_settings, matcher_cfg, frames: int | N
         odo = rec.odometry[k] if rec.odometry is not None else None
         t0 = time.perf_counter()
         result = builder.process(d, model, t_s=t_s, seq=k, stamp_ns=int(round(t_s * 1e9)), confidence=match.confidence,
-                                 odometry=odo, image=left)
+                                 odometry=odo, image=left, search=(cfg.min_disparity, cfg.num_disparities))
         seg_ms = (time.perf_counter() - t0) * 1e3
         yield ProcessedFrame(k, lp, left, d, match, result, model, seg_ms, match_ms)
 
@@ -418,8 +419,12 @@ def evaluate_recording(rec: Recording, seg_settings, matcher_cfg, frames: int | 
     last_t = None
     for pf in process_recording(rec, seg_settings, matcher_cfg, frames, alpha):
         if report.settings["disparity"] is None:
-            report.settings["disparity"] = matcher_cfg.resolved(pf.model.focal_px, pf.model.baseline_m,
-                                                                pf.model.width).model_dump()
+            from cores.segmentation.builder import search_reach
+
+            cfg = matcher_cfg.resolved(pf.model.focal_px, pf.model.baseline_m, pf.model.width)
+            report.settings["disparity"] = cfg.model_dump()
+            report.settings["search_warning"] = search_reach(pf.model, cfg.min_disparity, cfg.num_disparities,
+                                                             seg_settings).message
         result, d = pf.result, pf.disparity
         road = fit_road_profile(d, pf.model)
         obs = []
@@ -444,7 +449,7 @@ def evaluate_recording(rec: Recording, seg_settings, matcher_cfg, frames: int | 
         fr = FrameRecord(pf.seq, pf.left_path.name, obs, _ground_dict(result.obstacles.ground),
                          None if road is None else {"height_m": road.height_m, "pitch_deg": road.pitch_deg,
                                                     "support": road.support},
-                         pf.segment_ms, pf.match_ms, pf.match.saturated)
+                         pf.segment_ms, pf.match_ms, pf.match.saturated, degraded=list(result.obstacles.degraded))
         if result.freespace is not None:
             cells = np.frombuffer(result.freespace.cells, np.int8)
             fr.freespace_free = int(np.count_nonzero(cells == 0))
@@ -500,6 +505,10 @@ def figures(frames: list[FrameRecord]) -> dict:
     for g in grounds:
         sources[g["source"]] = sources.get(g["source"], 0) + 1
     fitted = [g for g in grounds if g["source"] in ("fitted", "tracked")]
+    degraded: dict[str, int] = {}
+    for f in frames:
+        for reason in f.degraded:
+            degraded[reason] = degraded.get(reason, 0) + 1
     roads = [f.road for f in frames if f.road is not None]
     out = {
         "frames": len(frames),
@@ -519,6 +528,8 @@ def figures(frames: list[FrameRecord]) -> dict:
         "track_steps": len(steps),
         "static_speed_mps": _stats(speeds),
         "ground_sources": sources,
+        "ground_confidence": _stats([g.get("confidence", 0.0) for g in grounds]),
+        "degraded_frames": degraded,
         "ground_height_m": _stats([g["height_m"] for g in fitted]),
         "ground_pitch_deg": _stats([g["pitch_deg"] for g in fitted]),
         "ground_roll_deg": _stats([g["roll_deg"] for g in fitted]),
@@ -580,7 +591,9 @@ def format_report(report: RealReport) -> str:
         f"{_pct(f['track_jump_fraction'])} of {f['track_steps']} steps (odometry needed)",
         f"  speed over the ground of whole confirmed tracks (a parked street: the velocity error)  "
         f"{_fmt_stats(f['static_speed_mps'], 'm/s', 1)}",
-        f"  ground (segmenter)       sources {f['ground_sources'] or '-'}",
+        f"  ground (segmenter)       sources {f['ground_sources'] or '-'}; confidence "
+        f"{_fmt_stats(f.get('ground_confidence'), '')}",
+        f"  degraded lists           {f.get('degraded_frames') or 'none'}",
         f"    height {_fmt_stats(f['ground_height_m'], 'm')}",
         f"    pitch  {_fmt_stats(f['ground_pitch_deg'], 'deg')}",
         f"    roll   {_fmt_stats(f['ground_roll_deg'], 'deg')}",
@@ -589,6 +602,8 @@ def format_report(report: RealReport) -> str:
         f"    pitch  {_fmt_stats(f['road_pitch_deg'], 'deg')}",
         f"  segmentation {_fmt_stats(f['segment_ms'], 'ms', 1)}; matching {_fmt_stats(f['match_ms'], 'ms', 1)}",
     ]
+    if report.settings.get("search_warning"):
+        lines.append(f"  warning: {report.settings['search_warning']}")
     if f["saturated_max"] > 0.01:
         lines.append(f"  warning: up to {f['saturated_max']:.1%} of matched pixels at the top of the disparity search "
                      "range: nearer things than it covers (raise --disparity-num-disparities)")

@@ -301,6 +301,8 @@ class _TrueGround:
     figures show what segmentation and tracking do when the ground is right, apart from how well
     the ground is found."""
 
+    tilt_doubt_deg = 0.0  # the true floor is exact: no band for a fit's wobble
+
     def __init__(self) -> None:
         self.mount: Mount | None = None
 

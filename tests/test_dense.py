@@ -143,7 +143,8 @@ def test_auto_range_from_the_calibration(scene):
     assert auto_num_disparities(640.0, 0.1, 1.0) == 80  # 64 px needs 0..64, one more than 64 values
     assert auto_num_disparities(600.0, 0.1, 1.0, min_disparity=8) == 64  # 8..71
     assert auto_num_disparities(600.0, 0.1, 0.01) == 512
-    assert auto_num_disparities(600.0, 0.1, 0.01, width=320) == 304
+    assert auto_num_disparities(600.0, 0.1, 0.01, width=320) == 80  # a quarter of the width: bm's blind band
+    assert auto_num_disparities(645.24, 0.5707, 0.5, width=1344) == 336  # Karlsruhe: 1.1 m, not 0.5 m
     with pytest.raises(BallbotError, match="focal length and baseline"):
         MatcherConfig(num_disparities="auto").fixed_num_disparities
     with pytest.raises(ValidationError):

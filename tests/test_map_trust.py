@@ -24,7 +24,8 @@ from services.disparity.computer import FrameComputer
 from services.disparity.state import DispatchState
 from services.disparity.results import (Ticket, max_payload_bytes, measure, parse_header,
                                                        result_header, vet_header, vet_map)
-from services.segmenter.main import ObstacleBuilder, SegmenterSettings
+from cores.segmentation.builder import ObstacleBuilder
+from cores.segmentation.settings import SegmenterSettings
 
 KEY = os.urandom(32)
 CAM = CameraModel(width=64, height=48, focal_px=60.0, cx=32.0, cy=24.0, baseline_m=0.1, Q=[0.0] * 16)

@@ -300,3 +300,24 @@ def test_euroc_tape_and_mat_on_the_floor_are_free_the_mattresses_and_chessboard_
             x, y = mount.to_base(p)[:2]
             cell = cells[int((y - fs.origin_m[1]) / fs.resolution_m), int((x - fs.origin_m[0]) / fs.resolution_m)]
             assert cell == 0, f"pixel ({u}, {v}) on the floor is {cell}, not free"
+
+
+@needs_karlsruhe
+def test_obstacles_with_only_a_calibration_sees_the_street_and_an_unreachable_range_says_so(capsys):
+    """issue 20: the defaults (layers, its range grown with the rig; the search following the
+    calibration) give obstacles on the street, not silence; a range the search cannot reach is a
+    warning at the start and a degraded reason on every list."""
+    pairs = [str(KARLSRUHE / "left" / "I1_00000[01].png"), str(KARLSRUHE / "right" / "I2_00000[01].png")]
+    cal = ["--calibration", str(KARLSRUHE / "calibration.yaml")]
+    assert main(["obstacles", *pairs, *cal, "--json"]) == 0
+    lists = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert len(lists) == 2
+    for lst in lists:
+        assert lst["obstacles"] and lst["degraded"] == [] and lst["ground"]["source"] == "fitted"
+        assert abs(lst["ground"]["height_m"] - 1.6) < 0.15
+    # the round-one defaults: 64 px (nothing nearer than 5.75 m) and a small robot's 4.5 m
+    assert main(["obstacles", *pairs, *cal, "--json", "--disparity-num-disparities", "64", "--max-range-m", "4.5"]) == 0
+    out = capsys.readouterr()
+    assert "do not overlap" in out.err and "5.85 m" in out.err  # f*B / 63 px
+    for lst in map(json.loads, out.out.splitlines()):
+        assert "range-unreachable" in lst["degraded"]

@@ -490,3 +490,53 @@ def test_a_camera_model_with_a_nan_or_infinite_number_is_refused_at_decode():
         doc["camera"][field] = value
         with pytest.raises(DecodeError, match=f"camera.{field}"):
             codec.decode(msgpack.packb(doc, use_bin_type=True), DisparityMap)
+
+
+# --- issue 20: a mount is a prior, ranges that fit, lists that say what they cannot vouch for ------
+
+@pytest.mark.parametrize("told", [dict(mount_height_m=1.5, mount_pitch_deg=15.0),  # height 50 % off
+                                  dict(mount_height_m=1.0, mount_pitch_deg=-5.0),  # pitch 20 deg off
+                                  dict(mount_height_m=0.5, mount_pitch_deg=15.0, mount_roll_deg=15.0)])
+def test_a_wrong_mount_is_a_prior_not_a_cage(told, caplog):
+    truth = Mount(1.0, 15.0)
+    b = ObstacleBuilder(SegmenterSettings(**told))
+    for k in range(3):
+        out = b.process_message(_message(scene([(250, 390, 2.0, 120)], mount=truth, seed_=k))).obstacles
+        g = out.ground
+        assert g.source == "fitted" and abs(g.height_m - 1.0) < 0.03 and abs(g.pitch_deg - 15.0) < 0.5, (k, g)
+        assert g.prior_height_m == told["mount_height_m"] and g.prior_pitch_deg == told["mount_pitch_deg"]
+        assert g.prior_agrees is False and g.confidence >= 0.3 and out.degraded == []
+        assert _depths([type("D", (), {"position_m": o.position_m})() for o in out.obstacles]) == [2.0]
+    assert sum("disagrees with the configured mount" in r.message for r in caplog.records) == 1  # once
+
+
+def test_lists_say_when_the_search_cannot_reach_the_range_or_there_is_no_ground():
+    d = scene([(250, 390, 2.0, 120)])
+    ok = ObstacleBuilder(SegmenterSettings()).process(d, MODEL, t_s=0.0, seq=0, stamp_ns=0, search=(0, 144))
+    assert ok.obstacles.degraded == [] and ok.obstacles.ground.confidence >= 0.3
+    # 16 px reach no nearer than f*B/15 = 4.4 m: a 3 m range is out of reach, whatever the map holds
+    b = ObstacleBuilder(SegmenterSettings(max_range_m=3.0))
+    lst = b.process(d, MODEL, t_s=0.0, seq=0, stamp_ns=0, search=(0, 16)).obstacles
+    assert "range-unreachable" in lst.degraded and b.reach.unreachable and "do not overlap" in b.reach.message
+    wall = np.full((MODEL.height, MODEL.width), FB / 2.0, np.float32)  # no floor in view, no history, no mount
+    lst = ObstacleBuilder(SegmenterSettings()).process(wall, MODEL, t_s=0.0, seq=0, stamp_ns=0).obstacles
+    assert lst.ground.source == "none" and lst.ground.confidence == 0.0 and "no-ground" in lst.degraded
+
+
+def test_walls_beside_the_way_filling_most_of_the_view_never_become_the_ground():
+    """A corridor: walls 0.8 m to either side, parallel to the heading, cover more pixels than the
+    floor between them; the ground is still the floor, from no mount and from a mount 50 % too high."""
+    truth = Mount(1.0, 5.0)
+    v, u = np.mgrid[0:MODEL.height, 0:MODEL.width].astype(np.float32)
+    floor_d = floor_plane(truth).disparity(u, v)
+    x = (u - MODEL.cx) / MODEL.focal_px  # a wall at lateral offset w is seen at depth w / |x|: d = B |x| f / w
+    wall_d = MODEL.baseline_m * np.abs(x) * MODEL.focal_px / 0.8
+    d = np.maximum(floor_d, wall_d).astype(np.float32)  # whichever is nearer along the ray
+    d[d < FB / 8.0] = np.nan  # nothing beyond 8 m
+    d += np.random.default_rng(0).normal(0, 0.08, d.shape).astype(np.float32)
+    wall = np.isfinite(d) & (wall_d > floor_d)
+    assert np.count_nonzero(wall) > np.count_nonzero(np.isfinite(d) & ~wall)  # more wall than floor in view
+    for told in ({}, dict(mount_height_m=1.5, mount_pitch_deg=5.0)):
+        g = _frame(d, SegmenterSettings(max_range_m=8.0, **told)).ground
+        assert g.source == "fitted" and abs(g.height_m - 1.0) < 0.05 and abs(g.pitch_deg - 5.0) < 1.0, (told, g)
+        assert abs(g.roll_deg) < 1.0

@@ -27,6 +27,7 @@ DEFAULT_SGBM_MODE = {"bm": "sgbm", "sgbm": "sgbm", "dense": "3way"}
 TOP_BAND_PX = 2.0
 SATURATION_WARN = 0.01
 MAX_NUM_DISPARITIES = 512
+AUTO_WIDTH_SHARE = 4  # num_disparities auto searches at most a quarter of the image width
 
 
 class MatcherConfig(ServiceSettings):
@@ -133,10 +134,12 @@ class MatcherConfig(ServiceSettings):
 def auto_num_disparities(focal_px: float, baseline_m: float, min_range_m: float, min_disparity: int = 0,
                          width: int | None = None) -> int:
     """The search range (px, a multiple of 16) that reaches d = f * B / min_range_m from min_disparity,
-    capped at 512 and, with `width`, below the image width (a match needs its partner in view)."""
+    capped at 512 and, with `width`, at a quarter of the image width: block matching measures
+    nothing in the left num_disparities columns, so a wide-baseline rig (a car's) would trade a
+    third of its view for the last metre in front of it."""
     d_near = focal_px * abs(baseline_m) / min_range_m
     n = max(16, math.ceil((d_near - min_disparity + 1) / 16) * 16)
-    cap = MAX_NUM_DISPARITIES if width is None else max(16, min(MAX_NUM_DISPARITIES, (width - 1) // 16 * 16))
+    cap = MAX_NUM_DISPARITIES if width is None else max(16, min(MAX_NUM_DISPARITIES, width // AUTO_WIDTH_SHARE // 16 * 16))
     return min(n, cap)
 
 

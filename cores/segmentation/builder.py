@@ -5,6 +5,7 @@ and the benchmarks feed it theirs."""
 from __future__ import annotations
 
 import logging
+import math
 import time
 from dataclasses import dataclass
 
@@ -16,7 +17,7 @@ from common.errors import DecodeError
 from common.messages import DisparityMap, FreeSpace, GroundEstimate, Obstacle, ObstacleList, Odometry
 from cores.matching.disparity import RecentValid, searched_range, to_float
 from cores.segmentation import freespace, layers, seed
-from cores.segmentation.ground import GroundEstimator, frame_mount, plane_from_mount
+from cores.segmentation.ground import TRUSTED, GroundEstimator, frame_mount, plane_from_mount
 from cores.segmentation.mount import FloorPlane, Mount
 from cores.segmentation.seed import Detection
 from cores.segmentation.settings import SegmenterSettings
@@ -29,6 +30,37 @@ MIN_VALID_FRACTION = 0.01
 # A map measuring less than half of what the maps of the last 2 s measured (a covered lens, glare, a
 # broken matcher) is flagged "valid-collapse" until it is no longer a sudden change (cores/matching/disparity.py).
 COLLAPSE_FACTOR, COLLAPSE_WINDOW_S, COLLAPSE_WARMUP_FRAMES = 0.5, 2.0, 5
+
+
+@dataclass(frozen=True)
+class Reach:
+    """Whether a disparity search (min_disparity, num_disparities px) can measure the segmenter's
+    vision range (min_range_m..range_m) with this camera: `unreachable` when the two do not overlap
+    at all (every list from such a map says "range-unreachable"), `message` also when the search
+    misses the near part of the range (a warning: things that near are not measured)."""
+
+    unreachable: bool
+    message: str
+
+
+def search_reach(model: camera.RectifiedModel, min_disparity: int, num_disparities: int,
+                 settings: SegmenterSettings) -> Reach:
+    fB = model.focal_px * abs(model.baseline_m)
+    d_max = min_disparity + num_disparities - 1  # largest disparity searched: the nearest depth measured
+    near_m = fB / d_max if d_max > 0 else float("inf")
+    far_m = fB / min_disparity if min_disparity > 0 else float("inf")
+    lo, hi = settings.min_range_m, settings.range_for(model)
+    search = (f"the disparity search ({min_disparity}..{d_max} px with f*B = {fB:.1f} px m) measures "
+              f"{near_m:.2f} m" + (f"..{far_m:.2f} m" if math.isfinite(far_m) else " and farther"))
+    if near_m > hi or far_m < lo:
+        return Reach(True, f"{search}, the segmenter's vision range is {lo:g}..{hi:g} m: they do not overlap, "
+                           "nothing in view can be measured; raise num_disparities (auto: from the calibration "
+                           "and min_range_m) or change the range")
+    if near_m > 2.0 * lo:  # a few cm short of min_range_m is no news; half the near range is
+        return Reach(False, f"{search}: nothing nearer than {near_m:.2f} m is measured, though the vision range "
+                            f"starts at {lo:g} m (raise num_disparities, or num_disparities auto)")
+    return Reach(False, "")
+
 
 
 def model_from_message(msg: DisparityMap) -> camera.RectifiedModel:
@@ -83,6 +115,20 @@ class ObstacleBuilder:
         self._track_frame = ""  # "base" or "camera": the frame the tracks are kept in
         self._last_t: float | None = None
         self.recent_valid = RecentValid(COLLAPSE_WINDOW_S, COLLAPSE_FACTOR, COLLAPSE_WARMUP_FRAMES)
+        self.reach = Reach(False, "")  # of the last map's disparity search
+        self._reach_logged: set[str] = set()
+
+    def check_search(self, model: camera.RectifiedModel, min_disparity: int, num_disparities: int,
+                     quiet: bool = False) -> Reach:
+        """The disparity search of a map against the vision range; each new finding is logged once
+        (quiet: the caller says it itself)."""
+        reach = search_reach(model, min_disparity, num_disparities, self.settings)
+        if reach.message and reach.message not in self._reach_logged:
+            self._reach_logged.add(reach.message)
+            if not quiet:
+                log.warning("segmenter: %s", reach.message)
+        self.reach = reach
+        return reach
 
     def decode(self, msg: DisparityMap) -> tuple[np.ndarray, camera.RectifiedModel, np.ndarray | None]:
         """A disparity message -> (disparity px float32 with NaN invalid, camera model, confidence).
@@ -179,7 +225,7 @@ class ObstacleBuilder:
     def process(self, disparity: np.ndarray, model: camera.RectifiedModel, *, t_s: float, seq: int, stamp_ns: int,
                 robot_id: str = "offline", confidence: np.ndarray | None = None, odometry: Odometry | None = None,
                 image: np.ndarray | None = None, stale: bool = False,
-                stages: dict[str, int] | None = None) -> FrameResult:
+                stages: dict[str, int] | None = None, search: tuple[int, int] | None = None) -> FrameResult:
         """disparity: (H, W) float32 px, NaN = invalid, matching `model`; t_s: the frame's time on a
         clock that never goes backwards (the service: Node.frame_time_s; offline: the capture time);
         odometry: the robot's motion at this frame, if known (velocities are then over the ground).
@@ -187,8 +233,11 @@ class ObstacleBuilder:
         The list says how far it can be trusted: valid_fraction is the share of the image with a
         measurement; degraded names why an empty list would not mean "nothing there"
         ("no-valid-disparity": under 1 % measured; "valid-collapse": under half of what the
-        frames of the last 2 s measured)."""
+        frames of the last 2 s measured; "range-unreachable": the map's search, `search` = its
+        (min_disparity, num_disparities), cannot measure the vision range; "no-ground" /
+        "ground-uncertain": nothing or too little told the floor from what stands on it)."""
         cfg = self.settings
+        reach = self.check_search(model, *search) if search is not None else Reach(False, "")
         if disparity.dtype.kind == "f":
             inf = np.isinf(disparity)
             if inf.any():  # an infinite disparity is no measurement (nor a point at zero distance)
@@ -239,13 +288,21 @@ class ObstacleBuilder:
         elif self.recent_valid.collapsed(valid_fraction, t_s):
             degraded.append("valid-collapse")
         self.recent_valid.add(valid_fraction, t_s)
+        if reach.unreachable:
+            degraded.append("range-unreachable")
+        if cfg.method == "layers" and cfg.floor_removal:
+            g = frame.ground
+            if g is None or g.source == "none":
+                degraded.append("no-ground")  # nothing told floor from obstacle: what stands low is not known
+            elif g.confidence < TRUSTED:
+                degraded.append("ground-uncertain")
         out = ObstacleList(robot_id=robot_id, seq=seq, stamp_ns=stamp_ns, stages=dict(stages or {}), publish_ns=now,
                            stale=stale, degraded=degraded, valid_fraction=valid_fraction, method=cfg.method,
                            obstacles=obstacles, ground=frame.ground,
                            velocity_reference="ground" if over_ground else "camera")
         free = None
         if cfg.freespace and mount is not None and frame.floor is not None and cfg.method == "layers":
-            g = freespace.occupancy(frame.floor_points, frame.points, mount, model, cfg.range_m,
+            g = freespace.occupancy(frame.floor_points, frame.points, mount, model, cfg.range_for(model),
                                     cfg.freespace_resolution_m)
             free = FreeSpace(robot_id=robot_id, seq=seq, stamp_ns=stamp_ns, stages=dict(stages or {}), publish_ns=now,
                              resolution_m=g.resolution_m, width=g.width, height=g.height,
@@ -259,7 +316,7 @@ class ObstacleBuilder:
         disparity, model, confidence = self.decode(msg)
         return self.process(disparity, model, t_s=msg.stamp_ns / 1e9 if t_s is None else t_s, seq=msg.seq,
                             stamp_ns=msg.stamp_ns, robot_id=msg.robot_id, confidence=confidence, odometry=odometry,
-                            stale=stale, stages=msg.stages)
+                            stale=stale, stages=msg.stages, search=(msg.min_disparity, msg.num_disparities))
 
 
 def _footprint(mount: Mount, points_camera: np.ndarray) -> np.ndarray:

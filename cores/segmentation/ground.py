@@ -1,20 +1,32 @@
-"""The ground under the camera, every frame, from the disparity itself.
+"""The ground under the camera, every frame, from the disparity itself, from whatever start.
 
-A flat floor or road is a plane d = a u + b v + c in disparity space. Each frame it is fitted to the
-(median-filtered, range-gated) working-resolution disparity: least squares on the pixels in a band
-around a first guess, the band narrowed over passes. The first guess is, in order: the smoothed
-estimate of the last frames (a swaying robot's ground moves a little from frame to frame), the
-configured camera mount, or, with neither, RANSAC on the lower half of the image. A fit is used
-when it is plausible (the plane lies below the camera, within max_pitch/max_roll, at a height
-between 5 cm and 20 m) and close to the guess (max_tilt_deg, 30 % height); otherwise the smoothed
-estimate stands in ("tracked"), then the mount ("prior"). A fit that disagrees with the smoothed
-estimate for `reinit_frames` frames in a row restarts it (the robot drove onto another floor).
-
-The smoothed estimate exists for the fallback and the next guess; each frame removes the floor it
-fitted itself, so a pitch change of a few degrees from one frame to the next is followed at once.
+A flat floor or road is a plane d = a u + b v + c in disparity space. Each frame several candidate
+planes are fitted to the (median-filtered, range-gated) working-resolution disparity and the one
+the data support best is taken; nothing that came before decides it, so a wrong configured mount
+or a lost track costs at most a frame:
+- candidates: RANSAC planes (random triples, half of them from nearby rows, where a sparse road
+  seen by block matching still gives three points of one surface), the dominant lines of the
+  v-disparity histogram (a floor is a line d = s (v - v_horizon) there, however little of it is
+  matched), the smoothed estimate of the last frames and the configured mount. Each is refined by
+  least squares on the pixels in a band around it, the band narrowed over passes.
+- geometry: a candidate must be a floor under the camera: it rises towards the image bottom,
+  the camera is 5 cm - 20 m above it, pitched at most MAX_PITCH_DEG and rolled at most
+  MAX_ROLL_DEG (a wall, a facade or a ceiling is none of these).
+- score: the share of the valid pixels on the plane, minus BELOW_WEIGHT times the share seen
+  THROUGH it (farther than the plane along their ray: under the floor). The floor is the lowest
+  large plane: a pavement, a car roof, a snow bank or a sloped patch of one object has the road's
+  pixels under it and loses; the road has nothing under it.
+- time: a candidate that agrees with the smoothed estimate of the last frames gets a small bonus
+  (the scene rarely jumps), the configured mount none: a mount is a prior, never a cage. When the
+  fitted ground and the configured mount disagree, the data win; this is logged once and both are
+  published (GroundEstimate.prior_*).
+Without an acceptable candidate the smoothed estimate stands in for up to `ground_reinit_frames`
+frames ("tracked", its confidence decaying), then the configured mount ("prior"), then nothing
+("none"). GroundEstimate.confidence says how far each frame's ground can be trusted.
 """
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,9 +36,30 @@ from common.messages import GroundEstimate
 from cores.segmentation.mount import FloorPlane, Mount
 from cores.segmentation.settings import MountSettings, SegmenterSettings
 
+log = logging.getLogger("ballbot")
+
 MIN_HEIGHT_M, MAX_HEIGHT_M = 0.05, 20.0
-MAX_PITCH_DEG, MAX_ROLL_DEG = 75.0, 40.0
-RANSAC_MAX_ROLL_DEG = 12.0  # a first guess without a prior: a camera rolled more is implausible
+MAX_PITCH_DEG = 60.0  # a floor seen more steeply is not one (a wall seen from a camera pitched up)
+# A balancing robot leans by about 10 degrees, a car's camera hardly rolls: a plane rolled more is a
+# slope beside the way (a snow bank, an embankment), not the floor under the robot.
+MAX_ROLL_DEG = 15.0
+UNDER_M = 0.25  # a pixel this far below a plane (and BELOW_PX) is seen through it: the plane is no floor
+NEAR_PX = 10.0
+BELOW_PX = 2.5  # and this much disparity: block matching errs by a pixel or two on a far road
+BELOW_WEIGHT = 1.0  # score = support - BELOW_WEIGHT * share of pixels under the plane
+MIN_SUPPORT = 0.04  # a floor carries at least this share of the valid pixels ...
+MIN_INLIERS = 100  # ... and this many pixels
+TRACK_BONUS = 0.05  # score bonus of a candidate agreeing with the last frames
+# A real road is not a plane: a plane rolled across it fits its drained sides and a plaza beside it a
+# little better than the road itself. Roll away from the last frames' (level without any) costs score.
+ROLL_COST = 0.02  # per degree beyond ROLL_FREE_DEG
+ROLL_FREE_DEG = 2.0
+TRUSTED = 0.3  # below this confidence a list says "ground-uncertain"
+RANSAC_HYPOTHESES = 96
+SCORE_SAMPLES = 2000  # RANSAC hypotheses are scored on this many pixels; the refinement uses all
+TILT_RATE = 0.2  # weight of a new fit in the running tilt doubt
+MAX_TILT_DOUBT_DEG = 1.0
+SEARCH_EVERY = 4  # frames: a full search at least this often (in between, the last frames' ground refined)
 
 
 def grid(h: int, w: int, step: int) -> tuple[np.ndarray, np.ndarray]:
@@ -57,40 +90,129 @@ def frame_mount(ground: GroundEstimate | None, settings: MountSettings) -> Mount
     return settings.mount()
 
 
-def ransac_plane(u: np.ndarray, v: np.ndarray, d: np.ndarray, rng: np.random.Generator,
-                 n_hyp: int = 96) -> np.ndarray | None:
-    """Floor candidate without a guess: the plane d = a u + b v + c with most points within 1 px
-    (5 %), among planes that rise downwards and are rolled at most RANSAC_MAX_ROLL_DEG."""
-    if d.size < 50:
-        return None
-    idx = rng.integers(0, d.size, size=(n_hyp, 3))
-    A = np.stack([u[idx], v[idx], np.ones((n_hyp, 3), np.float32)], -1)
-    ok = np.abs(np.linalg.det(A)) > 1e-3
-    if not ok.any():
-        return None
-    planes = np.linalg.solve(A[ok], d[idx][ok][..., None])[..., 0]  # (k, 3)
-    # rising downwards (b > 0), and not rolled more than a robot's camera plausibly is: the normal's
-    # x / y components are a : b, so the roll is atan2(a, b)
-    planes = planes[(planes[:, 1] > 1e-3) & (np.abs(planes[:, 0]) <= np.tan(np.radians(RANSAC_MAX_ROLL_DEG)) * planes[:, 1])]
-    if not len(planes):
-        return None
-    res = np.abs(planes[:, 0:1] * u[None] + planes[:, 1:2] * v[None] + planes[:, 2:3] - d[None])
-    score = (res < np.maximum(1.0, 0.05 * d[None])).sum(1)
-    return planes[int(score.argmax())]
-
-
-def lstsq_plane(u: np.ndarray, v: np.ndarray, d: np.ndarray) -> np.ndarray:
-    """Least-squares (a, b, c) of d = a u + b v + c, by the 3x3 normal equations (centred)."""
+def lstsq_plane(u: np.ndarray, v: np.ndarray, d: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
+    """Least-squares (a, b, c) of d = a u + b v + c (weights w), by the 3x3 normal equations (centred)."""
     u = u.astype(np.float64)
     v = v.astype(np.float64)
     d = d.astype(np.float64)
-    mu, mv, md = u.mean(), v.mean(), d.mean()
+    w = np.ones_like(d) if w is None else w.astype(np.float64)
+    sw = w.sum()
+    mu, mv, md = (w @ u) / sw, (w @ v) / sw, (w @ d) / sw
     u -= mu
     v -= mv
     d -= md
-    A = np.array([[u @ u, u @ v], [u @ v, v @ v]])
-    a, b = np.linalg.solve(A + 1e-9 * np.eye(2), np.array([u @ d, v @ d]))
+    wu, wv = w * u, w * v
+    p, q, r = wu @ u + 1e-9, wu @ v, wv @ v + 1e-9  # the 2x2 normal equations, solved by hand
+    x, y = wu @ d, wv @ d
+    det = p * r - q * q
+    if abs(det) < 1e-12:
+        det = 1e-12
+    a, b = (r * x - q * y) / det, (p * y - q * x) / det
     return np.array([a, b, md - a * mu - b * mv])
+
+
+def _tolerance(pred: np.ndarray, rel: float) -> np.ndarray:
+    return np.maximum(np.float32(0.6), np.float32(rel) * pred)
+
+
+def ransac_planes(u: np.ndarray, v: np.ndarray, d: np.ndarray, rng: np.random.Generator,
+                  n_hyp: int = RANSAC_HYPOTHESES, keep: int = 3) -> list[np.ndarray]:
+    """Floor candidates without a guess: planes through random triples of pixels (half of them
+    drawn from nearby rows: pixels are in raster order), kept when they rise downwards (b > 0) and
+    are rolled at most MAX_ROLL_DEG; the `keep` best by the pixels within 1 px (5 %) of them, each
+    unlike the ones before it."""
+    n = d.size
+    if n < 50:
+        return []
+    i = rng.integers(0, n, size=n_hyp)
+    near = n_hyp // 2
+    span = max(3, n // 8)
+    j = np.empty(n_hyp, np.int64)
+    k = np.empty(n_hyp, np.int64)
+    j[:near] = np.clip(i[:near] + rng.integers(-span, span + 1, near), 0, n - 1)
+    k[:near] = np.clip(i[:near] + rng.integers(-span, span + 1, near), 0, n - 1)
+    j[near:], k[near:] = rng.integers(0, n, size=(2, n_hyp - near))
+    idx = np.stack([i, j, k], 1)
+    # each triple's plane by Cramer's rule, written out (np.linalg on stacks of 3x3 costs milliseconds)
+    uu, vv, dd = u[idx].astype(np.float64), v[idx].astype(np.float64), d[idx].astype(np.float64)
+
+    def det3(c0: np.ndarray, c1: np.ndarray, c2: np.ndarray) -> np.ndarray:  # columns of the 3x3 systems
+        return (c0[:, 0] * (c1[:, 1] * c2[:, 2] - c1[:, 2] * c2[:, 1])
+                - c0[:, 1] * (c1[:, 0] * c2[:, 2] - c1[:, 2] * c2[:, 0])
+                + c0[:, 2] * (c1[:, 0] * c2[:, 1] - c1[:, 1] * c2[:, 0]))
+    one = np.ones_like(uu)
+    det = det3(uu, vv, one)
+    ok = np.abs(det) > 1e-3
+    if not ok.any():
+        return []
+    planes = (np.stack([det3(dd, vv, one), det3(uu, dd, one), det3(uu, vv, dd)], 1) / np.where(ok, det, 1.0)[:, None])[ok]
+    planes = planes[(planes[:, 1] > 1e-4) & (np.abs(planes[:, 0]) <= np.tan(np.radians(MAX_ROLL_DEG)) * planes[:, 1])]
+    if not len(planes):
+        return []
+    s = rng.choice(n, size=min(n, SCORE_SAMPLES), replace=False)
+    us, vs, ds = u[s], v[s], d[s]
+    pred = planes[:, 0:1] * us[None] + planes[:, 1:2] * vs[None] + planes[:, 2:3]
+    score = ((pred > 0) & (np.abs(pred - ds[None]) < np.maximum(1.0, 0.05 * pred))).sum(1)
+    out: list[np.ndarray] = []
+    uc, vc = us[:256], vs[:256]  # enough to tell two planes apart
+    for q in np.argsort(-score)[:24]:  # the best few: most hypotheses are one floor drawn again
+        if score[q] < 10 or len(out) >= keep:
+            break
+        p = planes[q]
+        if all(not _similar_planes(p, o, uc, vc) for o in out):
+            out.append(p)
+    return out
+
+
+def _similar_planes(p: np.ndarray, q: np.ndarray, u: np.ndarray, v: np.ndarray) -> bool:
+    """Two planes predicting within 5 % of each other on the pixels where either is in view."""
+    dp = p[0] * u + p[1] * v + p[2]
+    dq = q[0] * u + q[1] * v + q[2]
+    m = (dp > 0) | (dq > 0)
+    if not m.any():
+        return True
+    return bool(np.mean(np.abs(dp[m] - dq[m]) / np.maximum(np.abs(dq[m]), 1.0)) < 0.05)
+
+
+def vdisparity_planes(u: np.ndarray, v: np.ndarray, d: np.ndarray, model: camera.RectifiedModel,
+                      rng: np.random.Generator, keep: int = 2, hypotheses: int = 96) -> list[np.ndarray]:
+    """Floor candidates from the v-disparity histogram of the middle half of the columns (a floor
+    is a line d = s (v - v_horizon) there, a standing object a vertical one; a rolled floor blurs
+    the line the less, the narrower the columns): RANSAC over lines through two occupied cells drawn
+    by count, scored by the count within 1 px + 3 %. -> planes (a = 0, b = s, c = -s v_horizon)."""
+    w = model.width
+    mid = (u > 0.25 * w) & (u < 0.75 * w) & (d > 0.5)
+    if np.count_nonzero(mid) < 50:
+        return []
+    vv, dd = v[mid], np.round(d[mid]).astype(np.int64)
+    nd = int(dd.max()) + 1
+    rows = vv.astype(np.int64)
+    cells, cnt = np.unique(rows * nd + dd, return_counts=True)
+    cv, cd = (cells // nd).astype(np.float64), (cells % nd).astype(np.float64)
+    cnt = cnt.astype(np.float64)
+    p = cnt / cnt.sum()
+    i = rng.choice(len(cnt), size=hypotheses, p=p)
+    j = rng.choice(len(cnt), size=hypotheses, p=p)
+    dv = cv[j] - cv[i]
+    good = np.abs(dv) >= 2
+    slope = np.where(good, (cd[j] - cd[i]) / np.where(good, dv, 1.0), 0.0)
+    B = model.baseline_m
+    good &= (slope >= B / MAX_HEIGHT_M) & (slope <= B / MIN_HEIGHT_M)
+    if not good.any():
+        return []
+    slope = slope[good]
+    hv = cv[i][good] - cd[i][good] / slope
+    pred = slope[:, None] * (cv[None] - hv[:, None])
+    on = (pred > 0) & (np.abs(cd[None] - pred) <= 1.0 + 0.03 * pred)
+    score = (on * cnt[None]).sum(1)
+    out: list[np.ndarray] = []
+    for q in np.argsort(-score):
+        if len(out) >= keep:
+            break
+        plane = np.array([0.0, slope[q], -slope[q] * hv[q]])
+        if all(abs(plane[1] - o[1]) > 0.05 * o[1] or abs(hv[q] + o[2] / o[1]) > 5 for o in out):
+            out.append(plane)
+    return out
 
 
 @dataclass
@@ -98,50 +220,132 @@ class Fit:
     plane: FloorPlane
     normal: np.ndarray  # (3,) unit, camera frame, pointing at the floor
     inlier_fraction: float
+    below_fraction: float = 0.0  # share of the valid pixels seen through the plane (under the floor)
+    score: float = 0.0
+    origin: str = ""  # the candidate it came from: ransac, v-disparity, tracked, prior
+
+    @property
+    def pitch_roll(self) -> tuple[float, float]:
+        return pitch_roll(self.normal)
 
 
-def fit_plane(dm: np.ndarray, model: camera.RectifiedModel, step: int, guess: FloorPlane | None,
-              rng: np.random.Generator) -> Fit | None:
-    """The floor plane fitted to a working-resolution disparity map dm (0 = invalid), starting from
-    `guess` (None: RANSAC on the lower half). None when no plausible plane is found."""
+def _refine(p: np.ndarray, u: np.ndarray, v: np.ndarray, d: np.ndarray,
+            tols: tuple[float, ...] = (0.15, 0.08, 0.04)) -> np.ndarray | None:
+    for tol in tols:
+        pred = np.float32(p[0]) * u + np.float32(p[1]) * v + np.float32(p[2])
+        inl = (pred > 0) & (np.abs(d - pred) <= _tolerance(pred, tol))
+        if np.count_nonzero(inl) < MIN_INLIERS:
+            return None
+        p = lstsq_plane(u[inl], v[inl], d[inl])
+    return p
+
+
+def _polish(p: np.ndarray, u: np.ndarray, v: np.ndarray, d: np.ndarray, iterations: int = 2) -> np.ndarray:
+    """The chosen plane settled on its surface: iteratively reweighted least squares with Cauchy
+    weights on the residual relative to 3 % of the plane's disparity (0.3 px at least), so that
+    starts a little apart on one road end on one plane, frame after frame (band fits stop wherever
+    their last band left them, and a base frame that jitters by a few tenths of a degree moves far
+    obstacles by decimetres)."""
+    for _ in range(iterations):
+        pred = np.float32(p[0]) * u + np.float32(p[1]) * v + np.float32(p[2])
+        sigma = np.maximum(np.float32(0.3), np.float32(0.03) * pred)
+        r = (d - pred) / sigma
+        m = (pred > 0) & (np.abs(r) < 3)
+        if np.count_nonzero(m) < MIN_INLIERS:
+            break
+        p = lstsq_plane(u[m], v[m], d[m], 1.0 / (1.0 + r[m] * r[m]))
+    return p
+
+
+def _judge(p: np.ndarray, u: np.ndarray, v: np.ndarray, d: np.ndarray, model: camera.RectifiedModel,
+           origin: str) -> Fit | None:
+    """A refined plane -> its Fit (support, pixels under it, score), or None when it is no floor
+    under the camera (module doc: geometry)."""
+    plane = FloorPlane(float(p[0]), float(p[1]), float(p[2]), 1.0, True, 0)
+    n, height = plane.normal_height(model.focal_px, model.cx, model.cy, model.baseline_m)
+    pitch, roll = pitch_roll(n)
+    if not (MIN_HEIGHT_M <= height <= MAX_HEIGHT_M and n[1] > 0 and abs(pitch) <= MAX_PITCH_DEG
+            and abs(roll) <= MAX_ROLL_DEG):
+        return None
+    pred = np.float32(p[0]) * u + np.float32(p[1]) * v + np.float32(p[2])
+    inl = (pred > 0) & (np.abs(d - pred) <= _tolerance(pred, 0.04))
+    # seen through the plane: farther along the ray than the floor by more than a kerb and matching
+    # noise (a real road is not quite a plane: it drains to its sides)
+    # (only where the plane's disparity is NEAR_PX or more: farther, matching noise is the plane's height)
+    below = (pred >= NEAR_PX) & (d < np.minimum(pred - np.float32(BELOW_PX), pred * np.float32(height / (height + UNDER_M))))
+    k = int(np.count_nonzero(inl))
+    if k < MIN_INLIERS:
+        return None
+    support, under = k / d.size, float(np.count_nonzero(below)) / d.size
+    # the floor is under the robot, on both sides of its heading: a surface seen only to one side (a
+    # plaza draining away beside the road, a pavement) is worth less than one that spans the view
+    left = int(np.count_nonzero(inl & (u < model.cx)))
+    balance = min(left, k - left) / max(1, max(left, k - left))
+    return Fit(FloorPlane(plane.a, plane.b, plane.c, height, True, k), n, support, under,
+               support * (0.5 + 0.5 * balance) - BELOW_WEIGHT * under, origin)
+
+
+def _points(dm: np.ndarray, step: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     s = 2  # every other working pixel is plenty for three parameters
     sub = dm[::s, ::s]
     uu, vv = grid(*sub.shape, step * s)
     valid = sub > 0
-    u = np.broadcast_to(uu, sub.shape)[valid]
-    v = np.broadcast_to(vv, sub.shape)[valid]
-    dv = sub[valid]
-    if dv.size < 100:
-        return None
-    if guess is not None:
-        p = np.array([guess.a, guess.b, guess.c])
-        tols = (0.25, 0.12, 0.06)
-    else:
-        low = v > model.cy
-        p = ransac_plane(u[low], v[low], dv[low], rng)
-        if p is None:
-            return None
-        tols = (0.05, 0.04, 0.04)
-    inl = np.zeros(0, bool)
-    for tol in tols:
-        pred = p[0] * u + p[1] * v + p[2]
-        inl = (pred > 0) & (np.abs(dv - pred) <= np.maximum(0.6, tol * pred))
-        if inl.sum() < 100:
-            return None
-        p = lstsq_plane(u[inl], v[inl], dv[inl])
-    plane = FloorPlane(float(p[0]), float(p[1]), float(p[2]), 1.0, True, int(inl.sum()))
-    n, height = plane.normal_height(model.focal_px, model.cx, model.cy, model.baseline_m)
-    pitch, roll = pitch_roll(n)
-    max_roll = MAX_ROLL_DEG if guess is not None else RANSAC_MAX_ROLL_DEG + 3.0
-    if not (MIN_HEIGHT_M <= height <= MAX_HEIGHT_M and n[1] > 0 and abs(pitch) <= MAX_PITCH_DEG
-            and abs(roll) <= max_roll):
-        return None
-    return Fit(FloorPlane(plane.a, plane.b, plane.c, height, True, plane.inliers), n, float(inl.sum()) / dv.size)
+    return np.broadcast_to(uu, sub.shape)[valid], np.broadcast_to(vv, sub.shape)[valid], sub[valid]
 
 
-def _close(n: np.ndarray, h: float, n0: np.ndarray, h0: float, tilt_deg: float) -> bool:
+def fit_candidates(dm: np.ndarray, model: camera.RectifiedModel, step: int, guesses: dict[str, FloorPlane],
+                   rng: np.random.Generator) -> list[Fit]:
+    """Every acceptable floor candidate of a working-resolution disparity map dm (0 = invalid), best
+    score first: from the guesses (name -> plane), RANSAC and the v-disparity histogram."""
+    return _candidates(*_points(dm, step), model, guesses, rng)
+
+
+def _candidates(u: np.ndarray, v: np.ndarray, d: np.ndarray, model: camera.RectifiedModel,
+                guesses: dict[str, FloorPlane], rng: np.random.Generator, search: bool = True) -> list[Fit]:
+    """fit_candidates on the pixels (u, v, d); search False: from the guesses alone."""
+    if d.size < MIN_INLIERS:
+        return []
+    starts: list[tuple[str, np.ndarray]] = [(name, np.array([g.a, g.b, g.c])) for name, g in guesses.items()]
+    if search:
+        starts += [("ransac", p) for p in ransac_planes(u, v, d, rng)]
+        starts += [("v-disparity", p) for p in vdisparity_planes(u, v, d, model, rng)]
+    fits: list[Fit] = []
+    refined: list[np.ndarray] = []
+    uc, vc = u[::max(1, u.size // 256)], v[::max(1, v.size // 256)]
+    for origin, p0 in starts:
+        if any(_similar_planes(p0, q, uc, vc) for q in refined):
+            continue  # it would refine to a plane already judged
+        p = _refine(p0, u, v, d)
+        if p is None or any(_similar_planes(p, q, uc, vc) for q in refined):
+            continue
+        refined.append(p)
+        fit = _judge(p, u, v, d, model, origin)
+        if fit is not None:
+            fits.append(fit)
+    fits.sort(key=lambda f: -f.score)
+    return fits
+
+
+def fit_plane(dm: np.ndarray, model: camera.RectifiedModel, step: int, guess: FloorPlane | None,
+              rng: np.random.Generator) -> Fit | None:
+    """The best floor candidate of dm (see fit_candidates), with `guess` as one more start."""
+    fits = fit_candidates(dm, model, step, {} if guess is None else {"guess": guess}, rng)
+    return fits[0] if fits else None
+
+
+def _close(n: np.ndarray, h: float, n0: np.ndarray, h0: float, tilt_deg: float, rel_h: float = 0.3) -> bool:
     tilt = np.degrees(np.arccos(np.clip(float(n @ n0), -1, 1)))
-    return bool(tilt <= tilt_deg and abs(h - h0) <= 0.3 * h0)
+    return bool(tilt <= tilt_deg and abs(h - h0) <= rel_h * h0)
+
+
+def fit_confidence(fit: Fit, consistent: bool) -> float:
+    """How far one frame's fitted ground can be trusted, 0..1: its support (a third of the valid
+    pixels on it is plenty), the pixels seen through it (15 % make it worthless), its size in pixels
+    and whether it agrees with the last frames."""
+    support = min(1.0, fit.inlier_fraction / 0.3)
+    under = max(0.0, 1.0 - fit.below_fraction / 0.15)
+    size = min(1.0, fit.plane.inliers / 500.0)
+    return float(support * under * size * (1.0 if consistent else 0.7))
 
 
 class GroundEstimator:
@@ -152,16 +356,36 @@ class GroundEstimator:
         self.prior = cfg.mount()
         self.smooth_n: np.ndarray | None = None  # smoothed normal and height of the last frames
         self.smooth_h = 0.0
-        self.disagree = 0
+        self.confidence = 0.0  # of the smoothed estimate
+        self.missed = 0  # frames in a row without an acceptable fit
+        self.since_search = 0  # frames since every candidate last competed
+        self.tilt_var = 0.0  # running mean square (deg^2) of each fit's tilt from the last frames' ground
+        self.prior_disagreement_logged = False
         self.rng = np.random.default_rng(0)
+
+    @property
+    def tilt_doubt_deg(self) -> float:
+        """How far this frame's fitted tilt may be off: the rms of the fits' tilts from the last
+        frames' ground (a fit on a real road moves by a few tenths of a degree; an exact plane by
+        hardly any), at most MAX_TILT_DOUBT_DEG. The segmenter widens its floor band by it at a distance."""
+        return float(min(MAX_TILT_DOUBT_DEG, np.sqrt(self.tilt_var)))
 
     def _plane(self, n: np.ndarray, h: float, model: camera.RectifiedModel) -> FloorPlane:
         return FloorPlane.from_normal(n, h, model.focal_px, model.cx, model.cy, model.baseline_m)
 
-    def _estimate(self, n: np.ndarray, h: float, source: str, inliers: float = 0.0) -> GroundEstimate:
+    def _estimate(self, n: np.ndarray, h: float, source: str, inliers: float = 0.0, confidence: float = 0.0,
+                  agrees: bool | None = None) -> GroundEstimate:
         pitch, roll = pitch_roll(n)
+        p = self.prior
         return GroundEstimate(height_m=float(h), pitch_deg=pitch, roll_deg=roll, source=source,
-                              inlier_fraction=float(min(1.0, max(0.0, inliers))))
+                              inlier_fraction=float(min(1.0, max(0.0, inliers))),
+                              confidence=float(min(1.0, max(0.0, confidence))),
+                              prior_height_m=None if p is None else p.height_m,
+                              prior_pitch_deg=None if p is None else p.pitch_deg,
+                              prior_roll_deg=None if p is None else p.roll_deg, prior_agrees=agrees)
+
+    def _none(self) -> GroundEstimate:
+        return self._estimate(np.array([0.0, 1.0, 0.0]), 0.0, "none")
 
     def update(self, dm: np.ndarray, model: camera.RectifiedModel, step: int) -> tuple[FloorPlane | None, GroundEstimate]:
         cfg = self.cfg
@@ -170,39 +394,87 @@ class GroundEstimator:
             prior_n, prior_h = self.prior.down_camera, self.prior.height_m
         if not cfg.fit_floor:
             if self.prior is None:
-                return None, GroundEstimate(height_m=0.0, pitch_deg=0.0, roll_deg=0.0, source="none")
-            return plane_from_mount(self.prior, model), self._estimate(prior_n, prior_h, "prior")
+                return None, self._none()
+            # the user chose the configured mount over fitting: trusted as far as a mount measured once can be
+            return plane_from_mount(self.prior, model), self._estimate(prior_n, prior_h, "prior", confidence=0.5)
+        u, v, d = _points(dm, step)
+        guesses = {}
         if self.smooth_n is not None:
-            guess = self._plane(self.smooth_n, self.smooth_h, model)
-        elif self.prior is not None:
-            guess = plane_from_mount(self.prior, model)
-        else:
-            guess = None
-        fit = fit_plane(dm, model, step, guess, self.rng)
-        if fit is None and self.smooth_n is not None and self.disagree + 1 >= cfg.ground_reinit_frames:
-            fit = fit_plane(dm, model, step, None, self.rng)  # lost it: look again without the guess
-        ok = fit is not None
-        if ok and prior_n is not None:
-            ok = _close(fit.normal, fit.plane.height_m, prior_n, prior_h, cfg.max_tilt_deg)
-        if ok and self.smooth_n is not None and not _close(fit.normal, fit.plane.height_m, self.smooth_n,
-                                                           self.smooth_h, cfg.ground_step_deg):
-            ok = self.disagree + 1 >= cfg.ground_reinit_frames
-            if ok:
-                self.smooth_n = None  # the world changed: restart from this fit
-        if ok:
-            self.disagree = 0
-            a = cfg.ground_smoothing
+            guesses["tracked"] = self._plane(self.smooth_n, self.smooth_h, model)
+        consistent = None
+        ref_roll = pitch_roll(self.smooth_n)[1] if self.smooth_n is not None else 0.0
+
+        def agrees(f: Fit) -> bool:
+            return self.smooth_n is not None and _close(f.normal, f.plane.height_m, self.smooth_n, self.smooth_h,
+                                                        cfg.ground_step_deg, 0.15)
+
+        def closeness(f: Fit) -> float:
+            """1 for the last frames' ground, falling to 0 at ground_step_deg or 15 % of the height away."""
             if self.smooth_n is None:
-                self.smooth_n, self.smooth_h = fit.normal.copy(), fit.plane.height_m
+                return 0.0
+            tilt = float(np.degrees(np.arccos(np.clip(f.normal @ self.smooth_n, -1, 1))))
+            dh = abs(f.plane.height_m - self.smooth_h) / max(self.smooth_h, 1e-3)
+            return max(0.0, 1.0 - tilt / max(cfg.ground_step_deg, 1e-3)) * max(0.0, 1.0 - dh / 0.15)
+
+        def rank(f: Fit) -> float:
+            roll = abs(f.pitch_roll[1] - ref_roll)
+            return f.score - ROLL_COST * max(0.0, roll - ROLL_FREE_DEG) + TRACK_BONUS * closeness(f)
+        # Between full searches the last frames' ground, refined on this frame, is enough while it
+        # stays a trusted floor close to them; every SEARCH_EVERY frames (and whenever it is not)
+        # every candidate competes, so a wrong lock lasts a few frames at most.
+        self.since_search += 1
+        fits: list[Fit] = []
+        if guesses and self.since_search < SEARCH_EVERY:
+            fits = _candidates(u, v, d, model, guesses, self.rng, search=False)
+            if not (fits and closeness(fits[0]) > 0 and fits[0].inlier_fraction >= MIN_SUPPORT
+                    and fit_confidence(fits[0], True) >= TRUSTED):
+                fits = []
+        if not fits:
+            self.since_search = 0
+            if self.prior is not None:
+                guesses["prior"] = plane_from_mount(self.prior, model)
+            fits = _candidates(u, v, d, model, guesses, self.rng)
+        fits.sort(key=lambda f: -rank(f))
+        if fits and self.smooth_n is not None:
+            consistent = agrees(fits[0])
+        fit = fits[0] if fits and fits[0].inlier_fraction >= MIN_SUPPORT else None
+        if fit is not None:
+            polished = _judge(_polish(np.array([fit.plane.a, fit.plane.b, fit.plane.c]), u, v, d), u, v, d, model,
+                              fit.origin)
+            if polished is not None:
+                fit = polished
+        if fit is not None:
+            self.missed = 0
+            if consistent:
+                tilt = float(np.degrees(np.arccos(np.clip(fit.normal @ self.smooth_n, -1, 1))))
+                self.tilt_var = (1 - TILT_RATE) * self.tilt_var + TILT_RATE * tilt * tilt
+            a = cfg.ground_smoothing
+            if self.smooth_n is None or not consistent:
+                self.smooth_n, self.smooth_h = fit.normal.copy(), fit.plane.height_m  # the world changed
             else:
                 n = (1 - a) * self.smooth_n + a * fit.normal
                 self.smooth_n = n / np.linalg.norm(n)
                 self.smooth_h = (1 - a) * self.smooth_h + a * fit.plane.height_m
-            return fit.plane, self._estimate(fit.normal, fit.plane.height_m, "fitted", fit.inlier_fraction)
-        self.disagree += 1
-        if self.smooth_n is not None:
+            conf = fit_confidence(fit, consistent is not False)
+            self.confidence = conf
+            agrees_prior = None
+            if prior_n is not None:
+                agrees_prior = _close(fit.normal, fit.plane.height_m, prior_n, prior_h, cfg.max_tilt_deg)
+                if not agrees_prior and not self.prior_disagreement_logged and conf >= TRUSTED:
+                    self.prior_disagreement_logged = True
+                    pitch, roll = fit.pitch_roll
+                    log.warning("segmenter: the ground in the disparity (camera %.2f m above it, pitch %+.1f deg, "
+                                "roll %+.1f deg) disagrees with the configured mount (%.2f m, %+.1f deg, %+.1f deg): "
+                                "using the data; both are published with each list (GroundEstimate.prior_*)",
+                                fit.plane.height_m, pitch, roll, prior_h, self.prior.pitch_deg, self.prior.roll_deg)
+            return fit.plane, self._estimate(fit.normal, fit.plane.height_m, "fitted", fit.inlier_fraction, conf,
+                                             agrees_prior)
+        self.missed += 1
+        if self.smooth_n is not None and self.missed <= cfg.ground_reinit_frames:
+            conf = self.confidence * 0.5 ** self.missed  # a robot that sways moves its ground every frame
             return self._plane(self.smooth_n, self.smooth_h, model), self._estimate(self.smooth_n, self.smooth_h,
-                                                                                    "tracked")
+                                                                                    "tracked", confidence=conf)
+        self.smooth_n = None
         if self.prior is not None:
-            return plane_from_mount(self.prior, model), self._estimate(prior_n, prior_h, "prior")
-        return None, GroundEstimate(height_m=0.0, pitch_deg=0.0, roll_deg=0.0, source="none")
+            return plane_from_mount(self.prior, model), self._estimate(prior_n, prior_h, "prior", confidence=0.1)
+        return None, self._none()

@@ -13,9 +13,10 @@ only what stands on it counts, and objects are grouped where they stand.
  4. the ground: a plane d = a u + b v + c in disparity space, fitted this frame (ground.py: the
     last frames' estimate, the configured mount or RANSAC as the first guess; checked, smoothed,
     published as height / pitch / roll)
- 5. height band: a pixel stands when it is more than floor_margin_m (and ground_noise_px of
-    disparity) above the floor and at most robot_height_m above it; markings, shadows, mats are
-    floor, canopy and ceilings are above the robot
+ 5. height band: a pixel stands when it is more than floor_margin_m (plus what the floor's tilt can
+    be off at its distance, and ground_noise_px of disparity) above the floor and at most
+    robot_height_m above it; markings, shadows, mats are floor, canopy and ceilings are above the
+    robot
  6. a standing pixel with a 4-neighbour nearer by more than step_px + step_rel * d sits on a depth
     step, where block matching blends two depths into a phantom: it is not grouped
  7. grouping on the column-disparity grid (u-disparity): a cell (column, disparity bin) is
@@ -24,7 +25,9 @@ only what stands on it counts, and objects are grouped where they stand.
     seen obliquely, a person stay whole; a person in front of a wall stays apart. A group whose
     disparities form two peaks with an empty valley between them, bridged only by the narrow
     ramp the matcher draws across an occlusion, is two things one behind the other: split
- 8. objects smaller than min_size_m / min_area_m2, or whose top is below min_height_m, are dropped
+ 8. objects smaller than min_size_m / min_area_m2, or whose top is below min_height_m (plus what the
+    floor's fit can be off at their distance: _floor_doubt, from how much the fitted tilt moves
+    from frame to frame), are dropped
  9. per object, its 3D points; where a column ends within floor_margin_m (+4 cm) of the floor the
     object stands on it and the strip the band cut off is filled back in along the floor normal
 10. objects whose 3D extents come within merge_gap_m are one (a chair's back leg seen between its
@@ -68,7 +71,7 @@ class _Region:
 
 
 def _fill_to_floor(mask: np.ndarray, d_box: np.ndarray, x0: int, y0: int, floor: FloorPlane, cfg: SegmenterSettings,
-                   model: camera.RectifiedModel, step: int) -> np.ndarray | None:
+                   model: camera.RectifiedModel, step: int, doubt_deg: float = 0.0) -> np.ndarray | None:
     """The strip of an object that floor removal cut off: where a column of the region ends less
     than floor_margin_m (+4 cm) above the floor, the object is taken to stand on it, and points
     are added straight down (along the floor normal: a vertical face) to the floor, one per
@@ -91,7 +94,7 @@ def _fill_to_floor(mask: np.ndarray, d_box: np.ndarray, x0: int, y0: int, floor:
     z = f * B / db
     P = np.stack([(u - cx) * z / f, (v - cy) * z / f, z], 1)
     height = floor.height_m - P @ n_down  # above the floor
-    reach = cfg.floor_margin_m + 0.04
+    reach = cfg.floor_margin_m + 0.04 + _tilt_doubt(P[:, 2], floor.height_m, doubt_deg)  # as far as the band reaches
     on_floor = (height > -0.02) & (height <= reach)
     if not on_floor.any():
         return None
@@ -361,18 +364,27 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
     h, w = dm.shape
     f, B = model.focal_px, model.baseline_m
     fB = f * B
-    keep = cv2.inRange(dm, fB / cfg.range_m, fB / cfg.min_range_m) > 0
+    range_m = cfg.range_for(model)
+    keep = cv2.inRange(dm, fB / range_m, fB / cfg.min_range_m) > 0
     dk = np.where(keep, dm, np.float32(0))
     floor, estimate = None, None
     if cfg.floor_removal:
         ground = ground or GroundEstimator(cfg)
         floor, estimate = ground.update(dk, model, step)
+    doubt_deg = ground.tilt_doubt_deg if floor is not None else 0.0
+    doubt_deg = doubt_deg if doubt_deg >= MIN_DOUBT_DEG else 0.0
     floor_points = np.zeros((0, 3))
     if floor is not None:
         u, v = grid(h, w, step)
         df = np.float32(floor.a) * u + (np.float32(floor.b) * v + np.float32(floor.c))
-        k = 1.0 / max(1e-3, 1.0 - cfg.floor_margin_m / floor.height_m)
-        on_floor = dk <= np.maximum(df * np.float32(k), df + np.float32(cfg.ground_noise_px))
+        # the margin grows with distance by what the floor's tilt can be off there (_tilt_doubt)
+        if doubt_deg >= MIN_DOUBT_DEG:
+            with np.errstate(divide="ignore"):
+                margin = np.float32(cfg.floor_margin_m) + _tilt_doubt(np.float32(fB) / df, floor.height_m, doubt_deg)
+            k = 1.0 / np.maximum(np.float32(1e-3), 1.0 - margin / np.float32(floor.height_m))
+        else:  # a floor that holds still: one margin everywhere (and no per-pixel work)
+            k = np.float32(1.0 / max(1e-3, 1.0 - cfg.floor_margin_m / floor.height_m))
+        on_floor = dk <= np.maximum(df * k, df + np.float32(cfg.ground_noise_px))
         with np.errstate(divide="ignore", invalid="ignore"):
             above = np.float32(floor.height_m) * (1 - df / dk)  # height above the floor, m
         stand = keep & ~on_floor & (above <= cfg.robot_height_m)
@@ -408,7 +420,8 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
             continue
         if area * px_m * px_m < 0.25 * cfg.min_area_m2:
             continue
-        if above is not None and float(np.percentile(above[gy, gx], 98)) < cfg.min_height_m:
+        if above is not None and float(np.percentile(above[gy, gx], 98)) < cfg.min_height_m + _floor_doubt(
+                floor, med, fB, doubt_deg):
             continue  # nothing of it stands up: a marking, a shadow, a mat
         pts = _points(gy, gx, gd, model, step)
         valid = (int(np.count_nonzero(d0[gy, gx])) if confidence is None
@@ -418,7 +431,7 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
             mask = np.zeros((y1 - y0, x1 - x0), bool)
             mask[gy - y0, gx - x0] = True
             extra = _fill_to_floor(mask, np.where(mask, dm[y0:y1, x0:x1], np.float32(0)), x0, y0, floor, cfg,
-                                   model, step)
+                                   model, step, doubt_deg)
             if extra is not None:
                 pts = np.concatenate([pts, extra])
                 filled = len(extra)
@@ -433,6 +446,8 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
     measured = np.flatnonzero(d0.any(0))  # columns the matcher measured (not its blind left band)
     left_edge, right_edge = (int(measured[0]), int(measured[-1])) if measured.size else (0, w - 1)
     for r in regions:
+        if floor is None and cfg.floor_removal and _floor_like(r.pts):
+            continue  # no ground to tell it by: a patch of floor is still no obstacle (the list says no-ground)
         size = r.hi - r.lo
         if max(size[0], size[1]) < cfg.min_size_m or r.area * (float(np.mean(r.pts[:, 2])) / f * step) ** 2 < cfg.min_area_m2:
             continue
@@ -447,7 +462,7 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
                              confidence=float(min(1.0, r.valid / max(1, r.area))),
                              # cut at the sides or by the range: its footprint is partial (a cut at the
                              # top or bottom changes its height, not where it stands)
-                             cut=(x0 <= left_edge + 1, x1 - 1 >= right_edge - 1, bool(r.hi[2] >= 0.97 * cfg.range_m)),
+                             cut=(x0 <= left_edge + 1, x1 - 1 >= right_edge - 1, bool(r.hi[2] >= 0.97 * range_m)),
                              edges=_edges(sub, model)))
         points.append(r.pts)
     if cfg.edge_refine and image is not None and out:
@@ -473,6 +488,35 @@ def merge_detections(dets: list[Detection], points: list[np.ndarray], model: cam
                      edges=_edges(sub, model)), pts
 
 
+PIVOT_HEIGHTS = 2.0
+MIN_DOUBT_DEG = 0.02  # below this the floor band widens by less than a centimetre within 20 m
+
+
+def _tilt_doubt(z, height_m: float, doubt_deg: float):
+    """Height (m) by which a floor whose tilt is doubt_deg off misses at depth z: nothing within
+    PIVOT_HEIGHTS camera heights (the floor seen more than ~27 deg below the horizon, densely: where
+    the fit rests), growing beyond (a real road is no plane: its grade changes over tens of metres)."""
+    return np.maximum(z - np.float32(PIVOT_HEIGHTS * height_m), 0) * np.float32(np.tan(np.radians(doubt_deg)))
+
+
+def _floor_doubt(floor: FloorPlane, d: float, fB: float, doubt_deg: float) -> float:
+    """How far the fitted floor can be off, in height, at the depth of disparity d: its tilt's doubt
+    and half a pixel of disparity. A top lower than min_height_m plus this cannot be told from the floor."""
+    return float(_tilt_doubt(fB / max(d, 1e-3), floor.height_m, doubt_deg)) + floor.height_m * 0.5 / max(d, 1e-3)
+
+
+def _floor_like(pts: np.ndarray, max_tilt_deg: float = 45.0) -> bool:
+    """A region whose points lie on one plane (within 5 cm + 1 % of their depth) facing the camera's
+    y axis (within max_tilt_deg): a patch of floor or road, told apart without a ground estimate."""
+    sub = pts[::max(1, len(pts) // _STAT_SAMPLES)]
+    if len(sub) < 10:
+        return False
+    c = sub - sub.mean(0)
+    w, V = np.linalg.eigh(c.T @ c / len(c))
+    thin = np.sqrt(max(float(w[0]), 0.0)) < 0.05 + 0.01 * float(np.median(sub[:, 2]))
+    return bool(thin and abs(V[1, 0]) > np.cos(np.radians(max_tilt_deg)))
+
+
 def _drivable(floor: FloorPlane, df: np.ndarray, seen_floor: np.ndarray, standing: np.ndarray, dk: np.ndarray,
               model: camera.RectifiedModel, cfg: SegmenterSettings, step: int) -> np.ndarray:
     """Points of the floor plane the robot may drive on, camera frame: along each image column (a
@@ -486,7 +530,7 @@ def _drivable(floor: FloorPlane, df: np.ndarray, seen_floor: np.ndarray, standin
         zd = np.where(dk > 0, fB / np.maximum(dk, 1e-6), np.inf).astype(np.float32)
     far = np.where(seen_floor, zf, 0).max(0)
     near_standing = np.where(standing, zd, np.inf).min(0)
-    limit = np.minimum(np.minimum(far, near_standing), cfg.range_m)
+    limit = np.minimum(np.minimum(far, near_standing), cfg.range_for(model))
     near = zf[-1]  # the floor at the image's bottom edge
     cols = np.nonzero(np.isfinite(near) & (limit > near))[0]
     if not cols.size:

@@ -16,6 +16,9 @@ from cores.segmentation.mount import Mount
 METHODS = ("layers", "seed")
 # The thesis's 3 m vision range for seed; the default method's own range.
 DEFAULT_RANGE_M = {"seed": 3.0, "layers": 4.5}
+# Unset, layers' range grows with the rig out to where it still measures this disparity (depth to
+# about 6 % per px): 4.5 m stays for a small robot's rig, a car's wide baseline sees ~23 m.
+FAR_DISPARITY_PX = 16.0
 
 
 class MountSettings(ServiceSettings):
@@ -64,13 +67,15 @@ class SegmenterSettings(MountSettings):
     # layers
     fit_floor: bool = Field(True, description="layers: fit the floor plane to the disparity (mount as prior/fallback)")
     max_tilt_deg: float = Field(15.0, ge=0, le=90, description="layers: a fitted floor tilted more than this "
-                                "from the configured mount's is refused")
-    ground_step_deg: float = Field(8.0, ge=0, le=90, description="layers: a fitted floor tilted more than this "
-                                   "from the last frames' is refused (the smoothed estimate stands in)")
+                                "(or 30 % of the height) from the configured mount's disagrees with it: logged once, "
+                                "published as GroundEstimate.prior_agrees false; the data are used either way")
+    ground_step_deg: float = Field(8.0, ge=0, le=90, description="layers: a floor candidate tilted this much "
+                                   "from the last frames' ground gets no share of the bonus for agreeing with them")
     ground_smoothing: float = Field(0.3, gt=0, le=1, description="layers: weight of a new fit in the smoothed "
                                     "ground estimate")
-    ground_reinit_frames: int = Field(8, ge=1, le=1000, description="layers: after this many refused or failed "
-                                      "fits in a row the ground is searched afresh")
+    ground_reinit_frames: int = Field(8, ge=1, le=1000, description="layers: for this many frames in a row "
+                                      "without an acceptable fit the last frames' ground stands in (tracked), then "
+                                      "the configured mount or none")
     step_px: float = Field(0.6, ge=0, le=50, description="layers: neighbours differing by more than "
                            "step_px + step_rel * d belong to different objects")
     step_rel: float = Field(0.03, ge=0, le=1, description="layers: relative part of the similarity tolerance")
@@ -125,5 +130,13 @@ class SegmenterSettings(MountSettings):
 
     @property
     def range_m(self) -> float:
+        """The configured range, or the method's own (without a camera to fit it to)."""
         return self.max_range_m if self.max_range_m is not None else DEFAULT_RANGE_M[self.method]
+
+    def range_for(self, model) -> float:
+        """The vision range for this camera (a RectifiedModel): the configured one, or the method's
+        own, for layers at least as far as the rig measures FAR_DISPARITY_PX."""
+        if self.max_range_m is not None or self.method != "layers":
+            return self.range_m
+        return max(self.range_m, model.focal_px * abs(model.baseline_m) / FAR_DISPARITY_PX)
 

@@ -84,4 +84,11 @@ def run(node: Node, settings: SegmenterSettings) -> None:
                 free_out.put(result.freespace, count=False)
             g = result.obstacles.ground
             node.extra["ground_height_m"] = g.height_m if g is not None else 0.0
-            node.status = ("stale: input too old" if stale else "ok") + unsigned_note
+            reach = builder.reach
+            if stale:
+                node.status = "stale: input too old"
+            elif reach.unreachable:
+                node.status = f"range-unreachable: {reach.message}"
+            else:
+                node.status = f"ok; warning: {reach.message}" if reach.message else "ok"
+            node.status += unsigned_note
