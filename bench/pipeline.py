@@ -35,7 +35,7 @@ import numpy as np
 from bench.measure import cpu_seconds, free_port, percentiles
 
 STAGES = ["capture", "rectify", "disparity", "segmenter"]
-PARTS = ["pipeline", "sources", "renderer", "segmenter", "scaling", "accuracy", "record"]
+PARTS = ["pipeline", "sources", "renderer", "segmenter", "scaling", "accuracy", "record", "rectify"]
 
 # What "sustainable" means for an offered rate (the search keeps the highest rate that is):
 MAX_DROPPED = 0.03  # at most this fraction of captured pairs never becomes an obstacle list (seq gaps)
@@ -51,7 +51,8 @@ def add_bench_arguments(p: argparse.ArgumentParser) -> None:
                    help="pipeline: the four services over Zenoh (default); sources: file capture sources; "
                         "renderer: the synthetic world; segmenter: time per method; scaling: disparity "
                         "workers 1-3 (sgbm); accuracy: bad-2px on a Middlebury pair; record: `record` at 30 "
-                        "fps, drops and CPU (bench/record.py)")
+                        "fps, drops and CPU (bench/record.py); rectify: CPU and accuracy of float vs "
+                        "fixed-point remap tables")
     p.add_argument("--seconds", type=float, default=10.0, help="measured duration at the chosen rate")
     p.add_argument("--probe-seconds", type=float, default=3.0, help="measured duration of each search probe")
     p.add_argument("--warmup", type=float, default=1.5, help="seconds discarded after capture starts delivering")
@@ -621,6 +622,9 @@ def bench_part(part: str, args: argparse.Namespace) -> int:
         return main(flags)
     if part == "record":
         from bench.record import main
+        return main(flags)
+    if part == "rectify":
+        from bench.rectify import main
         return main(flags)
     if part == "segmenter":
         from bench.segmenter import bench_segmenter, format_bench
