@@ -41,9 +41,12 @@ PARTS = ["pipeline", "sources", "renderer", "segmenter", "scaling", "accuracy", 
 MAX_DROPPED = 0.03  # at most this fraction of captured pairs never becomes an obstacle list (seq gaps)
 MAX_P95_X_COMPUTE = 4.0  # capture-to-obstacle p95 within this multiple of the in-process compute
 BACKOFF, MAX_BACKOFFS = 0.9, 2  # a searched rate the measured run does not sustain: this much lower, at most twice
-# Targets of issue #14, ratios to the references above.
+# Targets of issues #14 and #22, ratios to the references above.
 TARGET_FPS_X_MATCHER = 0.8  # delivered fps >= 0.8 x OpenCV's matcher alone, 2 threads
-TARGET_P50_X_COMPUTE = 1.5  # latency p50 <= 1.5 x the in-process per-frame compute
+TARGET_CPU_X_MATCHER = 1.5  # CPU per list, every pipeline process, <= 1.5 x the matcher's own CPU per frame, 1 thread
+TARGET_P50_X_COMPUTE = 1.5  # latency p50 <= 1.5 x the in-process per-frame compute, at the highest sustained rate
+TARGET_P50_X_COMPUTE_STEADY = 1.2  # latency p50 <= 1.2 x the in-process compute at a camera's rate (--steady-rate)
+STEADY_RATE_HZ = 30.0
 
 
 def add_bench_arguments(p: argparse.ArgumentParser) -> None:
@@ -59,6 +62,9 @@ def add_bench_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rate", type=float, default=0.0,
                    help="offer this many pairs/s and skip the search for the highest sustainable rate")
     p.add_argument("--probes", type=int, default=4, help="search probes after the saturating one")
+    p.add_argument("--steady-rate", type=float, default=STEADY_RATE_HZ, metavar="HZ",
+                   help="also measure at this offered rate (a camera's; its latency has a target of its own); "
+                        "0: skip")
     p.add_argument("--repeat", type=int, default=1,
                    help="measure this many times (same processes) and report medians and spread")
     p.add_argument("--method", default=None, choices=["bm", "sgbm"],
@@ -417,12 +423,23 @@ def pipeline_cpu_ms(pipe: dict) -> float:
     return sum(v for k, v in pipe["cpu_ms_per_list"].items() if k != "bench")
 
 
-def ratios(ref: dict, pipe: dict) -> dict:
+def ratios(ref: dict, pipe: dict, steady: dict | None = None) -> dict:
+    """The pipeline (at the highest sustained rate; `steady`: at a camera's rate) over the
+    references of the same run. CPU is put over the matcher's one-thread CPU per frame: the CPU an
+    obstacle list costs against the CPU of its one indispensable step."""
     m2, m1, comp = ref["matcher_2_threads"]["fps"], ref["matcher_1_thread"]["fps"], ref["compute"]["total_ms_p50"]
+    m1_cpu = ref["matcher_1_thread"]["cpu_ms"]
     lat = pipe["latency_ms"]
     cpu = pipeline_cpu_ms(pipe) or float("nan")  # no CPU counted: no pipeline process was seen
     cores = os.cpu_count() or 1
-    return {
+    out = {"cpu_x_matcher_1_thread_by_process": {k: v / m1_cpu for k, v in pipe["cpu_ms_per_list"].items()
+                                                 if k != "bench"}}
+    if steady is not None:
+        out.update({"latency_p50_x_compute_steady": steady["latency_ms"]["p50"] / comp,
+                    "latency_p95_x_compute_steady": steady["latency_ms"]["p95"] / comp,
+                    "cpu_x_matcher_1_thread_steady": (pipeline_cpu_ms(steady) or float("nan")) / m1_cpu,
+                    "fps_x_offered_steady": steady["fps"] / steady["offered_hz"] if steady["offered_hz"] else 0.0})
+    return out | {
         # CPU time is what a busy machine distorts least: the pipeline's CPU per list against the
         # matcher's own CPU per frame, and the rate that CPU allows on an otherwise idle machine.
         "cpu_x_matcher_1_thread": cpu / ref["matcher_1_thread"]["cpu_ms"],
@@ -433,6 +450,7 @@ def ratios(ref: dict, pipe: dict) -> dict:
         "fps_x_compute": pipe["fps"] / ref["compute"]["fps"],
         "latency_p50_x_compute": lat["p50"] / comp, "latency_p95_x_compute": lat["p95"] / comp,
         "latency_p99_x_compute": lat["p99"] / comp}
+
 
 
 def measure_once(live: LivePipeline, frames: Frames, args: argparse.Namespace, log: Callable[[str], None]) -> dict:
@@ -473,19 +491,39 @@ def measure_once(live: LivePipeline, frames: Frames, args: argparse.Namespace, l
         rate *= BACKOFF
         log(f"  not sustained ({'; '.join(final['why_not'])}); measuring again at {rate:.1f} pairs/s ...")
         final = live.measure(rate, args.warmup, args.seconds, before["compute"]["total_ms_p50"])
+    steady = None
+    steady_hz = getattr(args, "steady_rate", 0.0)
+    if steady_hz > 0:
+        log(f"measuring the pipeline at {steady_hz:g} pairs/s offered (a camera's rate) for {args.seconds:g} s ...")
+        steady = live.measure(steady_hz, args.warmup, args.seconds, before["compute"]["total_ms_p50"])
+    load_measured = os.getloadavg()[0]
     log("references again ...")
     after = references(frames, method, args.reference_seconds)
     ref = mean_references(before, after)
-    return {"references": ref, "search": probes, "rejected": rejected, "pipeline": final,
-            "ratios": ratios(ref, final), "load_avg_1min": os.getloadavg()[0]}
+    return {"references": ref, "search": probes, "rejected": rejected, "pipeline": final, "steady": steady,
+            "ratios": ratios(ref, final, steady), "load_avg_1min": load_measured}
+
+
+TARGETS = [  # (ratio, label, op, target)
+    ("fps_x_matcher_2_threads", "delivered fps / OpenCV matcher alone (2 threads)", ">=", TARGET_FPS_X_MATCHER),
+    ("cpu_x_matcher_1_thread", "CPU per list / the matcher's own CPU (1 thread)", "<=", TARGET_CPU_X_MATCHER),
+    ("latency_p50_x_compute", "latency p50 / in-process per-frame compute", "<=", TARGET_P50_X_COMPUTE),
+    ("latency_p50_x_compute_steady", "latency p50 at a camera's rate / in-process compute", "<=",
+     TARGET_P50_X_COMPUTE_STEADY),
+]
 
 
 def targets(r: dict) -> list[tuple[str, float, str, float, bool]]:
+    """-> (label, value, op, target, met) for every target whose ratio was measured (the steady
+    rate's only when it ran)."""
     x = r["ratios"]
-    return [("delivered fps / OpenCV matcher alone (2 threads)", x["fps_x_matcher_2_threads"], ">=",
-             TARGET_FPS_X_MATCHER, x["fps_x_matcher_2_threads"] >= TARGET_FPS_X_MATCHER),
-            ("latency p50 / in-process per-frame compute", x["latency_p50_x_compute"], "<=",
-             TARGET_P50_X_COMPUTE, x["latency_p50_x_compute"] <= TARGET_P50_X_COMPUTE)]
+    out = []
+    for key, label, op, target in TARGETS:
+        if key not in x:
+            continue
+        v = x[key]
+        out.append((label, v, op, target, v >= target if op == ">=" else v <= target))  # NaN: missed
+    return out
 
 
 def format_run(r: dict, header: dict) -> str:
@@ -531,6 +569,22 @@ def format_run(r: dict, header: dict) -> str:
     lines.append("  CPU per list beyond the same stage in-process (messaging, copies, scheduling): "
                  + ", ".join(f"{k} {cpu[k] - own[k]:+.1f} ms" for k in own if k in cpu))
     x = r["ratios"]
+    lines.append(f"  CPU per list / {name}'s own CPU (1 thread, {m1['cpu_ms']:.1f} ms): "
+                 f"{x['cpu_x_matcher_1_thread']:.2f} x in all; by process: "
+                 + ", ".join(f"{k} {v:.2f}" for k, v in x["cpu_x_matcher_1_thread_by_process"].items()))
+    st = r.get("steady")
+    if st is not None:
+        sg = st["seq_gaps"]
+        lines += [
+            f"pipeline at {st['offered_hz']:g}/s offered (a camera's rate) for {st['seconds']:.1f} s: {st['fps']:.1f} "
+            f"lists/s, {st['stale_lists']} stale, {sg['dropped']} of {sg['captured']} pairs dropped "
+            f"({sg['dropped_fraction']:.1%}), " + ("sustainable" if st["sustainable"] else
+                                                   "NOT sustainable: " + "; ".join(st["why_not"])),
+            f"  capture -> obstacles published: p50 {st['latency_ms']['p50']:.1f} ms  p95 {st['latency_ms']['p95']:.1f}"
+            f"  p99 {st['latency_ms']['p99']:.1f} ms = p50 {x['latency_p50_x_compute_steady']:.2f} x the in-process "
+            f"compute; CPU per list {pipeline_cpu_ms(st):.1f} ms = {x['cpu_x_matcher_1_thread_steady']:.2f} x "
+            f"{name}'s own (" + ", ".join(f"{k} {v:.1f}" for k, v in st["cpu_ms_per_list"].items() if k != "bench") + ")",
+        ]
     lines.append(f"ratios: fps {x['fps_x_matcher_2_threads']:.2f} x {name} 2 threads "
                  f"({x['fps_x_matcher_1_thread']:.2f} x 1 thread, {x['fps_x_compute']:.2f} x the in-process compute); "
                  f"latency p50 {x['latency_p50_x_compute']:.2f}, p95 {x['latency_p95_x_compute']:.2f}, "
@@ -567,7 +621,8 @@ def bench_pipeline(args: argparse.Namespace) -> int:
               "load_avg_1min_start": os.getloadavg()[0],
               "sustainable": {"max_dropped_fraction": MAX_DROPPED, "max_p95_x_compute": MAX_P95_X_COMPUTE,
                               "stale_lists": 0},
-              "targets": {"fps_x_matcher_2_threads": TARGET_FPS_X_MATCHER, "latency_p50_x_compute": TARGET_P50_X_COMPUTE}}
+              "steady_rate_hz": getattr(args, "steady_rate", 0.0),
+              "targets": {k: t for k, _, _, t in TARGETS if k != "latency_p50_x_compute_steady" or args.steady_rate > 0}}
     runs = []
     say(f"starting {procs} ...")
     with LivePipeline(method, args.preload, args.workers, nice=args.nice) as live:
@@ -584,20 +639,30 @@ def bench_pipeline(args: argparse.Namespace) -> int:
                 print(format_run(r, header), flush=True)
     keys = ["fps_x_matcher_2_threads", "fps_x_matcher_1_thread", "latency_p50_x_compute",
             "latency_p95_x_compute", "latency_p99_x_compute", "cpu_x_matcher_1_thread",
-            "idle_machine_fps_bound_x_matcher_2_threads"]
-    summary = {k: spread([r["ratios"][k] for r in runs]) for k in keys}
+            "idle_machine_fps_bound_x_matcher_2_threads", "latency_p50_x_compute_steady",
+            "latency_p95_x_compute_steady", "cpu_x_matcher_1_thread_steady"]
+    summary = {k: spread([r["ratios"][k] for r in runs]) for k in keys if all(k in r["ratios"] for r in runs)}
     summary["fps"] = spread([r["pipeline"]["fps"] for r in runs])
+    summary["load_avg_1min"] = spread([r["load_avg_1min"] for r in runs])
+    procs_seen = sorted({k for r in runs for k in r["ratios"]["cpu_x_matcher_1_thread_by_process"]})
+    summary["cpu_x_matcher_1_thread_by_process"] = {
+        k: spread([r["ratios"]["cpu_x_matcher_1_thread_by_process"].get(k, 0.0) for r in runs]) for k in procs_seen}
     report = dict(header, runs=runs, summary=summary)
     if args.json:
         print(json.dumps(report, indent=2))
         return 0
+    load = summary["load_avg_1min"]
     print(f"\nballbot-vision bench: {method}, 640x480, 64 disparities, {header['cores']} cores, "
-          f"{len(runs)} run(s); load avg at start {header['load_avg_1min_start']:.1f}")
-    fake = {"ratios": {k: v["median"] for k, v in summary.items() if k != "fps"}}
-    for (label, value, op, target, ok), k in zip(targets(fake), ["fps_x_matcher_2_threads", "latency_p50_x_compute"]):
-        s = summary[k]
+          f"{len(runs)} run(s), medians; load avg at start {header['load_avg_1min_start']:.1f}, while measured "
+          f"{load['median']:.1f} (min {load['min']:.1f}, max {load['max']:.1f})")
+    fake = {"ratios": {k: v["median"] for k, v in summary.items() if k in dict.fromkeys(t[0] for t in TARGETS)}}
+    labels = {label: key for key, label, _, _ in TARGETS}
+    for label, value, op, target, ok in targets(fake):
+        s = summary[labels[label]]
         rng = f" (min {s['min']:.2f}, max {s['max']:.2f})" if len(runs) > 1 else ""
-        print(f"  {label:52} {value:5.2f}{rng}   target {op} {target:.2f}   {'met' if ok else 'MISSED'}")
+        print(f"  {label:54} {value:5.2f}{rng}   target {op} {target:.2f}   {'met' if ok else 'MISSED'}")
+    print("  CPU per list by process / the matcher's own (1 thread): " + ", ".join(
+        f"{k} {v['median']:.2f}" for k, v in summary["cpu_x_matcher_1_thread_by_process"].items()))
     return 0
 
 
