@@ -35,7 +35,7 @@ import numpy as np
 from bench.measure import cpu_seconds, free_port, percentiles
 
 STAGES = ["capture", "rectify", "disparity", "segmenter"]
-PARTS = ["pipeline", "sources", "renderer", "segmenter", "scaling", "accuracy", "record", "rectify"]
+PARTS = ["pipeline", "sources", "renderer", "segmenter", "scaling", "accuracy", "record", "rectify", "transport"]
 
 # What "sustainable" means for an offered rate (the search keeps the highest rate that is):
 MAX_DROPPED = 0.03  # at most this fraction of captured pairs never becomes an obstacle list (seq gaps)
@@ -55,7 +55,8 @@ def add_bench_arguments(p: argparse.ArgumentParser) -> None:
                         "renderer: the synthetic world; segmenter: time per method; scaling: disparity "
                         "workers 1-3 (sgbm); accuracy: bad-2px on a Middlebury pair; record: `record` at 30 "
                         "fps, drops and CPU (bench/record.py); rectify: CPU and accuracy of float vs "
-                        "fixed-point remap tables")
+                        "fixed-point remap tables; transport: the copies of the frame path and one hop between "
+                        "processes with Zenoh's shared memory on and off")
     p.add_argument("--seconds", type=float, default=10.0, help="measured duration at the chosen rate")
     p.add_argument("--probe-seconds", type=float, default=3.0, help="measured duration of each search probe")
     p.add_argument("--warmup", type=float, default=1.5, help="seconds discarded after capture starts delivering")
@@ -77,6 +78,8 @@ def add_bench_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--nice", type=int, default=0, metavar="N",
                    help="run the pipeline's processes and this process (the references) at this priority, e.g. "
                         "-10 on a busy machine (needs root): both sides alike, so the ratios stay fair")
+    p.add_argument("--profile", action="store_true",
+                   help="segmenter: where the service's time per frame goes, step by step, at 640x480 (cProfile)")
     p.add_argument("--json", action="store_true", help="one JSON document on stdout")
 
 
@@ -690,6 +693,12 @@ def bench_part(part: str, args: argparse.Namespace) -> int:
         return main(flags)
     if part == "rectify":
         from bench.rectify import main
+        return main(flags)
+    if part == "transport":
+        from bench.transport import main
+        return main(flags + (["--repeat", str(args.repeat)] if args.repeat > 1 else []))
+    if part == "segmenter" and getattr(args, "profile", False):
+        from bench.segmenter_profile import main
         return main(flags)
     if part == "segmenter":
         from bench.segmenter import bench_segmenter, format_bench

@@ -359,3 +359,24 @@ def test_bench_segmenter_without_a_recording_says_what_is_missing(tmp_path):
                          capture_output=True, text=True, timeout=300, cwd=REPO)
     assert out.returncode != 0
     assert "calibration.yaml" in out.stderr and "Traceback" not in out.stderr
+
+
+# --- the parts of issue 22: the segmenter's steps, the frame path's copies -----------------------------
+
+def test_segmenter_profile_breaks_the_service_path_into_steps():
+    from bench.segmenter_profile import format_profile, profile_segmenter
+
+    r = profile_segmenter(frames=3)
+    assert set(r["steps"]) == {"one", "process", "segment_frame"}
+    assert r["steps"]["one"][0]["function"] == "process_message"  # the builder is the frame's heaviest step
+    names = {s["function"] for s in r["steps"]["segment_frame"]}
+    assert {"_group", "update"} <= names, names  # grouping and the ground fit are among the layers' steps
+    assert "steps of layers.segment_frame" in format_profile(r)
+
+
+def test_transport_copies_names_every_step_of_the_frame_path():
+    from bench.transport import copies
+
+    r = copies(rounds=1, n=2)
+    assert any("to_bytes" in k for k in r) and any("unpackb" in k for k in r) and any("array_from_image" in k for k in r)
+    assert all(v >= 0 for v in r.values())
