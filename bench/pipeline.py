@@ -313,6 +313,7 @@ class LivePipeline:
         self._first = threading.Event()
         self._want_stamp = 0
         self._capture = None
+        self.processed: dict[str, list[tuple[int, int]]] = {}  # service -> [(stats stamp ns, frames processed)]
 
     def _env(self) -> dict[str, str]:
         return dict(os.environ, BALLBOT_LOG="WARNING")
@@ -336,6 +337,7 @@ class LivePipeline:
         sup.start_all(self.endpoint)
         self.session = open_session(ZenohOptions(mode="peer", connect=[self.endpoint], listen=["tcp/127.0.0.1:0"]))
         self.session.declare_subscriber(topic("obstacles").key(self.rid), self._on_obstacles)
+        self.session.declare_subscriber(topic("stats").pattern(self.rid), self._on_stats)
         return self
 
     def __exit__(self, *exc) -> None:
@@ -359,6 +361,33 @@ class LivePipeline:
             self.received.append(r)
         if r.stamp_ns >= self._want_stamp and not r.stale:
             self._first.set()
+
+    def _on_stats(self, sample) -> None:
+        import msgpack
+
+        try:
+            m = msgpack.unpackb(sample.payload.to_bytes())
+            service, stamp, processed = str(m["service"]), int(m["stamp_ns"]), int(m["processed"])
+        except Exception:  # not the bench's business
+            return
+        with self._lock:
+            seen = self.processed.setdefault(service, [])
+            if seen and processed < seen[-1][1]:  # restarted (capture is, per offered rate): counts from 0 again
+                seen.clear()
+            seen.append((stamp, processed))
+            del seen[:-64]
+
+    def processed_between(self, t0_ns: int, t1_ns: int) -> dict[str, float]:
+        """Frames each service processed between two wall times, interpolated between its stats
+        (sent once a second); services without stats on both sides are left out."""
+        out = {}
+        with self._lock:
+            for service, seen in self.processed.items():
+                if len(seen) < 2 or seen[0][0] > t0_ns or seen[-1][0] < t1_ns:
+                    continue
+                t, n = np.array([a for a, _ in seen], float), np.array([b for _, b in seen], float)
+                out[service] = float(np.interp(t1_ns, t, n) - np.interp(t0_ns, t, n))
+        return out
 
     def processes(self) -> dict[str, int]:
         sups = [self.sup] + ([self._capture] if self._capture is not None else [])
@@ -407,6 +436,7 @@ class LivePipeline:
         cpu0, t0 = self.cpu(), time.time_ns()
         time.sleep(seconds)
         t1, cpu1 = time.time_ns(), self.cpu()
+        time.sleep(1.1)  # the stats of the window's last second (each service sends them once a second)
         with self._lock:
             window = [m for m in self.received if t0 <= m.recv_ns < t1 and m.stamp_ns >= self._want_stamp]
         r = summarize(window, (t1 - t0) / 1e9, compute_ms)
@@ -414,6 +444,11 @@ class LivePipeline:
         per = {k: (cpu1[k] - cpu0.get(k, 0.0)) * 1e3 / n for k in cpu1}
         r["cpu_ms_per_list"] = {k: v for k, v in per.items() if not k.startswith("sys:")}
         r["kernel_cpu_ms_per_list"] = {k[4:]: v for k, v in per.items() if k.startswith("sys:")}
+        # Per frame each stage processed: unlike per list, not inflated by pairs a later stage
+        # dropped, so it still tells a stage's own cost when a busy machine makes a rate unsustainable.
+        frames = self.processed_between(t0, t1)
+        r["cpu_ms_per_frame_processed"] = {k: (cpu1[k] - cpu0.get(k, 0.0)) * 1e3 / n for k, n in frames.items()
+                                           if k in cpu1 and n >= 1}
         r["offered_hz"] = rate
         self.stop_capture()
         return r
@@ -568,6 +603,10 @@ def format_run(r: dict, header: dict) -> str:
     kernel = p["kernel_cpu_ms_per_list"]
     lines.append(f"  of which in the kernel (page faults, syscalls): {sum(kernel.values()):.1f} ms ("
                  + ", ".join(f"{k} {v:.1f}" for k, v in kernel.items()) + ")")
+    per_frame = p.get("cpu_ms_per_frame_processed") or {}
+    if per_frame:
+        lines.append("  CPU per pair each process handled (not inflated by pairs a later stage dropped): "
+                     + ", ".join(f"{k} {v:.1f}" for k, v in per_frame.items()) + " ms")
     own = comp["stage_cpu_ms"]
     lines.append("  CPU per list beyond the same stage in-process (messaging, copies, scheduling): "
                  + ", ".join(f"{k} {cpu[k] - own[k]:+.1f} ms" for k in own if k in cpu))
