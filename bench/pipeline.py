@@ -35,15 +35,19 @@ import numpy as np
 from bench.measure import cpu_seconds, free_port, percentiles
 
 STAGES = ["capture", "rectify", "disparity", "segmenter"]
-PARTS = ["pipeline", "sources", "renderer", "segmenter", "scaling", "accuracy", "record", "trust", "fleet"]
+PARTS = ["pipeline", "sources", "renderer", "segmenter", "scaling", "accuracy", "record", "rectify", "transport",
+         "trust", "fleet"]
 
 # What "sustainable" means for an offered rate (the search keeps the highest rate that is):
 MAX_DROPPED = 0.03  # at most this fraction of captured pairs never becomes an obstacle list (seq gaps)
 MAX_P95_X_COMPUTE = 4.0  # capture-to-obstacle p95 within this multiple of the in-process compute
 BACKOFF, MAX_BACKOFFS = 0.9, 2  # a searched rate the measured run does not sustain: this much lower, at most twice
-# Targets of issue #14, ratios to the references above.
+# Targets of issues #14 and #22, ratios to the references above.
 TARGET_FPS_X_MATCHER = 0.8  # delivered fps >= 0.8 x OpenCV's matcher alone, 2 threads
-TARGET_P50_X_COMPUTE = 1.5  # latency p50 <= 1.5 x the in-process per-frame compute
+TARGET_CPU_X_MATCHER = 1.5  # CPU per list, every pipeline process, <= 1.5 x the matcher's own CPU per frame, 1 thread
+TARGET_P50_X_COMPUTE = 1.5  # latency p50 <= 1.5 x the in-process per-frame compute, at the highest sustained rate
+TARGET_P50_X_COMPUTE_STEADY = 1.2  # latency p50 <= 1.2 x the in-process compute at a camera's rate (--steady-rate)
+STEADY_RATE_HZ = 30.0
 
 
 def add_bench_arguments(p: argparse.ArgumentParser) -> None:
@@ -51,7 +55,10 @@ def add_bench_arguments(p: argparse.ArgumentParser) -> None:
                    help="pipeline: the four services over Zenoh (default); sources: file capture sources; "
                         "renderer: the synthetic world; segmenter: time per method; scaling: disparity "
                         "workers 1-3 (sgbm); accuracy: bad-2px on a Middlebury pair; record: `record` at 30 "
-                        "fps, drops and CPU (bench/record.py); trust: what checking and signing a worker's "
+                        "fps, drops and CPU (bench/record.py); rectify: CPU and accuracy of float vs "
+                        "fixed-point remap tables; transport: the copies of the frame path and one hop between "
+                        "processes with Zenoh's shared memory on and off; "
+                        "trust: what checking and signing a worker's "
                         "map costs (bench/trust.py); fleet: 4 robots sharing 2 sgbm pool workers, per robot "
                         "against its fair share, a worker killed and one added (bench/fleet.py)")
     p.add_argument("--seconds", type=float, default=10.0, help="measured duration at the chosen rate")
@@ -60,6 +67,9 @@ def add_bench_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rate", type=float, default=0.0,
                    help="offer this many pairs/s and skip the search for the highest sustainable rate")
     p.add_argument("--probes", type=int, default=4, help="search probes after the saturating one")
+    p.add_argument("--steady-rate", type=float, default=STEADY_RATE_HZ, metavar="HZ",
+                   help="also measure at this offered rate (a camera's; its latency has a target of its own); "
+                        "0: skip")
     p.add_argument("--repeat", type=int, default=1,
                    help="measure this many times (same processes) and report medians and spread")
     p.add_argument("--method", default=None, choices=["bm", "sgbm"],
@@ -72,6 +82,8 @@ def add_bench_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--nice", type=int, default=0, metavar="N",
                    help="run the pipeline's processes and this process (the references) at this priority, e.g. "
                         "-10 on a busy machine (needs root): both sides alike, so the ratios stay fair")
+    p.add_argument("--profile", action="store_true",
+                   help="segmenter: where the service's time per frame goes, step by step, at 640x480 (cProfile)")
     p.add_argument("--json", action="store_true", help="one JSON document on stdout")
 
 
@@ -305,6 +317,7 @@ class LivePipeline:
         self._first = threading.Event()
         self._want_stamp = 0
         self._capture = None
+        self.processed: dict[str, list[tuple[int, int]]] = {}  # service -> [(stats stamp ns, frames processed)]
 
     def _env(self) -> dict[str, str]:
         return dict(os.environ, BALLBOT_LOG="WARNING")
@@ -328,6 +341,7 @@ class LivePipeline:
         sup.start_all(self.endpoint)
         self.session = open_session(ZenohOptions(mode="peer", connect=[self.endpoint], listen=["tcp/127.0.0.1:0"]))
         self.session.declare_subscriber(topic("obstacles").key(self.rid), self._on_obstacles)
+        self.session.declare_subscriber(topic("stats").pattern(self.rid), self._on_stats)
         return self
 
     def __exit__(self, *exc) -> None:
@@ -351,6 +365,33 @@ class LivePipeline:
             self.received.append(r)
         if r.stamp_ns >= self._want_stamp and not r.stale:
             self._first.set()
+
+    def _on_stats(self, sample) -> None:
+        import msgpack
+
+        try:
+            m = msgpack.unpackb(sample.payload.to_bytes())
+            service, stamp, processed = str(m["service"]), int(m["stamp_ns"]), int(m["processed"])
+        except Exception:  # not the bench's business
+            return
+        with self._lock:
+            seen = self.processed.setdefault(service, [])
+            if seen and processed < seen[-1][1]:  # restarted (capture is, per offered rate): counts from 0 again
+                seen.clear()
+            seen.append((stamp, processed))
+            del seen[:-64]
+
+    def processed_between(self, t0_ns: int, t1_ns: int) -> dict[str, float]:
+        """Frames each service processed between two wall times, interpolated between its stats
+        (sent once a second); services without stats on both sides are left out."""
+        out = {}
+        with self._lock:
+            for service, seen in self.processed.items():
+                if len(seen) < 2 or seen[0][0] > t0_ns or seen[-1][0] < t1_ns:
+                    continue
+                t, n = np.array([a for a, _ in seen], float), np.array([b for _, b in seen], float)
+                out[service] = float(np.interp(t1_ns, t, n) - np.interp(t0_ns, t, n))
+        return out
 
     def processes(self) -> dict[str, int]:
         sups = [self.sup] + ([self._capture] if self._capture is not None else [])
@@ -399,6 +440,7 @@ class LivePipeline:
         cpu0, t0 = self.cpu(), time.time_ns()
         time.sleep(seconds)
         t1, cpu1 = time.time_ns(), self.cpu()
+        time.sleep(1.1)  # the stats of the window's last second (each service sends them once a second)
         with self._lock:
             window = [m for m in self.received if t0 <= m.recv_ns < t1 and m.stamp_ns >= self._want_stamp]
         r = summarize(window, (t1 - t0) / 1e9, compute_ms)
@@ -406,6 +448,11 @@ class LivePipeline:
         per = {k: (cpu1[k] - cpu0.get(k, 0.0)) * 1e3 / n for k in cpu1}
         r["cpu_ms_per_list"] = {k: v for k, v in per.items() if not k.startswith("sys:")}
         r["kernel_cpu_ms_per_list"] = {k[4:]: v for k, v in per.items() if k.startswith("sys:")}
+        # Per frame each stage processed: unlike per list, not inflated by pairs a later stage
+        # dropped, so it still tells a stage's own cost when a busy machine makes a rate unsustainable.
+        frames = self.processed_between(t0, t1)
+        r["cpu_ms_per_frame_processed"] = {k: (cpu1[k] - cpu0.get(k, 0.0)) * 1e3 / n for k, n in frames.items()
+                                           if k in cpu1 and n >= 1}
         r["offered_hz"] = rate
         self.stop_capture()
         return r
@@ -418,12 +465,23 @@ def pipeline_cpu_ms(pipe: dict) -> float:
     return sum(v for k, v in pipe["cpu_ms_per_list"].items() if k != "bench")
 
 
-def ratios(ref: dict, pipe: dict) -> dict:
+def ratios(ref: dict, pipe: dict, steady: dict | None = None) -> dict:
+    """The pipeline (at the highest sustained rate; `steady`: at a camera's rate) over the
+    references of the same run. CPU is put over the matcher's one-thread CPU per frame: the CPU an
+    obstacle list costs against the CPU of its one indispensable step."""
     m2, m1, comp = ref["matcher_2_threads"]["fps"], ref["matcher_1_thread"]["fps"], ref["compute"]["total_ms_p50"]
+    m1_cpu = ref["matcher_1_thread"]["cpu_ms"]
     lat = pipe["latency_ms"]
     cpu = pipeline_cpu_ms(pipe) or float("nan")  # no CPU counted: no pipeline process was seen
     cores = os.cpu_count() or 1
-    return {
+    out = {"cpu_x_matcher_1_thread_by_process": {k: v / m1_cpu for k, v in pipe["cpu_ms_per_list"].items()
+                                                 if k != "bench"}}
+    if steady is not None:
+        out.update({"latency_p50_x_compute_steady": steady["latency_ms"]["p50"] / comp,
+                    "latency_p95_x_compute_steady": steady["latency_ms"]["p95"] / comp,
+                    "cpu_x_matcher_1_thread_steady": (pipeline_cpu_ms(steady) or float("nan")) / m1_cpu,
+                    "fps_x_offered_steady": steady["fps"] / steady["offered_hz"] if steady["offered_hz"] else 0.0})
+    return out | {
         # CPU time is what a busy machine distorts least: the pipeline's CPU per list against the
         # matcher's own CPU per frame, and the rate that CPU allows on an otherwise idle machine.
         "cpu_x_matcher_1_thread": cpu / ref["matcher_1_thread"]["cpu_ms"],
@@ -434,6 +492,7 @@ def ratios(ref: dict, pipe: dict) -> dict:
         "fps_x_compute": pipe["fps"] / ref["compute"]["fps"],
         "latency_p50_x_compute": lat["p50"] / comp, "latency_p95_x_compute": lat["p95"] / comp,
         "latency_p99_x_compute": lat["p99"] / comp}
+
 
 
 def measure_once(live: LivePipeline, frames: Frames, args: argparse.Namespace, log: Callable[[str], None]) -> dict:
@@ -474,19 +533,39 @@ def measure_once(live: LivePipeline, frames: Frames, args: argparse.Namespace, l
         rate *= BACKOFF
         log(f"  not sustained ({'; '.join(final['why_not'])}); measuring again at {rate:.1f} pairs/s ...")
         final = live.measure(rate, args.warmup, args.seconds, before["compute"]["total_ms_p50"])
+    steady = None
+    steady_hz = getattr(args, "steady_rate", 0.0)
+    if steady_hz > 0:
+        log(f"measuring the pipeline at {steady_hz:g} pairs/s offered (a camera's rate) for {args.seconds:g} s ...")
+        steady = live.measure(steady_hz, args.warmup, args.seconds, before["compute"]["total_ms_p50"])
+    load_measured = os.getloadavg()[0]
     log("references again ...")
     after = references(frames, method, args.reference_seconds)
     ref = mean_references(before, after)
-    return {"references": ref, "search": probes, "rejected": rejected, "pipeline": final,
-            "ratios": ratios(ref, final), "load_avg_1min": os.getloadavg()[0]}
+    return {"references": ref, "search": probes, "rejected": rejected, "pipeline": final, "steady": steady,
+            "ratios": ratios(ref, final, steady), "load_avg_1min": load_measured}
+
+
+TARGETS = [  # (ratio, label, op, target)
+    ("fps_x_matcher_2_threads", "delivered fps / OpenCV matcher alone (2 threads)", ">=", TARGET_FPS_X_MATCHER),
+    ("cpu_x_matcher_1_thread", "CPU per list / the matcher's own CPU (1 thread)", "<=", TARGET_CPU_X_MATCHER),
+    ("latency_p50_x_compute", "latency p50 / in-process per-frame compute", "<=", TARGET_P50_X_COMPUTE),
+    ("latency_p50_x_compute_steady", "latency p50 at a camera's rate / in-process compute", "<=",
+     TARGET_P50_X_COMPUTE_STEADY),
+]
 
 
 def targets(r: dict) -> list[tuple[str, float, str, float, bool]]:
+    """-> (label, value, op, target, met) for every target whose ratio was measured (the steady
+    rate's only when it ran)."""
     x = r["ratios"]
-    return [("delivered fps / OpenCV matcher alone (2 threads)", x["fps_x_matcher_2_threads"], ">=",
-             TARGET_FPS_X_MATCHER, x["fps_x_matcher_2_threads"] >= TARGET_FPS_X_MATCHER),
-            ("latency p50 / in-process per-frame compute", x["latency_p50_x_compute"], "<=",
-             TARGET_P50_X_COMPUTE, x["latency_p50_x_compute"] <= TARGET_P50_X_COMPUTE)]
+    out = []
+    for key, label, op, target in TARGETS:
+        if key not in x:
+            continue
+        v = x[key]
+        out.append((label, v, op, target, v >= target if op == ">=" else v <= target))  # NaN: missed
+    return out
 
 
 def format_run(r: dict, header: dict) -> str:
@@ -528,10 +607,30 @@ def format_run(r: dict, header: dict) -> str:
     kernel = p["kernel_cpu_ms_per_list"]
     lines.append(f"  of which in the kernel (page faults, syscalls): {sum(kernel.values()):.1f} ms ("
                  + ", ".join(f"{k} {v:.1f}" for k, v in kernel.items()) + ")")
+    per_frame = p.get("cpu_ms_per_frame_processed") or {}
+    if per_frame:
+        lines.append("  CPU per pair each process handled (not inflated by pairs a later stage dropped): "
+                     + ", ".join(f"{k} {v:.1f}" for k, v in per_frame.items()) + " ms")
     own = comp["stage_cpu_ms"]
     lines.append("  CPU per list beyond the same stage in-process (messaging, copies, scheduling): "
                  + ", ".join(f"{k} {cpu[k] - own[k]:+.1f} ms" for k in own if k in cpu))
     x = r["ratios"]
+    lines.append(f"  CPU per list / {name}'s own CPU (1 thread, {m1['cpu_ms']:.1f} ms): "
+                 f"{x['cpu_x_matcher_1_thread']:.2f} x in all; by process: "
+                 + ", ".join(f"{k} {v:.2f}" for k, v in x["cpu_x_matcher_1_thread_by_process"].items()))
+    st = r.get("steady")
+    if st is not None:
+        sg = st["seq_gaps"]
+        lines += [
+            f"pipeline at {st['offered_hz']:g}/s offered (a camera's rate) for {st['seconds']:.1f} s: {st['fps']:.1f} "
+            f"lists/s, {st['stale_lists']} stale, {sg['dropped']} of {sg['captured']} pairs dropped "
+            f"({sg['dropped_fraction']:.1%}), " + ("sustainable" if st["sustainable"] else
+                                                   "NOT sustainable: " + "; ".join(st["why_not"])),
+            f"  capture -> obstacles published: p50 {st['latency_ms']['p50']:.1f} ms  p95 {st['latency_ms']['p95']:.1f}"
+            f"  p99 {st['latency_ms']['p99']:.1f} ms = p50 {x['latency_p50_x_compute_steady']:.2f} x the in-process "
+            f"compute; CPU per list {pipeline_cpu_ms(st):.1f} ms = {x['cpu_x_matcher_1_thread_steady']:.2f} x "
+            f"{name}'s own (" + ", ".join(f"{k} {v:.1f}" for k, v in st["cpu_ms_per_list"].items() if k != "bench") + ")",
+        ]
     lines.append(f"ratios: fps {x['fps_x_matcher_2_threads']:.2f} x {name} 2 threads "
                  f"({x['fps_x_matcher_1_thread']:.2f} x 1 thread, {x['fps_x_compute']:.2f} x the in-process compute); "
                  f"latency p50 {x['latency_p50_x_compute']:.2f}, p95 {x['latency_p95_x_compute']:.2f}, "
@@ -568,7 +667,8 @@ def bench_pipeline(args: argparse.Namespace) -> int:
               "load_avg_1min_start": os.getloadavg()[0],
               "sustainable": {"max_dropped_fraction": MAX_DROPPED, "max_p95_x_compute": MAX_P95_X_COMPUTE,
                               "stale_lists": 0},
-              "targets": {"fps_x_matcher_2_threads": TARGET_FPS_X_MATCHER, "latency_p50_x_compute": TARGET_P50_X_COMPUTE}}
+              "steady_rate_hz": getattr(args, "steady_rate", 0.0),
+              "targets": {k: t for k, _, _, t in TARGETS if k != "latency_p50_x_compute_steady" or args.steady_rate > 0}}
     runs = []
     say(f"starting {procs} ...")
     with LivePipeline(method, args.preload, args.workers, nice=args.nice) as live:
@@ -585,20 +685,30 @@ def bench_pipeline(args: argparse.Namespace) -> int:
                 print(format_run(r, header), flush=True)
     keys = ["fps_x_matcher_2_threads", "fps_x_matcher_1_thread", "latency_p50_x_compute",
             "latency_p95_x_compute", "latency_p99_x_compute", "cpu_x_matcher_1_thread",
-            "idle_machine_fps_bound_x_matcher_2_threads"]
-    summary = {k: spread([r["ratios"][k] for r in runs]) for k in keys}
+            "idle_machine_fps_bound_x_matcher_2_threads", "latency_p50_x_compute_steady",
+            "latency_p95_x_compute_steady", "cpu_x_matcher_1_thread_steady"]
+    summary = {k: spread([r["ratios"][k] for r in runs]) for k in keys if all(k in r["ratios"] for r in runs)}
     summary["fps"] = spread([r["pipeline"]["fps"] for r in runs])
+    summary["load_avg_1min"] = spread([r["load_avg_1min"] for r in runs])
+    procs_seen = sorted({k for r in runs for k in r["ratios"]["cpu_x_matcher_1_thread_by_process"]})
+    summary["cpu_x_matcher_1_thread_by_process"] = {
+        k: spread([r["ratios"]["cpu_x_matcher_1_thread_by_process"].get(k, 0.0) for r in runs]) for k in procs_seen}
     report = dict(header, runs=runs, summary=summary)
     if args.json:
         print(json.dumps(report, indent=2))
         return 0
+    load = summary["load_avg_1min"]
     print(f"\nballbot-vision bench: {method}, 640x480, 64 disparities, {header['cores']} cores, "
-          f"{len(runs)} run(s); load avg at start {header['load_avg_1min_start']:.1f}")
-    fake = {"ratios": {k: v["median"] for k, v in summary.items() if k != "fps"}}
-    for (label, value, op, target, ok), k in zip(targets(fake), ["fps_x_matcher_2_threads", "latency_p50_x_compute"]):
-        s = summary[k]
+          f"{len(runs)} run(s), medians; load avg at start {header['load_avg_1min_start']:.1f}, while measured "
+          f"{load['median']:.1f} (min {load['min']:.1f}, max {load['max']:.1f})")
+    fake = {"ratios": {k: v["median"] for k, v in summary.items() if k in dict.fromkeys(t[0] for t in TARGETS)}}
+    labels = {label: key for key, label, _, _ in TARGETS}
+    for label, value, op, target, ok in targets(fake):
+        s = summary[labels[label]]
         rng = f" (min {s['min']:.2f}, max {s['max']:.2f})" if len(runs) > 1 else ""
-        print(f"  {label:52} {value:5.2f}{rng}   target {op} {target:.2f}   {'met' if ok else 'MISSED'}")
+        print(f"  {label:54} {value:5.2f}{rng}   target {op} {target:.2f}   {'met' if ok else 'MISSED'}")
+    print("  CPU per list by process / the matcher's own (1 thread): " + ", ".join(
+        f"{k} {v['median']:.2f}" for k, v in summary["cpu_x_matcher_1_thread_by_process"].items()))
     return 0
 
 
@@ -623,6 +733,15 @@ def bench_part(part: str, args: argparse.Namespace) -> int:
         return main(flags)
     if part == "record":
         from bench.record import main
+        return main(flags)
+    if part == "rectify":
+        from bench.rectify import main
+        return main(flags)
+    if part == "transport":
+        from bench.transport import main
+        return main(flags + (["--repeat", str(args.repeat)] if args.repeat > 1 else []))
+    if part == "segmenter" and getattr(args, "profile", False):
+        from bench.segmenter_profile import main
         return main(flags)
     if part == "trust":
         from bench.trust import main

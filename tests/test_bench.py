@@ -109,7 +109,7 @@ def test_search_when_nothing_holds_reports_the_lowest_rate_tried():
 
 def test_bench_json_runs_the_four_processes_and_the_references():
     out = subprocess.run(cli("bench", "--json", "--rate", "8", "--seconds", "3", "--warmup", "2",
-                             "--reference-seconds", "0.3", "--preload", "2"),
+                             "--reference-seconds", "0.3", "--preload", "2", "--steady-rate", "5"),
                          capture_output=True, text=True, timeout=300, cwd=REPO)
     assert out.returncode == 0, out.stderr[-3000:]
     r = json.loads(out.stdout)
@@ -125,7 +125,15 @@ def test_bench_json_runs_the_four_processes_and_the_references():
         run["pipeline"]["fps"] / ref["matcher_2_threads"]["fps"])
     if run["pipeline"]["obstacle_lists"]:
         assert run["ratios"]["latency_p50_x_compute"] > 0
-    assert r["targets"] == {"fps_x_matcher_2_threads": 0.8, "latency_p50_x_compute": 1.5}
+    # the second measured run, at the steady (camera's) rate, with its own latency ratio
+    assert run["steady"]["offered_hz"] == 5
+    if run["steady"]["obstacle_lists"]:
+        assert run["ratios"]["latency_p50_x_compute_steady"] == pytest.approx(
+            run["steady"]["latency_ms"]["p50"] / ref["compute"]["total_ms_p50"])
+    by_process = run["ratios"]["cpu_x_matcher_1_thread_by_process"]
+    assert set(by_process) == set(run["pipeline"]["cpu_ms_per_list"]) - {"bench"}
+    assert r["targets"] == {"fps_x_matcher_2_threads": 0.8, "cpu_x_matcher_1_thread": 1.5,
+                            "latency_p50_x_compute": 1.5, "latency_p50_x_compute_steady": 1.2}
 
 
 # --- ratios, targets and the references ------------------------------------------------------------
@@ -148,11 +156,29 @@ def test_ratios_put_the_pipeline_over_the_references_of_the_same_run():
     assert x["latency_p95_x_compute"] == pytest.approx(pipe["latency_ms"]["p95"] / 20.0)
     assert x["latency_p99_x_compute"] == pytest.approx(pipe["latency_ms"]["p99"] / 20.0)
     assert x["cpu_x_matcher_1_thread"] == pytest.approx(25.0 / 15.0)  # the bench's own subscriber left out
+    assert x["cpu_x_matcher_1_thread_by_process"] == pytest.approx(
+        {"capture": 1 / 15, "rectify": 3 / 15, "disparity": 16 / 15, "segmenter": 5 / 15})
     verdicts = {label: ok for label, _, _, _, ok in pipeline.targets({"ratios": x})}
     assert verdicts == {"delivered fps / OpenCV matcher alone (2 threads)": True,
-                        "latency p50 / in-process per-frame compute": True}
+                        "CPU per list / the matcher's own CPU (1 thread)": False,  # 1.67 > 1.5
+                        "latency p50 / in-process per-frame compute": True}  # no steady run: no verdict on it
     x["fps_x_matcher_2_threads"], x["latency_p50_x_compute"] = 0.79, 1.51
     assert not any(ok for *_, ok in pipeline.targets({"ratios": x}))
+    # at a camera's rate: 30 Hz offered, all delivered, p50 22 ms over a 20 ms compute
+    steady = summarize(lists(range(60), latency_ms=22.0, period_ms=33.3), 2.0, compute_ms=20.0)
+    steady["cpu_ms_per_list"] = {"capture": 1.0, "rectify": 2.0, "disparity": 15.0, "segmenter": 4.0}
+    steady["offered_hz"] = 30.0
+    x = pipeline.ratios(made_up_references(), pipe, steady)
+    assert x["latency_p50_x_compute_steady"] == pytest.approx(22.0 / 20.0)
+    assert x["cpu_x_matcher_1_thread_steady"] == pytest.approx(22.0 / 15.0)
+    verdicts = {label: ok for label, _, _, _, ok in pipeline.targets({"ratios": x})}
+    assert verdicts["latency p50 at a camera's rate / in-process compute"] is True
+    assert "a camera's rate" in pipeline.format_run(
+        {"references": made_up_references() | {
+            "matcher_2_threads": made_up_references()["matcher_2_threads"] | {"before_fps": 100.0, "after_fps": 100.0},
+            "matcher_1_thread": made_up_references()["matcher_1_thread"] | {"before_fps": 60.0, "after_fps": 60.0}},
+         "search": [], "pipeline": pipe | {"offered_hz": 80.0, "kernel_cpu_ms_per_list": {}}, "steady": steady,
+         "ratios": x, "load_avg_1min": 1.0}, {"frames": 2, "method": "bm", "processes": "fake"})
 
 
 def test_ratios_without_any_pipeline_cpu_are_not_a_number_rather_than_a_crash():
@@ -193,13 +219,15 @@ def test_every_reference_is_measured_with_capture_stopped(monkeypatch, rate):
     monkeypatch.setattr(pipeline, "references", references)
     monkeypatch.setattr(pipeline.time, "sleep", lambda s: None)
     live.offer(10.0)  # the warm-up leaves capture running
-    args = argparse.Namespace(rate=rate, warmup=0.0, probe_seconds=0.0, seconds=0.0, probes=2, reference_seconds=0.0)
+    args = argparse.Namespace(rate=rate, warmup=0.0, probe_seconds=0.0, seconds=0.0, probes=2, reference_seconds=0.0,
+                              steady_rate=30.0)
     r = pipeline.measure_once(live, frames=None, args=args, log=lambda text: None)
     assert seen and not any(seen), seen
-    assert len(seen) == (3 if rate == 0 else 2)  # the search's first look, before and after the measured run
-    # the warm-up, the search's probes, the measured run, and (searched rates only) the runs at lower
-    # rates after it was not sustained (nothing is, here: no obstacle list ever comes)
-    assert len(offered) == 1 + len(r["search"]) + 1 + len(r["rejected"])
+    assert len(seen) == (3 if rate == 0 else 2)  # the search's first look, before and after the measured runs
+    # the warm-up, the search's probes, the measured run, (searched rates only) the runs at lower
+    # rates after it was not sustained (nothing is, here: no obstacle list ever comes), the steady run
+    assert len(offered) == 1 + len(r["search"]) + 1 + len(r["rejected"]) + 1
+    assert offered[-1] == 30.0 and r["steady"]["offered_hz"] == 30.0
     assert len(r["rejected"]) == (pipeline.MAX_BACKOFFS if rate == 0 else 0)
     assert not live.capturing
 
@@ -331,3 +359,24 @@ def test_bench_segmenter_without_a_recording_says_what_is_missing(tmp_path):
                          capture_output=True, text=True, timeout=300, cwd=REPO)
     assert out.returncode != 0
     assert "calibration.yaml" in out.stderr and "Traceback" not in out.stderr
+
+
+# --- the parts of issue 22: the segmenter's steps, the frame path's copies -----------------------------
+
+def test_segmenter_profile_breaks_the_service_path_into_steps():
+    from bench.segmenter_profile import format_profile, profile_segmenter
+
+    r = profile_segmenter(frames=3)
+    assert set(r["steps"]) == {"one", "process", "segment_frame"}
+    assert r["steps"]["one"][0]["function"] == "process_message"  # the builder is the frame's heaviest step
+    names = {s["function"] for s in r["steps"]["segment_frame"]}
+    assert {"_group", "update"} <= names, names  # grouping and the ground fit are among the layers' steps
+    assert "steps of layers.segment_frame" in format_profile(r)
+
+
+def test_transport_copies_names_every_step_of_the_frame_path():
+    from bench.transport import copies
+
+    r = copies(rounds=1, n=2)
+    assert any("to_bytes" in k for k in r) and any("unpackb" in k for k in r) and any("array_from_image" in k for k in r)
+    assert all(v >= 0 for v in r.values())

@@ -49,11 +49,51 @@ def test_skew_is_honoured_by_the_maps():
     rig = camera.load_calibration("lifecam-studio")
     skewed = camera.RawRig(rig.image_size, camera.Intrinsics(rig.left.fx, rig.left.fy, rig.left.cx, rig.left.cy, 3.0,
                                                              rig.left.dist), rig.right, rig.R, rig.T)
-    a, b = Rectifier(rig), Rectifier(skewed)
-    (la, _), (lb, _) = a._maps[0], b._maps[0]
-    # the source column of the skewed camera moves by s (v - cy) / fy: zero near cy, ~2 px at the top
-    d = lb[..., 0].astype(float) - la[..., 0].astype(float)
-    assert abs(np.median(d[240])) <= 1 and np.median(d[0]) <= -1
+    for maps in ("float", "fixed"):
+        a, b = Rectifier(rig, maps=maps), Rectifier(skewed, maps=maps)
+        (la, la2), (lb, lb2) = a._maps[0], b._maps[0]
+        if maps == "fixed":
+            la, lb = cv2.convertMaps(la, la2, cv2.CV_32FC1)[0], cv2.convertMaps(lb, lb2, cv2.CV_32FC1)[0]
+        # the source column of the skewed camera moves by s (v - cy) / fy: zero near cy, ~2 px at the top
+        d = lb.astype(float) - la.astype(float)
+        assert abs(np.median(d[240])) <= 1 and np.median(d[0]) <= -1, maps
+
+
+def _rigs_with_a_raw_pair():
+    from bench.rectify import EUROC, rigs
+
+    found = rigs()
+    assert found[0][0].startswith("synthetic")
+    if not (EUROC / "cam0_sensor.yaml").exists():
+        pytest.skip(f"real EuRoC recording not present ({EUROC}): checked on the synthetic rig only")
+    return found
+
+
+def test_float_maps_resample_exactly_and_fixed_ones_round():
+    """The float remap tables (the default) give the exact bilinear resampling of their source
+    positions, to the rounding of an 8-bit image, on the synthetic rig and on EuRoC's strongly
+    distorted raw pair; fixed-point tables are 1/32 px off and differ by up to a few grey levels."""
+    from bench.rectify import accuracy
+
+    for name, cal, left, right in _rigs_with_a_raw_pair():
+        acc = accuracy(cal, left, right)
+        assert acc["float"]["max_grey_error"] <= 0.51, (name, acc)  # float32 weights: rounding and a hair
+        assert acc["float"]["max_position_error_px"] == 0.0, (name, acc)
+        assert 0 < acc["fixed"]["max_position_error_px"] <= 1 / 32, (name, acc)
+        assert acc["fixed"]["share_above_1_grey"] < 0.01, (name, acc)
+
+
+def test_default_rectifier_uses_the_float_maps():
+    cal = camera.load_calibration("lifecam-studio")
+    default, fixed = Rectifier(cal), Rectifier(cal, maps="fixed")
+    assert default._maps[0][0].dtype == np.float32 and fixed._maps[0][0].dtype == np.int16
+    left, right = _pair()
+    a, b = default.rectify(left, right), fixed.rectify(left, right)
+    for x, y in zip(a, b):  # the same geometry: the two agree but for the fixed point's rounding
+        assert x.dtype == y.dtype == np.uint8
+        assert np.percentile(np.abs(x.astype(int) - y.astype(int)), 99.9) <= 1
+    with pytest.raises(BallbotError, match="maps: one of float, fixed"):
+        Rectifier(cal, maps="half")
 
 
 def _pair(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:

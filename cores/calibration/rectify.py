@@ -23,27 +23,41 @@ def camera_model_message(m: camera.RectifiedModel) -> CameraModel:
                        baseline_m=m.baseline_m, Q=[float(x) for x in m.Q.ravel()])
 
 
-def _map(cam: camera.Intrinsics, R: np.ndarray, P: np.ndarray, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-    """Fixed-point remap tables for one camera. OpenCV ignores K[0, 1]; with a skew s the source
-    column is shifted by s (v - cy) / fy, v being the source row of the skew-free camera."""
+def _map(cam: camera.Intrinsics, R: np.ndarray, P: np.ndarray, size: tuple[int, int],
+         map_type: int = cv2.CV_32FC1) -> tuple[np.ndarray, np.ndarray]:
+    """Remap tables for one camera, float (CV_32FC1, the default) or fixed point (CV_16SC2).
+
+    Float maps: OpenCV 5's remap has a vectorised bilinear path for them that takes half the CPU of
+    the fixed-point one (640x480 pair: 1.2 ms vs 2.3 ms on one core, `ballbot-vision bench rectify`),
+    and they are exact where fixed point rounds every source position to 1/32 px. They take 2.4 MB
+    per camera at 640x480 instead of 0.9 MB.
+
+    OpenCV ignores K[0, 1]; with a skew s the source column is shifted by s (v - cy) / fy, v being
+    the source row of the skew-free camera."""
     if cam.skew == 0:
-        return cv2.initUndistortRectifyMap(cam.K, cam.D, R, P, size, cv2.CV_16SC2)
+        return cv2.initUndistortRectifyMap(cam.K, cam.D, R, P, size, map_type)
     K = cam.K.copy()
     K[0, 1] = 0.0
     mx, my = cv2.initUndistortRectifyMap(K, cam.D, R, P, size, cv2.CV_32FC1)
     mx = mx + np.float32(cam.skew / cam.fy) * (my - np.float32(cam.cy))
-    return cv2.convertMaps(mx, my, cv2.CV_16SC2)
+    return (mx, my) if map_type == cv2.CV_32FC1 else cv2.convertMaps(mx, my, map_type)
+
+
+MAP_TYPES = {"float": cv2.CV_32FC1, "fixed": cv2.CV_16SC2}
 
 
 class Rectifier:
     """Undistort and rectify stereo pairs so that epipolar lines are image rows.
 
-    For a raw rig the maps come from cv2.stereoRectify + initUndistortRectifyMap (fixed-point maps,
-    the fastest remap); an already-rectified rig passes images through after a size check.
+    For a raw rig the maps come from cv2.stereoRectify + initUndistortRectifyMap (float maps by
+    default, see _map; maps="fixed" for fixed-point ones); an already-rectified rig passes images
+    through after a size check.
     """
 
     def __init__(self, calibration: camera.Calibration, alpha: float = 0.0,
-                 interpolation: int = cv2.INTER_LINEAR):
+                 interpolation: int = cv2.INTER_LINEAR, maps: str = "float"):
+        if maps not in MAP_TYPES:
+            raise BallbotError(f"maps: one of {', '.join(MAP_TYPES)}, got {maps!r}")
         self.calibration = calibration
         self.size = calibration.image_size
         self.interpolation = interpolation
@@ -55,8 +69,8 @@ class Rectifier:
             r = camera.rectify_rig(calibration, alpha)
             self.rectification = r
             self.model = r.model
-            self._maps = (_map(calibration.left, r.R1, r.P1, self.size),
-                          _map(calibration.right, r.R2, r.P2, self.size))
+            self._maps = (_map(calibration.left, r.R1, r.P1, self.size, MAP_TYPES[maps]),
+                          _map(calibration.right, r.R2, r.P2, self.size, MAP_TYPES[maps]))
         self.model_message = camera_model_message(self.model)
 
     def check_size(self, image: np.ndarray, name: str) -> None:
