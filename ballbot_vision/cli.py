@@ -9,7 +9,7 @@ import os
 import sys
 
 from common.errors import BallbotError
-from common.settings import add_settings_arguments, load_settings
+from common.settings import MountSettings, add_settings_arguments, load_settings
 from common.supervisor import PIPELINE, SERVICES, stage_nice
 from common.zenoh_session import DEFAULT_ROUTER, ZenohOptions, add_zenoh_arguments, options_from_args
 
@@ -67,7 +67,10 @@ def cmd_run(args: argparse.Namespace) -> int:
     if hasattr(m, "preflight"):
         m.preflight(settings)
     node_options = m.node_options(settings) if hasattr(m, "node_options") else {}
-    with Node(args.service, zenoh_options(args), robot_id(args), instance=args.instance, **node_options) as node:
+    # the camera on the robot: one section every service reads (common/settings.py MountSettings)
+    mount = load_settings(MountSettings, config_file(args), args, prefix="mount-")
+    with Node(args.service, zenoh_options(args), robot_id(args), instance=args.instance, mount=mount,
+              **node_options) as node:
         m.run(node, settings)
     return 0
 
@@ -354,6 +357,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
             sp = common(run_sub.add_parser(name, help=(m.__doc__ or "").strip().splitlines()[0]))
             sp.add_argument("--instance", default=None, help="instance name in stats and liveliness (default: host-pid)")
             add_settings_arguments(sp, settings_cls)
+            add_settings_arguments(sp, MountSettings, prefix="mount-")
             sp.set_defaults(func=cmd_run)
     else:
         stub("run")

@@ -54,12 +54,12 @@ def colour(d: np.ndarray, max_disparity: float) -> np.ndarray:
 def cmd_disparity(args: argparse.Namespace) -> int:
     import cv2
 
-    from cores import camera
-    from common.settings import load_settings
-    from cores.matching.disparity import to_float
     from common.files import check_pair, read_image
-    from cores.matching.matchers import MatcherConfig, gate_for_range, make_matcher
-    from cores.calibration.rectify import Rectifier
+    from common.settings import load_settings
+    from cores import camera
+    from cores.matching.matchers import MatcherConfig, gate_for_range
+    from cores.matching.stage import MatchStage
+    from cores.pipeline import Pipeline
 
     out = Path(args.output)
     if out.suffix.lower() not in FORMATS:
@@ -71,24 +71,24 @@ def cmd_disparity(args: argparse.Namespace) -> int:
     check_pair(left, right, f"LEFT {args.left}", f"RIGHT {args.right}")
     if args.confidence and Path(args.confidence).suffix.lower() != ".png":
         raise BallbotError(f"--confidence {args.confidence}: a .png file (8-bit confidence)")
-    gate = 0.0
-    if args.calibration:
-        rect = Rectifier(camera.load_calibration(args.calibration))
-        rect.check_size(left, args.left)
-        rect.check_size(right, args.right)
-        left, right = rect.rectify(left, right)
-        gate = gate_for_range(cfg.max_range_m, rect.model.focal_px, rect.model.baseline_m)
-        cfg = cfg.resolved(rect.model.focal_px, rect.model.baseline_m, left.shape[1])
+    if args.calibration:  # rectified and matched as the pipeline does (cores/pipeline.py)
+        pipe = Pipeline(camera.load_calibration(args.calibration), cfg)
+        left, right = pipe.rectify(left, right, (args.left, args.right))
+        t0 = time.perf_counter()
+        stage = pipe.match(left, right)
     elif cfg.max_range_m:
         raise BallbotError("--max-range-m needs --calibration (focal length and baseline turn metres into px)")
     elif cfg.num_disparities == "auto":
-        raise BallbotError("--num-disparities auto needs --calibration (focal length and baseline give the "
-                           "disparity of the nearest range of interest)")
-    matcher = make_matcher(cfg)
-    t0 = time.perf_counter()
-    result = matcher.match(left, right, gate)
+        raise BallbotError("--num-disparities auto (the default) needs --calibration (focal length and baseline "
+                           "give the disparity of the nearest range of interest); for a rectified pair without "
+                           "one, set --num-disparities in px")
+    else:  # an already-rectified pair and no camera: the same stage, no range gate
+        t0 = time.perf_counter()
+        stage = MatchStage(cfg).compute(left, right, 0.0, 0.0)
     ms = (time.perf_counter() - t0) * 1e3
-    d = to_float(result.disparity, 16.0, cfg.invalid_value)
+    result, cfg = stage.match, stage.config
+    d = stage.disparity_px()
+    gate = gate_for_range(cfg.max_range_m, pipe.model.focal_px, pipe.model.baseline_m) if args.calibration else 0.0
     if args.confidence and result.confidence is None:
         raise BallbotError(f"--confidence: method {cfg.method} gives no confidence (method dense does)")
     out.parent.mkdir(parents=True, exist_ok=True)

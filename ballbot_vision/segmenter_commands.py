@@ -33,6 +33,13 @@ def _segmenter_settings(args: argparse.Namespace):
     return load_settings(SegmenterSettings, getattr(args, "config", None), args)
 
 
+def _mount_settings(args: argparse.Namespace):
+    """The camera on the robot: the `mount:` section of --config, BALLBOT_MOUNT_*, --mount-* (as the services read it)."""
+    from common.settings import MountSettings, load_settings
+
+    return load_settings(MountSettings, getattr(args, "config", None), args, prefix="mount-")
+
+
 # --- obstacles ---------------------------------------------------------------------------------
 
 def format_obstacles(obstacles, header: str = "") -> str:
@@ -73,14 +80,6 @@ def format_freespace(fs) -> str:
             f"{cells.size - free - occ} unknown")
 
 
-def _make_matcher(mcfg, model):
-    """The disparity settings' matcher for this camera (num_disparities auto resolved) and its range gate."""
-    from cores.matching.matchers import gate_for_range, make_matcher
-
-    cfg = mcfg.resolved(model.focal_px, model.baseline_m, model.width)
-    return cfg, make_matcher(cfg), gate_for_range(cfg.max_range_m, model.focal_px, model.baseline_m)
-
-
 def _obstacles_matcher_settings(args: argparse.Namespace):
     """The disparity settings for `obstacles`: as configured, with the search range following the
     calibration (num_disparities auto) unless one was set."""
@@ -91,10 +90,11 @@ def _obstacles_matcher_settings(args: argparse.Namespace):
     return load_settings(MatcherConfig, getattr(args, "config", None), args, prefix="disparity-", **over)
 
 
-def _warn_reach(builder, model, mcfg) -> None:
+def _warn_reach(pipe) -> None:
     """Say at the start, on stderr, when the disparity search cannot measure (all or the near part
     of) the segmenter's vision range: the lists then carry "range-unreachable"."""
-    reach = builder.check_search(model, mcfg.min_disparity, mcfg.num_disparities, quiet=True)
+    cfg = pipe.matching.config.resolved(pipe.model.focal_px, pipe.model.baseline_m, pipe.model.width)
+    reach = pipe.builder.check_search(pipe.model, cfg.min_disparity, cfg.num_disparities, quiet=True)
     if reach.message:
         print(f"warning: {reach.message}", file=sys.stderr, flush=True)
 
@@ -124,16 +124,10 @@ def _write_picture(path: Path, picture) -> None:
 
 
 def cmd_obstacles(args: argparse.Namespace) -> int:
-    import time
-
-    from cores import camera
-    from cores.matching.disparity import to_float
     from common.files import check_pair, list_images, pair_images
-    from cores.matching.matchers import SCALE
-    from cores.calibration.rectify import Rectifier
+    from cores import camera
+    from cores.pipeline import Pipeline
     from cores.segmentation.draw import draw_frame
-    from cores.segmentation.ground import frame_mount
-    from cores.segmentation.builder import ObstacleBuilder
 
     settings = _segmenter_settings(args)
     if args.left.lower().endswith(".mcap"):  # a recording: its pairs, times and (by default) calibration
@@ -148,39 +142,28 @@ def cmd_obstacles(args: argparse.Namespace) -> int:
 
         def read_pairs():
             for k, (lp, rp) in enumerate(file_pairs):
-                left, right = _read(lp, rect), _read(rp, rect)
+                left, right = _read(lp, pipe.rectifier), _read(rp, pipe.rectifier)
                 check_pair(left, right, str(lp), str(rp))
                 yield lp, rp, left, right, k / args.fps
         pairs = read_pairs()
-    rect = Rectifier(cal, args.alpha)
-    mcfg, matcher, gate = _make_matcher(_obstacles_matcher_settings(args), rect.model)
-    builder = ObstacleBuilder(settings)
-    _warn_reach(builder, rect.model, mcfg)
+    pipe = Pipeline(cal, _obstacles_matcher_settings(args), settings, alpha=args.alpha, mount=_mount_settings(args))
+    _warn_reach(pipe)
     draw_dir = Path(args.draw) if args.draw else None
     for k, (lp, rp, left, right, stamp_s) in enumerate(pairs):
-        rect.check_size(left, str(lp))  # a recording's pairs: named by file and seq
-        rect.check_size(right, str(rp))
-        left, right = rect.rectify(left, right)
-        match = matcher.match(left, right, gate)
-        d = to_float(match.disparity, SCALE, mcfg.invalid_value)
-        t0 = time.perf_counter()
-        result = builder.process(d, rect.model, t_s=stamp_s, seq=k, stamp_ns=int(stamp_s * 1e9),
-                                 confidence=match.confidence, image=left,
-                                 search=(mcfg.min_disparity, mcfg.num_disparities))
-        ms = (time.perf_counter() - t0) * 1e3
-        msg = result.obstacles
+        # a recording's pairs are named by file and seq
+        frame = pipe.process(left, right, t_s=stamp_s, seq=k, stamp_ns=int(stamp_s * 1e9), names=(str(lp), str(rp)))
+        result, msg = frame.result, frame.result.obstacles
         if draw_dir is not None:
-            mount = frame_mount(msg.ground, settings)
             name = lp.stem if isinstance(lp, Path) else f"{Path(args.left).stem}_{msg.seq:06d}"  # a recording's pair
-            _write_picture(draw_dir / f"{name}.png",
-                           draw_frame(left, msg, rect.model, result.freespace, mount))
+            _write_picture(draw_dir / f"{name}.png", draw_frame(frame.left, msg, pipe.model, result.freespace))
         if args.json:
             doc = json.loads(msg.model_dump_json())
             doc["left"], doc["right"] = str(lp), str(rp)
             _out(json.dumps(doc))
         else:
             _out(format_obstacles(msg.obstacles, f"{lp} {rp}: {len(msg.obstacles)} obstacle(s), {settings.method}, "
-                                                 f"{ms:.1f} ms (camera frame: x right, y down, z forward)"))
+                                                 f"{frame.segment_ms:.1f} ms (camera frame: x right, y down, z "
+                                                 f"forward)"))
             _out(format_ground(msg.ground))
             _out(format_freespace(result.freespace))
             if msg.degraded:
@@ -299,6 +282,7 @@ def cmd_eval_real(args: argparse.Namespace) -> int:
         on_frame = lambda fr: _out(R.format_frame(fr))  # noqa: E731
     _warn_recording_reach(rec, seg, disp, args.alpha)
     report = R.evaluate_recording(rec, seg, disp, frames=args.frames, draw_dir=args.draw, alpha=args.alpha,
+                                  mount=_mount_settings(args),
                                   on_frame=on_frame)
     if args.json:
         doc = R.report_to_json(report)
@@ -326,7 +310,7 @@ def cmd_mount_estimate(args: argparse.Namespace) -> int:
         rec = R.recording_from_files(args.left, args.right, args.calibration)
     if args.frames < 1:
         raise BallbotError(f"--frames {args.frames}: at least 1")
-    seg, disp, applied = _real_settings(args, mount_height_m=None)
+    seg, disp, applied = _real_settings(args)  # no mount: the ground is what is measured
     if applied and not args.json:
         _out(_describe_defaults(applied))
     grounds = []
@@ -341,7 +325,7 @@ def cmd_mount_estimate(args: argparse.Namespace) -> int:
         _out(format_estimate(est))
     if args.write:
         kept = merge_into_config(args.write, est.settings_values())
-        msg = f"wrote {', '.join(f'{k} {v}' for k, v in est.settings_values().items())} to {args.write} (segmenter:)"
+        msg = f"wrote {', '.join(f'{k} {v}' for k, v in est.settings_values().items())} to {args.write} (mount:)"
         if not kept:
             msg += "; the file was rewritten from its content (its comments are gone)"
         print(msg, file=sys.stderr if args.json else sys.stdout, flush=True)
@@ -380,7 +364,7 @@ def _matcher_settings(args: argparse.Namespace):
 
 
 def register(sub: argparse._SubParsersAction, common) -> None:
-    from common.settings import add_settings_arguments
+    from common.settings import MountSettings, add_settings_arguments
     from cores.segmentation.settings import SegmenterSettings
 
     o = sub.add_parser("obstacles", help="offline: image pairs -> rectify, disparity, obstacles",
@@ -397,6 +381,7 @@ def register(sub: argparse._SubParsersAction, common) -> None:
                    "after the left image: boxes with track id and distance, free space, ground")
     _matcher_args(o)
     add_settings_arguments(o, SegmenterSettings)
+    add_settings_arguments(o, MountSettings, prefix="mount-")
     o.set_defaults(func=cmd_obstacles)
 
     e = sub.add_parser("eval", help="synthetic scenarios with ground truth -> detection and position-error report; "
@@ -434,6 +419,9 @@ def register(sub: argparse._SubParsersAction, common) -> None:
                            title="segmenter settings for --real (the 'segmenter' section of --config FILE, or "
                                  "the environment variable shown; --method picks the method; unset, a recording "
                                  "runs with max_range_m 30)")
+    add_settings_arguments(e, MountSettings, prefix="mount-", title="the camera mount for --real (the 'mount' "
+                           "section of --config FILE, or the environment variable shown; unset: the ground is "
+                           "fitted every frame)")
     e.set_defaults(func=cmd_eval)
 
     m = sub.add_parser("mount", help="the camera mount: estimate height, pitch and roll from recorded pairs")
@@ -443,21 +431,21 @@ def register(sub: argparse._SubParsersAction, common) -> None:
                        description="Run the pairs through rectify, disparity and the segmenter with no mount "
                                    "configured, take the median of the per-frame ground planes fitted to the "
                                    "disparity, print height, pitch and roll with their spread, and with --write "
-                                   "set them in the 'segmenter' section of a config file.")
+                                   "set them in the 'mount' section of a config file.")
     me.add_argument("left", metavar="LEFT", nargs="?", help="left images: folder, glob or file")
     me.add_argument("right", metavar="RIGHT", nargs="?", help="right images: folder, glob or file")
     me.add_argument("--calibration", metavar="CAL", help="calibration YAML or profile (with LEFT RIGHT)")
     me.add_argument("--real", default=None, metavar="DIR", help="a recording folder instead of LEFT RIGHT "
                     "--calibration (layouts as eval --real)")
     me.add_argument("--frames", type=int, default=20, help="pairs to use, from the first (default: 20)")
-    me.add_argument("--write", default=None, metavar="CONFIG.yaml", help="set mount_height_m, mount_pitch_deg and "
-                    "mount_roll_deg in this file's 'segmenter' section (created if missing; the rest is kept)")
+    me.add_argument("--write", default=None, metavar="CONFIG.yaml", help="set height_m, pitch_deg and roll_deg "
+                    "in this file's 'mount' section (created if missing; the rest is kept)")
     me.add_argument("--alpha", type=float, default=0.0, help="rectification alpha for a raw rig (default: 0)")
     me.add_argument("--json", action="store_true")
     me.add_argument("--config", default=None, metavar="FILE", help="YAML with 'segmenter' and 'disparity' "
-                    "sections (its mount is ignored)")
+                    "sections (its 'mount' section is what is measured: ignored)")
     _matcher_args(me)
-    add_settings_arguments(me, SegmenterSettings, exclude=("mount_height_m", "mount_pitch_deg", "mount_roll_deg"),
+    add_settings_arguments(me, SegmenterSettings,
                            title="segmenter settings (unset: max_range_m 30; the mount is what is estimated)")
     me.set_defaults(func=cmd_mount_estimate)
 

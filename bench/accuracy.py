@@ -161,8 +161,8 @@ def opencv_baselines(num_disparities: int) -> dict:
 
 def matchers(num_disparities: int) -> dict:
     """name -> run(left_bgr, right_bgr) -> float32 px, NaN invalid."""
-    from cores.matching.disparity import to_float
-    from cores.matching.matchers import MatcherConfig, gray, make_matcher
+    from cores.matching.matchers import MatcherConfig, gray
+    from cores.matching.stage import MatchStage
 
     def opencv(m, colour: bool):
         invalid = (m.getMinDisparity() - 1) * 16
@@ -174,10 +174,9 @@ def matchers(num_disparities: int) -> dict:
             return d
         return run
 
-    def ours(**kw):
-        cfg = MatcherConfig(num_disparities=num_disparities, **kw)
-        m = make_matcher(cfg)
-        return lambda left, right: to_float(m.compute(left, right), 16.0, cfg.invalid_value)
+    def ours(**kw):  # the disparity stage the services run (no camera here: no range gate)
+        stage = MatchStage(MatcherConfig(num_disparities=num_disparities, **kw))
+        return lambda left, right: stage.compute(left, right, 0.0, 0.0).disparity_px()
 
     runs = {name: opencv(m, colour) for name, (m, colour) in opencv_baselines(num_disparities).items()}
     return {

@@ -110,35 +110,24 @@ def bench_frames(preload: int) -> Frames:
     return Frames(raw, [rect.rectify(l, r) for l, r in raw], rect)
 
 
-def opencv_matcher(method: str):
-    """OpenCV's matcher object alone, with the settings the disparity service uses by default."""
-    import cv2
-
+def opencv_matcher(method: str, model=None):
+    """OpenCV's matcher object alone, with the settings the disparity service uses by default for
+    this camera (num_disparities auto resolved), built where the service's is (cores/matching/opencv.py)."""
+    from cores.calibration.rectify import Rectifier
+    from cores import camera
     from cores.matching.matchers import MatcherConfig
+    from cores.matching.opencv import create_opencv_matcher
 
-    c = MatcherConfig(method=method)
-    if method == "bm":
-        m = cv2.StereoBM_create(numDisparities=c.num_disparities, blockSize=c.block)
-        m.setMinDisparity(c.min_disparity)
-        m.setUniquenessRatio(c.uniqueness_ratio)
-        m.setTextureThreshold(c.texture_threshold)
-        m.setSpeckleWindowSize(c.speckle_window)
-        m.setSpeckleRange(c.speckle_range)
-        m.setPreFilterCap(c.prefilter_cap)
-        return m
-    area = c.block * c.block
-    return cv2.StereoSGBM_create(minDisparity=c.min_disparity, numDisparities=c.num_disparities, blockSize=c.block,
-                                 P1=8 * area, P2=32 * area, disp12MaxDiff=c.disp12_max_diff,
-                                 preFilterCap=c.prefilter_cap, uniquenessRatio=c.uniqueness_ratio,
-                                 speckleWindowSize=c.speckle_window, speckleRange=c.speckle_range)
+    model = model or Rectifier(camera.load_calibration("lifecam-studio")).model
+    return create_opencv_matcher(MatcherConfig(method=method).resolved(model.focal_px, model.baseline_m, model.width))
 
 
-def matcher_alone(pairs: list, method: str, threads: int, seconds: float) -> dict:
+def matcher_alone(pairs: list, method: str, threads: int, seconds: float, model=None) -> dict:
     """OpenCV's matcher on the rectified pairs, back to back, with `threads` OpenCV threads.
     fps = frames / wall time (spikes count, as they do for the pipeline)."""
     import cv2
 
-    m = opencv_matcher(method)
+    m = opencv_matcher(method, model)
     before = cv2.getNumThreads()
     cv2.setNumThreads(threads)
     try:
@@ -160,35 +149,28 @@ def matcher_alone(pairs: list, method: str, threads: int, seconds: float) -> dic
 
 
 def in_process_compute(frames: Frames, method: str, seconds: float) -> dict:
-    """The pipeline's cores serially in this process, no messaging: rectify, disparity (the
-    service's matcher, OpenCV's default threads), segmenter and tracking (the service's defaults).
-    -> per-stage median ms and their sum, the per-frame compute."""
-    from cores.matching.disparity import to_float
-    from cores.matching.matchers import MatcherConfig, StereoMatcher
-    from cores.segmentation.builder import ObstacleBuilder
-    from cores.segmentation.settings import SegmenterSettings
+    """The pipeline's cores serially in this process, no messaging (cores/pipeline.py, with the
+    services' default settings but the method): rectify, disparity (OpenCV's default threads),
+    segmenter and tracking. -> per-stage median ms and their sum, the per-frame compute."""
+    from cores.matching.matchers import MatcherConfig
+    from cores.pipeline import Pipeline
 
-    cfg = MatcherConfig(method=method)
-    matcher = StereoMatcher(cfg)
-    builder = ObstacleBuilder(SegmenterSettings())
-    rect = frames.rectifier
+    pipe = Pipeline(frames.rectifier.calibration, MatcherConfig(method=method))
     stages = ("rectify", "disparity", "segmenter")
     times: dict[str, list[float]] = {s: [] for s in stages}
     cpu = dict.fromkeys(stages, 0.0)
     for i in range(3):  # first calls import and allocate (the tracker's scipy): not per-frame compute
-        l, r = rect.rectify(*frames.raw[i % len(frames.raw)])
-        builder.process(to_float(matcher.compute(l, r), 16.0, cfg.invalid_value), rect.model, t_s=-1.0 + i / 30.0,
-                        seq=i, stamp_ns=0)
+        pipe.process(*frames.raw[i % len(frames.raw)], t_s=-1.0 + i / 30.0, seq=i, stamp_ns=0)
     t_end = time.perf_counter() + seconds
     n = 0
     while time.perf_counter() < t_end or n < 5:
         left, right = frames.raw[n % len(frames.raw)]
         marks = [(time.perf_counter(), time.process_time())]
-        l, r = rect.rectify(left, right)
+        l, r = pipe.rectify(left, right)
         marks.append((time.perf_counter(), time.process_time()))
-        d = matcher.compute(l, r)
+        stage = pipe.match(l, r)
         marks.append((time.perf_counter(), time.process_time()))
-        builder.process(to_float(d, 16.0, cfg.invalid_value), rect.model, t_s=n / 30.0, seq=n, stamp_ns=0)
+        pipe.segment(stage, t_s=n / 30.0, seq=n, stamp_ns=0)
         marks.append((time.perf_counter(), time.process_time()))
         for s, (a, b) in zip(stages, zip(marks, marks[1:])):
             times[s].append((b[0] - a[0]) * 1e3)
@@ -203,8 +185,9 @@ def in_process_compute(frames: Frames, method: str, seconds: float) -> dict:
 
 
 def references(frames: Frames, method: str, seconds: float = 2.0) -> dict:
-    return {"matcher_2_threads": matcher_alone(frames.rectified, method, 2, seconds),
-            "matcher_1_thread": matcher_alone(frames.rectified, method, 1, seconds),
+    model = frames.rectifier.model
+    return {"matcher_2_threads": matcher_alone(frames.rectified, method, 2, seconds, model),
+            "matcher_1_thread": matcher_alone(frames.rectified, method, 1, seconds, model),
             "compute": in_process_compute(frames, method, seconds)}
 
 

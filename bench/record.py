@@ -27,19 +27,18 @@ def _pipeline_messages(n: int):
     """n consecutive pairs as the pipeline publishes them: (raw, rectified, disparity, obstacles, truth)."""
     from common import codec
     from cores import camera
-    from common.messages import DisparityMap, StereoFrame
+    from common.messages import StereoFrame
     from services.capture.main import truth_message
     from services.capture.sources import SyntheticSource
-    from cores.matching.config import MatcherConfig
-    from cores.matching.matchers import StereoMatcher
     from cores.calibration.rectify import Rectifier
+    from cores.matching.config import MatcherConfig
     from cores.segmentation.builder import ObstacleBuilder
     from cores.segmentation.settings import SegmenterSettings
+    from services.disparity.computer import FrameComputer
 
     src = SyntheticSource("person-walking", "lifecam-studio", 30.0)
     rect = Rectifier(camera.load_calibration("lifecam-studio"))
-    cfg = MatcherConfig()
-    matcher = StereoMatcher(cfg)
+    computer = FrameComputer(MatcherConfig())  # the map as the disparity service publishes it
     builder = ObstacleBuilder(SegmenterSettings())
     out = []
     for k in range(n):
@@ -50,9 +49,7 @@ def _pipeline_messages(n: int):
         l, r = rect.rectify(pair.left, pair.right)
         rectified = StereoFrame(robot_id="bench", seq=k, stamp_ns=stamp, left=codec.image_from_array(l),
                                 right=codec.image_from_array(r), camera=rect.model_message)
-        d = DisparityMap(robot_id="bench", seq=k, stamp_ns=stamp, image=codec.image_from_array(matcher.compute(l, r)),
-                         scale=16.0, invalid_value=cfg.invalid_value, min_disparity=cfg.min_disparity,
-                         num_disparities=cfg.fixed_num_disparities, camera=rect.model_message, method=cfg.method)
+        d = computer.compute(rectified, "bench")
         obstacles = builder.process_message(d).obstacles
         truth = truth_message("bench", k, stamp, "person-walking", pair.truth)
         out.append((raw, rectified, d, obstacles, truth))

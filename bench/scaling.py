@@ -45,9 +45,14 @@ def ceiling(method: str, threads: int, pairs: list, seconds: float = 3.0) -> dic
     maps/s, and the CPU time per frame."""
     import cv2
 
-    from cores.matching.matchers import MatcherConfig, StereoMatcher
+    from cores.matching.stage import MatchStage
+    from cores import camera
+    from cores.calibration.rectify import Rectifier
+    from cores.matching.matchers import MatcherConfig
 
-    m = StereoMatcher(MatcherConfig(method=method))
+    # the worker's own matcher for the rig the feeder sends (its settings' search range resolved)
+    model = Rectifier(camera.load_calibration("lifecam-studio")).model
+    m = MatchStage(MatcherConfig(method=method)).matcher(model.focal_px, model.baseline_m, model.width)
     before = cv2.getNumThreads()
     cv2.setNumThreads(threads if threads else -1)
     try:

@@ -42,18 +42,26 @@ def _timed(run: Callable[[int], object], repeat: int) -> dict:
             "runs": repeat}
 
 
-def time_methods(disparities: list[np.ndarray], model, settings_for: Callable[[str], object],
+def time_methods(disparities: list[np.ndarray], model, settings_for: Callable[[str], tuple],
                  matcher_ms: float, methods: list[str] | None, repeat: int) -> dict:
-    """Segmenter(settings_for(method)).detect on the disparity maps in turn -> per method the time
-    and its ratio to the matcher's (x_matcher) and the detections on the first map."""
-    from cores.segmentation.builder import Segmenter
+    """The segmenter's step of the pipeline as the service runs it (ObstacleBuilder.process: the
+    ground carried from frame to frame, tracks, free space) on the disparity maps in turn, one
+    stream per method (settings_for(method) -> (segmenter settings, mount settings)) -> per method
+    the time, its ratio to the matcher's (x_matcher) and the obstacles on the first map."""
+    from cores.segmentation.builder import ObstacleBuilder
 
     out = {}
     for method in methods or segmenter_methods():
-        seg = Segmenter(settings_for(method))
-        r = _timed(lambda k: seg.detect(disparities[k % len(disparities)], model), repeat)
+        first = ObstacleBuilder(*settings_for(method)).process(disparities[0], model, t_s=0.0, seq=0, stamp_ns=0)
+        builder = ObstacleBuilder(*settings_for(method))
+        frame = iter(range(1 << 30))  # the stream's own frame count: its time never goes back
+
+        def step(k: int) -> None:
+            n = next(frame)
+            builder.process(disparities[k % len(disparities)], model, t_s=n / 15.0, seq=n, stamp_ns=0)
+        r = _timed(step, repeat)
         r["x_matcher"] = r["ms_median"] / matcher_ms
-        r["detections"] = len(seg.detect(disparities[0], model))
+        r["detections"] = len(first.obstacles.obstacles)
         out[method] = r
     return out
 
@@ -65,9 +73,11 @@ def _matcher_ms(stereo, pairs: list, repeat: int) -> float:
 def bench_synthetic(scenario: str, methods: list[str] | None, repeat: int, frames: int = 1) -> dict:
     from cores import camera
     from services.capture.sources import SyntheticSource
-    from cores.matching.matchers import MatcherConfig, StereoMatcher
     from cores.calibration.rectify import Rectifier
+    from cores.matching.matchers import MatcherConfig
+    from cores.matching.stage import MatchStage
     from evaluation.synthetic import render_scenario
+    from common.settings import MountSettings
     from cores.segmentation.settings import SegmenterSettings
 
     data = render_scenario(scenario, frames=frames)
@@ -75,14 +85,15 @@ def bench_synthetic(scenario: str, methods: list[str] | None, repeat: int, frame
     rect = Rectifier(camera.load_calibration("lifecam-studio"))
     cfg = MatcherConfig()
     pairs = [rect.rectify(p.left, p.right) for p in (src.read() for _ in range(2))]
-    matcher_ms = _matcher_ms(StereoMatcher(cfg), pairs, repeat)
+    m = rect.model  # the disparity service's matcher for this rig (search range resolved)
+    matcher_ms = _matcher_ms(MatchStage(cfg).matcher(m.focal_px, m.baseline_m, m.width), pairs, repeat)
     m = data.mount
     return {"data": f"synthetic {scenario}", "image": f"{data.model.width}x{data.model.height}", "pairs": frames,
             "mount": f"exact ({m.height_m:.2f} m, pitch {m.pitch_deg:.1f} deg)",
             "matcher": {"method": cfg.method, "ms_median": matcher_ms},
             "methods": time_methods([f.disparity for f in data.frames], data.model,
-                                    lambda method: SegmenterSettings(method=method, mount_height_m=m.height_m,
-                                                                     mount_pitch_deg=m.pitch_deg),
+                                    lambda method: (SegmenterSettings(method=method),
+                                                    MountSettings(height_m=m.height_m, pitch_deg=m.pitch_deg)),
                                     matcher_ms, methods, repeat)}
 
 
@@ -94,38 +105,32 @@ def bench_real(folder: str | Path, methods: list[str] | None, repeat: int, pairs
     """A recording's folder (left/, right/, calibration.yaml) -> the same report as bench_synthetic,
     segmented out to max_range_m (the robot's few metres would leave a car's view empty)."""
     from cores import camera
-    from cores.matching.disparity import to_float
     from common.errors import FileError
     from common.files import list_images, pair_images, read_image
-    from cores.matching.matchers import SCALE, MatcherConfig, StereoMatcher
-    from cores.calibration.rectify import Rectifier
+    from common.settings import MountSettings
+    from cores.matching.matchers import MatcherConfig
+    from cores.pipeline import Pipeline
     from cores.segmentation.settings import SegmenterSettings
 
     root = Path(folder).expanduser()
     cal_file = root / "calibration.yaml"
     if not cal_file.is_file():
         raise FileError(f"--real {folder}: no calibration.yaml in it (expected left/, right/ and calibration.yaml)")
-    rect = Rectifier(camera.load_calibration(cal_file))
+    pipe = Pipeline(camera.load_calibration(cal_file), MatcherConfig())  # rectify and match as the services do
     files = pair_images(list_images(str(root / "left"), "--real DIR/left"),
                         list_images(str(root / "right"), "--real DIR/right"))[:max(1, pairs)]
-    rectified = []
-    for lp, rp in files:
-        left, right = read_image(lp), read_image(rp)
-        rect.check_size(left, str(lp))
-        rect.check_size(right, str(rp))
-        rectified.append(rect.rectify(left, right))
-    cfg = MatcherConfig()
-    stereo = StereoMatcher(cfg)
-    disparities = [to_float(stereo.compute(l, r), SCALE, cfg.invalid_value) for l, r in rectified]
-    matcher_ms = _matcher_ms(stereo, rectified, repeat)
-    model = rect.model
+    rectified = [pipe.rectify(read_image(lp), read_image(rp), (str(lp), str(rp))) for lp, rp in files]
+    disparities = [pipe.match(left, right).disparity_px() for left, right in rectified]
+    model = pipe.model
+    cfg = pipe.matching.config
+    matcher_ms = _matcher_ms(pipe.matching.matcher(model.focal_px, model.baseline_m, model.width), rectified, repeat)
     return {"data": f"{root.name} ({', '.join(p.name for p in files[0])}{', ...' if len(files) > 1 else ''})",
             "folder": str(root), "image": f"{model.width}x{model.height}", "pairs": len(files),
             "mount": "unknown (none configured: the floor is fitted without a prior)", "max_range_m": max_range_m,
             "matcher": {"method": cfg.method, "ms_median": matcher_ms},
             "methods": time_methods(disparities, model,
-                                    lambda method: SegmenterSettings(method=method, mount_height_m=None,
-                                                                     max_range_m=max_range_m),
+                                    lambda method: (SegmenterSettings(method=method, max_range_m=max_range_m),
+                                                    MountSettings()),
                                     matcher_ms, methods, repeat)}
 
 

@@ -17,31 +17,28 @@ import os
 import pstats
 import time
 
-import numpy as np
 
 
 def service_frames(n: int = 16) -> list[bytes]:
     """DisparityMap payloads as the segmenter receives them, from the pipeline bench's pairs."""
     from common import codec
     from cores import camera
-    from cores.calibration.rectify import Rectifier, camera_model_message
-    from cores.matching.matchers import SCALE, MatcherConfig, StereoMatcher
-    from common.messages import DisparityMap
+    from common.messages import StereoFrame
+    from cores.calibration.rectify import Rectifier
+    from cores.matching.matchers import MatcherConfig
     from services.capture.sources import SyntheticSource
+    from services.disparity.computer import FrameComputer
 
     src = SyntheticSource("two-boxes", "lifecam-studio", 30.0, preload=n)
     rect = Rectifier(camera.load_calibration("lifecam-studio"))
-    cfg = MatcherConfig()
-    matcher = StereoMatcher(cfg)
+    computer = FrameComputer(MatcherConfig())  # the map as the disparity service publishes it
     out = []
     for i in range(n):
         p = src.read()
-        d = matcher.compute(*rect.rectify(p.left, p.right))
-        msg = DisparityMap(robot_id="bench", seq=i, stamp_ns=time.time_ns(), image=codec.image_from_array(d),
-                           scale=SCALE, invalid_value=float(cfg.invalid_value), min_disparity=cfg.min_disparity,
-                           num_disparities=cfg.num_disparities, camera=camera_model_message(rect.model),
-                           method=cfg.method)
-        out.append(codec.encode(msg))
+        left, right = rect.rectify(p.left, p.right)
+        frame = StereoFrame(robot_id="bench", seq=i, stamp_ns=time.time_ns(), left=codec.image_from_array(left),
+                            right=codec.image_from_array(right), camera=rect.model_message)
+        out.append(codec.encode(computer.compute(frame, "bench")))
     return out
 
 

@@ -177,6 +177,24 @@ class GroundEstimate(BaseModel):
                                       "max_tilt_deg and 30 % of the height); None: no mount, or nothing fitted")
 
 
+class CameraMount(BaseModel):
+    """Where the rectified left camera sat on the robot base for one list (REP 103 base: x forward,
+    y left, z up, origin on the floor; angles as in the `mount:` settings). The base-frame positions
+    of the list, its free space and every picture or transform of it use exactly this."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    height_m: float = Field(gt=0, le=100)
+    pitch_deg: float = Field(ge=-90, le=90, description="positive looking down")
+    roll_deg: float = Field(ge=-180, le=180, description="positive right side down")
+    yaw_deg: float = Field(0.0, ge=-180, le=180, description="positive turned left")
+    x_m: float = Field(0.0, ge=-100, le=100)
+    y_m: float = Field(0.0, ge=-100, le=100)
+    source: Literal["ground", "configured"] = Field(
+        description="ground: height, pitch and roll from this frame's ground estimate (yaw and offsets as "
+                    "configured); configured: the `mount:` settings as they are (no ground this frame)")
+
+
 class ObstacleList(Message):
     """What stands in the robot's way for one captured pair.
 
@@ -196,6 +214,8 @@ class ObstacleList(Message):
     method: str = ""
     obstacles: list[Obstacle] = Field(default_factory=list)
     ground: GroundEstimate | None = Field(None, description="the ground plane used for this list")
+    mount: CameraMount | None = Field(None, description="the camera on the robot for this list (None: unknown, "
+                                      "no base frame)")
     velocity_reference: Literal["camera", "ground"] = Field(
         "camera", description="camera: velocities relative to the moving camera; ground: over the ground "
                               "(the robot's own motion from odometry removed)")
@@ -217,6 +237,7 @@ class FreeSpace(Message):
     origin_m: tuple[float, float] = Field(description="base-frame (x, y) of the outer corner of cell (0, 0), m")
     cells: bytes = Field(description="width*height int8, row-major: -1 unknown, 0 free, 100 occupied")
     ground: GroundEstimate | None = None
+    mount: CameraMount | None = None
 
 
 class Odometry(Message):

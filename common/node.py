@@ -31,6 +31,7 @@ from common import codec, signed_payload
 from common.errors import BallbotError, DecodeError
 from common.keys import WORKER_SEGMENT, Topic, topic, topics_of
 from common.messages import Message, ServiceStats
+from common.settings import MountSettings
 from common.zenoh_session import ZenohOptions, open_session
 
 log = logging.getLogger("ballbot")
@@ -492,13 +493,15 @@ class _Progress:
 class Node:
     def __init__(self, service: str, options: ZenohOptions, robot_id: str, instance: str | None = None,
                  install_signal_handlers: bool = True, clock: Clock | None = None,
-                 limits: FreshnessLimits | None = None, pool: str | None = None, worker_keys: bool = False):
+                 limits: FreshnessLimits | None = None, pool: str | None = None, worker_keys: bool = False,
+                 mount: MountSettings | None = None):
         """pool: a fleet pool's worker: its stats and token live under the pool's keys. worker_keys:
         publish stats and liveliness on the workers' own keys (worker_stats, worker_alive), the only
         ones the gateway lets an offboard worker write."""
         if service == WORKER_SEGMENT:
             raise ValueError(f"no service may be named '{WORKER_SEGMENT}': its stats key is the workers' own")
         self.service = service
+        self.mount = mount or MountSettings()  # the camera on the robot (the `mount:` section)
         self.pool = pool
         self.worker_keys = worker_keys
         self.robot_id = robot_id

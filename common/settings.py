@@ -23,7 +23,7 @@ import types
 import typing
 from typing import Any, ClassVar, TypeVar
 
-from pydantic import BaseModel, ConfigDict, TypeAdapter, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 
 from common.errors import ConfigError
 
@@ -47,6 +47,31 @@ class ServiceSettings(BaseModel):
     @classmethod
     def flag(cls, field: str, prefix: str = "") -> str:
         return "--" + (prefix + field).replace("_", "-")
+
+
+class MountSettings(ServiceSettings):
+    """The camera on the robot: where the rectified left camera sits on the robot base (REP 103, see
+    cores/segmentation/mount.py for the frames and angles). One top-level section, `mount:`, read by
+    every service (env BALLBOT_MOUNT_*, flags --mount-*): a prior, never a cage: the segmenter fits
+    the ground every frame and trusts the data where they disagree (and says so); yaw and the
+    offsets, which the ground cannot tell, are taken as configured. The full mount used for a list
+    travels with it (ObstacleList.mount), so the ROS 2 bridge, the recorder, the pictures and
+    Foxglove place things where the segmenter did."""
+
+    section = "mount"
+    height_m: float | None = Field(None, gt=0, le=20, description="camera height above the floor, m (null: "
+                                   "unknown: the ground is estimated from the disparity every frame; "
+                                   "`ballbot-vision mount estimate` measures it)")
+    pitch_deg: float = Field(0.0, ge=-90, le=90, description="camera pitch, positive looking down")
+    roll_deg: float = Field(0.0, ge=-90, le=90, description="camera roll, positive right side down")
+    yaw_deg: float = Field(0.0, ge=-180, le=180, description="camera yaw on the robot, positive to the left")
+    x_m: float = Field(0.0, ge=-10, le=10, description="camera position ahead of the base origin, m")
+    y_m: float = Field(0.0, ge=-10, le=10, description="camera position left of the base origin, m")
+
+
+# A setting that moved: (section, old field) -> where it is now. Named in the error, not ignored.
+MOVED = {(section, f"mount_{f}"): f"mount.{f}" for section in ("segmenter", "ros2")
+         for f in ("height_m", "pitch_deg", "roll_deg", "yaw_deg", "x_m", "y_m")}
 
 
 def _allows_none(annotation: Any) -> bool:
@@ -197,6 +222,15 @@ def load_settings(cls: type[S], config_file: str | None = None, args: argparse.N
             values[k] = v
             sources[k] = f"{config_file}: {cls.section}.{k}"
     texts: dict[str, tuple[str, str]] = {}
+    for k in list(values):
+        if (cls.section, k) in MOVED:
+            problems.append(f"{sources[k]}: moved to {MOVED[cls.section, k]} (the `{MOVED[cls.section, k].split('.')[0]}:` "
+                            f"section, read by every service)")
+            values.pop(k)
+    for (section, old), new in MOVED.items():
+        if section == cls.section and os.environ.get(f"BALLBOT_{section.upper()}_{old.upper()}"):
+            problems.append(f"environment variable BALLBOT_{section.upper()}_{old.upper()}: moved to "
+                            f"BALLBOT_{new.replace('.', '_').upper()}")
     for name in cls.model_fields:
         env = os.environ.get(cls.env_var(name))
         if env:  # an empty variable (common in compose files) means "not set"

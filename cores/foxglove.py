@@ -15,7 +15,7 @@ from typing import Any
 
 from foxglove import messages as fm
 
-from common.messages import CameraModel, FreeSpace, GroundTruth, ObstacleList
+from common.messages import CameraModel, CameraMount, FreeSpace, GroundTruth, ObstacleList
 
 OBSTACLE_RGBA = (1.0, 0.55, 0.0, 1.0)  # orange boxes: detections
 TRUTH_RGBA = (0.2, 0.9, 0.3, 1.0)  # green boxes: the synthetic scene's truth
@@ -115,14 +115,14 @@ def freespace_grid(msg: FreeSpace) -> fm.Grid:
                    data=bytes(msg.cells))
 
 
-def base_to_camera(stamp_ns: int, height_m: float, pitch_deg: float, roll_deg: float) -> fm.FrameTransform:
-    """base -> camera: the camera `height_m` above the base origin, pitched and rolled as the
-    segmenter's ground estimate says (conventions of segmentation/mount.py)."""
+def base_to_camera(stamp_ns: int, camera_mount: CameraMount) -> fm.FrameTransform:
+    """base -> camera: where the segmenter placed the camera for this list (ObstacleList.mount:
+    conventions of segmentation/mount.py)."""
     from scipy.spatial.transform import Rotation
 
     from cores.segmentation.mount import Mount
 
-    mount = Mount(height_m=height_m, pitch_deg=pitch_deg, roll_deg=roll_deg)
+    mount = Mount.of(camera_mount)
     q = Rotation.from_matrix(mount.R_base_camera).as_quat()  # x, y, z, w
     x, y, z = (float(v) for v in mount.origin_base)
     return fm.FrameTransform(timestamp=timestamp(stamp_ns), parent_frame_id="base", child_frame_id="camera",

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from common.messages import Odometry
+from common.settings import MountSettings
 from cores import camera
 from cores.calibration.rectify import Rectifier
 from cores.matching.config import MatcherConfig
@@ -47,23 +48,26 @@ class PipelineFrame:
 
 class Pipeline:
     """calibration: a raw rig (rectified here) or an already-rectified model (pairs pass as they
-    are); matcher: the disparity settings; segmenter: the segmenter's settings; alpha: rectify's."""
+    are); matcher: the disparity settings; segmenter: the segmenter's settings; alpha: rectify's;
+    mount: the camera on the robot (the `mount:` section every service reads)."""
 
     def __init__(self, calibration: camera.Calibration, matcher: MatcherConfig | None = None,
-                 segmenter: SegmenterSettings | None = None, alpha: float = 0.0):
+                 segmenter: SegmenterSettings | None = None, alpha: float = 0.0, mount: MountSettings | None = None):
         self.rectifier = Rectifier(calibration, alpha)
         self.model: camera.RectifiedModel = self.rectifier.model
         self.matching = MatchStage(matcher or MatcherConfig())
         self.segmenter_settings = segmenter or SegmenterSettings()
-        self.builder = ObstacleBuilder(self.segmenter_settings)
+        self.mount = mount or MountSettings()
+        self.builder = ObstacleBuilder(self.segmenter_settings, self.mount)
 
-    def fork(self, segmenter: SegmenterSettings | None = None) -> "Pipeline":
+    def fork(self, segmenter: SegmenterSettings | None = None, mount: MountSettings | None = None) -> "Pipeline":
         """Another stream through the same rectification and matcher (shared: they keep no state
         between pairs), with a segmenter of its own (fresh ground and tracks)."""
         other = object.__new__(Pipeline)
         other.rectifier, other.model, other.matching = self.rectifier, self.model, self.matching
         other.segmenter_settings = segmenter or self.segmenter_settings
-        other.builder = ObstacleBuilder(other.segmenter_settings)
+        other.mount = mount or self.mount
+        other.builder = ObstacleBuilder(other.segmenter_settings, other.mount)
         return other
 
     def rectify(self, left: np.ndarray, right: np.ndarray, names: tuple[str, str] = ("left", "right")

@@ -295,10 +295,8 @@ class Converter:
         if not msg.stale:
             out += [Recorded(OBSTACLE_BOXES, foxglove.obstacle_annotations(msg), t, msg.seq),
                     Recorded(OBSTACLE_SCENE, foxglove.obstacle_scene(msg), t, msg.seq)]
-        if msg.ground is not None and msg.ground.source != "none":
-            g = msg.ground
-            out.append(Recorded(TF, foxglove.base_to_camera(msg.stamp_ns, g.height_m, g.pitch_deg, g.roll_deg),
-                                t, msg.seq))
+        if msg.mount is not None:  # the camera where the segmenter placed it for this list
+            out.append(Recorded(TF, foxglove.base_to_camera(msg.stamp_ns, msg.mount), t, msg.seq))
         return out
 
     def freespace(self, msg: FreeSpace) -> list[Recorded]:

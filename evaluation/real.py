@@ -45,6 +45,7 @@ import numpy as np
 from cores import camera
 from common.errors import BallbotError
 from common.messages import GroundEstimate, Odometry
+from common.settings import MountSettings
 
 FLAT_HEIGHT_M = 0.25  # an obstacle nothing of which stands higher above the road is flat
 NEAR_M = 20.0  # the track-life figure counts obstacles this near
@@ -353,23 +354,15 @@ class ProcessedFrame:
 
 
 def process_recording(rec: Recording, seg_settings, matcher_cfg, frames: int | None = None,
-                      alpha: float = 0.0) -> Iterator[ProcessedFrame]:
-    """The first `frames` pairs (None: all) of the recording through Rectifier, the matcher of
-    `matcher_cfg` (num_disparities auto resolved for this camera, its range gate applied) and one
-    ObstacleBuilder (tracks carry over from pair to pair; the matcher's confidence and the
-    recording's odometry, where there are any, are passed on)."""
-    from cores.matching.disparity import to_float
+                      alpha: float = 0.0, mount: MountSettings | None = None) -> Iterator[ProcessedFrame]:
+    """The first `frames` pairs (None: all) of the recording through the pipeline the services run
+    (cores/pipeline.py: rectify, the matcher of `matcher_cfg` with num_disparities auto resolved for
+    this camera and its range gate, one ObstacleBuilder whose tracks carry over from pair to pair;
+    the matcher's confidence and the recording's odometry, where there are any, are passed on)."""
     from common.files import check_pair, read_image
-    from cores.matching.matchers import SCALE, gate_for_range, make_matcher
-    from cores.calibration.rectify import Rectifier
-    from cores.segmentation.builder import ObstacleBuilder
+    from cores.pipeline import Pipeline
 
-    rect = Rectifier(rec.calibration, alpha)
-    model = rect.model
-    cfg = matcher_cfg.resolved(model.focal_px, model.baseline_m, model.width)
-    matcher = make_matcher(cfg)
-    gate = gate_for_range(cfg.max_range_m, model.focal_px, model.baseline_m)
-    builder = ObstacleBuilder(seg_settings)
+    pipe = Pipeline(rec.calibration, matcher_cfg, seg_settings, alpha=alpha, mount=mount)
     n = len(rec.pairs) if frames is None else min(frames, len(rec.pairs))
     if n <= 0:
         raise BallbotError(f"{rec.root}: no pairs to process")
@@ -377,31 +370,23 @@ def process_recording(rec: Recording, seg_settings, matcher_cfg, frames: int | N
         lp, rp = rec.pairs[k]
         left, right = read_image(lp), read_image(rp)
         check_pair(left, right, str(lp), str(rp))
-        rect.check_size(left, str(lp))
-        rect.check_size(right, str(rp))
-        left, right = rect.rectify(left, right)
-        t0 = time.perf_counter()
-        match = matcher.match(left, right, gate)
-        match_ms = (time.perf_counter() - t0) * 1e3
-        d = to_float(match.disparity, SCALE, cfg.invalid_value)
         t_s = rec.stamps_s[k]
         odo = rec.odometry[k] if rec.odometry is not None else None
-        t0 = time.perf_counter()
-        result = builder.process(d, model, t_s=t_s, seq=k, stamp_ns=int(round(t_s * 1e9)), confidence=match.confidence,
-                                 odometry=odo, image=left, search=(cfg.min_disparity, cfg.num_disparities))
-        seg_ms = (time.perf_counter() - t0) * 1e3
-        yield ProcessedFrame(k, lp, left, d, match, result, model, seg_ms, match_ms)
+        f = pipe.process(left, right, t_s=t_s, seq=k, stamp_ns=int(round(t_s * 1e9)), odometry=odo,
+                         names=(str(lp), str(rp)))
+        yield ProcessedFrame(k, lp, f.left, f.disparity, f.stage.match, f.result, pipe.model, f.segment_ms,
+                             f.match_ms)
 
 
 def evaluate_recording(rec: Recording, seg_settings, matcher_cfg, frames: int | None = None,
                        draw_dir: str | Path | None = None, alpha: float = 0.0,
-                       on_frame: Callable[[FrameRecord], None] | None = None) -> RealReport:
+                       on_frame: Callable[[FrameRecord], None] | None = None,
+                       mount: MountSettings | None = None) -> RealReport:
     """Run the first `frames` pairs (None: all) of the recording (process_recording) and judge each
     frame's obstacles; with draw_dir, one picture per pair (draw.draw_frame) named after the left image."""
     import cv2
 
     from cores.segmentation.draw import draw_frame
-    from cores.segmentation.ground import frame_mount
 
     from common.errors import path_error
 
@@ -414,10 +399,11 @@ def evaluate_recording(rec: Recording, seg_settings, matcher_cfg, frames: int | 
             raise BallbotError(f"--draw {out}: {path_error(e)}") from None
     report = RealReport(rec.name, rec.calibration_source, rec.stamps_from, rec.odometry is not None, [],
                         pictures=str(out) if out else None)
-    report.settings = {"segmenter": seg_settings.model_dump(), "disparity": None, "range_m": seg_settings.range_m}
+    report.settings = {"segmenter": seg_settings.model_dump(), "disparity": None, "range_m": seg_settings.range_m,
+                       "mount": (mount or MountSettings()).model_dump()}
     pose = np.zeros(3)  # x, y, yaw of the base frame in the first frame's, from the odometry
     last_t = None
-    for pf in process_recording(rec, seg_settings, matcher_cfg, frames, alpha):
+    for pf in process_recording(rec, seg_settings, matcher_cfg, frames, alpha, mount):
         if report.settings["disparity"] is None:
             from cores.segmentation.builder import search_reach
 
@@ -456,8 +442,7 @@ def evaluate_recording(rec: Recording, seg_settings, matcher_cfg, frames: int | 
             fr.freespace_occupied = int(np.count_nonzero(cells == 100))
         report.frames.append(fr)
         if out is not None:
-            mount = frame_mount(result.obstacles.ground, seg_settings)
-            pic = draw_frame(pf.left, result.obstacles, pf.model, result.freespace, mount)
+            pic = draw_frame(pf.left, result.obstacles, pf.model, result.freespace)  # the list's own mount
             path = out / f"{pf.left_path.stem}.png"
             if not cv2.imwrite(str(path), pic):
                 raise BallbotError(f"{path}: cannot write")
@@ -571,8 +556,9 @@ def format_report(report: RealReport) -> str:
         mark = "-" if v["met"] is None else ("met" if v["met"] else "NOT met")
         return f"[target {v['target']} (Karlsruhe): {mark}]"
 
-    mount = ("unknown (fitted per frame)" if seg.get("mount_height_m") is None else
-             f"h {seg['mount_height_m']} m, pitch {seg['mount_pitch_deg']} deg, roll {seg['mount_roll_deg']} deg")
+    m = report.settings.get("mount") or {}
+    mount = ("unknown (fitted per frame)" if m.get("height_m") is None else
+             f"h {m['height_m']} m, pitch {m['pitch_deg']} deg, roll {m['roll_deg']} deg")
     lines = [
         f"recording {report.recording}: {f['frames']} frame(s); calibration {report.calibration}; "
         f"stamps from {report.stamps}; odometry {'insdata.txt' if report.odometry else 'none'}",

@@ -50,9 +50,9 @@ import numpy as np
 
 from common.messages import GroundEstimate, Odometry
 from cores import camera
-from cores.calibration.rectify import Rectifier
-from cores.matching.disparity import to_float
-from cores.matching.matchers import SCALE, MatcherConfig, StereoMatcher
+from common.settings import MountSettings
+from cores.matching.matchers import MatcherConfig
+from cores.pipeline import Pipeline
 from cores.segmentation.builder import ObstacleBuilder
 from cores.segmentation.ground import plane_from_mount
 from cores.segmentation.mount import Mount
@@ -153,25 +153,25 @@ def render_scenario(name: str, frames: int | None = None, fps: float | None = No
     t0 = time.perf_counter()
     scene = S.Scene.builtin(name)
     rig = camera.load_calibration(calibration)
-    rectifier = Rectifier(rig)
-    world = S.SyntheticWorld(scene, rig, rectifier.rectification, seed=seed)
+    pipe = Pipeline(rig, matcher)  # rectify and match as the services do; each method segments apart
+    world = S.SyntheticWorld(scene, rig, pipe.rectifier.rectification, seed=seed)
     n_def, fps_def = default_sequence(scene)
     frames = frames or n_def
     fps = fps or fps_def
-    stereo = StereoMatcher(matcher)
     out = []
-    x_valid = matcher.min_disparity + matcher.num_disparities + matcher.block // 2 - 1
+    c = pipe.matching.matcher(pipe.model.focal_px, pipe.model.baseline_m, pipe.model.width).config
+    x_valid = c.min_disparity + c.fixed_num_disparities + c.block // 2 - 1
     static = _truth_maps(world, 0.0, x_valid) if scene.is_static() else None
     for k in range(frames):
         t = k / fps
-        left, right = rectifier.rectify(*world.render(t))
-        d = to_float(stereo.compute(left, right), SCALE, matcher.invalid_value)
+        left, right = pipe.rectify(*world.render(t))
+        d = pipe.match(left, right).disparity_px()
         kind, seen = static if static is not None else _truth_maps(world, t, x_valid)
         n = len(scene.boxes)
         out.append(EvalFrame(t, left, d, world.truth(t), kind, [seen[i][:2] for i in range(n)],
                              [seen[i][2] for i in range(n)], world.T_base_rect(t),
                              world.odometry(t) if scene.camera_moves() else None))
-    return ScenarioData(scene.name, scene, rectifier.model, mount_from_world(world), out, time.perf_counter() - t0)
+    return ScenarioData(scene.name, scene, pipe.model, mount_from_world(world), out, time.perf_counter() - t0)
 
 
 @dataclass
@@ -325,13 +325,12 @@ def score_method(data: ScenarioData, method: str, overrides: dict | None = None,
     m = data.mount
     err = {"height_m": 0.0, "pitch_deg": 0.0, "roll_deg": 0.0, **(mount_error or {})}
     cfg = dict(METHODS[method])
-    cfg.update(mount_height_m=m.height_m + err["height_m"], mount_pitch_deg=m.pitch_deg + err["pitch_deg"],
-               mount_yaw_deg=m.yaw_deg, mount_roll_deg=m.roll_deg + err["roll_deg"], mount_x_m=m.x_m,
-               mount_y_m=m.y_m)
+    mount = MountSettings(height_m=m.height_m + err["height_m"], pitch_deg=m.pitch_deg + err["pitch_deg"],
+                          yaw_deg=m.yaw_deg, roll_deg=m.roll_deg + err["roll_deg"], x_m=m.x_m, y_m=m.y_m)
     if data.scene.range_m:
         cfg["max_range_m"] = data.scene.range_m
     cfg.update(overrides or {})
-    builder = ObstacleBuilder(SegmenterSettings(**cfg))
+    builder = ObstacleBuilder(SegmenterSettings(**cfg), mount)
     oracle = _TrueGround() if true_ground else None
     if oracle is not None:
         builder.ground = oracle  # type: ignore[assignment]

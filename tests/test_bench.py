@@ -265,6 +265,7 @@ def test_the_matcher_reference_has_the_services_matcher_settings():
 
     c = MatcherConfig(method="bm")
     m = pipeline.opencv_matcher("bm")
+    # the service's search range for the synthetic rig: num_disparities auto, about 1 m (f*B = 66 px m)
     assert (m.getBlockSize(), m.getNumDisparities(), m.getMinDisparity()) == (c.block, 64, c.min_disparity)
     assert (m.getUniquenessRatio(), m.getTextureThreshold()) == (c.uniqueness_ratio, c.texture_threshold)
     s = MatcherConfig(method="sgbm")

@@ -104,11 +104,11 @@ def test_nothing_matched_means_no_disparity_and_zero_confidence():
 
 def test_dense_gives_every_pixel_a_value_and_beats_sgbm_on_the_synthetic_world(scene):
     left, right, gt, _ = scene
-    cfg = MatcherConfig(method="dense")
+    cfg = MatcherConfig(method="dense", num_disparities=64)
     m = make_matcher(cfg).match(left, right)
     d = to_float(m.disparity, 16, cfg.invalid_value)
     assert np.isfinite(d).all() and m.confidence.dtype == np.uint8 and m.confidence.shape == d.shape
-    sgbm = to_float(make_matcher(MatcherConfig(method="sgbm")).compute(left, right), 16, -16)
+    sgbm = to_float(make_matcher(MatcherConfig(method="sgbm", num_disparities=64)).compute(left, right), 16, -16)
     for px in (1.0, 2.0):
         assert bad_rate(d, gt, px) < 0.7 * bad_rate(sgbm, gt, px), px
     # confidence means something: the confident half is more often right than the rest
@@ -137,11 +137,14 @@ def test_dense_beats_every_opencv_setting_by_a_quarter_on_each_real_pair():
 # --- search range ----------------------------------------------------------------------------------
 
 def test_auto_range_from_the_calibration(scene):
+    """auto: the multiple of 16 nearest to the disparity of min_range_m (it reaches about that far),
+    capped at 512 and at a quarter of the image width (bm measures nothing in the left band)."""
     left, right, _, model = scene
-    assert auto_num_disparities(600.0, 0.1, 0.5) == 128  # d = 120 px at 0.5 m: searched 0..127
+    assert auto_num_disparities(600.0, 0.1, 0.5) == 128  # d = 120 px at 0.5 m: 0..120 is 121 values
     assert auto_num_disparities(600.0, 0.1, 1.0) == 64  # 60 px
-    assert auto_num_disparities(640.0, 0.1, 1.0) == 80  # 64 px needs 0..64, one more than 64 values
-    assert auto_num_disparities(600.0, 0.1, 1.0, min_disparity=8) == 64  # 8..71
+    assert auto_num_disparities(640.0, 0.1, 1.0) == 64  # 64 px: reaches 1.02 m (80 px would widen the band)
+    assert auto_num_disparities(720.0, 0.1, 1.0) == 80  # 72 px: 73 values are nearer 80 than 64
+    assert auto_num_disparities(600.0, 0.1, 1.0, min_disparity=8) == 48  # 8..60 (53 values)
     assert auto_num_disparities(600.0, 0.1, 0.01) == 512
     assert auto_num_disparities(600.0, 0.1, 0.01, width=320) == 80  # a quarter of the width: bm's blind band
     assert auto_num_disparities(645.24, 0.5707, 0.5, width=1344) == 336  # Karlsruhe: 1.1 m, not 0.5 m
@@ -149,11 +152,13 @@ def test_auto_range_from_the_calibration(scene):
         MatcherConfig(num_disparities="auto").fixed_num_disparities
     with pytest.raises(ValidationError):
         MatcherConfig(num_disparities="far")
-    cfg = MatcherConfig(method="bm", num_disparities="auto")
+    cfg = MatcherConfig(method="bm", num_disparities="auto", min_range_m=0.5)
     near = model.focal_px * model.baseline_m / 0.5  # 132 px for the thesis rig at 0.5 m
-    assert cfg.resolved(model.focal_px, model.baseline_m).num_disparities == 144 > near
+    assert cfg.resolved(model.focal_px, model.baseline_m).num_disparities == 128 == round(near / 16) * 16
     out = FrameComputer(cfg).compute(frame(left, right, model), "w")
-    assert out.num_disparities == 144 and out.method == "bm"
+    assert out.num_disparities == 128 and out.method == "bm"
+    # the default: about 1 m on the thesis rig, as its 64 px reached
+    assert MatcherConfig().resolved(model.focal_px, model.baseline_m, model.width).num_disparities == 64
 
 
 def test_a_too_small_range_is_reported(scene):
@@ -169,7 +174,7 @@ def test_a_too_small_range_is_reported(scene):
 @pytest.mark.parametrize("encoding", ["raw", "png"])
 def test_dense_maps_carry_their_confidence(scene, encoding):
     left, right, _, model = scene
-    cfg = MatcherConfig(method="dense")
+    cfg = MatcherConfig(method="dense", num_disparities=64)
     msg = FrameComputer(cfg, result_encoding=encoding).compute(frame(left, right, model), "w")
     assert msg.method == "dense" and msg.confidence is not None
     assert msg.confidence.encoding == encoding
@@ -182,7 +187,7 @@ def test_dense_maps_carry_their_confidence(scene, encoding):
 
 def test_bad_inputs_are_refused(scene):
     left, right, _, _ = scene
-    m = make_matcher(MatcherConfig(method="dense"))
+    m = make_matcher(MatcherConfig(method="dense", num_disparities=64))
     with pytest.raises(BallbotError, match="differ in size"):
         m.match(left, right[:-2])
     with pytest.raises(BallbotError, match="8-bit"):
@@ -208,7 +213,7 @@ def test_offline_dense_with_confidence_auto_range_and_warnings(tmp_path, capsys)
     assert main(["disparity", *pair, *cal, "-o", str(tmp_path / "d.npy"), "--method", "dense",
                  "--num-disparities", "auto", "--confidence", str(tmp_path / "c.png")]) == 0
     out = capsys.readouterr()
-    assert "searched 0..143 px" in out.out and "warning" not in out.err
+    assert "searched 0..63 px" in out.out and "warning" not in out.err  # about 1 m (min_range_m), as the thesis
     d, c = np.load(tmp_path / "d.npy"), cv2.imread(str(tmp_path / "c.png"), cv2.IMREAD_UNCHANGED)
     assert np.isfinite(d).all() and c.dtype == np.uint8 and c.shape == d.shape and c.max() > 200
     # a range too small for the scene: said on stderr
@@ -253,7 +258,7 @@ def test_robot_runs_bm_onboard_and_an_offboard_worker_runs_dense(tmp_path):
             assert maps.wait_for(lambda ms: any(m.method == "dense" for m in ms), 120), \
                 f"no dense map from the worker; logs in {tmp_path}"
             d = next(m for m in maps.items if m.method == "dense")
-            assert d.confidence is not None and d.num_disparities == 80 and d.stamp_ns > 0
+            assert d.confidence is not None and d.num_disparities == 64 and d.stamp_ns > 0
             conf = codec.array_from_image(d.confidence, "confidence")
             assert conf.shape == (d.image.height, d.image.width) and conf.max() > 200
             assert not any(m.confidence is not None for m in maps.items if m.method == "bm/onboard")

@@ -9,7 +9,7 @@ from common.messages import FreeSpace, GroundEstimate, Obstacle, ObstacleList
 from cores.segmentation import draw as D
 from cores.segmentation.ground import frame_mount
 from cores.segmentation.mount import Mount
-from cores.segmentation.settings import SegmenterSettings
+from common.settings import MountSettings
 
 MODEL = camera.RectifiedModel(320, 240, 200.0, 160.0, 120.0, 0.1)
 GREY = 100
@@ -21,7 +21,10 @@ def _obstacle(id_: int, bbox, confirmed: bool, distance: float = 2.0) -> Obstacl
 
 
 def _list(obstacles, ground=None) -> ObstacleList:
-    return ObstacleList(robot_id="t", seq=7, stamp_ns=0, publish_ns=0, stale=False, obstacles=obstacles, ground=ground)
+    """A list as the segmenter makes it: with a ground, the mount it puts the camera at (frame_mount)."""
+    mount, source = frame_mount(ground, MountSettings())
+    return ObstacleList(robot_id="t", seq=7, stamp_ns=0, publish_ns=0, stale=False, obstacles=obstacles, ground=ground,
+                        mount=None if mount is None else mount.message(source))
 
 
 def _is(px, colour) -> bool:
@@ -79,7 +82,7 @@ def _project(mount: Mount, p_base) -> tuple[int, int]:
 
 def test_free_space_cells_project_onto_the_ground_green_free_red_occupied():
     ground = GroundEstimate(height_m=1.0, pitch_deg=20.0, roll_deg=3.0, source="fitted")
-    mount = frame_mount(ground, SegmenterSettings())
+    mount, _ = frame_mount(ground, MountSettings())
     res, n = 0.5, 20
     cells = np.full((n, n), -1, np.int8)  # row: y from -5 m, col: x from 0 m
     cells[:, 2:8] = 0  # x 1..4 m free
@@ -102,7 +105,7 @@ def test_free_space_cells_project_onto_the_ground_green_free_red_occupied():
     assert _is(out[30, 160], (GREY,) * 3)  # above the horizon: nothing
     # the same grid with the mount yawed 90 deg left sees none of it (the cells lie to its right)
     turned = D.draw_frame(img, _list([], ground), MODEL, fs,
-                          frame_mount(ground, SegmenterSettings(mount_yaw_deg=90.0, mount_x_m=-6.0)))
+                          frame_mount(ground, MountSettings(yaw_deg=90.0, x_m=-6.0))[0])
     assert np.all(turned[D.CAPTION_PX:] == GREY)
     # no ground estimate: no grid
     plain = D.draw_frame(img, _list([]), MODEL, fs)

@@ -46,34 +46,31 @@ FLOOR_ROW = 320  # room: rows below this are the floor with the tape strips and 
 
 
 def _maps(root, method: str):
-    """(model, [(disparity px float with NaN, confidence or None)]) of the first FRAMES pairs."""
-    from cores.matching.disparity import to_float
+    """(recording, model, the matcher settings resolved, [(disparity px float with NaN, confidence or
+    None)]) of the first FRAMES pairs, rectified and matched as the pipeline does."""
     from common.files import read_image
     from cores.matching.config import MatcherConfig
-    from cores.matching.matchers import SCALE, make_matcher
-    from cores.calibration.rectify import Rectifier
+    from cores.pipeline import Pipeline
 
     rec = R.open_recording(root)
-    rect = Rectifier(rec.calibration, 0.0)
-    m = rect.model
-    cfg = MatcherConfig(method=method, num_disparities="auto").resolved(m.focal_px, m.baseline_m, m.width)
-    matcher = make_matcher(cfg)
-    out = []
+    pipe = Pipeline(rec.calibration, MatcherConfig(method=method, num_disparities="auto"))
+    out, cfg = [], None
     for lp, rp in rec.pairs[:FRAMES]:
-        left, right = rect.rectify(read_image(lp), read_image(rp))
-        match = matcher.match(left, right)
-        out.append((to_float(match.disparity, SCALE, cfg.invalid_value), match.confidence))
-    return rec, m, cfg, out
+        stage = pipe.match(*pipe.rectify(read_image(lp), read_image(rp)))
+        out.append((stage.disparity_px(), stage.match.confidence))
+        cfg = stage.config
+    return rec, pipe.model, cfg, out
 
 
 def _mount(kind: str, height: float, pitch: float) -> dict:
-    return {"none": {}, "pitch+8": {"mount_height_m": height, "mount_pitch_deg": pitch + 8},
-            "pitch-8": {"mount_height_m": height, "mount_pitch_deg": pitch - 8},
-            "height+30%": {"mount_height_m": height * 1.3, "mount_pitch_deg": pitch},
-            "height-30%": {"mount_height_m": height * 0.7, "mount_pitch_deg": pitch}}[kind]
+    return {"none": {}, "pitch+8": {"height_m": height, "pitch_deg": pitch + 8},
+            "pitch-8": {"height_m": height, "pitch_deg": pitch - 8},
+            "height+30%": {"height_m": height * 1.3, "pitch_deg": pitch},
+            "height-30%": {"height_m": height * 0.7, "pitch_deg": pitch}}[kind]
 
 
 def _cells(name: str, root, room: bool) -> list[dict]:
+    from common.settings import MountSettings
     from cores.segmentation.builder import ObstacleBuilder
     from cores.segmentation.settings import SegmenterSettings
 
@@ -92,8 +89,8 @@ def _cells(name: str, root, room: bool) -> list[dict]:
             gated = [R.fit_road_profile(np.where(d >= fB / rng, d, np.nan), model) for d, _ in maps]
             truth = [R.fit_road_profile(np.where(d >= fB / rng, d, np.nan), model) for d, _ in ref_maps]
             for kind in MOUNTS:
-                settings = SegmenterSettings(max_range_m=rng, **_mount(kind, h0, p0))
-                builder = ObstacleBuilder(settings)
+                settings = SegmenterSettings(max_range_m=rng)
+                builder = ObstacleBuilder(settings, MountSettings(**_mount(kind, h0, p0)))
                 dh, dp, flat, judged, on_floor, sources = [], [], 0, 0, [], []
                 dh_ref, dp_ref = [], []  # against the sgbm map's road: shown, not judged
                 for k, (d, conf) in enumerate(maps):

@@ -25,6 +25,7 @@ from services.disparity.state import DispatchState
 from services.disparity.results import (Ticket, max_payload_bytes, measure, parse_header,
                                                        result_header, vet_header, vet_map)
 from cores.segmentation.builder import ObstacleBuilder
+from common.settings import MountSettings
 from cores.segmentation.settings import SegmenterSettings
 
 KEY = os.urandom(32)
@@ -310,7 +311,7 @@ def _disparity_message(d: np.ndarray, seq: int) -> DisparityMap:
 def test_the_list_says_when_the_map_collapsed_against_the_last_frames():
     from test_segmenter import scene
 
-    b = ObstacleBuilder(SegmenterSettings(mount_height_m=1.0, mount_pitch_deg=15.0))
+    b = ObstacleBuilder(SegmenterSettings(), MountSettings(height_m=1.0, pitch_deg=15.0))
     full = scene([(200, 330, 1.8, 150)])
     out = [b.process_message(_disparity_message(full, i), t_s=i / 10).obstacles for i in range(8)]
     assert all(not o.degraded for o in out) and len(out[-1].obstacles) == 1

@@ -15,6 +15,7 @@ from common.errors import ConfigError
 from common.settings import load_settings
 from sim import synthetic as S
 from services.disparity.main import DisparitySettings
+from cores.matching.stage import MatchStage
 from cores.matching.matchers import (HalfResolutionMatcher, MatcherConfig, StereoMatcher,
                                                        gate_for_range)
 from cores.calibration.rectify import Rectifier
@@ -39,7 +40,7 @@ def errors(cfg: MatcherConfig, scene) -> tuple[np.ndarray, np.ndarray, np.ndarra
 
 @pytest.mark.parametrize("method", ["bm", "sgbm"])
 def test_matches_the_synthetic_ground_truth(scene, method):
-    d, valid, err = errors(MatcherConfig(method=method), scene)
+    d, valid, err = errors(MatcherConfig(method=method, num_disparities=64), scene)
     assert valid.mean() > 0.7, f"{method}: only {valid.mean():.0%} of pixels matched"
     assert (err[valid] > 1.0).mean() < 0.03
     assert np.median(err[valid]) < 0.3  # subpixel: well below a pixel
@@ -47,8 +48,8 @@ def test_matches_the_synthetic_ground_truth(scene, method):
 
 def test_lr_check_removes_bad_pixels(scene):
     for method in ("bm", "sgbm"):
-        _, v0, e0 = errors(MatcherConfig(method=method), scene)
-        _, v1, e1 = errors(MatcherConfig(method=method, lr_check=True), scene)
+        _, v0, e0 = errors(MatcherConfig(method=method, num_disparities=64), scene)
+        _, v1, e1 = errors(MatcherConfig(method=method, num_disparities=64, lr_check=True), scene)
         bad0, bad1 = (e0[v0] > 1).sum(), (e1[v1] > 1).sum()
         assert bad1 < 0.8 * bad0, f"{method}: LR check kept {bad1} of {bad0} bad pixels"
         assert bad1 / v1.sum() < bad0 / v0.sum()
@@ -61,7 +62,7 @@ def test_range_gate_in_metres(scene):
     assert gate == pytest.approx(model.focal_px * model.baseline_m / 3.0)
     assert 15 < gate < 30  # the thesis kept 0-3 m, i.e. d >= ~20 px
     assert gate_for_range(0, model.focal_px, model.baseline_m) == 0.0
-    m = StereoMatcher(MatcherConfig(method="bm"))
+    m = StereoMatcher(MatcherConfig(method="bm", num_disparities=64))
     full = to_float(m.compute(left, right), 16, -16)
     gated = to_float(m.compute(left, right, gate), 16, -16)
     assert np.nanmin(full) < gate <= np.nanmin(gated)
@@ -71,14 +72,14 @@ def test_range_gate_in_metres(scene):
 
 def test_fixed_point_contract(scene):
     left, right, _, _ = scene
-    cfg = MatcherConfig(method="sgbm", min_disparity=4)
+    cfg = MatcherConfig(method="sgbm", min_disparity=4, num_disparities=64)
     raw = StereoMatcher(cfg).compute(left, right)
     assert raw.dtype == np.int16 and raw.shape == left.shape
     assert cfg.invalid_value == 3 * 16
     assert raw.min() == cfg.invalid_value  # one explicit invalid value ...
     assert (raw[raw != cfg.invalid_value] >= 4 * 16).all()  # ... and nothing else below the range
     assert (raw % 16 != 0).any()  # subpixel
-    whole = StereoMatcher(MatcherConfig(method="sgbm", subpixel=False)).compute(left, right)
+    whole = StereoMatcher(MatcherConfig(method="sgbm", subpixel=False, num_disparities=64)).compute(left, right)
     assert (whole % 16 == 0).all()
     f = to_float(raw, 16, cfg.invalid_value)
     assert np.isnan(f[raw == cfg.invalid_value]).all()
@@ -86,7 +87,7 @@ def test_fixed_point_contract(scene):
 
 def test_half_resolution_fallback_keeps_the_contract(scene):
     left, right, gt, _ = scene
-    cfg = MatcherConfig(method="bm")
+    cfg = MatcherConfig(method="bm", num_disparities=64)
     d = to_float(HalfResolutionMatcher(cfg).compute(left, right), 16, cfg.invalid_value)
     assert d.shape == left.shape
     valid = np.isfinite(d) & np.isfinite(gt)
@@ -184,7 +185,7 @@ def test_one_model_for_the_matching_settings(capsys):
     service = DisparitySettings()
     assert isinstance(service, MatcherConfig)
     assert not set(DisparitySettings.__annotations__) & set(MatcherConfig.model_fields)  # no setting twice
-    assert StereoMatcher(service).config is service
+    assert MatchStage(service).config is service
     with pytest.raises(SystemExit):
         main(["disparity", "--help"])
     help_text = capsys.readouterr().out

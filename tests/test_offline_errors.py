@@ -268,7 +268,7 @@ def test_an_output_path_that_cannot_be_written_is_a_one_line_error(tmp_path, cap
     (tmp_path / "a-folder").mkdir()
     l, r, f = str(tmp_path / "l.png"), str(tmp_path / "r.png"), tmp_path / "a-file"
     for argv, where, why in [
-        (["disparity", l, r, "-o", f"{f}/d.npy"], f, "is a file, not a folder"),
+        (["disparity", l, r, "--num-disparities", "64", "-o", f"{f}/d.npy"], f, "is a file, not a folder"),
         (["rectify", l, r, "--calibration", "lifecam-studio", "-o", str(f)], f, "is a file, not a folder"),
         (["calibration", "show", "lifecam-studio"], None, None),
         (["calibration", "export", "lifecam-studio", f"{f}/l.yaml", f"{f}/r.yaml"], f"{f}/l.yaml",

@@ -11,6 +11,7 @@ from cores.matching.disparity import to_float
 from cores.matching.matchers import MatcherConfig, StereoMatcher
 from cores.calibration.rectify import Rectifier
 from cores.segmentation.seed import segment
+from cores.segmentation.mount import Mount
 from cores.segmentation.settings import SegmenterSettings
 
 
@@ -20,7 +21,7 @@ def chain():
     pair = src.read()
     rect = Rectifier(camera.load_calibration("lifecam-studio"))
     left, right = rect.rectify(pair.left, pair.right)
-    cfg = MatcherConfig()
+    cfg = MatcherConfig(num_disparities=64)
     disparity = to_float(StereoMatcher(cfg).compute(left, right), 16.0, cfg.invalid_value)
     return pair, rect, left, right, disparity
 
@@ -53,7 +54,7 @@ def test_block_matching_agrees_with_true_depth(chain):
 
 def test_seed_segmentation_finds_both_boxes_within_5_percent(chain):
     pair, rect, _, _, disparity = chain
-    dets = segment(disparity, rect.model, SegmenterSettings(method="seed", mount_height_m=1.0, mount_pitch_deg=15.0))
+    dets = segment(disparity, rect.model, SegmenterSettings(method="seed"), Mount(1.0, 15.0))
     assert len(dets) == len(pair.truth) == 2
     for t in pair.truth:
         c = np.asarray(t.visible_centroid_m)
@@ -67,7 +68,7 @@ def test_without_floor_removal_the_floor_swallows_the_boxes(chain):
     """The thesis's pipeline alone: the textured floor in range joins both boxes into one region.
     This is why the camera mount is a setting."""
     pair, rect, _, _, disparity = chain
-    dets = segment(disparity, rect.model, SegmenterSettings(method="seed", mount_height_m=None))
+    dets = segment(disparity, rect.model, SegmenterSettings(method="seed"), mount=None)
     assert len(dets) < len(pair.truth)
 
 

@@ -16,7 +16,7 @@ from ballbot_vision.cli import main
 from cores import camera
 from common.errors import BallbotError, ConfigError
 from common.messages import GroundEstimate
-from common.settings import load_settings
+from common.settings import MountSettings, load_settings
 from cores.segmentation import draw as D
 from evaluation import real as R
 from cores.segmentation.mount import Mount
@@ -120,27 +120,28 @@ def test_figures_count_flat_obstacles_and_track_life():
 
 def test_merge_into_config_keeps_the_file_and_load_settings_reads_it(tmp_path):
     cfg = tmp_path / "robot.yaml"
-    cfg.write_text("# my robot\nsegmenter:\n  method: layers  # the default\n  mount_height_m: 1.0\n\n"
+    cfg.write_text("# my robot\nsegmenter:\n  method: layers  # the default\nmount:\n  height_m: 1.0  # taped\n\n"
                    "disparity:\n  method: sgbm\n")
-    values = {"mount_height_m": 0.944, "mount_pitch_deg": 22.5, "mount_roll_deg": -1.2}
+    values = {"height_m": 0.944, "pitch_deg": 22.5, "roll_deg": -1.2}
     assert merge_into_config(cfg, values) is True
     text = cfg.read_text()
-    assert "# my robot" in text and "# the default" in text and "mount_height_m: 1.0\n" not in text
-    s = load_settings(SegmenterSettings, str(cfg))
-    assert (s.mount_height_m, s.mount_pitch_deg, s.mount_roll_deg, s.method) == (0.944, 22.5, -1.2, "layers")
+    assert "# my robot" in text and "# the default" in text and "height_m: 1.0" not in text
+    m = load_settings(MountSettings, str(cfg))
+    assert (m.height_m, m.pitch_deg, m.roll_deg) == (0.944, 22.5, -1.2)
+    assert load_settings(SegmenterSettings, str(cfg)).method == "layers"
     from cores.matching.config import MatcherConfig
     assert load_settings(MatcherConfig, str(cfg)).method == "sgbm"
     flow = tmp_path / "flow.yaml"  # a flow-style section: rewritten from its content
-    flow.write_text("segmenter: {method: seed}\nviewer: {port: 8081}\n")
+    flow.write_text("segmenter: {method: seed}\nmount: {height_m: 1.0}\nviewer: {port: 8081}\n")
     assert merge_into_config(flow, values) is False
     assert load_settings(SegmenterSettings, str(flow)).method == "seed"
-    assert load_settings(SegmenterSettings, str(flow)).mount_pitch_deg == 22.5
+    assert load_settings(MountSettings, str(flow)).pitch_deg == 22.5
     new = tmp_path / "new.yaml"
     merge_into_config(new, values)
-    assert load_settings(SegmenterSettings, str(new)).mount_roll_deg == -1.2
+    assert load_settings(MountSettings, str(new)).roll_deg == -1.2
     before = cfg.read_text()
     with pytest.raises(ConfigError, match="not be valid"):
-        merge_into_config(cfg, {"mount_height_m": -1.0})
+        merge_into_config(cfg, {"height_m": -1.0})
     assert cfg.read_text() == before
 
 
@@ -168,7 +169,7 @@ def test_karlsruhe_eval_real_gives_figures_and_pictures(tmp_path, capsys):
     doc = json.loads(capsys.readouterr().out)
     f = doc["figures"]
     assert f["frames"] == 3 and doc["odometry"] is True and doc["stamps"] == "insdata.txt"
-    assert doc["settings"]["range_m"] == 30.0 and doc["settings"]["segmenter"]["mount_height_m"] is None
+    assert doc["settings"]["range_m"] == 30.0 and doc["settings"]["mount"]["height_m"] is None
     assert f["obstacles"] > 0 and f["median_obstacles_per_frame"] > 0
     assert f["flat_fraction"] is not None and 0 <= f["flat_fraction"] <= 1
     assert f["segment_ms"]["n"] == 3 and f["road_profile_frames"] == 3
@@ -219,10 +220,10 @@ def test_mount_estimate_writes_a_config_that_load_settings_reads(tmp_path, capsy
     cfg.write_text("# the drone\ndisparity:\n  method: bm\n")
     assert main(["mount", "estimate", "--real", str(EUROC), "--frames", "3", "--write", str(cfg)]) == 0
     text = capsys.readouterr().out
-    assert "mount_height_m:" in text and "p10" in text and f"to {cfg}" in text
-    s = load_settings(SegmenterSettings, str(cfg))
+    assert "height_m:" in text and "p10" in text and f"to {cfg}" in text
+    s = load_settings(MountSettings, str(cfg))
     # the floor ~0.94 m below the camera looking ~22 deg down (the road profile agrees: see eval --real)
-    assert 0.7 < s.mount_height_m < 1.2 and 15 < s.mount_pitch_deg < 30 and abs(s.mount_roll_deg) < 5
+    assert 0.7 < s.height_m < 1.2 and 15 < s.pitch_deg < 30 and abs(s.roll_deg) < 5
     assert cfg.read_text().startswith("# the drone\ndisparity:\n  method: bm\n")
 
 
@@ -273,7 +274,7 @@ def test_euroc_tape_and_mat_on_the_floor_are_free_the_mattresses_and_chessboard_
     lean on the walls and a chessboard stands before the right one. Pixel places read off the
     pictures of the first frames (rectified left image, 752x480)."""
     from cores.matching.config import MatcherConfig
-    from cores.segmentation.ground import frame_mount
+    from cores.segmentation.mount import Mount
     from cores.segmentation.settings import SegmenterSettings
 
     rec = R.open_recording(EUROC)
@@ -292,7 +293,7 @@ def test_euroc_tape_and_mat_on_the_floor_are_free_the_mattresses_and_chessboard_
         # the floor with the tape strips (left, middle) and the mat (right) is free space
         fs = pf.result.freespace
         cells = np.frombuffer(fs.cells, np.int8).reshape(fs.height, fs.width)
-        mount = frame_mount(lst.ground, settings)
+        mount = Mount.of(lst.mount)  # where the segmenter put the camera for this list
         for u, v in ((200, 420), (420, 400), (620, 400)):  # a tape strip, the middle tape, the mat
             ray = np.array([(u - pf.model.cx) / pf.model.focal_px, (v - pf.model.cy) / pf.model.focal_px, 1.0])
             n = mount.R_base_camera.T @ np.array([0.0, 0.0, -1.0])  # floor normal (down), camera frame

@@ -194,7 +194,8 @@ def test_the_karlsruhe_recording_replayed_through_up_gives_obstacle_lists(tmp_pa
     # A car's camera: 128 disparities reach 5.7 m at f*B = 368 px m; the range gate at 25 m.
     config.write_text(f"capture: {{source: mcap, mcap: {out}, loop: true}}\n"
                       "disparity: {num_disparities: 128}\n"
-                      "segmenter: {max_range_m: 25, mount_height_m: 1.65, mount_pitch_deg: 0}\n")
+                      "segmenter: {max_range_m: 25}\n"
+                      "mount: {height_m: 1.65, pitch_deg: 0}\n")
     up = Up(robot_id="karlsruhe", extra_args=["--config", str(config)])
     try:
         lists = Collector(ObstacleList)

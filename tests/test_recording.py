@@ -18,7 +18,7 @@ jsonschema = pytest.importorskip("jsonschema", reason="schema checks need jsonsc
 
 from common import codec
 from common.errors import SourceError
-from common.messages import (CameraModel, DisparityMap, FreeSpace, GroundEstimate, GroundTruth,
+from common.messages import (CameraMount, CameraModel, DisparityMap, FreeSpace, GroundEstimate, GroundTruth,
                                             Obstacle, ObstacleList, ReplayControl, ServiceStats, StereoFrame,
                                             TruthObstacle)
 from services.capture.mcap_source import McapSource
@@ -52,7 +52,8 @@ def obstacles(k: int, stamp0: int = 10**18) -> ObstacleList:
                                                          distance_m=1.9, bbox_px=(5, 6, 30, 40), area_px=500,
                                                          disparity_px=3.0, confidence=0.9,
                                                          position_base_m=(2.0, -0.1, 0.3))],
-                        ground=GroundEstimate(height_m=1.0, pitch_deg=15, roll_deg=1, source="fitted"))
+                        ground=GroundEstimate(height_m=1.0, pitch_deg=15, roll_deg=1, source="fitted"),
+                        mount=CameraMount(height_m=1.0, pitch_deg=15, roll_deg=1, source="ground"))
 
 
 def truth(k: int, stamp0: int = 10**18) -> GroundTruth:

@@ -243,13 +243,17 @@ def test_tf_static_maps_camera_points_as_the_mount_does(jazzy):
     assert np.allclose(p_base, mount.to_base(p_cam), atol=1e-9)
 
 
-def test_mount_comes_from_the_ground_estimate_else_the_settings():
-    s = Ros2Settings(mount_yaw_deg=5.0)
-    assert mount_from(_obstacles(), s) is None
-    g = GroundEstimate(height_m=1.1, pitch_deg=12.0, roll_deg=1.0, source="fitted")
-    m = mount_from(_obstacles(g), s)
+def test_mount_is_the_one_the_list_carries_else_the_configured_one():
+    from common.messages import CameraMount
+    from common.settings import MountSettings
+
+    s, configured = Ros2Settings(), MountSettings(yaw_deg=5.0)
+    assert mount_from(_obstacles(), configured) is None  # nothing known yet
+    lst = _obstacles().model_copy(update={"mount": CameraMount(height_m=1.1, pitch_deg=12.0, roll_deg=1.0,
+                                                               yaw_deg=5.0, source="ground")})
+    m = mount_from(lst, configured)
     assert (m.height_m, m.pitch_deg, m.roll_deg, m.yaw_deg) == (1.1, 12.0, 1.0, 5.0)
-    assert mount_from(_obstacles(), Ros2Settings(mount_height_m=0.8)).height_m == 0.8
+    assert mount_from(_obstacles(), MountSettings(height_m=0.8, pitch_deg=10.0)).height_m == 0.8
     assert mount_moved(None, m, s) and not mount_moved(m, m, s)
     assert mount_moved(m, Mount(1.1, 14.0, 5.0, 1.0), s)
 

@@ -141,7 +141,7 @@ def test_bridge_topics_read_by_raw_zenoh_rosbags_and_zenoh_ros2_sdk(tmp_path):
     port = free_port()
     ep = f"tcp/127.0.0.1:{port}"
     cfg = tmp_path / "cfg.yaml"
-    cfg.write_text("ros2: {mount_height_m: 0.9, mount_pitch_deg: 20}\n")
+    cfg.write_text("mount: {height_m: 0.9, pitch_deg: 20}\n")  # the one section every service reads
     t0 = time.time_ns()
     up = start(["up", "--ros2", "--connect", ep, "--robot-id", "rb", "--config", str(cfg)], tmp_path / "up.log")
     samples: dict[str, list] = defaultdict(list)
@@ -272,8 +272,9 @@ def test_bridge_topics_read_by_raw_zenoh_rosbags_and_zenoh_ros2_sdk(tmp_path):
             if name == "tf_static":
                 tf = msg.transforms[0]
                 assert (tf.header.frame_id, tf.child_frame_id) == ("base_link", "stereo_camera_optical_frame")
-                # the bridge's own mount setting (0.9 m) until a list carries the segmenter's ground
-                # estimate, which then wins: the synthetic camera is 1.0 m above its floor
+                # the configured mount (0.9 m) until a list carries the mount the segmenter used (its
+                # fitted ground, which wins over the configured prior): the synthetic camera is 1.0 m
+                # above its floor
                 tf_heights.append(tf.transform.translation.z)
             if name == "obstacles/points" and msg.width:
                 assert msg.point_step == 16 and len(msg.data) == 16 * msg.width

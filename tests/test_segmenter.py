@@ -11,8 +11,9 @@ import pytest
 from cores import camera
 from common.errors import DecodeError
 from common.messages import CameraModel, DisparityMap, Image
+from common.settings import MountSettings
 from cores.segmentation import layers, seed
-from cores.segmentation.builder import ObstacleBuilder, Segmenter
+from cores.segmentation.builder import ObstacleBuilder
 from cores.segmentation.settings import SegmenterSettings
 from cores.segmentation.mount import FloorPlane, Mount
 
@@ -46,9 +47,9 @@ def scene(boxes=(), mount: Mount = Mount(1.0, 15.0), wall_m: float = 5.0, noise:
     return d
 
 
-def _mounted(m: Mount) -> SegmenterSettings:
-    return SegmenterSettings(mount_height_m=m.height_m, mount_pitch_deg=m.pitch_deg, mount_yaw_deg=m.yaw_deg,
-                             mount_roll_deg=m.roll_deg, mount_x_m=m.x_m, mount_y_m=m.y_m)
+def _mounted(m: Mount) -> MountSettings:
+    return MountSettings(height_m=m.height_m, pitch_deg=m.pitch_deg, yaw_deg=m.yaw_deg, roll_deg=m.roll_deg,
+                         x_m=m.x_m, y_m=m.y_m)
 
 
 def _depths(dets):
@@ -143,7 +144,7 @@ def test_layers_keeps_an_object_cut_by_the_image_border():
 def test_layers_removes_the_floor_with_or_without_a_good_mount(prior):
     d = scene([(250, 390, 2.2, 180)])
     fl = []
-    dets = layers.segment(d, MODEL, SegmenterSettings(mount_height_m=None) if prior is None else _mounted(prior), floor_out=fl)
+    dets = layers.segment(d, MODEL, SegmenterSettings(), floor_out=fl, mount=prior)
     assert _depths(dets) == [2.2]
     assert fl[0] is not None and abs(fl[0].height_m - 1.0) < 0.05
     n, h = fl[0].normal_height(MODEL.focal_px, MODEL.cx, MODEL.cy, MODEL.baseline_m)
@@ -182,7 +183,8 @@ def test_bad_input_gives_no_obstacles_and_a_size_mismatch_raises():
         assert seed.segment(d, MODEL, SegmenterSettings(method="seed")) == []
     with pytest.raises(ValueError, match="camera model"):
         layers.segment(np.zeros((10, 10), np.float32), MODEL, cfg)
-    assert Segmenter(SegmenterSettings()).detect(np.zeros((0, 0), np.float32), MODEL) == []
+    empty = ObstacleBuilder(SegmenterSettings()).process(np.zeros((0, 0), np.float32), MODEL, t_s=0.0, seq=0, stamp_ns=0)
+    assert empty.obstacles.obstacles == [] and "no-valid-disparity" in empty.obstacles.degraded
 
 
 def test_edge_refinement_snaps_the_box_to_intensity_edges():
@@ -235,8 +237,8 @@ def test_settings_default_to_layers_and_seed_can_reproduce_the_thesis():
     assert s.method == "layers" and s.range_m == 4.5
     thesis = SegmenterSettings(method="seed", floor_removal=False)
     assert thesis.range_m == 3.0
-    assert SegmenterSettings().mount() is None  # no silent mount: the ground is estimated
-    assert (SegmenterSettings(mount_height_m=1.0, mount_pitch_deg=15.0, mount_roll_deg=2.0, mount_x_m=0.1).mount()
+    assert Mount.of(MountSettings()) is None  # no silent mount: the ground is estimated
+    assert (Mount.of(MountSettings(height_m=1.0, pitch_deg=15.0, roll_deg=2.0, x_m=0.1))
             == Mount(1.0, 15.0, 0.0, 2.0, 0.1, 0.0))
 
 
@@ -251,7 +253,7 @@ def _message(d: np.ndarray, model=MODEL, width=None) -> DisparityMap:
 
 
 def test_builder_publishes_every_field_and_the_base_frame():
-    b = ObstacleBuilder(SegmenterSettings(mount_height_m=1.0, mount_pitch_deg=15.0))
+    b = ObstacleBuilder(SegmenterSettings(), MountSettings(height_m=1.0, pitch_deg=15.0))
     msg = _message(scene([(200, 330, 1.8, 150), (330, 470, 2.5, 200)]))
     out = b.process_message(msg).obstacles
     assert out.method == "layers" and len(out.obstacles) == 2
@@ -310,9 +312,9 @@ def test_obstacles_command_on_rendered_images(tmp_path, capsys):
 
 # --- the ground every frame, the height band, free space (issue: real scenes) ----------------------
 
-def _frame(d, cfg, ground=None):
+def _frame(d, cfg, ground=None, mount=None):
     from cores.segmentation.ground import GroundEstimator
-    return layers.segment_frame(d, MODEL, cfg, ground=ground or GroundEstimator(cfg))
+    return layers.segment_frame(d, MODEL, cfg, ground=ground or GroundEstimator(cfg, mount))
 
 
 @pytest.mark.parametrize("mount", [Mount(1.0, 15.0), Mount(0.6, 25.0, roll_deg=4.0), Mount(1.6, 6.0, roll_deg=-2.0)])
@@ -328,8 +330,8 @@ def test_ground_is_estimated_without_a_mount(mount):
 def test_a_wrong_mount_and_a_swaying_camera_still_remove_the_floor():
     from cores.segmentation.ground import GroundEstimator
 
-    cfg = SegmenterSettings(mount_height_m=1.0, mount_pitch_deg=20.0)  # told 5 degrees wrong
-    ground = GroundEstimator(cfg)
+    cfg = SegmenterSettings()
+    ground = GroundEstimator(cfg, Mount(1.0, 20.0))  # told 5 degrees wrong
     for k in range(12):  # a ballbot sways: pitch 15 +- 4 degrees, roll +- 2, frame to frame
         truth = Mount(1.0, 15.0 + 4.0 * np.sin(k), roll_deg=2.0 * np.cos(k))
         fr = _frame(scene([(250, 390, 2.0, 120)], mount=truth, seed_=k), cfg, ground)
@@ -373,7 +375,8 @@ def test_free_space_is_free_up_to_the_obstacle_occupied_at_it_unknown_behind():
 
     cfg = SegmenterSettings(freespace_resolution_m=0.1)
     fr = _frame(scene([(250, 390, 2.0, 200)], wall_m=6.0), cfg)
-    m = frame_mount(fr.ground, cfg)
+    m, source = frame_mount(fr.ground, MountSettings())
+    assert source == "ground"
     g = freespace.occupancy(fr.floor_points, fr.points, m, MODEL, cfg.range_m, cfg.freespace_resolution_m)
 
     def cell(x, y):
@@ -417,7 +420,7 @@ def test_a_tracked_object_seen_in_pieces_stays_one_obstacle_and_a_newcomer_besid
         return d
 
     for merge in (True, False):
-        b = ObstacleBuilder(_mounted(mount).model_copy(update={"track_merge_fragments": merge}))
+        b = ObstacleBuilder(SegmenterSettings(track_merge_fragments=merge), _mounted(mount))
         outs = [b.process(frame(k >= 4, k >= 5), MODEL, t_s=k / 15, seq=k, stamp_ns=k) for k in range(7)]
         first = outs[0].obstacles.obstacles
         assert len(first) == 1
@@ -435,7 +438,7 @@ def test_a_tracked_object_seen_in_pieces_stays_one_obstacle_and_a_newcomer_besid
 def test_odometry_gives_velocities_over_the_ground():
     from common.messages import Odometry
 
-    b = ObstacleBuilder(SegmenterSettings(mount_height_m=1.0, mount_pitch_deg=15.0))
+    b = ObstacleBuilder(SegmenterSettings(), MountSettings(height_m=1.0, pitch_deg=15.0))
     speed, fps = 0.6, 15.0
     ids = set()
     for k in range(20):  # the robot drives at 0.6 m/s towards a box standing still
@@ -448,7 +451,7 @@ def test_odometry_gives_velocities_over_the_ground():
         ids.add(o.id)
     assert res.obstacles.velocity_reference == "ground" and len(ids) == 1
     assert np.linalg.norm(o.velocity_base_mps) < 0.15, o.velocity_base_mps  # it stands still
-    still = ObstacleBuilder(SegmenterSettings(mount_height_m=1.0, mount_pitch_deg=15.0))
+    still = ObstacleBuilder(SegmenterSettings(), MountSettings(height_m=1.0, pitch_deg=15.0))
     for k in range(20):  # without odometry: relative to the robot, it approaches at the robot's speed
         z = 3.0 - speed * k / fps
         cols = int(70 / z * 2.0)
@@ -494,17 +497,19 @@ def test_a_camera_model_with_a_nan_or_infinite_number_is_refused_at_decode():
 
 # --- issue 20: a mount is a prior, ranges that fit, lists that say what they cannot vouch for ------
 
-@pytest.mark.parametrize("told", [dict(mount_height_m=1.5, mount_pitch_deg=15.0),  # height 50 % off
-                                  dict(mount_height_m=1.0, mount_pitch_deg=-5.0),  # pitch 20 deg off
-                                  dict(mount_height_m=0.5, mount_pitch_deg=15.0, mount_roll_deg=15.0)])
+@pytest.mark.parametrize("told", [dict(height_m=1.5, pitch_deg=15.0),  # height 50 % off
+                                  dict(height_m=1.0, pitch_deg=-5.0),  # pitch 20 deg off
+                                  dict(height_m=0.5, pitch_deg=15.0, roll_deg=15.0)])
 def test_a_wrong_mount_is_a_prior_not_a_cage(told, caplog):
     truth = Mount(1.0, 15.0)
-    b = ObstacleBuilder(SegmenterSettings(**told))
+    b = ObstacleBuilder(SegmenterSettings(), MountSettings(**told))
     for k in range(3):
         out = b.process_message(_message(scene([(250, 390, 2.0, 120)], mount=truth, seed_=k))).obstacles
         g = out.ground
         assert g.source == "fitted" and abs(g.height_m - 1.0) < 0.03 and abs(g.pitch_deg - 15.0) < 0.5, (k, g)
-        assert g.prior_height_m == told["mount_height_m"] and g.prior_pitch_deg == told["mount_pitch_deg"]
+        assert g.prior_height_m == told["height_m"] and g.prior_pitch_deg == told["pitch_deg"]
+        # the list says where it put the camera: the data's ground, not the configured mount
+        assert out.mount.source == "ground" and out.mount.height_m == g.height_m
         assert g.prior_agrees is False and g.confidence >= 0.3 and out.degraded == []
         assert _depths([type("D", (), {"position_m": o.position_m})() for o in out.obstacles]) == [2.0]
     assert sum("disagrees with the configured mount" in r.message for r in caplog.records) == 1  # once
@@ -536,7 +541,7 @@ def test_walls_beside_the_way_filling_most_of_the_view_never_become_the_ground()
     d += np.random.default_rng(0).normal(0, 0.08, d.shape).astype(np.float32)
     wall = np.isfinite(d) & (wall_d > floor_d)
     assert np.count_nonzero(wall) > np.count_nonzero(np.isfinite(d) & ~wall)  # more wall than floor in view
-    for told in ({}, dict(mount_height_m=1.5, mount_pitch_deg=5.0)):
-        g = _frame(d, SegmenterSettings(max_range_m=8.0, **told)).ground
+    for told in (None, Mount(1.5, 5.0)):
+        g = _frame(d, SegmenterSettings(max_range_m=8.0), mount=told).ground
         assert g.source == "fitted" and abs(g.height_m - 1.0) < 0.05 and abs(g.pitch_deg - 5.0) < 1.0, (told, g)
         assert abs(g.roll_deg) < 1.0

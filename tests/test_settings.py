@@ -11,7 +11,7 @@ import pytest
 
 from ballbot_vision.cli import build_parser
 from common.errors import ConfigError
-from common.settings import add_settings_arguments, load_settings
+from common.settings import MountSettings, add_settings_arguments, load_settings
 from services.capture.settings import CaptureSettings
 from cores.segmentation.settings import SegmenterSettings
 
@@ -45,9 +45,11 @@ def test_numbers_bools_and_unset_by_type(monkeypatch):
 def test_numeric_choices_and_optional_numbers():
     p = argparse.ArgumentParser()
     add_settings_arguments(p, SegmenterSettings)
-    s = load_settings(SegmenterSettings, None, p.parse_args(["--median-ksize", "3", "--max-range-m", "none",
-                                                              "--mount-height-m", "0.8"]))
-    assert s.median_ksize == 3 and s.max_range_m is None and s.mount_height_m == 0.8
+    add_settings_arguments(p, MountSettings, prefix="mount-")
+    args = p.parse_args(["--median-ksize", "3", "--max-range-m", "none", "--mount-height-m", "0.8"])
+    s = load_settings(SegmenterSettings, None, args)
+    assert s.median_ksize == 3 and s.max_range_m is None
+    assert load_settings(MountSettings, None, args, prefix="mount-").height_m == 0.8
 
 
 @pytest.mark.parametrize("argv,where,what", [
@@ -176,7 +178,7 @@ _HEAVY_AT_EXIT = ("import atexit, sys\n"
 
 def test_a_running_router_and_a_real_healthcheck_import_neither_opencv_nor_numpy():
     """Not only their --help: a router that starts, serves and stops, and a healthcheck that
-    connects to it and gives its verdict (no service here: 'no healthy stats', exit 1)."""
+    connects to it and gives its verdict (no segmenter here: 'no healthy stats', exit 1)."""
     import signal
 
     from helpers import free_port, wait_port
@@ -186,9 +188,11 @@ def test_a_running_router_and_a_real_healthcheck_import_neither_opencv_nor_numpy
                                f"tcp/127.0.0.1:{port}"], stderr=subprocess.PIPE, text=True)
     try:
         wait_port(port, router)
+        # asked for a service that is not running (the router's own stats, once a second, would
+        # answer a check of "any service" as healthy whenever they come within the timeout)
         hc = subprocess.run([sys.executable, "-c", _HEAVY_AT_EXIT, "healthcheck", "--connect", f"tcp/127.0.0.1:{port}",
-                             "--timeout", "0.5"], capture_output=True, text=True, timeout=120)
-        assert hc.returncode == 1 and "no healthy stats from any service" in hc.stderr, hc.stderr
+                             "--service", "segmenter", "--timeout", "0.5"], capture_output=True, text=True, timeout=120)
+        assert hc.returncode == 1 and "no healthy stats from segmenter" in hc.stderr, hc.stderr
         assert "HEAVY []" in hc.stderr, hc.stderr[-2000:]
     finally:
         router.send_signal(signal.SIGINT)

@@ -40,10 +40,12 @@ class MatcherConfig(ServiceSettings):
         "bm", description="bm: block matching, SAD (the thesis, fast); sgbm: semi-global; dense: semi-global "
         "+ edge-aware fill, a disparity and a confidence for every pixel (for offboard workers)")
     num_disparities: Annotated[int, Field(ge=16, le=MAX_NUM_DISPARITIES, multiple_of=16)] | Literal["auto"] = Field(
-        64, description="disparity search range, px (a multiple of 16), or auto: from the calibration, "
-        "covering everything farther than min_range_m")
-    min_range_m: float = Field(0.5, gt=0, description="num_disparities auto: the nearest distance of interest, m "
-                               "(range = f*B/min_range_m)")
+        "auto", description="disparity search range, px (a multiple of 16), or auto: from the calibration, "
+        "covering everything farther than min_range_m (at most a quarter of the image width)")
+    min_range_m: float = Field(1.0, gt=0, description="num_disparities auto: about the nearest distance the "
+                               "search reaches, m (f*B/min_range_m px, to the nearest 16: 64 px on the thesis's "
+                               "rig, as it searched; nearer costs matching time and a wider unmatched band at the "
+                               "left border)")
     min_disparity: int = Field(0, ge=-256, le=256, description="smallest disparity searched, px")
     block_size: int = Field(0, ge=0, le=255, description="matching window, odd, px (0: bm 15, sgbm 5, dense 3)")
     uniqueness_ratio: int = Field(10, ge=0, le=100, description="reject matches not this percent better than the next")
@@ -133,12 +135,14 @@ class MatcherConfig(ServiceSettings):
 
 def auto_num_disparities(focal_px: float, baseline_m: float, min_range_m: float, min_disparity: int = 0,
                          width: int | None = None) -> int:
-    """The search range (px, a multiple of 16) that reaches d = f * B / min_range_m from min_disparity,
-    capped at 512 and, with `width`, at a quarter of the image width: block matching measures
-    nothing in the left num_disparities columns, so a wide-baseline rig (a car's) would trade a
-    third of its view for the last metre in front of it."""
+    """The search range (px): the multiple of 16 nearest to what reaches d = f * B / min_range_m from
+    min_disparity (so it reaches about min_range_m, within 8 px: the thesis's 64 px on its rig for
+    1 m, where rounding up would widen the unmatched band at the left border for 5 cm), capped at
+    512 and, with `width`, at a quarter of the image width: block matching measures nothing in the
+    left num_disparities columns, so a wide-baseline rig (a car's) would trade a third of its view
+    for the last metre in front of it."""
     d_near = focal_px * abs(baseline_m) / min_range_m
-    n = max(16, math.ceil((d_near - min_disparity + 1) / 16) * 16)
+    n = max(16, round((d_near - min_disparity + 1) / 16) * 16)
     cap = MAX_NUM_DISPARITIES if width is None else max(16, min(MAX_NUM_DISPARITIES, width // AUTO_WIDTH_SHARE // 16 * 16))
     return min(n, cap)
 

@@ -20,6 +20,7 @@ from cores.segmentation import freespace, layers, seed
 from cores.segmentation.ground import TRUSTED, GroundEstimator, frame_mount, plane_from_mount
 from cores.segmentation.mount import FloorPlane, Mount
 from cores.segmentation.seed import Detection
+from common.settings import MountSettings
 from cores.segmentation.settings import SegmenterSettings
 from cores.segmentation.tracking import Tracker
 
@@ -68,24 +69,6 @@ def model_from_message(msg: DisparityMap) -> camera.RectifiedModel:
     return camera.RectifiedModel(c.width, c.height, c.focal_px, c.cx, c.cy, c.baseline_m)
 
 
-class Segmenter:
-    """One method with its settings: disparity -> detections (camera frame). Bad input (NaNs, no
-    valid pixels, empty) gives no detections; a map whose size differs from the model raises."""
-
-    def __init__(self, settings: SegmenterSettings):
-        self.settings = settings
-        self.method = settings.method
-
-    def detect(self, disparity: np.ndarray, model: camera.RectifiedModel,
-               image: np.ndarray | None = None) -> list[Detection]:
-        """disparity: (H, W) float px, NaN = invalid, matching `model`."""
-        if disparity.size == 0:
-            return []
-        if self.method == "seed":
-            return seed.segment(disparity, model, self.settings)
-        return layers.segment(disparity, model, self.settings, image=image)
-
-
 @dataclass
 class FrameResult:
     """One frame's output: the public obstacle list, the free-space grid (None without a ground or
@@ -105,10 +88,13 @@ class ObstacleBuilder:
     """Disparity -> ground, obstacles, tracks and free space (pure: no Zenoh). Stateful: the ground
     estimate and the tracks carry over from frame to frame, so feed it one stream in order."""
 
-    def __init__(self, settings: SegmenterSettings):
+    def __init__(self, settings: SegmenterSettings, mount: MountSettings | None = None):
+        """mount: the `mount:` settings (None: none configured): the ground's prior, and the yaw and
+        offsets of the base frame."""
         self.settings = settings
-        self.mount = settings.mount()
-        self.ground = GroundEstimator(settings)
+        self.configured = mount or MountSettings()
+        self.mount = Mount.of(self.configured)
+        self.ground = GroundEstimator(settings, self.mount)
         self.tracker = Tracker(settings.track_gate_m, settings.track_timeout_s,
                                max_speed_mps=settings.track_max_speed_mps, confirm_m=settings.track_confirm_m,
                                confirm_n=settings.track_confirm_n)
@@ -153,7 +139,7 @@ class ObstacleBuilder:
         if disparity.size == 0:
             return layers.LayersFrame([], [], None, None, np.zeros((0, 3)))
         if cfg.method == "seed":
-            dets = seed.segment(disparity, model, cfg)
+            dets = seed.segment(disparity, model, cfg, self.mount)
             floor = plane_from_mount(self.mount, model) if self.mount is not None and cfg.floor_removal else None
             g = self.mount
             estimate = (GroundEstimate(height_m=g.height_m, pitch_deg=g.pitch_deg, roll_deg=g.roll_deg,
@@ -243,7 +229,7 @@ class ObstacleBuilder:
             if inf.any():  # an infinite disparity is no measurement (nor a point at zero distance)
                 disparity = np.where(inf, np.float32(np.nan), disparity)
         frame = self.segment(disparity, model, confidence, image)
-        mount = frame_mount(frame.ground, cfg)
+        mount, mount_source = frame_mount(frame.ground, self.configured)
         track_frame = "base" if mount is not None else "camera"
         if track_frame != self._track_frame:
             self.tracker.clear()  # positions of one frame mean nothing in the other
@@ -299,6 +285,7 @@ class ObstacleBuilder:
         out = ObstacleList(robot_id=robot_id, seq=seq, stamp_ns=stamp_ns, stages=dict(stages or {}), publish_ns=now,
                            stale=stale, degraded=degraded, valid_fraction=valid_fraction, method=cfg.method,
                            obstacles=obstacles, ground=frame.ground,
+                           mount=None if mount is None else mount.message(mount_source),
                            velocity_reference="ground" if over_ground else "camera")
         free = None
         if cfg.freespace and mount is not None and frame.floor is not None and cfg.method == "layers":
@@ -307,7 +294,7 @@ class ObstacleBuilder:
             free = FreeSpace(robot_id=robot_id, seq=seq, stamp_ns=stamp_ns, stages=dict(stages or {}), publish_ns=now,
                              resolution_m=g.resolution_m, width=g.width, height=g.height,
                              origin_m=(float(g.origin_m[0]), float(g.origin_m[1])), cells=g.cells.tobytes(),
-                             ground=frame.ground)
+                             ground=frame.ground, mount=out.mount)
         return FrameResult(out, free, frame.floor)
 
     def process_message(self, msg: DisparityMap, *, stale: bool = False, t_s: float | None = None,

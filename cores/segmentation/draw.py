@@ -22,9 +22,7 @@ import numpy as np
 
 from cores import camera
 from common.messages import FreeSpace, GroundEstimate, ObstacleList
-from cores.segmentation.ground import frame_mount
 from cores.segmentation.mount import Mount
-from cores.segmentation.settings import MountSettings
 
 # BGR
 CONFIRMED = (0, 255, 255)  # yellow
@@ -118,14 +116,14 @@ def draw_frame(image: np.ndarray, obstacles: ObstacleList, model: camera.Rectifi
                freespace: FreeSpace | None = None, mount: Mount | None = None) -> np.ndarray:
     """image: the rectified left image, (H, W) grey or (H, W, 3) BGR uint8, the size of `model`.
     obstacles: the frame's list (camera frame); freespace: its grid (base frame) or None; mount: the
-    camera on the base for projecting the grid (None: from obstacles.ground, without yaw or offset;
-    no ground either: the grid is not drawn). -> (H, W, 3) uint8 BGR, a new array."""
+    camera on the base for projecting the grid (None: the one the list carries, ObstacleList.mount;
+    none either: the grid is not drawn). -> (H, W, 3) uint8 BGR, a new array."""
     img = to_bgr(image)
     h, w = img.shape[:2]
     if (w, h) != (model.width, model.height):
         raise ValueError(f"draw: image is {w}x{h}, the camera model {model.width}x{model.height}")
     if mount is None:
-        mount = frame_mount(obstacles.ground, MountSettings())
+        mount = Mount.of(obstacles.mount)
     if freespace is not None and mount is not None:
         cells = ground_cells(freespace, mount, model)
         _blend(img, cells == 0, FREE, FREE_ALPHA)

@@ -34,7 +34,8 @@ import numpy as np
 from cores import camera
 from common.messages import GroundEstimate
 from cores.segmentation.mount import FloorPlane, Mount
-from cores.segmentation.settings import MountSettings, SegmenterSettings
+from common.settings import MountSettings
+from cores.segmentation.settings import SegmenterSettings
 
 log = logging.getLogger("ballbot")
 
@@ -79,15 +80,15 @@ def plane_from_mount(mount: Mount, model: camera.RectifiedModel) -> FloorPlane:
                                   model.baseline_m)
 
 
-def frame_mount(ground: GroundEstimate | None, settings: MountSettings) -> Mount | None:
-    """Where the camera sat on the robot for one frame: the height, pitch and roll of the frame's
-    ground estimate with the configured yaw and offsets (which the ground cannot tell); without an
-    estimate, the configured mount (None: unknown). The segmenter's base frame, the pictures' and
-    the ROS 2 bridge's /tf_static all come from here."""
+def frame_mount(ground: GroundEstimate | None, configured: MountSettings) -> tuple[Mount | None, str]:
+    """Where the camera sat on the robot for one frame, and whence: the height, pitch and roll of the
+    frame's ground estimate with the configured yaw and offsets (which the ground cannot tell):
+    "ground"; without an estimate, the configured mount: "configured" (None: unknown). The
+    segmenter's base frame comes from here and travels with its list (ObstacleList.mount)."""
     if ground is not None and ground.source != "none":
-        return Mount(ground.height_m, ground.pitch_deg, settings.mount_yaw_deg, ground.roll_deg, settings.mount_x_m,
-                     settings.mount_y_m)
-    return settings.mount()
+        return Mount(ground.height_m, ground.pitch_deg, configured.yaw_deg, ground.roll_deg, configured.x_m,
+                     configured.y_m), "ground"
+    return Mount.of(configured), "configured"
 
 
 def lstsq_plane(u: np.ndarray, v: np.ndarray, d: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
@@ -351,9 +352,10 @@ def fit_confidence(fit: Fit, consistent: bool) -> float:
 class GroundEstimator:
     """update(dm) -> (the floor plane for this frame or None, the GroundEstimate to publish)."""
 
-    def __init__(self, cfg: SegmenterSettings):
+    def __init__(self, cfg: SegmenterSettings, prior: Mount | None = None):
+        """prior: the configured mount (a first guess among the candidates, never a cage)."""
         self.cfg = cfg
-        self.prior = cfg.mount()
+        self.prior = prior
         self.smooth_n: np.ndarray | None = None  # smoothed normal and height of the last frames
         self.smooth_h = 0.0
         self.confidence = 0.0  # of the smoothed estimate

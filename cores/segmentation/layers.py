@@ -52,7 +52,7 @@ import numpy as np
 from cores import camera
 from common.messages import GroundEstimate
 from cores.segmentation.ground import GroundEstimator, grid
-from cores.segmentation.mount import FloorPlane
+from cores.segmentation.mount import FloorPlane, Mount
 from cores.segmentation.seed import Detection
 from cores.segmentation.settings import SegmenterSettings
 
@@ -565,10 +565,12 @@ def _points(ys: np.ndarray, xs: np.ndarray, d: np.ndarray, model: camera.Rectifi
 
 
 def segment(disparity: np.ndarray, model: camera.RectifiedModel, cfg: SegmenterSettings | None = None,
-            image: np.ndarray | None = None, floor_out: list | None = None) -> list[Detection]:
-    """One frame on its own (a fresh ground estimate): detections, camera frame. floor_out: if a
-    list, the floor plane used (or None) is appended to it."""
-    frame = segment_frame(disparity, model, cfg, image=image)
+            image: np.ndarray | None = None, floor_out: list | None = None, mount: Mount | None = None
+            ) -> list[Detection]:
+    """One frame on its own (a fresh ground estimate, with `mount` as its prior): detections, camera
+    frame. floor_out: if a list, the floor plane used (or None) is appended to it."""
+    cfg = cfg or SegmenterSettings()
+    frame = segment_frame(disparity, model, cfg, ground=GroundEstimator(cfg, mount), image=image)
     if floor_out is not None:
         floor_out.append(frame.floor)
     return frame.detections

@@ -16,6 +16,9 @@ from functools import cached_property
 
 import numpy as np
 
+from common.messages import CameraMount
+from common.settings import MountSettings
+
 # optical (x right, y down, z forward) -> body (x forward, y left, z up)
 _BODY_FROM_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 
@@ -37,8 +40,10 @@ def _rz(a: float) -> np.ndarray:
 
 @dataclass(frozen=True)
 class Mount:
-    height_m: float = 1.0
-    pitch_deg: float = 15.0
+    """One camera mount (defaults nowhere but in MountSettings: a height and a pitch are always said)."""
+
+    height_m: float
+    pitch_deg: float
     yaw_deg: float = 0.0
     roll_deg: float = 0.0
     x_m: float = 0.0
@@ -66,6 +71,18 @@ class Mount:
     def down_camera(self) -> np.ndarray:
         """(3,) unit vector pointing at the floor (base -z), in the camera frame."""
         return self.R_base_camera.T @ np.array([0.0, 0.0, -1.0])
+
+    def message(self, source: str) -> CameraMount:
+        return CameraMount(height_m=self.height_m, pitch_deg=self.pitch_deg, roll_deg=self.roll_deg,
+                           yaw_deg=self.yaw_deg, x_m=self.x_m, y_m=self.y_m, source=source)
+
+    @classmethod
+    def of(cls, m: CameraMount | MountSettings | None) -> "Mount | None":
+        """The mount a list carries (ObstacleList.mount) or the one configured (`mount:`; None when its
+        height is unknown)."""
+        if m is None or m.height_m is None:
+            return None
+        return cls(m.height_m, m.pitch_deg, m.yaw_deg, m.roll_deg, m.x_m, m.y_m)
 
 
 @dataclass(frozen=True)

@@ -1,9 +1,10 @@
 """`mount estimate`: the camera mount (height above the floor, pitch, roll) from the data itself.
 
-The segmenter runs with no mount configured (mount_height_m null: it fits the ground in every frame
+The segmenter runs with no mount configured (mount.height_m null: it fits the ground in every frame
 without a prior); the frames whose ground estimate is `fitted` vote, and the median of each of
 height, pitch and roll is the estimate (with the 10th-90th percentile spread, to judge it).
-`merge_into_config` writes the three values into the `segmenter:` section of a YAML config,
+`merge_into_config` writes the three values into the `mount:` section of a YAML config (the one
+section every service reads),
 keeping the rest of the file (its comments too, where the section is written in block style).
 """
 from __future__ import annotations
@@ -17,7 +18,8 @@ import numpy as np
 
 from common.errors import BallbotError, ConfigError
 
-MOUNT_FIELDS = ("mount_height_m", "mount_pitch_deg", "mount_roll_deg")
+MOUNT_FIELDS = ("height_m", "pitch_deg", "roll_deg")
+SECTION = "mount"
 
 
 @dataclass
@@ -31,8 +33,8 @@ class MountEstimate:
     sources: dict[str, int] = field(default_factory=dict)
 
     def settings_values(self) -> dict[str, float]:
-        return {"mount_height_m": round(self.height_m, 3), "mount_pitch_deg": round(self.pitch_deg, 2),
-                "mount_roll_deg": round(self.roll_deg, 2)}
+        return {"height_m": round(self.height_m, 3), "pitch_deg": round(self.pitch_deg, 2),
+                "roll_deg": round(self.roll_deg, 2)}
 
 
 def estimate_from_grounds(grounds: list, frames: int | None = None) -> MountEstimate:
@@ -60,12 +62,12 @@ def estimate_from_grounds(grounds: list, frames: int | None = None) -> MountEsti
 def format_estimate(e: MountEstimate) -> str:
     s = e.spread
     return "\n".join([
-        f"mount from {e.fitted} of {e.frames} frame(s) with a fitted ground "
+        f"mount (the config's `mount:` section) from {e.fitted} of {e.frames} frame(s) with a fitted ground "
         f"(ground sources: {', '.join(f'{k} {v}' for k, v in e.sources.items())})",
-        f"  mount_height_m:  {e.height_m:.3f}   (p10 {s['height_m'][0]:.3f}, p90 {s['height_m'][1]:.3f})",
-        f"  mount_pitch_deg: {e.pitch_deg:.2f}   (p10 {s['pitch_deg'][0]:.2f}, p90 {s['pitch_deg'][1]:.2f}; "
+        f"  height_m:  {e.height_m:.3f}   (p10 {s['height_m'][0]:.3f}, p90 {s['height_m'][1]:.3f})",
+        f"  pitch_deg: {e.pitch_deg:.2f}   (p10 {s['pitch_deg'][0]:.2f}, p90 {s['pitch_deg'][1]:.2f}; "
         "positive looking down)",
-        f"  mount_roll_deg:  {e.roll_deg:.2f}   (p10 {s['roll_deg'][0]:.2f}, p90 {s['roll_deg'][1]:.2f}; "
+        f"  roll_deg:  {e.roll_deg:.2f}   (p10 {s['roll_deg'][0]:.2f}, p90 {s['roll_deg'][1]:.2f}; "
         "positive right side down)",
     ])
 
@@ -77,14 +79,16 @@ def _yaml_value(v: float) -> str:
 
 
 def _merge_text(text: str, values: dict[str, float]) -> str:
-    """`values` set in the block-style top-level `segmenter:` section of `text` (lines edited in
+    """`values` set in the block-style top-level `mount:` section of `text` (lines edited in
     place, missing keys added under the header; no section: one appended). The caller checks the
     result parses to what it should."""
     lines = text.splitlines()
     header = next((i for i, ln in enumerate(lines)
-                   if ln.split("#", 1)[0].rstrip() == "segmenter:"), None)
+                   if ln.split("#", 1)[0].rstrip() == f"{SECTION}:"), None)
     if header is None:
-        block = ["segmenter:"] + [f"  {k}: {_yaml_value(v)}" for k, v in values.items()]
+        if any(ln.startswith(f"{SECTION}:") for ln in lines):
+            return ""  # the section in flow style: the caller rewrites the file (a second one would shadow it)
+        block = [f"{SECTION}:"] + [f"  {k}: {_yaml_value(v)}" for k, v in values.items()]
         sep = [""] if lines and lines[-1].strip() else []
         return "\n".join(lines + sep + block) + "\n"
     end = header + 1
@@ -107,14 +111,14 @@ def _merge_text(text: str, values: dict[str, float]) -> str:
 
 
 def merge_into_config(path: str | Path, values: dict[str, float]) -> bool:
-    """Set `values` (segmenter settings) in the `segmenter:` section of the YAML config at `path`
-    (created if missing), keeping the rest of the file. The section, with the values, must be valid
-    segmenter settings, else ConfigError and nothing is written. -> True when the file's text was
+    """Set `values` (mount settings) in the `mount:` section of the YAML config at `path` (created if
+    missing), keeping the rest of the file. The section, with the values, must be valid mount
+    settings, else ConfigError and nothing is written. -> True when the file's text was
     edited in place (comments kept), False when it had to be rewritten from its parsed content (a
     flow-style or otherwise unusual section: comments lost)."""
     import yaml
 
-    from cores.segmentation.settings import SegmenterSettings
+    from common.settings import MountSettings
 
     path = Path(path)
     text = path.read_text() if path.exists() else ""
@@ -124,19 +128,19 @@ def merge_into_config(path: str | Path, values: dict[str, float]) -> bool:
         raise ConfigError(f"{path}: not valid YAML: {e}") from None
     doc = doc or {}
     if not isinstance(doc, dict):
-        raise ConfigError(f"{path}: expected a mapping of service sections (segmenter:, disparity:, ...)")
-    section = doc.get("segmenter") or {}
+        raise ConfigError(f"{path}: expected a mapping of sections (mount:, segmenter:, disparity:, ...)")
+    section = doc.get(SECTION) or {}
     if not isinstance(section, dict):
-        raise ConfigError(f"{path}: section 'segmenter' must be a mapping")
+        raise ConfigError(f"{path}: section '{SECTION}' must be a mapping")
     expected = copy.deepcopy(doc)
-    expected["segmenter"] = {**section, **values}
+    expected[SECTION] = {**section, **values}
     try:
-        SegmenterSettings.model_validate(expected["segmenter"])
+        MountSettings.model_validate(expected[SECTION])
     except Exception as e:  # pydantic's ValidationError: name the values
-        raise ConfigError(f"{path}: the segmenter section with {values} would not be valid: {e}") from None
+        raise ConfigError(f"{path}: the {SECTION} section with {values} would not be valid: {e}") from None
     new_text, in_place = _merge_text(text, values), True
     try:
-        ok = yaml.safe_load(new_text) == expected
+        ok = bool(new_text) and yaml.safe_load(new_text) == expected
     except yaml.YAMLError:
         ok = False
     if not ok:

@@ -22,6 +22,7 @@ import cv2
 import numpy as np
 
 from cores import camera
+from cores.segmentation.mount import Mount
 from cores.segmentation.settings import SegmenterSettings
 
 MODE_BIN_PX = 0.25  # histogram bin of the region's disparity mode
@@ -82,10 +83,11 @@ def _mode(values: np.ndarray, bin_px: float) -> float:
 
 
 def segment(disparity: np.ndarray, model: camera.RectifiedModel,
-            cfg: SegmenterSettings | None = None) -> list[Detection]:
+            cfg: SegmenterSettings | None = None, mount: Mount | None = None) -> list[Detection]:
     """disparity: (H, W) float32 px, NaN = invalid, rectified left camera `model` -> detections,
-    camera frame. Reads range_m, median_ksize (at least 3), floor_removal, mount_height_m,
-    mount_pitch_deg, floor_margin_m, min_area_fraction, close_radius_px and clear_border."""
+    camera frame. Reads range_m, median_ksize (at least 3), floor_removal, floor_margin_m,
+    min_area_fraction, close_radius_px and clear_border; the floor is removed with `mount`'s height
+    and pitch (the configured mount; None: no floor removed, as in the thesis)."""
     cfg = cfg or SegmenterSettings(method="seed")
     if disparity.shape != (model.height, model.width):
         raise ValueError(f"disparity is {disparity.shape[1]}x{disparity.shape[0]}, camera model is "
@@ -95,8 +97,8 @@ def segment(disparity: np.ndarray, model: camera.RectifiedModel,
     d = np.asarray(disparity, dtype=np.float32)
     with np.errstate(invalid="ignore"):
         keep = np.isfinite(d) & (d >= d_min)
-    if cfg.floor_removal and cfg.mount_height_m is not None:
-        keep &= ~floor_mask(d, model, cfg.mount_height_m, cfg.mount_pitch_deg, cfg.floor_margin_m)
+    if cfg.floor_removal and mount is not None:
+        keep &= ~floor_mask(d, model, mount.height_m, mount.pitch_deg, cfg.floor_margin_m)
     if not keep.any():
         return []
     gated = np.where(keep, d, 0.0).astype(np.float32)

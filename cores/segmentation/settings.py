@@ -1,8 +1,9 @@
 """The segmenter's settings: one pydantic model, the only place its defaults live. The service, the
 offline commands and the cores (seed.py, layers.py) all read this model directly.
 
-Light on purpose (pydantic and the mount only), so that importing the settings does not import
-OpenCV or the cores.
+Light on purpose (pydantic only), so that importing the settings does not import OpenCV or the
+cores. The camera mount is not here: it is the `mount:` section every service reads
+(common/settings.py MountSettings).
 """
 from __future__ import annotations
 
@@ -11,7 +12,6 @@ from typing import Literal
 from pydantic import Field
 
 from common.settings import ServiceSettings
-from cores.segmentation.mount import Mount
 
 METHODS = ("layers", "seed")
 # The thesis's 3 m vision range for seed; the default method's own range.
@@ -21,36 +21,15 @@ DEFAULT_RANGE_M = {"seed": 3.0, "layers": 4.5}
 FAR_DISPARITY_PX = 16.0
 
 
-class MountSettings(ServiceSettings):
-    """Where the rectified left camera sits on the robot (see mount.py for the frames and angles):
-    one definition for every service that needs it (the segmenter, the ROS 2 bridge's /tf_static)."""
-
-    mount_height_m: float | None = Field(None, gt=0, le=20, description="camera height above the floor, m "
-                                         "(null: unknown: the segmenter estimates the ground from the disparity "
-                                         "every frame, the ROS 2 bridge takes that estimate from the obstacle "
-                                         "lists; set it, or run `mount estimate`, to give the estimate a prior)")
-    mount_pitch_deg: float = Field(0.0, ge=-90, le=90, description="camera pitch, positive looking down")
-    mount_yaw_deg: float = Field(0.0, ge=-180, le=180, description="camera yaw on the robot, positive to the left")
-    mount_roll_deg: float = Field(0.0, ge=-90, le=90, description="camera roll, positive right side down")
-    mount_x_m: float = Field(0.0, ge=-10, le=10, description="camera position ahead of the base origin")
-    mount_y_m: float = Field(0.0, ge=-10, le=10, description="camera position left of the base origin")
-
-    def mount(self) -> Mount | None:
-        """The configured camera mount, or None when its height is unknown."""
-        if self.mount_height_m is None:
-            return None
-        return Mount(self.mount_height_m, self.mount_pitch_deg, self.mount_yaw_deg, self.mount_roll_deg,
-                     self.mount_x_m, self.mount_y_m)
-
-
-class SegmenterSettings(MountSettings):
+class SegmenterSettings(ServiceSettings):
     section = "segmenter"
     method: Literal["layers", "seed"] = Field(
         "layers", description="layers: depth-aware regions, floor plane, border objects kept; "
                               "seed: the thesis's Otsu pipeline")
     max_range_m: float | None = Field(None, gt=0, le=100, description="vision range; farther pixels are ignored "
                                       "(null: the method's own, seed 3 m as in the thesis, layers 4.5 m)")
-    min_range_m: float = Field(0.3, ge=0, le=10, description="nearer pixels are ignored, m")
+    min_range_m: float = Field(1.0, ge=0, le=10, description="nearer pixels are ignored, m (the disparity "
+                               "search's default reach; a search that cannot reach twice this is warned about)")
     median_ksize: Literal[1, 3, 5] = Field(5, description="median filter size, px (seed: at least 3)")
     floor_removal: bool = Field(True, description="remove the floor (false reproduces the thesis with seed)")
     floor_margin_m: float = Field(0.08, ge=0, le=1, description="points this close to the floor are floor")

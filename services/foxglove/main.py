@@ -133,9 +133,8 @@ def convert(kind: str, msg, jpeg_quality: int, wanted: Callable[[str], bool]) ->
                 out.append((OBSTACLE_SCENE, F.obstacle_scene(msg), t))
         if wanted(GROUND):
             out.append((GROUND, F.ground_scene(msg), t))
-        g = msg.ground
-        if wanted(TF) and g is not None and g.source != "none":
-            out.append((TF, F.base_to_camera(msg.stamp_ns, g.height_m, g.pitch_deg, g.roll_deg), t))
+        if wanted(TF) and msg.mount is not None:  # the camera where the segmenter placed it for this list
+            out.append((TF, F.base_to_camera(msg.stamp_ns, msg.mount), t))
     elif kind == "freespace":
         if wanted(FREESPACE_GRID):
             out.append((FREESPACE_GRID, F.freespace_grid(msg), t))

@@ -11,10 +11,9 @@ and publishes, as the ROS node `<namespace>/<node_name>` of ROS domain `domain_i
   <ns>/freespace              nav_msgs/OccupancyGrid         base_frame, when free space is published
   /tf_static                  tf2_msgs/TFMessage             base_frame -> camera_frame, transient local
 
-The camera->base transform comes from the ground estimate each obstacle list carries (the
-segmenter's configured mount, or its fitted floor), else from this service's mount_height_m /
-pitch / roll, with this service's mount_yaw/x/y; it is
-re-published when it moves by more than tf_update_m / tf_update_deg. Obstacle lists flagged stale
+The camera->base transform is the mount each obstacle list carries (ObstacleList.mount: where the
+segmenter placed the camera for that list, from its fitted ground and the configured yaw and
+offsets), else the configured one (the `mount:` section); it is re-published when it moves by more than tf_update_m / tf_update_deg. Obstacle lists flagged stale
 are not republished unless publish_stale (ROS messages have no stale flag); even then the
 segmenter's heartbeat repeats of its last list (same capture stamp, sent while its input has
 stopped) never are: the node inbox refuses a stamp it has already handed on, and a ROS consumer
@@ -34,8 +33,7 @@ from common.errors import ConfigError
 from common.keys import topic
 from common.messages import DisparityMap, ObstacleList
 from common.node import Node
-from cores.segmentation.settings import MountSettings
-from cores.segmentation.ground import frame_mount
+from common.settings import MountSettings, ServiceSettings
 from cores.segmentation.mount import Mount
 
 SUBSCRIBES = ["obstacles", "freespace", "frames_rect", "disparity"]
@@ -52,7 +50,7 @@ TOPICS = {
 }
 
 
-class Ros2Settings(MountSettings):
+class Ros2Settings(ServiceSettings):
     section = "ros2"
     distro: Literal["humble", "jazzy"] = Field("jazzy", description="ROS 2 distro of the other side (humble: "
                                                "TypeHashNotSupported in keys, 24-byte GIDs; jazzy: RIHS01 hashes)")
@@ -87,10 +85,10 @@ class Ros2Settings(MountSettings):
             raise ValueError(str(e)) from None
 
 
-def mount_from(msg: ObstacleList | None, s: Ros2Settings) -> Mount | None:
-    """The camera mount: the ground estimate the obstacle list carries, else this service's
-    mount_height_m/pitch/roll; yaw and x/y always from the settings. None: not known yet."""
-    return frame_mount(msg.ground if msg is not None else None, s)
+def mount_from(msg: ObstacleList | None, configured: MountSettings) -> Mount | None:
+    """The camera mount: the one the obstacle list carries (the segmenter's, for that list), else the
+    configured one. None: not known yet."""
+    return Mount.of(msg.mount if msg is not None and msg.mount is not None else configured)
 
 
 def mount_moved(a: Mount | None, b: Mount, s: Ros2Settings) -> bool:
@@ -158,7 +156,7 @@ def run(node: Node, settings: Ros2Settings) -> None:
     lock = threading.Lock()
 
     def publish_tf(msg: ObstacleList | None, stamp: int) -> None:
-        mount = mount_from(msg, s)
+        mount = mount_from(msg, node.mount)
         with lock:
             if "tf_static" in pubs and mount is not None and mount_moved(state["mount"], mount, s):
                 pubs["tf_static"].publish(convert.tf_static(types, mount, stamp, s.base_frame, s.camera_frame))

@@ -20,7 +20,7 @@ __all__ = ["SegmenterSettings", "run"]
 
 
 def run(node: Node, settings: SegmenterSettings) -> None:
-    builder = ObstacleBuilder(settings)
+    builder = ObstacleBuilder(settings, node.mount)
     # Only the robot's dispatcher signs maps (with the key the robot's services share): anyone else's
     # are refused before their stamp reaches the freshness gate, so they cannot become the ordering
     # reference nor feed the list. Without a key (a bare `run segmenter`) any peer's map is taken.
@@ -36,7 +36,7 @@ def run(node: Node, settings: SegmenterSettings) -> None:
     last: dict[str, ObstacleList | float] = {"list": None, "time": time.monotonic()}
     odometry: dict[str, Odometry | float | None] = {"msg": None, "at": 0.0}
     odometry_cap = topic("odometry").max_bytes
-    if settings.mount() is None and settings.method == "layers":
+    if node.mount.height_m is None and settings.method == "layers":
         log.info("segmenter: no camera mount configured: the ground is estimated from the disparity every frame "
                  "(published with each list; `ballbot-vision mount estimate` measures a mount for the config)")
 
