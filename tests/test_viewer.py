@@ -333,15 +333,24 @@ def test_the_page_shows_the_pictures_and_draws_the_boxes_of_the_obstacle_list(tm
                 checked += 1
             assert checked == 5 and len(seqs) >= 3, (checked, seqs)
             # the boxes are on the canvas, not only in the page's state: orange pixels along each box's
-            # top edge (all of it for a confirmed track, dashes for one not yet confirmed)
-            for b in page.evaluate("window.viewer.drawn.boxes"):
-                x0, y0, x1, y1 = b["bbox_px"]
-                xs = list(range(x0 + (x1 - x0) // 4, x0 + 3 * (x1 - x0) // 4))
-                row = page.evaluate(f"Array.from(document.getElementById('image').getContext('2d')"
-                                    f".getImageData({xs[0]}, {y0}, {len(xs)}, 1).data)")
+            # top edge (all of it for a confirmed track, dashes for one not yet confirmed). The boxes
+            # and the canvas are read in one evaluation: between two, a newer picture (drawn before
+            # its list arrives, without boxes) may replace the one the boxes were drawn on.
+            page.wait_for_function("window.viewer.drawn && window.viewer.drawn.boxes.length === 2", timeout=60_000)
+            sampled = page.evaluate("""() => {
+                const ctx = document.getElementById('image').getContext('2d');
+                return window.viewer.drawn.boxes.map((b) => {
+                    const [x0, y0, x1, y1] = b.bbox_px;
+                    const a = x0 + Math.floor((x1 - x0) / 4), n = Math.floor(3 * (x1 - x0) / 4) - Math.floor((x1 - x0) / 4);
+                    return {box: b, row: Array.from(ctx.getImageData(a, y0, n, 1).data)};
+                });
+            }""")
+            assert len(sampled) == 2
+            for entry in sampled:
+                b, row = entry["box"], entry["row"]
                 orange = sum(1 for k in range(0, len(row), 4)
                              if row[k] > 200 and 100 < row[k + 1] < 180 and row[k + 2] < 60)
-                assert orange >= (0.9 if b["confirmed"] else 0.4) * len(xs), (b, orange, len(xs))
+                assert orange >= (0.9 if b["confirmed"] else 0.4) * (len(row) // 4), (b, orange, len(row) // 4)
             assert page.evaluate("window.viewer.errors") == []
             assert page.locator("#services tbody tr").count() >= 5
             assert page.locator("#obstacles tbody tr").count() == 2
