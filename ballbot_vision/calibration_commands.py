@@ -197,7 +197,7 @@ def _collect_live(args: argparse.Namespace, pattern: tuple[int, int]) -> list[tu
     from common import codec
     from common.errors import DecodeError
     from common.keys import topic
-    from common.node import Inbox, stamp_of
+    from common.inbox import Inbox, stamp_of
     from common.zenoh_session import open_session
     from cores.calibration import calibrate as C
     from cores.calibration.views import Coverage

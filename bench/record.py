@@ -93,7 +93,7 @@ def record_run(messages, rate: float, seconds: float, image_format: str, threads
     from common import codec
     from common.keys import topic
     from common.messages import ServiceStats
-    from common.node import _STAMP
+    from common.inbox import _STAMP
     from common.zenoh_session import ZenohOptions, open_session
     from bench.measure import free_port
 

@@ -100,7 +100,7 @@ def _role(args: argparse.Namespace) -> int:
     with _session(args.endpoint, shm) as s:
         if args.role == "sub":
             from common.keys import topic
-            from common.node import Inbox
+            from common.inbox import Inbox
 
             inbox = Inbox(topic("frames_rect"), max_bytes=64 << 20)
             done = threading.Event()

@@ -39,7 +39,7 @@ def in_process(n: int = 200) -> dict:
     from cores import camera
     from common.keys import topic
     from common.messages import CameraModel, DisparityMap, StereoFrame
-    from common.node import _META
+    from common.inbox import _META
     from services.capture.sources import SyntheticSource
     from cores.matching.config import MatcherConfig
     from services.disparity.computer import FrameComputer

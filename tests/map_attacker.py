@@ -29,7 +29,7 @@ from common import codec
 from cores import camera
 from common.keys import topic
 from common.messages import CameraModel, DisparityMap, StereoFrame, WorkDone
-from common.node import _META
+from common.inbox import _META
 from common.zenoh_session import ZenohOptions, open_session
 from cores.matching.config import MatcherConfig
 from services.disparity.computer import FrameComputer

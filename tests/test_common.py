@@ -134,7 +134,7 @@ def test_bad_settings_name_where_the_value_came_from(tmp_path, monkeypatch):
 
 
 def test_inbox_keeps_the_newest_by_capture_stamp_and_counts_what_it_drops():
-    from common.node import Inbox
+    from common.inbox import Inbox
     inbox = Inbox(keys.topic("disparity"))
     inbox.offer(b"t20", 20)
     inbox.offer(b"t10", 10)  # a slow worker's older result must not replace the newer one

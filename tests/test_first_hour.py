@@ -107,7 +107,7 @@ def test_the_disparity_service_logs_and_counts_a_narrow_frame_and_goes_on(tmp_pa
         service = subprocess.Popen(cli("run", "disparity", "--connect", endpoint, "--robot-id", "narrow",
                                        "--num-disparities", "64"), stdout=log, stderr=subprocess.STDOUT, cwd=REPO)
     try:
-        from common.node import _META
+        from common.inbox import _META
         from common.zenoh_session import ZenohOptions, open_session
 
         stats = Collector(ServiceStats)

@@ -4,7 +4,7 @@ processes are in test_reliability.py."""
 from __future__ import annotations
 
 from common.keys import topic
-from common.node import Clock, FreshnessGate, FreshnessLimits, Inbox, Meta
+from common.inbox import Clock, FreshnessGate, FreshnessLimits, Inbox, Meta
 
 S = 1_000_000_000  # ns per s
 T0 = 1_700_000_000 * S

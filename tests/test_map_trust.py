@@ -18,7 +18,7 @@ from cores.matching.disparity import RecentValid, to_float
 from common.errors import DecodeError
 from common.keys import topic
 from common.messages import CameraModel, DisparityMap, StereoFrame
-from common.node import _META, FreshnessGate, Inbox, Meta, meta_of
+from common.inbox import _META, FreshnessGate, Inbox, Meta, meta_of
 from cores.matching.config import MatcherConfig
 from services.disparity.computer import FrameComputer
 from services.disparity.state import DispatchState

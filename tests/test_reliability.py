@@ -302,7 +302,7 @@ def forge_camera_frame(pipeline: Pipeline, like: bytes) -> None:
     counts it as an error (no calibration for a camera source) or, once it took a run-time
     calibration, rectifies it (then it is on frames/rectified with the forged stamp)."""
     from common.messages import StereoFrame
-    from common.node import stamp_of
+    from common.inbox import stamp_of
 
     st = pipeline.stream
     frame = codec.decode(like, StereoFrame)

@@ -15,7 +15,7 @@ from common import codec
 from common.errors import ConfigError
 from common.keys import topic
 from common.messages import StereoFrame
-from common.node import Inbox, meta_of
+from common.inbox import Inbox, meta_of
 from common.zenoh_session import ZenohOptions, make_config, open_session, options_from_args
 from tests.helpers import free_port
 

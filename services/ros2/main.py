@@ -228,6 +228,6 @@ def run(node: Node, settings: Ros2Settings) -> None:
 
 
 def _stamp(sample) -> int | None:
-    from common.node import stamp_of
+    from common.inbox import stamp_of
 
     return stamp_of(sample.attachment)

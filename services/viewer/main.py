@@ -28,7 +28,8 @@ from common import codec
 from common.keys import topic
 from common.messages import FreeSpace, ObstacleList, ReplayControl, ServiceStats
 from common.errors import BallbotError, DecodeError
-from common.node import Node, stamp_of
+from common.node import Node
+from common.inbox import stamp_of
 from common.settings import ServiceSettings
 from services.viewer.core import Composer, ViewInputs
 
