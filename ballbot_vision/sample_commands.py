@@ -6,7 +6,7 @@ truth, so that the offline commands have data to run on before there is a real r
     ballbot-vision rectify sample/left.png sample/right.png --calibration sample/calibration.yaml -o sample/rect
     ballbot-vision obstacles sample/left.png sample/right.png --calibration sample/calibration.yaml
 
-Registered through cli.py's COMMAND_MODULES hook; the rendering is sim/synthetic.py's.
+Registered through cli.py's COMMAND_MODULES hook; the rendering is sim/world.py's.
 """
 from __future__ import annotations
 

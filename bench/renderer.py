@@ -11,7 +11,7 @@ def bench_renderer(scenarios: tuple[str, ...] = ("two-boxes", "person-walking"),
     import cv2
 
     from cores import camera
-    from sim.synthetic import Scene, SyntheticWorld
+    from sim import Scene, SyntheticWorld
 
     cv2.setNumThreads(1)
     rig = camera.load_calibration("lifecam-studio")

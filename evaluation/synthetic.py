@@ -57,7 +57,7 @@ from cores.segmentation.builder import ObstacleBuilder
 from cores.segmentation.ground import plane_from_mount
 from cores.segmentation.mount import Mount
 from cores.segmentation.settings import SegmenterSettings
-from sim import synthetic as S
+import sim as S
 
 # eval method name -> settings overrides. `seed` is the thesis as written (no floor removal);
 # `seed+floor` adds the floor removal from the camera mount; `layers` is the default.

@@ -16,7 +16,7 @@ from cores import camera
 from cores.matching.disparity import to_float
 from common.errors import BallbotError
 from common.messages import DisparityMap, ServiceStats, StereoFrame
-from sim import synthetic as S
+import sim as S
 from cores.matching import dense
 from cores.matching.config import auto_num_disparities
 from cores.matching.matchers import MatcherConfig, make_matcher

@@ -126,7 +126,7 @@ def test_obstacles_command_draws_one_picture_per_pair_and_prints_ground_and_free
 
     from ballbot_vision.cli import main
     from common.messages import ObstacleList
-    from sim.synthetic import Scene, SyntheticWorld
+    from sim import Scene, SyntheticWorld
 
     rig = camera.load_calibration("lifecam-studio")
     world = SyntheticWorld(Scene.builtin("touching"), rig, camera.rectify_rig(rig), seed=0)

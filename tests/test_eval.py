@@ -9,7 +9,7 @@ import json
 import numpy as np
 import pytest
 
-from sim.synthetic import list_builtin_scenarios
+from sim import list_builtin_scenarios
 from evaluation import synthetic as E
 
 SCENARIOS = ["two-boxes", "toolbox", "chair", "touching", "border", "person-walking"]

@@ -13,7 +13,7 @@ from pydantic import ValidationError
 from cores.matching.disparity import to_float
 from common.errors import ConfigError
 from common.settings import load_settings
-from sim import synthetic as S
+import sim as S
 from services.disparity.main import DisparitySettings
 from cores.matching.stage import MatchStage
 from cores.matching.matchers import (HalfResolutionMatcher, MatcherConfig, StereoMatcher,

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from cores import camera
-from sim import synthetic as S
+import sim as S
 from cores.calibration.rectify import Rectifier
 from evaluation import synthetic as E
 

@@ -42,7 +42,7 @@ def test_rectified_rows_are_epipolar_lines(chain):
 
 def test_block_matching_agrees_with_true_depth(chain):
     pair, rect, _, _, disparity = chain
-    from sim.synthetic import Scene, SyntheticWorld
+    from sim import Scene, SyntheticWorld
     rig = camera.load_calibration("lifecam-studio")
     world = SyntheticWorld(Scene.default(), rig, rect.rectification, seed=0)
     truth = world.true_disparity(0.0)

@@ -287,7 +287,7 @@ def test_obstacles_command_on_rendered_images(tmp_path, capsys):
     import cv2
 
     from ballbot_vision.cli import main
-    from sim.synthetic import Scene, SyntheticWorld
+    from sim import Scene, SyntheticWorld
 
     rig = camera.load_calibration("lifecam-studio")
     world = SyntheticWorld(Scene.builtin("touching"), rig, camera.rectify_rig(rig), seed=0)

@@ -9,7 +9,7 @@ import pytest
 
 from cores import camera
 from common.errors import ConfigError
-from sim import synthetic as S
+import sim as S
 
 
 @pytest.fixture(scope="module")
@@ -424,7 +424,7 @@ def test_swaying_camera_renders_the_floor_and_objects_where_the_truth_says(rig, 
         Tb = np.linalg.inv(world.T_world_base(t))
         for o, b in zip(world.truth(t), world.scene.boxes):
             origin, yaw, _ = b.pose(t)
-            center_w = origin + S._rot_z(yaw) @ b.local_center()
+            center_w = origin + S.scene.rot_z(yaw) @ b.local_center()
             assert np.allclose(T[:3, :3] @ o.center_m + T[:3, 3], center_w, atol=1e-9)
             assert np.allclose(o.center_base_m, Tb[:3, :3] @ center_w + Tb[:3, 3], atol=1e-9)
             assert o.static == b.is_static()

@@ -88,7 +88,7 @@ class SyntheticSource:
 
     def __init__(self, scenario: str, calibration: str, rate_hz: float, seed: int = 0,
                  noise_sigma: float = 1.5, preload: int = 0, alpha: float = 0.0):
-        from sim.synthetic import Scene, SyntheticWorld
+        from sim import Scene, SyntheticWorld
 
         rig = camera.load_calibration(calibration)
         if not isinstance(rig, camera.RawRig):
