@@ -55,7 +55,7 @@ def cmd_record(args: argparse.Namespace) -> int:
 # --- mcap info / from-images / to-images -------------------------------------------------------
 
 def cmd_info(args: argparse.Namespace) -> int:
-    from cores.recording import RecordingReader
+    from cores.recording_reader import RecordingReader
 
     _need_mcap()
     info = RecordingReader(args.recording).info()
@@ -133,7 +133,7 @@ def cmd_from_images(args: argparse.Namespace) -> int:
 def cmd_to_images(args: argparse.Namespace) -> int:
     import cv2
 
-    from cores.recording import RecordingReader
+    from cores.recording_reader import RecordingReader
 
     _need_mcap()
     reader = RecordingReader(args.recording)

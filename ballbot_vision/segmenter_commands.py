@@ -131,7 +131,7 @@ def cmd_obstacles(args: argparse.Namespace) -> int:
 
     settings = _segmenter_settings(args)
     if args.left.lower().endswith(".mcap"):  # a recording: its pairs, times and (by default) calibration
-        from cores.recording import offline_pairs
+        from cores.recording_reader import offline_pairs
 
         pairs, cal = offline_pairs(args.left, args.calibration)
     elif args.right is None or args.calibration is None:

@@ -156,7 +156,8 @@ def record_run(messages, rate: float, seconds: float, image_format: str, threads
             cpu = _cpu_s(recorder.pid) - cpu0
             recorder.send_signal(signal.SIGINT)
             recorder.wait(120)
-        from cores.recording import RAW_LEFT, RecordingReader
+        from cores.recording import RAW_LEFT
+        from cores.recording_reader import RecordingReader
 
         info = RecordingReader(out).info()
         seqs = []

@@ -290,7 +290,7 @@ def test_an_output_path_that_cannot_be_written_is_a_one_line_error(tmp_path, cap
 
 def test_a_bad_image_in_the_middle_of_a_conversion_keeps_the_pairs_before_it(tmp_path, capfd):
     pytest.importorskip("mcap")
-    from cores.recording import RecordingReader
+    from cores.recording_reader import RecordingReader
 
     left, right = _scene()
     (tmp_path / "L").mkdir(), (tmp_path / "R").mkdir()

@@ -16,6 +16,7 @@ pytest.importorskip("mcap", reason="recordings need the `mcap` package (the `rec
 from common.keys import topic
 from common.messages import GroundTruth, ObstacleList, ServiceStats, StereoFrame
 from cores import recording as R
+from cores.recording_reader import RecordingReader
 
 from helpers import REPO, Collector, Up, cli, read_mcap
 
@@ -131,7 +132,7 @@ def test_a_killed_recorder_leaves_a_readable_file(tmp_path):
         rec.wait(30)
     finally:
         up.stop()
-    reader = R.RecordingReader(out)
+    reader = RecordingReader(out)
     pairs = list(reader.pairs())
     assert reader.truncated and len(pairs) >= 10, len(pairs)  # up to the last chunk that reached the disk
     r = subprocess.run(cli("mcap", "info", str(out)), capture_output=True, text=True, timeout=60)

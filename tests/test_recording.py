@@ -23,6 +23,7 @@ from common.messages import (CameraMount, CameraModel, DisparityMap, FreeSpace, 
                                             TruthObstacle)
 from services.capture.mcap_source import McapSource
 from cores import recording as R
+from cores.recording_reader import RecordingReader, decode_image
 from services.capture.sources import SourceContext
 
 from helpers import cli, read_mcap
@@ -129,11 +130,11 @@ def test_every_recorded_message_decodes_by_the_schema_in_the_file(tmp_path):
     assert (info.width, info.height, info.K[0], info.P[2]) == (64, 48, 60.0, 32.0)
     colour = got[R.DISPARITY_COLOR]
     assert colour.format == "jpeg" and colour.data[:2] == b"\xff\xd8"  # the JPEG's own bytes, not base64
-    picture = R.decode_image(colour.data, colour.format, "disparity")
+    picture = decode_image(colour.data, colour.format, "disparity")
     assert picture.shape == (48, 64, 3) and picture.mean() > 20  # 20 px of 64: a colour, not black
     raw = got[R.RAW_LEFT]
     assert raw.frame_id == "camera_raw" and raw.data[:2] == b"\xff\xd8"
-    assert R.decode_image(raw.data, raw.format, "raw").shape == (48, 64)
+    assert decode_image(raw.data, raw.format, "raw").shape == (48, 64)
     assert got[R.OBSTACLES]["obstacles"][0]["id"] == 3
 
 
@@ -150,7 +151,7 @@ def test_rectified_pairs_replay_with_their_rectified_camera_and_raw_ones_only_wh
         for r in conv.frame(frame(k)) + conv.frame(frame(k, rectified=True)) + conv.truth(truth(k)):
             w.write(r.topic, r.doc, r.log_time_ns, r.sequence)
     w.close()
-    reader = R.RecordingReader(path)
+    reader = RecordingReader(path)
     assert reader.info().pairs("raw") == 0 and reader.info().pairs("rectified") == 4
     got = list(reader.pairs())
     assert reader.kind == "rectified" and [p.seq for p in got] == [0, 1, 2, 3]
@@ -198,19 +199,19 @@ def write_layout1(path: Path, n: int) -> None:
 def test_layout_1_recordings_are_still_read_and_a_newer_layout_is_refused_by_name(tmp_path):
     old = tmp_path / "old.mcap"
     write_layout1(old, 4)
-    got = list(R.RecordingReader(old).pairs())
+    got = list(RecordingReader(old).pairs())
     assert [p.seq for p in got] == [0, 1, 2, 3] and got[0].calibration_yaml == "rectified: true"
     for p in got:
         assert np.array_equal(p.left, pair_images(p.seq)[0]) and np.array_equal(p.right, pair_images(p.seq)[1])
     new = tmp_path / "new.mcap"
     write_recording(new, n=2)
-    assert R.RecordingReader(new).info().metadata["layout"] == "2"
+    assert RecordingReader(new).info().metadata["layout"] == "2"
     future = tmp_path / "future.mcap"
     w = R.RecordingWriter(future, metadata={"layout": "3"})
     w.close()
     with pytest.raises(R.RecordingError, match=r"future\.mcap: recording layout 3, newer than this version of "
                                                r"ballbot-vision reads \(layouts 1 to 2\)"):
-        R.RecordingReader(future).info()
+        RecordingReader(future).info()
     with pytest.raises(SourceError, match="recording layout 3"):
         McapSource(str(future))
 
@@ -218,7 +219,7 @@ def test_layout_1_recordings_are_still_read_and_a_newer_layout_is_refused_by_nam
 def test_pairs_read_back_as_written(tmp_path):
     path = tmp_path / "r.mcap"
     write_recording(path, n=6)
-    reader = R.RecordingReader(path)
+    reader = RecordingReader(path)
     info = reader.info()
     assert info.complete and info.pairs("raw") == 6 and info.channels[R.CALIBRATION] == 1
     got = list(reader.pairs())
@@ -240,7 +241,7 @@ def test_jpeg_recording_is_close_to_the_original(tmp_path):
     for r in conv.frame(msg):
         w.write(r.topic, r.doc, r.log_time_ns, r.sequence)
     w.close()
-    (p,) = list(R.RecordingReader(path).pairs())
+    (p,) = list(RecordingReader(path).pairs())
     assert np.abs(p.left.astype(int) - img).mean() < 2.0
 
 
@@ -250,7 +251,7 @@ def test_a_killed_writer_leaves_every_finished_chunk_readable(tmp_path):
     w._file.flush()
     cut = tmp_path / "cut.mcap"
     shutil.copy(path, cut)
-    reader = R.RecordingReader(cut)
+    reader = RecordingReader(cut)
     pairs = list(reader.pairs())
     assert reader.truncated and not reader.info().complete
     assert 15 <= len(pairs) <= 20, len(pairs)
@@ -260,7 +261,7 @@ def test_a_killed_writer_leaves_every_finished_chunk_readable(tmp_path):
     data = path.read_bytes()
     half = tmp_path / "half.mcap"
     half.write_bytes(data[: len(data) // 2])
-    r2 = R.RecordingReader(half)
+    r2 = RecordingReader(half)
     n = len(list(r2.pairs()))
     assert r2.truncated and 3 <= n < 20
 
@@ -275,7 +276,7 @@ def test_unreadable_recordings_are_named(tmp_path, content, error):
     if content is not None:
         path.write_bytes(content)
     with pytest.raises(R.RecordingError, match=error):
-        R.RecordingReader(path).info()
+        RecordingReader(path).info()
     with pytest.raises(SourceError, match="mcap: .*" + error):
         McapSource(str(path))
 
@@ -304,7 +305,7 @@ def test_a_recording_without_pairs_says_what_it_holds(tmp_path):
     with pytest.raises(SourceError, match=r"stats-only\.mcap holds no stereo pairs \(topics: /calibration\)"):
         McapSource(str(path))
     with pytest.raises(R.RecordingError, match=r"no raw stereo pairs .* it holds /calibration"):
-        list(R.RecordingReader(path).pairs("raw"))
+        list(RecordingReader(path).pairs("raw"))
     with pytest.raises(SourceError, match=r"no recording given \(--mcap FILE\)"):
         McapSource("")
 
@@ -399,7 +400,7 @@ def test_timestamp_names_give_the_recorded_times(tmp_path):
     r = subprocess.run(cli("mcap", "from-images", str(left), str(right), "-o", str(out)), capture_output=True,
                        text=True, timeout=120)
     assert r.returncode == 0, r.stderr
-    stamps = [p.stamp_ns for p in R.RecordingReader(out).pairs()]
+    stamps = [p.stamp_ns for p in RecordingReader(out).pairs()]
     assert stamps == [t0 + i * 50_000_000 for i in range(4)]
 
 

@@ -17,7 +17,8 @@ from typing import Callable, Iterator
 
 from common.errors import SourceError
 from common.messages import ReplayControl
-from cores.recording import RecordedPair, RecordingError, RecordingReader, named_calibration
+from cores.recording import RecordingError
+from cores.recording_reader import RecordedPair, RecordingReader, named_calibration
 from services.capture.sources import CapturedPair, SourceContext
 
 log = logging.getLogger("ballbot.capture")
