@@ -266,7 +266,7 @@ def cmd_keys(args: argparse.Namespace) -> int:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from bench.pipeline import bench_main
+    from bench.command import bench_main
 
     return bench_main(args)
 
@@ -409,7 +409,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
 
     if needed("bench"):
         b = common(sub.add_parser("bench", help="throughput and latency, per stage and end to end"))
-        from bench.pipeline import add_bench_arguments
+        from bench.command import add_bench_arguments
 
         add_bench_arguments(b)
         b.set_defaults(func=cmd_bench)

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from bench import pipeline
+from bench import pipeline, references
 from bench.pipeline import (MAX_DROPPED, Received, search_rate, seq_gaps, summarize)
 from helpers import REPO, cli
 
@@ -264,12 +264,12 @@ def test_the_matcher_reference_has_the_services_matcher_settings():
     from cores.matching.matchers import MatcherConfig
 
     c = MatcherConfig(method="bm")
-    m = pipeline.opencv_matcher("bm")
+    m = references.opencv_matcher("bm")
     # the service's search range for the synthetic rig: num_disparities auto, about 1 m (f*B = 66 px m)
     assert (m.getBlockSize(), m.getNumDisparities(), m.getMinDisparity()) == (c.block, 64, c.min_disparity)
     assert (m.getUniquenessRatio(), m.getTextureThreshold()) == (c.uniqueness_ratio, c.texture_threshold)
     s = MatcherConfig(method="sgbm")
-    g = pipeline.opencv_matcher("sgbm")
+    g = references.opencv_matcher("sgbm")
     assert (g.getBlockSize(), g.getP1(), g.getP2()) == (s.block, 8 * s.block ** 2, 32 * s.block ** 2)  # grey: cn 1
 
 
