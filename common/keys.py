@@ -46,13 +46,15 @@ class Topic:
 
 
 TOPICS: dict[str, Topic] = {t.name: t for t in [
-    Topic("frames_raw", "ballbot/{robot_id}/frames/raw", StereoFrame, "capture", 30.0, ("rectify",),
+    Topic("frames_raw", "ballbot/{robot_id}/frames/raw", StereoFrame, "capture", 30.0, ("rectify", "recorder"),
           "raw stereo pair, left and right share seq and stamp", image_stream=True, max_bytes=80 << 20),
-    Topic("truth", "ballbot/{robot_id}/truth", GroundTruth, "capture", 30.0, ("eval", "tests"),
+    Topic("truth", "ballbot/{robot_id}/truth", GroundTruth, "capture", 30.0, ("viewer", "foxglove", "recorder", "tests"),
           "ground truth of the synthetic scene for the pair with the same seq", max_bytes=4 << 20),
-    Topic("frames_rect", "ballbot/{robot_id}/frames/rectified", StereoFrame, "rectify", 30.0, ("disparity",),
+    Topic("frames_rect", "ballbot/{robot_id}/frames/rectified", StereoFrame, "rectify", 30.0,
+          ("disparity", "viewer", "foxglove", "recorder", "ros2"),
           "rectified pair with its camera model", image_stream=True, max_bytes=80 << 20),
-    Topic("disparity", "ballbot/{robot_id}/disparity", DisparityMap, "disparity", 30.0, ("segmenter",),
+    Topic("disparity", "ballbot/{robot_id}/disparity", DisparityMap, "disparity", 30.0,
+          ("segmenter", "viewer", "foxglove", "recorder", "ros2"),
           "disparity map of the rectified left image, fixed point; only the robot's dispatcher publishes "
           "here, signed with the robot's key", image_stream=True, max_bytes=40 << 20),
     Topic("worker", "ballbot/{robot_id}/workers/{instance}", None, "disparity", 0.0, ("disparity",),
@@ -97,9 +99,10 @@ TOPICS: dict[str, Topic] = {t.name: t for t in [
           "the robot's own velocity over the ground (optional input: ground-referenced obstacle velocities)",
           max_bytes=64 << 10),
     Topic("stats", "ballbot/{robot_id}/stats/{service}/{instance}", ServiceStats, "every service", 1.0,
-          ("status",), "per-instance rate, latency, drops and errors, once a second", max_bytes=256 << 10),
+          ("status", "viewer", "recorder", "capture"), "per-instance rate, latency, drops and errors, once a second "
+          "(capture's replay follows rectify's)", max_bytes=256 << 10),
     Topic("alive", "ballbot/{robot_id}/alive/{service}/{instance}", None, "every service", 0.0,
-          ("status",), "liveliness token of a running instance"),
+          ("status", "capture"), "liveliness token of a running instance"),
     # An offboard worker's own keys, apart from the robot services' (service segment WORKER_SEGMENT,
     # which no service is named): the gateway's worker role may write these and no other stats or
     # alive key, so a worker can never pose as the dispatcher or any robot service, and `status` /
@@ -109,7 +112,8 @@ TOPICS: dict[str, Topic] = {t.name: t for t in [
           max_bytes=256 << 10),
     Topic("worker_alive", "ballbot/{robot_id}/alive/worker/{instance}", None, "disparity (worker)", 0.0,
           ("status",), "liveliness token of a running disparity worker"),
-    Topic("calibration", "ballbot/{robot_id}/calibration", CalibrationUpdate, "calibrate, capture", 0.0, ("rectify",),
+    Topic("calibration", "ballbot/{robot_id}/calibration", CalibrationUpdate, "calibrate, capture", 0.0,
+          ("rectify", "recorder"),
           "a new calibration (YAML text) for rectify, applied between frames without a restart", max_bytes=2 << 20),
     Topic("replay_control", "ballbot/{robot_id}/replay/control", ReplayControl, "viewer, replay", 0.0, ("capture",),
           "play / pause / step a replayed recording (capture --source mcap)", max_bytes=64 << 10),

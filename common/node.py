@@ -252,11 +252,32 @@ class Node:
         self._inboxes.append(inbox)
         return inbox
 
-    def subscribe(self, key: str, callback: Callable[[Any], None]) -> Any:
+    def subscribe(self, key: str, callback: Callable[[Any], None], keep: bool = True) -> Any:
+        """A subscriber on a key of the table (recorded in the stats). keep: held until the node
+        closes; False for one the caller undeclares itself (a stream subscribed only while watched)."""
         self.uses("subscribes", key)
         sub = self.session.declare_subscriber(key, callback)
+        if keep:
+            self._subscribers.append(sub)
+        return sub
+
+    def watch_tokens(self, key: str, callback: Callable[[Any], None]) -> Any:
+        """A liveliness subscriber (with the tokens alive already: history) on a key of the table."""
+        self.uses("subscribes", key)
+        sub = self.session.liveliness().declare_subscriber(key, callback, history=True)
         self._subscribers.append(sub)
         return sub
+
+    def declare_token(self, key: str) -> Any:
+        """A liveliness token on a key of the table (recorded in the stats)."""
+        self.uses("publishes", key)
+        return self.session.liveliness().declare_token(key)
+
+    def declare_publisher(self, key: str, **qos_: Any) -> Any:
+        """A raw Zenoh publisher on a key of the table (recorded in the stats), for payloads that are
+        not one of our messages with its stamp (Publisher is for those)."""
+        self.uses("publishes", key)
+        return self.session.declare_publisher(key, **qos_)
 
     def uses(self, how: str, key_expr: str) -> None:
         """Record that this instance subscribes to or publishes on a key expression: its stats

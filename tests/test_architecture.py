@@ -23,3 +23,26 @@ def test_docs_key_table_is_the_key_table():
     text = (ROOT / "docs" / "keys.md").read_text()
     assert text.endswith(markdown_table()), "docs/keys.md is stale: regenerate it with `ballbot-vision keys --markdown`"
     assert all(f"`{t.template.replace('{', '<').replace('}', '>')}`" in text for t in TOPICS.values())
+
+
+def test_what_each_service_declares_it_uses_agrees_with_the_key_table():
+    """Every service's module declares in its first lines what it subscribes to and publishes
+    (openpilot-style); the key table names it as a consumer or producer of each of those topics.
+    What a running service really uses is held to its declaration in test_system."""
+    import importlib
+
+    from common.keys import TOPICS
+
+    wrong = []
+    for folder in sorted(p.parent for p in (ROOT / "services").glob("*/main.py")):
+        service = folder.name  # a service folder's name is its process name and its `producer` entry
+        m = importlib.import_module(f"services.{service}.main")
+        for name in m.SUBSCRIBES:
+            t = TOPICS[name]
+            if service not in t.consumers and "anyone" not in t.consumers:
+                wrong.append(f"{service} subscribes to {name}; the table's consumers: {', '.join(t.consumers)}")
+        for name in m.PUBLISHES:
+            producers = TOPICS[name].producer.split(", ")
+            if service not in producers and "every service" not in producers:
+                wrong.append(f"{service} publishes {name}; the table's producer: {TOPICS[name].producer}")
+    assert not wrong, "\n".join(wrong)

@@ -2,6 +2,7 @@
 starts them (`ballbot-vision up`), checked against the synthetic scene's ground truth."""
 from __future__ import annotations
 
+import importlib
 import json
 import subprocess
 import time
@@ -11,6 +12,7 @@ import pytest
 
 from common import codec
 from common.keys import TOPICS, topic
+from common.supervisor import SERVICES
 from common.messages import (FreeSpace, GroundTruth, Image, ObstacleList, Odometry, ServiceStats,
                                             StereoFrame)
 
@@ -116,6 +118,11 @@ def test_up_publishes_obstacles_matching_ground_truth_and_stops_cleanly(up):
         assert set(uses["segmenter"]["publishes"]) >= {"obstacles", "freespace"}
         for inst in doc["instances"]:
             assert not table_disagrees(inst["service"], inst["subscribes"], inst["publishes"]), inst
+            # and what its module declares in its first lines (SUBSCRIBES / PUBLISHES) covers it
+            if inst["service"] in SERVICES:
+                m = importlib.import_module(SERVICES[inst["service"]][0])
+                assert set(inst["subscribes"]) <= set(m.SUBSCRIBES), (inst["service"], inst["subscribes"])
+                assert set(inst["publishes"]) - {"stats", "alive"} <= set(m.PUBLISHES), (inst["service"], inst["publishes"])
 
     pids = up.child_pids()
     assert set(pids) == {"router", "capture", "rectify", "disparity", "segmenter"}

@@ -21,8 +21,9 @@ from common.node import Node
 from services.capture.settings import CaptureSettings
 from services.capture.sources import CapturedPair, SourceContext, SyntheticSource
 
-SUBSCRIBES: list[str] = []
-PUBLISHES = ["frames_raw", "truth"]
+# replay (--source mcap) follows rectify's stats and tokens and takes replay commands
+SUBSCRIBES = ["replay_control", "stats", "alive"]
+PUBLISHES = ["frames_raw", "truth", "calibration"]  # calibration: a replay's or a ROS camera's, signed
 
 
 def preflight(s: CaptureSettings) -> None:

@@ -230,7 +230,7 @@ def connect_replay(node, source: McapSource) -> None:
     from common.messages import ServiceStats
 
     source.ready.clear()
-    calibration = node.session.declare_publisher(topic("calibration").key(node.robot_id))
+    calibration = node.declare_publisher(topic("calibration").key(node.robot_id))
     sent: dict[str, int] = {}  # rectify instance -> announcements to it
     lock = threading.Lock()
 
@@ -260,5 +260,4 @@ def connect_replay(node, source: McapSource) -> None:
     source.on_calibration = lambda text: [announce(i, text) for i in list(sent) or ["*"]]
     node.subscribe(topic("stats").key(node.robot_id, service="rectify", instance="*"), on_rectify_stats)
     # history=True: rectify instances already alive are announced at once
-    node._subscribers.append(node.session.liveliness().declare_subscriber(
-        topic("alive").key(node.robot_id, service="rectify", instance="*"), on_rectify_alive, history=True))
+    node.watch_tokens(topic("alive").key(node.robot_id, service="rectify", instance="*"), on_rectify_alive)

@@ -390,15 +390,14 @@ class Dispatcher:
         s = self.node.session
         self._subs.append(self.node.subscribe(topic("work_done").pattern(self.rid), self._on_done))
         self._subs.append(self.node.subscribe(topic("work_result").pattern(self.rid), self._on_result))
-        self._subs.append(s.liveliness().declare_subscriber(topic("worker").pattern(self.rid), self._on_token,
-                                                           history=True))
+        self._subs.append(self.node.watch_tokens(topic("worker").pattern(self.rid), self._on_token))
+        self.node.uses("publishes", self._work.pattern(self.rid))  # put per item (_send)
         if self.pool:
             p = self.pool
             self._subs.append(self.node.subscribe(topic("pool_done").pattern(self.rid, pool=p), self._on_done))
             self._subs.append(self.node.subscribe(topic("pool_result").pattern(self.rid, pool=p), self._on_result))
             self._subs.append(self.node.subscribe(topic("pool_grant").pattern(self.rid, pool=p), self._on_grant))
-            self._subs.append(s.liveliness().declare_subscriber(topic("pool_worker").pattern(pool=p), self._on_token,
-                                                               history=True))
+            self._subs.append(self.node.watch_tokens(topic("pool_worker").pattern(pool=p), self._on_token))
             key = topic("pool_demand").key(self.rid, pool=p)
             # a put per demand, not a declared publisher: no publisher state that could go stale while
             # workers come and go (in one bench run a robot's demands stopped reaching the workers

@@ -432,7 +432,7 @@ def run_pool_worker(node: Node, settings: Any) -> None:
                     key = topic(name).key(home, instance=me)
                 else:
                     key = topic(name).key(robot, pool=pool, instance=me)
-                p = publishers[(name, robot)] = node.session.declare_publisher(key, **qos(topic(name)))
+                p = publishers[(name, robot)] = node.declare_publisher(key, **qos(topic(name)))
             return p
 
     def send_grants() -> None:
@@ -512,9 +512,9 @@ def run_pool_worker(node: Node, settings: Any) -> None:
     for name in ("pool_grant", "pool_result", "pool_done") + (("work_result", "work_done") if settings.serve_robot
                                                               else ()):
         node.uses("publishes", topic(name).pattern(pool=pool))
-    tokens = [node.session.liveliness().declare_token(topic("pool_worker").key("", pool=pool, instance=me))]
+    tokens = [node.declare_token(topic("pool_worker").key("", pool=pool, instance=me))]
     if settings.serve_robot:
-        tokens.append(node.session.liveliness().declare_token(topic("worker").key(home, instance=me)))
+        tokens.append(node.declare_token(topic("worker").key(home, instance=me)))
     node.status = f"ok: {computer.method} in pool {pool}, waiting for work"
     log.info("pool worker %s ready in pool %s%s", me, pool, f" and for robot {home}" if settings.serve_robot else "")
 

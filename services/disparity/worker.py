@@ -74,10 +74,10 @@ def run_worker(node: Node, settings: Any) -> None:
     node.subscribe(topic("work").key(rid, instance=me), on_work)
     # Maps go only to this worker's own result key: the dispatcher checks each against the item it
     # sent and republishes it on `disparity`; receipts only for items dropped.
-    results = node.session.declare_publisher(topic("work_result").key(rid, instance=me), **qos(topic("work_result")))
-    receipts = node.session.declare_publisher(topic("work_done").key(rid, instance=me), **qos(topic("work_done")))
+    results = node.declare_publisher(topic("work_result").key(rid, instance=me), **qos(topic("work_result")))
+    receipts = node.declare_publisher(topic("work_done").key(rid, instance=me), **qos(topic("work_done")))
     # Announce only once the work key is subscribed: the dispatcher sends as soon as it sees this.
-    token = node.session.liveliness().declare_token(topic("worker").key(rid, instance=me))
+    token = node.declare_token(topic("worker").key(rid, instance=me))
     node.status = f"ok: {computer.method}, waiting for work"
     log.info("disparity worker %s ready on %s", me, topic("work").key(rid, instance=me))
 

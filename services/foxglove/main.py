@@ -194,8 +194,8 @@ class Bridge:
             if any(self.watched(t) for t in FEEDS[kind]):
                 self._last_watched[kind] = now
                 if kind not in self._image_subs:
-                    self._image_subs[kind] = self.node.session.declare_subscriber(
-                        topic(kind).key(self.node.robot_id), self._keep(kind))
+                    self._image_subs[kind] = self.node.subscribe(topic(kind).key(self.node.robot_id),
+                                                                 self._keep(kind), keep=False)
                     log.info("foxglove: a client watches %s; subscribed to %s", ", ".join(FEEDS[kind]), kind)
             elif kind in self._image_subs and now - self._last_watched.get(kind, 0.0) >= self.settings.idle_unsubscribe_s:
                 self._image_subs.pop(kind).undeclare()

@@ -16,6 +16,9 @@ from cores.segmentation.settings import SegmenterSettings
 
 log = logging.getLogger("ballbot")
 
+SUBSCRIBES = ["disparity", "odometry"]
+PUBLISHES = ["obstacles", "freespace"]
+
 __all__ = ["SegmenterSettings", "run"]
 
 

@@ -154,7 +154,7 @@ class Viewer:
         self.node.subscribe(topic("freespace").key(rid), self._on_freespace)
         self.node.subscribe(topic("stats").pattern(rid), self._on_stats)
         if self.settings.controls:
-            self._control = self.node.session.declare_publisher(topic("replay_control").key(rid))
+            self._control = self.node.declare_publisher(topic("replay_control").key(rid))
 
     def _manage_image_subscriptions(self) -> None:
         now = time.monotonic()
@@ -162,10 +162,10 @@ class Viewer:
             self._last_client = now
             if not self._image_subs:
                 rid = self.node.robot_id
-                s = self.node.session
-                self._image_subs = [s.declare_subscriber(topic("frames_rect").key(rid), self._keep("frames")),
-                                    s.declare_subscriber(topic("disparity").key(rid), self._keep("disparities")),
-                                    s.declare_subscriber(topic("truth").key(rid), self._keep("truths"))]
+                sub = self.node.subscribe
+                self._image_subs = [sub(topic("frames_rect").key(rid), self._keep("frames"), keep=False),
+                                    sub(topic("disparity").key(rid), self._keep("disparities"), keep=False),
+                                    sub(topic("truth").key(rid), self._keep("truths"), keep=False)]
                 log.info("viewer: a page is open; subscribed to the image streams")
         elif self._image_subs and now - self._last_client > self.settings.idle_unsubscribe_s:
             for sub in self._image_subs:
