@@ -107,6 +107,7 @@ def test_search_when_nothing_holds_reports_the_lowest_rate_tried():
     assert rate == min(p["offered_hz"] for p in probes)
 
 
+@pytest.mark.slow
 def test_bench_json_runs_the_four_processes_and_the_references():
     out = subprocess.run(cli("bench", "--json", "--rate", "8", "--seconds", "3", "--warmup", "2",
                              "--reference-seconds", "0.3", "--preload", "2", "--steady-rate", "5"),

@@ -376,6 +376,7 @@ def _service_logs(tmp_path):
     Procs.logdir = None
 
 
+@pytest.mark.slow
 @pytest.mark.system
 def test_three_worker_processes_survive_a_kill_and_garbage():
     rid = f"pool{uuid.uuid4().hex[:6]}"
@@ -445,6 +446,7 @@ def _netns_unavailable() -> str | None:
     return None
 
 
+@pytest.mark.slow
 @pytest.mark.system
 def test_workers_in_another_network_namespace_survive_a_kill():
     why = _netns_unavailable()

@@ -388,6 +388,7 @@ def gateway_robot(tmp_path_factory):
                 p.wait()
 
 
+@pytest.mark.slow
 def test_gateway_a_worker_credential_cannot_put_on_the_disparity_key(gateway_robot):
     """Through the gateway the access control drops the forgeries before they reach the robot's
     network: the segmenter never even sees them (and would refuse them unsigned)."""
@@ -396,6 +397,7 @@ def test_gateway_a_worker_credential_cannot_put_on_the_disparity_key(gateway_rob
     assert obs.extra("segmenter", "in_disparity_unsigned") + obs.extra("segmenter", "in_disparity_forged") == 0
 
 
+@pytest.mark.slow
 def test_gateway_forgeries_on_a_workers_result_key_cost_it_nothing(gateway_robot):
     obs = gateway_robot.obs
     before = obs.extra("dispatcher", "results_unmatched")

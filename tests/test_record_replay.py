@@ -58,7 +58,7 @@ def read_back(path: Path) -> dict[str, list]:
     return out
 
 
-@pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM])
+@pytest.mark.parametrize("stop", [pytest.param(signal.SIGINT, marks=pytest.mark.slow), signal.SIGTERM])
 def test_a_stopped_recording_is_a_complete_file_that_replays_like_the_live_pipeline(tmp_path, stop):
     out = tmp_path / "session.mcap"
     up = Up(robot_id="rec")
@@ -122,6 +122,7 @@ def test_a_stopped_recording_is_a_complete_file_that_replays_like_the_live_pipel
     assert "calibration 'rectified camera' from the calibration key (recording" in log
 
 
+@pytest.mark.slow
 def test_a_killed_recorder_leaves_a_readable_file(tmp_path):
     out = tmp_path / "killed.mcap"
     up = Up(robot_id="kill")
@@ -139,6 +140,7 @@ def test_a_killed_recorder_leaves_a_readable_file(tmp_path):
     assert r.returncode == 0 and "NO INDEX" in r.stdout
 
 
+@pytest.mark.slow
 def test_a_replay_steps_frame_by_frame(tmp_path):
     out = tmp_path / "three.mcap"
     left, right = tmp_path / "L", tmp_path / "R"

@@ -177,6 +177,7 @@ def test_a_map_replayed_an_hour_ahead_is_refused(pipeline):
     assert not [m for _, m in st.lists if m.stamp_ns == forged.stamp_ns], "the replayed map became a list"
 
 
+@pytest.mark.slow
 def test_a_ghost_worker_token_is_quarantined_and_the_onboard_fallback_carries_on(pipeline):
     """A liveliness token on workers/ghost with nobody doing work cut fresh lists from ~30 Hz to
     2 per 10 s. Now the ghost gets one probe frame, is quarantined, and the rate holds."""
@@ -380,6 +381,7 @@ def test_a_forged_camera_frame_does_not_make_the_next_calibration_the_first(pipe
     assert b1 == b0 and 0.93 < d1 / d0 < 1.07
 
 
+@pytest.mark.slow
 def test_signed_calibration_drift_is_bounded_by_the_calibration_rectify_started_with(pipeline):
     """The same 18 steps signed with the robot's own key (what a compromised or buggy holder of it
     would send): the first step (-4 %) is within 5 % of the calibration rectify started with and is
@@ -394,6 +396,7 @@ def test_signed_calibration_drift_is_bounded_by_the_calibration_rectify_started_
     assert nearest > 0.9  # the attack aimed at 0.48
 
 
+@pytest.mark.slow
 def test_insecure_unsigned_calibrations_are_still_bounded_and_never_a_first_one(tmp_path):
     """With the explicit opt-in (rectify.insecure_unsigned_calibrations), unsigned updates get in, but
     only as far as a signed one would: drift bounded against the start, no forged "first" one."""
@@ -426,6 +429,7 @@ with open_session(ZenohOptions(mode="peer", connect=[endpoint], listen=["tcp/127
 """
 
 
+@pytest.mark.slow
 def test_a_peer_that_takes_1_s_per_sample_does_not_stall_the_obstacle_stream(pipeline):
     """With BLOCK, one such peer made 6-12 s gaps in the obstacle stream for everyone; issue 25 still
     measured 0.44-1.1 s gaps with it. Its cost to the robot: the publishers of 1.8 MB frames wait on
@@ -505,6 +509,7 @@ def fuzz(session, rid: str, keys: list[str], rounds: int) -> int:
     return sent
 
 
+@pytest.mark.slow
 def test_memory_stays_bounded_under_a_burst_of_hostile_payloads(pipeline):
     st, up = pipeline.stream, pipeline.up
     pids = up.child_pids()
@@ -531,6 +536,7 @@ def test_memory_stays_bounded_under_a_burst_of_hostile_payloads(pipeline):
 
 # --- the wall clock steps (NTP on a robot without an RTC) ---------------------------------------------
 
+@pytest.mark.slow
 def test_a_wall_clock_step_costs_no_more_than_the_frames_in_flight(tmp_path):
     """Every service reads its wall clock through one injectable clock; the fault file moves it for
     all of them at once, as an NTP step moves a robot's clock. Back 10 s froze rectify for 10 s and
@@ -564,6 +570,7 @@ def test_a_wall_clock_step_costs_no_more_than_the_frames_in_flight(tmp_path):
 
 # --- the thesis rate on two busy cores ------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_thesis_rate_on_two_cores_with_a_cpu_hog_no_stale_lists_no_id_changes(tmp_path):
     """15 fps (the thesis rate), the services started with `up --nice -10` (perception ahead of other
     work, as on a robot), then one busy loop per core competing for the CPUs: the lists stay as
@@ -611,6 +618,7 @@ def test_thesis_rate_on_two_cores_with_a_cpu_hog_no_stale_lists_no_id_changes(tm
 
 # --- health is about progress ------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_health_and_healthcheck_report_a_stage_that_makes_no_progress(tmp_path):
     """A dispatcher with no worker and no fallback (input arrives, nothing is published) is degraded,
     and a rectify whose calibration fits no frame (every input fails) is failed; `healthcheck` fails

@@ -240,6 +240,7 @@ def _healthcheck(robot, *args: str) -> subprocess.CompletedProcess:
                           cwd=REPO)
 
 
+@pytest.mark.slow
 def test_a_worker_cannot_pose_as_a_robot_service_in_status_or_healthcheck(robot):
     """Issue 25: the worker role could write the dispatcher's stats key, so forged stats could make
     `status` and `healthcheck` lie. Now the worker role writes only the workers' own stats key: its

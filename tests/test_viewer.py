@@ -139,6 +139,7 @@ async def _clients(port: int, seconds: float) -> dict:
     return out
 
 
+@pytest.mark.slow
 @pytest.mark.system
 def test_the_server_sends_latest_frames_only_and_survives_bad_clients():
     port = free_port()
