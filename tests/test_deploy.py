@@ -152,9 +152,10 @@ def test_compose_refuses_to_start_without_the_key_and_reads_it_from_env_file(tmp
 
 
 def _readme_docker_lines() -> list[str]:
-    """README's Docker commands as a user copies them: the lines of its sh blocks and the inline
-    commands that run Docker or Compose (comments cut)."""
-    text = (REPO / "README.md").read_text()
+    """The Docker commands of README and its pages (docs/deployment.md and the others) as a user
+    copies them: the lines of their sh blocks and the inline commands that run Docker or Compose
+    (comments cut)."""
+    text = "\n".join(p.read_text() for p in [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))])
     lines = []
     for block in re.findall(r"```sh\n(.*?)```", text, re.S):
         for line in block.splitlines():
@@ -264,7 +265,7 @@ def test_the_first_readme_command_installs_what_viewer_record_replay_and_foxglov
     ours = {"ballbot_vision", "bench", "services", "evaluation", "sim", "cores", "common"}
     files = [*(REPO / "services" / "viewer").glob("*.py"), *(REPO / "services" / "recorder").glob("*.py"),
              *(REPO / "services" / "foxglove").glob("*.py"), REPO / "services" / "capture" / "mcap_source.py",
-             REPO / "cores" / "recording.py", REPO / "cores" / "foxglove.py", REPO / "ballbot_vision" / "mcap_commands.py"]
+             REPO / "cores" / "recording.py", REPO / "cores" / "recording_reader.py", REPO / "cores" / "foxglove.py", REPO / "ballbot_vision" / "mcap_commands.py"]
     modules = set()
     for f in files:
         for node in ast.walk(ast.parse(f.read_text())):
