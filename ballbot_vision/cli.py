@@ -273,7 +273,9 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 # --- parser ------------------------------------------------------------------------------------
 
-BUILTIN_COMMANDS = ("up", "run", "watch", "status", "schema", "healthcheck", "keys", "bench")
+BUILTIN_COMMANDS = ("up", "run", "watch", "status", "schema", "healthcheck", "keys", "bench", "viewer", "foxglove")
+# Services a person starts by name beside a running pipeline: `ballbot-vision viewer` is `run viewer`.
+SERVICE_COMMANDS = ("viewer", "foxglove")
 
 
 def _wanted(argv: list[str] | None) -> tuple[str | None, str | None]:
@@ -415,6 +417,17 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
         b.set_defaults(func=cmd_bench)
     else:
         stub("bench")
+
+    for name in SERVICE_COMMANDS:
+        if needed(name):
+            m, settings_cls = service_module(name)
+            sp = common(sub.add_parser(name, help=(m.__doc__ or '').strip().splitlines()[0]))
+            sp.add_argument("--instance", default=None, help="instance name in stats and liveliness (default: host-pid)")
+            add_settings_arguments(sp, settings_cls)
+            add_settings_arguments(sp, MountSettings, prefix="mount-")
+            sp.set_defaults(func=cmd_run, service=name)
+        else:
+            stub(name)
 
     if wanted is None or wanted not in BUILTIN_COMMANDS:
         for module in COMMAND_MODULES:

@@ -164,6 +164,10 @@ def test_run_service_help_still_lists_every_setting():
     r = subprocess.run([sys.executable, "-m", "ballbot_vision.cli", "--help"], capture_output=True, text=True,
                        timeout=120)
     assert r.returncode == 0 and "healthcheck" in r.stdout and "calibration" in r.stdout and "obstacles" in r.stdout
+    for name in ("viewer", "foxglove"):  # services a person starts by name: `ballbot-vision viewer` = `run viewer`
+        r = subprocess.run([sys.executable, "-m", "ballbot_vision.cli", name, "--help"], capture_output=True, text=True,
+                           timeout=120)
+        assert r.returncode == 0 and "--port" in r.stdout and "--mount-height-m" in r.stdout, r.stderr
 
 
 _HEAVY_AT_EXIT = ("import atexit, sys\n"
