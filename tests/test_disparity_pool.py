@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import signal
 import socket
 import subprocess
@@ -14,6 +13,8 @@ import time
 import uuid
 
 import pytest
+
+from bench.fleet import netns_unavailable  # the one check whether this machine can make test hosts
 
 from services.disparity.envelope import make_attachment, parse_attachment
 from services.disparity.state import DispatchState
@@ -433,23 +434,10 @@ def test_three_worker_processes_survive_a_kill_and_garbage():
 
 # --- two hosts: network namespaces joined by a veth pair --------------------------------------------
 
-def _netns_unavailable() -> str | None:
-    if not hasattr(os, "geteuid") or os.geteuid() != 0:
-        return "needs root (ip netns)"
-    if not shutil.which("ip"):
-        return "needs the `ip` tool (iproute2)"
-    probe = f"bbprobe{uuid.uuid4().hex[:6]}"
-    r = subprocess.run(["ip", "netns", "add", probe], capture_output=True, text=True)
-    if r.returncode != 0:
-        return f"cannot create a network namespace here: {r.stderr.strip()}"
-    subprocess.run(["ip", "netns", "del", probe], capture_output=True)
-    return None
-
-
 @pytest.mark.slow
 @pytest.mark.system
 def test_workers_in_another_network_namespace_survive_a_kill():
-    why = _netns_unavailable()
+    why = netns_unavailable()
     if why:
         pytest.skip(why)
     tag = uuid.uuid4().hex[:5]
