@@ -23,13 +23,12 @@ import uuid
 from pathlib import Path
 
 import pytest
+from helpers import REPO, cli, free_port
 
 from common import codec
 from common.keys import topic
 from common.messages import ObstacleList
 from common.zenoh_session import ZenohOptions, open_session
-
-from helpers import REPO, cli, free_port
 
 BASE_IMAGE = "ballbot-vision/python-base:3.11-bookworm"
 IMAGE = os.environ.get("BALLBOT_TEST_IMAGE", "ballbot-vision:latest")
@@ -185,18 +184,29 @@ def test_compose_up_scale_stop_and_offboard_network_drop(project):
     print(f"first obstacles on the host {time.monotonic() - t_up:.1f} s after `up`")
 
     # The optional services of the compose profiles run from the same image: the web view answers
-    # on the host's loopback, the ROS 2 bridge stays up.
+    # on the host's loopback, with the token its log prints (bound beyond loopback inside its
+    # container, it needs one: docs/viewing-and-recording.md), and refuses a page without it.
+    import re
+    import urllib.error
     import urllib.request
 
     deadline = time.monotonic() + 120
+    while not (m := re.search(r"viewer: open http://\S+/\?token=([\w-]+)",
+                              project.compose("logs", "--no-color", "viewer", check=False).stdout)):
+        assert time.monotonic() < deadline, "the viewer container never printed its URL with a token"
+        time.sleep(1)  # polling a log: there is no event to wait on
+    token = m.group(1)
     while True:
         try:
-            with urllib.request.urlopen(f"http://127.0.0.1:{project.viewer_port}/", timeout=5) as page:
+            with urllib.request.urlopen(f"http://127.0.0.1:{project.viewer_port}/?token={token}", timeout=5) as page:
                 assert page.status == 200 and b"<html" in page.read(4096).lower()
             break
         except OSError as e:
             assert time.monotonic() < deadline, f"the viewer container does not answer: {e}"
             time.sleep(1)  # polling a port: there is no event to wait on
+    with pytest.raises(urllib.error.HTTPError) as refused:
+        urllib.request.urlopen(f"http://127.0.0.1:{project.viewer_port}/", timeout=5)
+    assert refused.value.code == 401
     for service in ("viewer", "ros2"):
         names = project.containers(service)
         assert len(names) == 1, (service, names)
