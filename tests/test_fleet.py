@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 
 from common.errors import ConfigError
-from services.disparity.fleet import FairScheduler, attachment_grant, parse_weights
 from services.disparity.envelope import make_attachment
+from services.disparity.fleet import FairScheduler, attachment_grant, parse_weights
 from services.disparity.state import DispatchState
 
 
@@ -207,9 +207,10 @@ def test_pool_router_keeps_robots_and_workers_apart(tmp_path):
     import threading
     import time
 
+    from helpers import REPO, free_port, wait_port
+
     from common.keys import topic
     from common.zenoh_session import ZenohOptions, open_session
-    from helpers import REPO, free_port, wait_port
 
     port = free_port()
     users = {"robot-A": "pa", "robot-B": "pb", "worker-w0": "p0", "worker-w1": "p1"}
@@ -343,7 +344,11 @@ def test_a_fleet_shares_a_pool_fairly_and_survives_a_kill_and_a_join(tmp_path):
         fleet.rates["fa"] = 6.0
         print("flood maps/s", flooded)
         others = (flooded["fb"] + flooded["fc"]) / 2
-        assert flooded["fa"] <= 1.6 * others and min(flooded["fb"], flooded["fc"]) >= 0.5 * sum(flooded.values()) / 3
+        # Max-min fairness: the others keep what they had; the flooder gets more than they do only out
+        # of capacity they leave unused (a faster machine serves all 6/s of theirs and fa's surplus too).
+        assert min(flooded["fb"], flooded["fc"]) >= 0.8 * min(equal["fb"], equal["fc"]), (equal, flooded)
+        others_fully_served = min(flooded["fb"], flooded["fc"]) >= 0.9 * 6.0
+        assert others_fully_served or flooded["fa"] <= 1.6 * others, (equal, flooded)
         fleet.wait(lambda: any(v["extra"].get("robot.fa.unsolicited", 0) > 0 for k, v in fleet.stats.items()
                                if "/pool-worker/" in k), 20, "a pool worker to count fa's unsolicited frames")
         # each map went back only to the robot that asked: no dispatcher saw a result it had not asked for
