@@ -112,12 +112,12 @@ def publish_calibration(args: argparse.Namespace, path: str) -> int:
 
     from ballbot_vision.cli import robot_id, zenoh_options
     from common import codec
-    from cores import camera
     from common.errors import DecodeError
     from common.keys import topic
     from common.messages import CalibrationUpdate, ServiceStats
     from common.signing import sign
     from common.zenoh_session import open_session
+    from cores import camera
 
     rid = robot_id(args)
     cal = camera.load_calibration(path)  # a file rectify could not load is refused here, naming it
@@ -196,8 +196,8 @@ def _collect_live(args: argparse.Namespace, pattern: tuple[int, int]) -> list[tu
     from ballbot_vision.cli import robot_id, zenoh_options
     from common import codec
     from common.errors import DecodeError
-    from common.keys import topic
     from common.inbox import Inbox, stamp_of
+    from common.keys import topic
     from common.zenoh_session import open_session
     from cores.calibration import calibrate as C
     from cores.calibration.views import Coverage

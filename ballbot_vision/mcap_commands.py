@@ -84,11 +84,10 @@ def _stamps_from_names(files: list[Path]) -> list[int] | None:
 
 def cmd_from_images(args: argparse.Namespace) -> int:
     from common.errors import SourceError
+    from cores import foxglove
+    from cores.recording import RAW_LEFT, RAW_RIGHT, Converter, RecordingWriter, encode_array
     from services.capture.files import ImageSource
     from services.recorder.main import calibration_text
-    from cores.recording import Converter, RecordingWriter, encode_array
-    from cores import foxglove
-    from cores.recording import RAW_LEFT, RAW_RIGHT
 
     _need_mcap()
     out = Path(args.output)
@@ -162,13 +161,13 @@ def cmd_to_images(args: argparse.Namespace) -> int:
 # --- replay play / pause / step ----------------------------------------------------------------
 
 def cmd_replay(args: argparse.Namespace) -> int:
+    from pydantic import ValidationError
+
     from ballbot_vision.cli import robot_id, zenoh_options
     from common import codec
     from common.keys import topic
     from common.messages import ReplayControl
     from common.zenoh_session import open_session
-
-    from pydantic import ValidationError
 
     try:
         msg = ReplayControl(robot_id=robot_id(args), seq=0, stamp_ns=time.time_ns(), action=args.action,

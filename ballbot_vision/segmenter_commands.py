@@ -296,8 +296,8 @@ def cmd_eval_real(args: argparse.Namespace) -> int:
 # --- mount estimate ----------------------------------------------------------------------------
 
 def cmd_mount_estimate(args: argparse.Namespace) -> int:
-    from evaluation import real as R
     from cores.segmentation.mount_estimate import estimate_from_grounds, format_estimate, merge_into_config
+    from evaluation import real as R
 
     if args.real:
         if args.left or args.right:

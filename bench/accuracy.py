@@ -212,8 +212,8 @@ def evaluate_pair(pair: Pair, methods: list[str] | None = None, repeats: int = 1
 
 def timing_pair() -> tuple[np.ndarray, np.ndarray]:
     """One rectified 640x480 pair: the synthetic world for the thesis rig (no package needed)."""
-    from cores import camera
     import sim as S
+    from cores import camera
     from cores.calibration.rectify import Rectifier
 
     rig = camera.load_calibration("lifecam-studio")

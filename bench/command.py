@@ -5,9 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 
-
 from bench.pipeline import STEADY_RATE_HZ
-
 
 PARTS = ["pipeline", "sources", "renderer", "segmenter", "scaling", "accuracy", "record", "rectify", "transport",
          "trust", "fleet"]

@@ -133,7 +133,7 @@ class Fleet:
         self._sh("ip", "-n", ns, "link", "set", there, "up")
         return ["ip", "netns", "exec", ns], a
 
-    def __enter__(self) -> "Fleet":
+    def __enter__(self) -> Fleet:
         from common.zenoh_session import ZenohOptions, open_session
 
         self.port = free_port()
@@ -311,8 +311,8 @@ def worker_ceiling(method: str, frames: list, seconds: float = 3.0) -> dict:
     the fleet's frames, in this process: frames/s as frames / wall time."""
     import cv2
 
-    from services.disparity.main import DisparitySettings
     from services.disparity.computer import FrameComputer
+    from services.disparity.main import DisparitySettings
 
     computer = FrameComputer(DisparitySettings(method=method, threads=1), 1.0, "raw")
     before = cv2.getNumThreads()
@@ -586,7 +586,7 @@ def format_report(r: dict) -> str:
     lines = [f"{len(r['robots'])} robots, {len(r['workers'])} {r['method']} pool workers (1 OpenCV thread each), "
              f"{r['image']}, {r['cores']} cores; workers "
              + ("each in its own network namespace" if r["netns"] else f"on loopback ({r['netns_reason']})"),
-             f"in-process 1-thread ceiling (before / after): "
+             "in-process 1-thread ceiling (before / after): "
              + " / ".join(f"{v:.2f}" for v in r["ceiling_one_thread_fps"])
              + f" fps -> workers' ceiling {r['workers_ceiling_hz']:.2f} maps/s; "
              f"load avg {r['load_avg_1min_start']:.1f} at start, {r['load_avg_1min_end']:.1f} at end",

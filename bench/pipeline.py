@@ -27,8 +27,8 @@ import os
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 
@@ -147,11 +147,10 @@ class LivePipeline:
     def _env(self) -> dict[str, str]:
         return dict(os.environ, BALLBOT_LOG="WARNING")
 
-    def __enter__(self) -> "LivePipeline":
-        from common.supervisor import stage_nice
+    def __enter__(self) -> LivePipeline:
         from common.keys import topic
+        from common.supervisor import Supervisor, stage_nice
         from common.zenoh_session import ZenohOptions, open_session
-        from common.supervisor import Supervisor
 
         c = ["--connect", self.endpoint, "--robot-id", self.rid]
         self.sup = sup = Supervisor(env=self._env(), nice=self.nice)  # as `up` runs them
@@ -244,8 +243,7 @@ class LivePipeline:
 
     def offer(self, rate: float, timeout_s: float = 90.0) -> None:
         """(Re)start capture at `rate` pairs/s; returns once its pairs come out as obstacle lists."""
-        from common.supervisor import stage_nice
-        from common.supervisor import Supervisor
+        from common.supervisor import Supervisor, stage_nice
 
         self.stop_capture()
         self._want_stamp = time.time_ns()

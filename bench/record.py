@@ -26,14 +26,14 @@ from pathlib import Path
 def _pipeline_messages(n: int):
     """n consecutive pairs as the pipeline publishes them: (raw, rectified, disparity, obstacles, truth)."""
     from common import codec
-    from cores import camera
     from common.messages import StereoFrame
-    from services.capture.main import truth_message
-    from services.capture.sources import SyntheticSource
+    from cores import camera
     from cores.calibration.rectify import Rectifier
     from cores.matching.config import MatcherConfig
     from cores.segmentation.builder import ObstacleBuilder
     from cores.segmentation.settings import SegmenterSettings
+    from services.capture.main import truth_message
+    from services.capture.sources import SyntheticSource
     from services.disparity.computer import FrameComputer
 
     src = SyntheticSource("person-walking", "lifecam-studio", 30.0)
@@ -90,12 +90,12 @@ def _cpu_s(pid: int) -> float:
 def record_run(messages, rate: float, seconds: float, image_format: str, threads: int) -> dict:
     import zenoh
 
+    from bench.measure import free_port
     from common import codec
+    from common.inbox import _STAMP
     from common.keys import topic
     from common.messages import ServiceStats
-    from common.inbox import _STAMP
     from common.zenoh_session import ZenohOptions, open_session
-    from bench.measure import free_port
 
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"

@@ -8,8 +8,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-
-
 # --- the frames and the references ---------------------------------------------------------------
 
 @dataclass
@@ -24,8 +22,8 @@ class Frames:
 
 def bench_frames(preload: int) -> Frames:
     from cores import camera
-    from services.capture.sources import SyntheticSource
     from cores.calibration.rectify import Rectifier
+    from services.capture.sources import SyntheticSource
 
     src = SyntheticSource("two-boxes", "lifecam-studio", 30.0, preload=preload)
     rect = Rectifier(camera.load_calibration("lifecam-studio"))
@@ -36,8 +34,8 @@ def bench_frames(preload: int) -> Frames:
 def opencv_matcher(method: str, model=None):
     """OpenCV's matcher object alone, with the settings the disparity service uses by default for
     this camera (num_disparities auto resolved), built where the service's is (cores/matching/opencv.py)."""
-    from cores.calibration.rectify import Rectifier
     from cores import camera
+    from cores.calibration.rectify import Rectifier
     from cores.matching.matchers import MatcherConfig
     from cores.matching.opencv import create_opencv_matcher
 

@@ -31,8 +31,8 @@ import numpy as np
 def rectified_pairs(n: int = 4) -> list[tuple[np.ndarray, np.ndarray]]:
     """n rectified synthetic 640x480 pairs: what the feeder publishes and the ceilings match."""
     from cores import camera
-    from services.capture.sources import SyntheticSource
     from cores.calibration.rectify import Rectifier
+    from services.capture.sources import SyntheticSource
 
     src = SyntheticSource("two-boxes", "lifecam-studio", 30.0, preload=n)
     rect = Rectifier(camera.load_calibration("lifecam-studio"))
@@ -45,10 +45,10 @@ def ceiling(method: str, threads: int, pairs: list, seconds: float = 3.0) -> dic
     maps/s, and the CPU time per frame."""
     import cv2
 
-    from cores.matching.stage import MatchStage
     from cores import camera
     from cores.calibration.rectify import Rectifier
     from cores.matching.matchers import MatcherConfig
+    from cores.matching.stage import MatchStage
 
     # the worker's own matcher for the rig the feeder sends (its settings' search range resolved)
     model = Rectifier(camera.load_calibration("lifecam-studio")).model
@@ -75,8 +75,8 @@ def ceiling(method: str, threads: int, pairs: list, seconds: float = 3.0) -> dic
 def rectified_payloads(rid: str, pairs: list) -> list:
     """The rectified pairs as StereoFrame payloads (seq and stamp are patched per send)."""
     from common import codec
-    from cores import camera
     from common.messages import StereoFrame
+    from cores import camera
     from cores.calibration.rectify import Rectifier
 
     model = Rectifier(camera.load_calibration("lifecam-studio")).model_message
@@ -112,12 +112,12 @@ def _cpu_all(sup) -> dict[str, float]:
 
 def pool_run(method: str, workers: int, rate: float, warmup_s: float, seconds: float, max_in_flight: int = 1,
              source: str = "feeder", nice: int = 0, pairs: list | None = None) -> dict:
+    from bench.measure import free_port, percentiles
     from common import codec
     from common.keys import topic
     from common.messages import ServiceStats
-    from common.zenoh_session import ZenohOptions, open_session
     from common.supervisor import Supervisor
-    from bench.measure import free_port, percentiles
+    from common.zenoh_session import ZenohOptions, open_session
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     rid = f"scale{os.getpid()}"

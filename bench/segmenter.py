@@ -16,8 +16,8 @@ from __future__ import annotations
 
 import time
 import typing
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -71,14 +71,14 @@ def _matcher_ms(stereo, pairs: list, repeat: int) -> float:
 
 
 def bench_synthetic(scenario: str, methods: list[str] | None, repeat: int, frames: int = 1) -> dict:
+    from common.settings import MountSettings
     from cores import camera
-    from services.capture.sources import SyntheticSource
     from cores.calibration.rectify import Rectifier
     from cores.matching.matchers import MatcherConfig
     from cores.matching.stage import MatchStage
-    from evaluation.synthetic import render_scenario
-    from common.settings import MountSettings
     from cores.segmentation.settings import SegmenterSettings
+    from evaluation.synthetic import render_scenario
+    from services.capture.sources import SyntheticSource
 
     data = render_scenario(scenario, frames=frames)
     src = SyntheticSource(scenario, "lifecam-studio", 15.0)
@@ -104,10 +104,10 @@ def bench_real(folder: str | Path, methods: list[str] | None, repeat: int, pairs
                max_range_m: float = REAL_MAX_RANGE_M) -> dict:
     """A recording's folder (left/, right/, calibration.yaml) -> the same report as bench_synthetic,
     segmented out to max_range_m (the robot's few metres would leave a car's view empty)."""
-    from cores import camera
     from common.errors import FileError
     from common.files import list_images, pair_images, read_image
     from common.settings import MountSettings
+    from cores import camera
     from cores.matching.matchers import MatcherConfig
     from cores.pipeline import Pipeline
     from cores.segmentation.settings import SegmenterSettings

@@ -18,12 +18,11 @@ import pstats
 import time
 
 
-
 def service_frames(n: int = 16) -> list[bytes]:
     """DisparityMap payloads as the segmenter receives them, from the pipeline bench's pairs."""
     from common import codec
-    from cores import camera
     from common.messages import StereoFrame
+    from cores import camera
     from cores.calibration.rectify import Rectifier
     from cores.matching.matchers import MatcherConfig
     from services.capture.sources import SyntheticSource

@@ -21,7 +21,7 @@ import time
 
 import numpy as np
 
-from bench.measure import cpu_seconds, free_port
+from bench.measure import free_port
 
 KEY = "bench/transport/frames"
 
@@ -99,8 +99,8 @@ def _role(args: argparse.Namespace) -> int:
         return 0
     with _session(args.endpoint, shm) as s:
         if args.role == "sub":
-            from common.keys import topic
             from common.inbox import Inbox
+            from common.keys import topic
 
             inbox = Inbox(topic("frames_rect"), max_bytes=64 << 20)
             done = threading.Event()

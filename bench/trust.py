@@ -36,15 +36,15 @@ def _median_ms(fn, n: int) -> float:
 
 def in_process(n: int = 200) -> dict:
     from common import codec, signed_payload
-    from cores import camera
+    from common.inbox import _META
     from common.keys import topic
     from common.messages import CameraModel, DisparityMap, StereoFrame
-    from common.inbox import _META
-    from services.capture.sources import SyntheticSource
+    from cores import camera
+    from cores.calibration.rectify import Rectifier
     from cores.matching.config import MatcherConfig
+    from services.capture.sources import SyntheticSource
     from services.disparity.computer import FrameComputer
     from services.disparity.results import Ticket, parse_header, result_header, vet_header, vet_map
-    from cores.calibration.rectify import Rectifier
 
     pair = SyntheticSource("two-boxes", "lifecam-studio", 30.0).read()
     rect = Rectifier(camera.load_calibration("lifecam-studio"))
@@ -83,10 +83,10 @@ def in_process(n: int = 200) -> dict:
 
 
 def live(seconds: float = 10.0, rate: float = 15.0) -> dict:
-    from common.keys import topic
-    from common.zenoh_session import ZenohOptions, open_session
-    from common.supervisor import Supervisor
     from bench.measure import cpu_seconds, free_port, percentiles
+    from common.keys import topic
+    from common.supervisor import Supervisor
+    from common.zenoh_session import ZenohOptions, open_session
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     rid = f"trust{os.getpid()}"

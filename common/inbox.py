@@ -11,8 +11,9 @@ import os
 import struct
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 from common import signed_payload
 from common.keys import Topic
@@ -121,7 +122,7 @@ class FreshnessLimits:
     resync_s: float = 1.0
 
     @classmethod
-    def from_env(cls) -> "FreshnessLimits":
+    def from_env(cls) -> FreshnessLimits:
         def f(name: str, default: float) -> float:
             v = os.environ.get(name)
             return float(v) if v else default

@@ -11,8 +11,20 @@ from dataclasses import dataclass
 
 from pydantic import BaseModel
 
-from common.messages import (CalibrationUpdate, DisparityMap, FreeSpace, GroundTruth, ObstacleList, Odometry, PoolDemand,
-                       PoolGrant, ReplayControl, ServiceStats, StereoFrame, WorkDone)
+from common.messages import (
+    CalibrationUpdate,
+    DisparityMap,
+    FreeSpace,
+    GroundTruth,
+    ObstacleList,
+    Odometry,
+    PoolDemand,
+    PoolGrant,
+    ReplayControl,
+    ServiceStats,
+    StereoFrame,
+    WorkDone,
+)
 
 
 @dataclass(frozen=True)

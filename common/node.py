@@ -23,12 +23,13 @@ import threading
 import time
 import uuid
 from collections import deque
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from typing import Any, Callable, Iterator, TypeVar
+from typing import Any, TypeVar
 
 from common import codec, signed_payload
 from common.errors import BallbotError, DecodeError
-from common.inbox import (_META, REJECTIONS, Clock, FreshnessGate, FreshnessLimits, Inbox, Meta, clock_from_env)
+from common.inbox import _META, REJECTIONS, Clock, FreshnessGate, FreshnessLimits, Inbox, Meta, clock_from_env
 from common.keys import WORKER_SEGMENT, Topic, topic, topics_of
 from common.messages import Message, ServiceStats
 from common.settings import MountSettings
@@ -81,7 +82,7 @@ def qos(t: Topic) -> dict[str, Any]:
 
 
 class Publisher:
-    def __init__(self, node: "Node", topic: Topic, key: str, sign_key: bytes | None = None):
+    def __init__(self, node: Node, topic: Topic, key: str, sign_key: bytes | None = None):
         self.node, self.topic, self.key = node, topic, key
         self.sign_key = sign_key  # set: every payload is signed (common/signed_payload.py)
         self._pub = node.session.declare_publisher(key, **qos(topic))
@@ -185,7 +186,7 @@ class Node:
         self.session = None
 
     # -- lifecycle ------------------------------------------------------------------------------
-    def __enter__(self) -> "Node":
+    def __enter__(self) -> Node:
         if self._install_signals and threading.current_thread() is threading.main_thread():
             for sig in (signal.SIGINT, signal.SIGTERM):
                 signal.signal(sig, lambda *_: self.stop_event.set())

@@ -35,7 +35,7 @@ class ZenohOptions:
     lease_ms: int | None = 2000  # a frozen or cut-off peer is dropped after this (Zenoh's default: 10 s)
     shared_memory: bool | None = None  # same-host payloads through shared memory; None: on, or as the config file says
 
-    def for_router(self) -> "ZenohOptions":
+    def for_router(self) -> ZenohOptions:
         """The same options for the router that `up` starts: it listens where the others connect."""
         return ZenohOptions(mode="router", connect=[], listen=list(self.connect) or [DEFAULT_ROUTER],
                             config_file=self.config_file, lease_ms=self.lease_ms, shared_memory=self.shared_memory)

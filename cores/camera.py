@@ -38,7 +38,7 @@ class Intrinsics:
         return np.array(self.dist, dtype=np.float64)
 
     @classmethod
-    def from_matrix(cls, K: np.ndarray, D: np.ndarray) -> "Intrinsics":
+    def from_matrix(cls, K: np.ndarray, D: np.ndarray) -> Intrinsics:
         D = np.asarray(D, dtype=np.float64).ravel()
         d5 = np.zeros(5)
         d5[: min(5, D.size)] = D[:5]

@@ -60,7 +60,7 @@ class Pipeline:
         self.mount = mount or MountSettings()
         self.builder = ObstacleBuilder(self.segmenter_settings, self.mount)
 
-    def fork(self, segmenter: SegmenterSettings | None = None, mount: MountSettings | None = None) -> "Pipeline":
+    def fork(self, segmenter: SegmenterSettings | None = None, mount: MountSettings | None = None) -> Pipeline:
         """Another stream through the same rectification and matcher (shared: they keep no state
         between pairs), with a segmenter of its own (fresh ground and tracks)."""
         other = object.__new__(Pipeline)

@@ -41,8 +41,16 @@ import numpy as np
 
 from common import codec
 from common.errors import BallbotError, path_error
-from common.messages import (CameraModel, DisparityMap, FreeSpace, GroundTruth, Image, ObstacleList, ServiceStats,
-                                StereoFrame)
+from common.messages import (
+    CameraModel,
+    DisparityMap,
+    FreeSpace,
+    GroundTruth,
+    Image,
+    ObstacleList,
+    ServiceStats,
+    StereoFrame,
+)
 from cores import foxglove
 
 log = logging.getLogger("ballbot.recording")

@@ -7,19 +7,28 @@ from __future__ import annotations
 import itertools
 import json
 import logging
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import cv2
 import numpy as np
 
 from common.errors import path_error
-from common.messages import (GroundTruth, TruthObstacle)
+from common.messages import GroundTruth, TruthObstacle
 from cores import foxglove
-
-from cores.recording import (CALIBRATION, LAYOUT, RAW_LEFT, RAW_RIGHT, RECT_CALIBRATION, RECT_LEFT, RECT_RIGHT,
-                             TRUTH, RecordingError)
+from cores.recording import (
+    CALIBRATION,
+    LAYOUT,
+    RAW_LEFT,
+    RAW_RIGHT,
+    RECT_CALIBRATION,
+    RECT_LEFT,
+    RECT_RIGHT,
+    TRUTH,
+    RecordingError,
+)
 
 log = logging.getLogger("ballbot.recording")
 
@@ -57,7 +66,7 @@ class RecordingInfo:
 
 
 def image_payload(topic: str, message_encoding: str, schema_name: str, schema_data: bytes, data: bytes,
-                  decoder: "foxglove.ProtobufDecoder", where: str) -> tuple[bytes, str]:
+                  decoder: foxglove.ProtobufDecoder, where: str) -> tuple[bytes, str]:
     """A recorded foxglove.CompressedImage -> (its image bytes, format). Layout 2: protobuf, by the
     schema the file carries; layout 1: JSON with the bytes in base64."""
     if message_encoding == "protobuf":
@@ -286,8 +295,8 @@ def offline_pairs(path: str | Path, calibration: str | None = None):
     pairs yields (left label, right label, left, right, t_s) in capture order, t_s from the
     recording's stamps, and calibration is `calibration` (a file or profile) or else the
     recording's own, as a Calibration."""
-    from cores import camera
     from common.files import parse_yaml
+    from cores import camera
 
     reader = RecordingReader(path)
     pairs = reader.pairs("auto")  # raw pairs where recorded (they need a calibration), else the rectified ones

@@ -12,11 +12,11 @@ from typing import Any
 import numpy as np
 
 from common import codec
-from cores import camera
 from common.errors import CalibrationError, DecodeError
 from common.messages import DisparityMap, FreeSpace, Obstacle, ObstacleList, StereoFrame
-from cores.segmentation.mount import Mount
 from common.ros2.msgs import RosTypes
+from cores import camera
+from cores.segmentation.mount import Mount
 
 # sensor_msgs/PointField datatypes
 FLOAT32, UINT32 = 7, 6

@@ -35,17 +35,16 @@ from __future__ import annotations
 
 import math
 import re
-import time
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Callable, Iterator
 
 import numpy as np
 
-from cores import camera
 from common.errors import BallbotError
 from common.messages import GroundEstimate, Odometry
 from common.settings import MountSettings
+from cores import camera
 
 FLAT_HEIGHT_M = 0.25  # an obstacle nothing of which stands higher above the road is flat
 NEAR_M = 20.0  # the track-life figure counts obstacles this near
@@ -386,9 +385,8 @@ def evaluate_recording(rec: Recording, seg_settings, matcher_cfg, frames: int | 
     frame's obstacles; with draw_dir, one picture per pair (draw.draw_frame) named after the left image."""
     import cv2
 
-    from cores.segmentation.draw import draw_frame
-
     from common.errors import path_error
+    from cores.segmentation.draw import draw_frame
 
     out = None
     if draw_dir is not None:

@@ -43,21 +43,21 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Iterable
 from dataclasses import asdict, dataclass, field
-from typing import Iterable
 
 import numpy as np
 
+import sim as S
 from common.messages import GroundEstimate, Odometry
-from cores import camera
 from common.settings import MountSettings
+from cores import camera
 from cores.matching.matchers import MatcherConfig
 from cores.pipeline import Pipeline
 from cores.segmentation.builder import ObstacleBuilder
 from cores.segmentation.ground import plane_from_mount
 from cores.segmentation.mount import Mount
 from cores.segmentation.settings import SegmenterSettings
-import sim as S
 
 # eval method name -> settings overrides. `seed` is the thesis as written (no floor removal);
 # `seed+floor` adds the floor removal from the camera mount; `layers` is the default.
@@ -228,7 +228,7 @@ class Score:
     _near: list = field(default_factory=list, repr=False)
     _edge: list = field(default_factory=list, repr=False)
 
-    def finish(self) -> "Score":
+    def finish(self) -> Score:
         self.recall = self.matched / self.truths if self.truths else float("nan")
         self.precision = self.matched / self.detections if self.detections else (1.0 if self.truths == 0 else float("nan"))
         med = lambda a: float(np.median(a)) if len(a) else float("nan")  # noqa: E731
@@ -268,7 +268,7 @@ class Score:
         return {k: v for k, v in asdict(self).items() if not k.startswith("_") and k != "ground"}
 
     @classmethod
-    def pooled(cls, scores: Iterable["Score"], scenario: str = "overall") -> "Score":
+    def pooled(cls, scores: Iterable[Score], scenario: str = "overall") -> Score:
         scores = list(scores)
         out = cls(scenario, scores[0].method if scores else "")
         for s in scores:

@@ -240,13 +240,13 @@ class Scene:
     default_eval: bool = True  # part of `eval` without scenario names (false: run it by name)
 
     @classmethod
-    def default(cls) -> "Scene":
+    def default(cls) -> Scene:
         """The two-boxes scene: camera 1.0 m high, 15 deg down; box-a (0.5 x 0.6 x 0.3 m) 1.8 m
         ahead, 0.35 m left; box-b (0.4 x 0.8 x 0.3 m) 2.4 m ahead, 0.5 m right; wall at 5 m."""
         return cls.builtin("two-boxes")
 
     @classmethod
-    def builtin(cls, name: str) -> "Scene":
+    def builtin(cls, name: str) -> Scene:
         """A shipped scenario by name (see `list_builtin_scenarios`); a path to a scenario YAML
         file is accepted too, so one setting can name either."""
         path = SCENARIO_DIR / f"{name}.yaml"
@@ -258,7 +258,7 @@ class Scene:
                           f"(built-in: {', '.join(list_builtin_scenarios())})")
 
     @classmethod
-    def from_yaml(cls, path: str | Path) -> "Scene":
+    def from_yaml(cls, path: str | Path) -> Scene:
         """Load a scenario file; errors name the file, the object and the field."""
         from common.errors import FileError
         from common.files import read_yaml
@@ -270,7 +270,7 @@ class Scene:
         return cls.from_dict(doc, where=str(path), default_name=Path(path).stem)
 
     @classmethod
-    def from_dict(cls, doc: Any, where: str = "scenario", default_name: str = "") -> "Scene":
+    def from_dict(cls, doc: Any, where: str = "scenario", default_name: str = "") -> Scene:
         """Build a scene from a parsed scenario document (the YAML format, see scenarios/*.yaml and
         SceneDoc): validated by pydantic, every error naming where, which object and which field."""
         if not isinstance(doc, dict):
@@ -352,7 +352,7 @@ class ObjectDoc(_Doc):
     path: PathDoc | None = None
 
     @model_validator(mode="after")
-    def _shape(self) -> "ObjectDoc":
+    def _shape(self) -> ObjectDoc:
         if self.size is not None and self.parts is not None:
             raise ValueError("give either 'size' or 'parts', not both")
         if self.size is None and self.parts is None:
@@ -423,14 +423,14 @@ class SceneDoc(_Doc):
     default_eval: Annotated[bool, Strict()] = True
 
     @model_validator(mode="after")
-    def _unique(self) -> "SceneDoc":
+    def _unique(self) -> SceneDoc:
         names = [o.name for o in self.objects]
         if len(set(names)) != len(names):
             raise ValueError(f"object names must be unique, got {names}")
         return self
 
     @model_validator(mode="after")
-    def _sway_in_bounds(self) -> "SceneDoc":
+    def _sway_in_bounds(self) -> SceneDoc:
         m = self.camera_motion
         if m is None:
             return self

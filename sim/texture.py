@@ -5,12 +5,11 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import cv2
 import numpy as np
-
 
 # --- texture ---------------------------------------------------------------------------------------
 
@@ -83,7 +82,7 @@ class SurfaceTexture:
         return np.array([self.scale, self.cos, self.sin, self.off_u, self.off_v], np.float32)
 
     @classmethod
-    def from_seed(cls, *seed: int) -> "SurfaceTexture":
+    def from_seed(cls, *seed: int) -> SurfaceTexture:
         rng = np.random.default_rng([*seed, 0x5EED])
         a = rng.uniform(0, 2 * math.pi)
         return cls(TEXELS_PER_M * float(rng.uniform(0.8, 1.25)), math.cos(a), math.sin(a),

@@ -34,8 +34,8 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Sequence
 
 import cv2
 import numpy as np
@@ -117,7 +117,7 @@ class _Layer:
     shade: np.ndarray
     obj: np.ndarray
 
-    def copy(self) -> "_Layer":
+    def copy(self) -> _Layer:
         return _Layer(self.t.copy(), self.shade.copy(), self.obj.copy())
 
 

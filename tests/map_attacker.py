@@ -26,11 +26,11 @@ import numpy as np
 import zenoh
 
 from common import codec
-from cores import camera
+from common.inbox import _META
 from common.keys import topic
 from common.messages import CameraModel, DisparityMap, StereoFrame, WorkDone
-from common.inbox import _META
 from common.zenoh_session import ZenohOptions, open_session
+from cores import camera
 from cores.matching.config import MatcherConfig
 from services.disparity.computer import FrameComputer
 from services.disparity.envelope import parse_attachment, receipt_attachment

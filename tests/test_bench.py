@@ -10,10 +10,10 @@ import subprocess
 from pathlib import Path
 
 import pytest
+from helpers import REPO, cli
 
 from bench import pipeline, references
-from bench.pipeline import (MAX_DROPPED, Received, search_rate, seq_gaps, summarize)
-from helpers import REPO, cli
+from bench.pipeline import MAX_DROPPED, Received, search_rate, seq_gaps, summarize
 
 KARLSRUHE = Path("/work/shared/data/real/karlsruhe-0023")
 

@@ -11,7 +11,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-
 from helpers import REPO, cli, free_port, wait_port
 from test_calibration import PATTERN, SIZE, SQUARE, TRUE_LEFT, TRUE_R, TRUE_RIGHT, TRUE_T, _rays, _render, _texture
 

@@ -12,8 +12,8 @@ import pytest
 import yaml
 
 from ballbot_vision.cli import main
-from cores import camera
 from common.errors import CalibrationError
+from cores import camera
 from cores.calibration import calibrate as C
 from cores.calibration import formats as F
 

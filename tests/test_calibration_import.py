@@ -11,8 +11,8 @@ import pytest
 import yaml
 
 from ballbot_vision.cli import main
-from cores import camera
 from common.errors import CalibrationError, FileError
+from cores import camera
 from cores.calibration import formats as F
 
 EUROC = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "real" / "euroc-v1-01"

@@ -115,6 +115,7 @@ def test_settings_priority_default_file_env_flag(tmp_path, monkeypatch):
     s = load_settings(SegmenterSettings, str(cfg))
     assert s.max_range_m == 2.5 and s.median_ksize == 3 and s.min_area_fraction == 0.03
     import argparse
+
     from common.settings import add_settings_arguments
     parser = argparse.ArgumentParser()
     add_settings_arguments(parser, SegmenterSettings)
@@ -165,8 +166,8 @@ def test_freespace_round_trips_on_the_wire_and_as_json():
 
 
 def test_watch_table_says_where_the_ground_is_and_which_tracks_to_trust():
-    from common.messages import GroundEstimate, Obstacle, ObstacleList
     from ballbot_vision.watch import format_table
+    from common.messages import GroundEstimate, Obstacle, ObstacleList
 
     o = Obstacle(id=3, position_m=(0.1, 0.2, 2.0), size_m=(0.5, 0.6, 0.3), distance_m=1.9, bbox_px=(1, 2, 3, 4),
                  area_px=10, disparity_px=30.0, confidence=0.9, confirmed=False, track_frames=2, truncated=True)

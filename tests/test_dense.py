@@ -11,17 +11,17 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
+import sim as S
 from common import codec
-from cores import camera
-from cores.matching.disparity import to_float
 from common.errors import BallbotError
 from common.messages import DisparityMap, ServiceStats, StereoFrame
-import sim as S
+from cores import camera
+from cores.calibration.rectify import Rectifier, camera_model_message
 from cores.matching import dense
 from cores.matching.config import auto_num_disparities
+from cores.matching.disparity import to_float
 from cores.matching.matchers import MatcherConfig, make_matcher
 from services.disparity.computer import FrameComputer
-from cores.calibration.rectify import Rectifier, camera_model_message
 
 
 @pytest.fixture(scope="module")

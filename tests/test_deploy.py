@@ -15,10 +15,9 @@ from pathlib import Path
 
 import pytest
 import yaml
+from helpers import REPO
 from packaging.requirements import Requirement
 from packaging.utils import canonicalize_name
-
-from helpers import REPO
 
 
 def _pins() -> dict[str, str]:

@@ -15,11 +15,9 @@ import uuid
 import pytest
 
 from bench.fleet import netns_unavailable  # the one check whether this machine can make test hosts
-
+from common.errors import DecodeError
 from services.disparity.envelope import make_attachment, parse_attachment
 from services.disparity.state import DispatchState
-from common.errors import DecodeError
-
 
 # --- DispatchState: pure bookkeeping ----------------------------------------------------------------
 

@@ -4,12 +4,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cores import camera
 from common.messages import FreeSpace, GroundEstimate, Obstacle, ObstacleList
+from common.settings import MountSettings
+from cores import camera
 from cores.segmentation import draw as D
 from cores.segmentation.ground import frame_mount
 from cores.segmentation.mount import Mount
-from common.settings import MountSettings
 
 MODEL = camera.RectifiedModel(320, 240, 200.0, 160.0, 120.0, 0.1)
 GREY = 100

@@ -9,8 +9,8 @@ import json
 import numpy as np
 import pytest
 
-from sim import list_builtin_scenarios
 from evaluation import synthetic as E
+from sim import list_builtin_scenarios
 
 SCENARIOS = ["two-boxes", "toolbox", "chair", "touching", "border", "person-walking"]
 

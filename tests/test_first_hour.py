@@ -13,12 +13,11 @@ import time
 import cv2
 import numpy as np
 import pytest
+from helpers import REPO, Collector, cli, free_port, wait_port
 
 from common import codec
 from common.keys import topic
 from common.messages import CameraModel, ServiceStats, StereoFrame
-
-from helpers import REPO, Collector, cli, free_port, wait_port
 
 
 def _router(port: int) -> subprocess.Popen:

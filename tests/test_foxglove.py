@@ -14,12 +14,11 @@ import time
 import cv2
 import numpy as np
 import pytest
+from helpers import Collector, Up, free_port, wait_port
 
 from common.keys import topic
 from common.messages import ServiceStats
 from services.foxglove.main import origin_allowed
-
-from helpers import Collector, Up, free_port, wait_port
 
 aiohttp = pytest.importorskip("aiohttp")
 
@@ -84,7 +83,7 @@ class FoxgloveClient:
         while (left := deadline - time.monotonic()) > 0:
             try:
                 msg = await self.ws.receive(timeout=left)
-            except asyncio.TimeoutError:
+            except TimeoutError:
                 return
             if msg.type == aiohttp.WSMsgType.TEXT:
                 self._control(json.loads(msg.data))

@@ -3,8 +3,8 @@ stamps, replays, clock steps and resynchronisation. No network; the same probes 
 processes are in test_reliability.py."""
 from __future__ import annotations
 
-from common.keys import topic
 from common.inbox import Clock, FreshnessGate, FreshnessLimits, Inbox, Meta
+from common.keys import topic
 
 S = 1_000_000_000  # ns per s
 T0 = 1_700_000_000 * S

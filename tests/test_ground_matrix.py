@@ -29,10 +29,9 @@ import os
 
 import numpy as np
 import pytest
+from test_real_eval import EUROC, KARLSRUHE
 
 from evaluation import real as R
-
-from test_real_eval import EUROC, KARLSRUHE
 
 pytestmark = pytest.mark.slow
 

@@ -27,13 +27,12 @@ from datetime import datetime
 from pathlib import Path
 
 import pytest
+from helpers import REPO, Up, cli, free_port, wait_port
 
 from common import codec
 from common.keys import topic
 from common.messages import GroundTruth, ObstacleList, ServiceStats
 from common.zenoh_session import ZenohOptions, open_session
-
-from helpers import REPO, Up, cli, free_port, wait_port
 
 pytestmark = pytest.mark.system
 ATTACKER = str(Path(__file__).with_name("map_attacker.py"))

@@ -13,20 +13,27 @@ import pytest
 import zenoh
 
 from common import codec, signed_payload
-from cores import camera
-from cores.matching.disparity import RecentValid, to_float
 from common.errors import DecodeError
+from common.inbox import _META, FreshnessGate, Inbox, Meta, meta_of
 from common.keys import topic
 from common.messages import CameraModel, DisparityMap, StereoFrame
-from common.inbox import _META, FreshnessGate, Inbox, Meta, meta_of
-from cores.matching.config import MatcherConfig
-from services.disparity.computer import FrameComputer
-from services.disparity.state import DispatchState
-from services.disparity.results import (Ticket, max_payload_bytes, measure, parse_header,
-                                                       result_header, vet_header, vet_map)
-from cores.segmentation.builder import ObstacleBuilder
 from common.settings import MountSettings
+from cores import camera
+from cores.matching.config import MatcherConfig
+from cores.matching.disparity import RecentValid, to_float
+from cores.segmentation.builder import ObstacleBuilder
 from cores.segmentation.settings import SegmenterSettings
+from services.disparity.computer import FrameComputer
+from services.disparity.results import (
+    Ticket,
+    max_payload_bytes,
+    measure,
+    parse_header,
+    result_header,
+    vet_header,
+    vet_map,
+)
+from services.disparity.state import DispatchState
 
 KEY = os.urandom(32)
 CAM = CameraModel(width=64, height=48, focal_px=60.0, cx=32.0, cy=24.0, baseline_m=0.1, Q=[0.0] * 16)
@@ -93,8 +100,8 @@ def test_nan_inf_and_values_outside_the_searched_range_are_invalid_never_depth()
 def test_the_half_resolution_fallback_states_the_range_its_values_span():
     """Searched at half size, 80 px becomes 48 px and its doubled values reach 96: the map says so,
     or consumers would take its nearest pixels for out-of-range garbage."""
-    from services.capture.sources import SyntheticSource
     from cores.calibration.rectify import Rectifier
+    from services.capture.sources import SyntheticSource
 
     pair = SyntheticSource("two-boxes", "lifecam-studio", 30.0).read()
     rect = Rectifier(camera.load_calibration("lifecam-studio"))
@@ -332,8 +339,8 @@ def test_the_list_says_when_the_map_collapsed_against_the_last_frames():
 def test_the_half_resolution_fallback_after_a_full_resolution_worker_is_not_degraded():
     """What the robot's onboard fallback gives when a worker is quarantined is a full view at lower
     resolution, not a collapse: the lists stay unflagged."""
-    from services.capture.sources import SyntheticSource
     from cores.calibration.rectify import Rectifier
+    from services.capture.sources import SyntheticSource
 
     src = SyntheticSource("two-boxes", "lifecam-studio", 30.0)
     rect = Rectifier(camera.load_calibration("lifecam-studio"))

@@ -5,20 +5,18 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from common import codec
-from cores import camera
 from pydantic import ValidationError
 
-from cores.matching.disparity import to_float
+import sim as S
+from common import codec
 from common.errors import ConfigError
 from common.settings import load_settings
-import sim as S
-from services.disparity.main import DisparitySettings
-from cores.matching.stage import MatchStage
-from cores.matching.matchers import (HalfResolutionMatcher, MatcherConfig, StereoMatcher,
-                                                       gate_for_range)
+from cores import camera
 from cores.calibration.rectify import Rectifier
+from cores.matching.disparity import to_float
+from cores.matching.matchers import HalfResolutionMatcher, MatcherConfig, StereoMatcher, gate_for_range
+from cores.matching.stage import MatchStage
+from services.disparity.main import DisparitySettings
 
 
 @pytest.fixture(scope="module")
@@ -111,9 +109,9 @@ def test_bad_settings_are_refused():
 
 
 def test_png_results_are_lossless(scene):
-    from services.disparity.computer import FrameComputer
-    from cores.calibration.rectify import camera_model_message
     from common.messages import StereoFrame
+    from cores.calibration.rectify import camera_model_message
+    from services.disparity.computer import FrameComputer
 
     left, right, _, model = scene
     frame = StereoFrame(robot_id="t", seq=1, stamp_ns=1, left=codec.image_from_array(left),

@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cores import camera
 import sim as S
+from cores import camera
 from cores.calibration.rectify import Rectifier
 from evaluation import synthetic as E
 

@@ -4,15 +4,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cores import camera
 from common.errors import BallbotError
-from services.capture.sources import SyntheticSource
+from cores import camera
+from cores.calibration.rectify import Rectifier
 from cores.matching.disparity import to_float
 from cores.matching.matchers import MatcherConfig, StereoMatcher
-from cores.calibration.rectify import Rectifier
-from cores.segmentation.seed import segment
 from cores.segmentation.mount import Mount
+from cores.segmentation.seed import segment
 from cores.segmentation.settings import SegmenterSettings
+from services.capture.sources import SyntheticSource
 
 
 @pytest.fixture(scope="module")

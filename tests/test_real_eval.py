@@ -13,15 +13,16 @@ import numpy as np
 import pytest
 
 from ballbot_vision.cli import main
-from cores import camera
 from common.errors import BallbotError, ConfigError
 from common.messages import GroundEstimate
 from common.settings import MountSettings, load_settings
+from cores import camera
 from cores.segmentation import draw as D
-from evaluation import real as R
 from cores.segmentation.mount import Mount
 from cores.segmentation.mount_estimate import estimate_from_grounds, merge_into_config
 from cores.segmentation.settings import SegmenterSettings
+from evaluation import real as R
+
 
 def _real_data() -> Path:
     """../shared/data/real beside the repository (a worktree sits one level deeper), or BALLBOT_REAL_DATA."""

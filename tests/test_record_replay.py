@@ -13,12 +13,12 @@ import pytest
 
 pytest.importorskip("mcap", reason="recordings need the `mcap` package (the `record` extra)")
 
+from helpers import REPO, Collector, Up, cli, read_mcap
+
 from common.keys import topic
 from common.messages import GroundTruth, ObstacleList, ServiceStats, StereoFrame
 from cores import recording as R
 from cores.recording_reader import RecordingReader
-
-from helpers import REPO, Collector, Up, cli, read_mcap
 
 pytestmark = pytest.mark.system
 

@@ -16,17 +16,28 @@ import pytest
 pytest.importorskip("mcap", reason="recordings need the `mcap` package (the `record` extra)")
 jsonschema = pytest.importorskip("jsonschema", reason="schema checks need jsonschema (the `test` extra)")
 
+from helpers import cli, read_mcap
+
 from common import codec
 from common.errors import SourceError
-from common.messages import (CameraMount, CameraModel, DisparityMap, FreeSpace, GroundEstimate, GroundTruth,
-                                            Obstacle, ObstacleList, ReplayControl, ServiceStats, StereoFrame,
-                                            TruthObstacle)
-from services.capture.mcap_source import McapSource
+from common.messages import (
+    CameraModel,
+    CameraMount,
+    DisparityMap,
+    FreeSpace,
+    GroundEstimate,
+    GroundTruth,
+    Obstacle,
+    ObstacleList,
+    ReplayControl,
+    ServiceStats,
+    StereoFrame,
+    TruthObstacle,
+)
 from cores import recording as R
 from cores.recording_reader import RecordingReader, decode_image
+from services.capture.mcap_source import McapSource
 from services.capture.sources import SourceContext
-
-from helpers import cli, read_mcap
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
 if not REAL.is_dir():
@@ -155,8 +166,8 @@ def test_rectified_pairs_replay_with_their_rectified_camera_and_raw_ones_only_wh
     assert reader.info().pairs("raw") == 0 and reader.info().pairs("rectified") == 4
     got = list(reader.pairs())
     assert reader.kind == "rectified" and [p.seq for p in got] == [0, 1, 2, 3]
-    from cores import camera
     from common.files import parse_yaml
+    from cores import camera
 
     cal = camera.calibration_from_dict(parse_yaml(got[0].calibration_yaml, "rectified calibration"))
     assert isinstance(cal, camera.RectifiedRig) and cal.name == "rectified camera"
@@ -290,8 +301,8 @@ def test_a_replay_names_its_calibration(tmp_path, caplog):
         src = McapSource(str(path))
     assert src.calibration_name == "test" and "name: test" in src.calibration_yaml
     assert "2 raw pairs, calibration 'test'" in caplog.text
-    from cores import camera
     from common.files import parse_yaml
+    from cores import camera
 
     assert camera.calibration_from_dict(parse_yaml(src.calibration_yaml, "x")).model.baseline_m == 0.1
 

@@ -10,8 +10,8 @@ import pytest
 import yaml
 
 from ballbot_vision.cli import main
-from cores import camera
 from common.errors import BallbotError, CalibrationError
+from cores import camera
 from cores.calibration.rectify import CalibrationHolder, Rectifier
 
 

@@ -11,6 +11,7 @@ import time
 
 import numpy as np
 import pytest
+from helpers import REPO, Collector, cli, free_port, wait_port
 
 from common import codec
 from common.errors import CalibrationError
@@ -20,8 +21,6 @@ from common.signing import sign
 from common.zenoh_session import ZenohOptions, open_session
 from cores.calibration.rectify import CalibrationHolder
 from services.rectify.main import RectifySettings, check_assumed_calibration
-
-from helpers import REPO, Collector, cli, free_port, wait_port
 
 RID = "rectdef"
 KEY = b"test-robot-key"

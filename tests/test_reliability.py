@@ -19,12 +19,11 @@ from pathlib import Path
 import msgpack
 import pytest
 import zenoh
+from helpers import Up
 
 from common import codec
 from common.keys import topic
 from common.messages import SCHEMA_VERSION, DisparityMap, ObstacleList, ServiceStats
-
-from helpers import Up
 
 pytestmark = pytest.mark.system
 
@@ -205,8 +204,8 @@ def test_a_calibration_with_half_the_baseline_published_on_the_key_is_refused(pi
     every distance, silently. Now a jump like that is refused and the distances stay."""
     import yaml
 
-    from cores import camera
     from common.messages import CalibrationUpdate
+    from cores import camera
 
     st = pipeline.stream
     t0 = time.monotonic()
@@ -302,8 +301,8 @@ def forge_camera_frame(pipeline: Pipeline, like: bytes) -> None:
     """One raw frame marked as a camera source (an attacker's), until rectify has looked at one: it
     counts it as an error (no calibration for a camera source) or, once it took a run-time
     calibration, rectifies it (then it is on frames/rectified with the forged stamp)."""
-    from common.messages import StereoFrame
     from common.inbox import stamp_of
+    from common.messages import StereoFrame
 
     st = pipeline.stream
     frame = codec.decode(like, StereoFrame)

@@ -9,16 +9,15 @@ import pytest
 pytest.importorskip("rosbags", reason="the ros2 extra (rosbags) is not installed")
 
 from common import codec
-from cores import camera
 from common.errors import CalibrationError, DecodeError
-from common.messages import (CameraModel, DisparityMap, FreeSpace, GroundEstimate, Obstacle,
-                                            ObstacleList, StereoFrame)
-from services.capture.ros2 import StampPairer, camera_info_topic
+from common.messages import CameraModel, DisparityMap, FreeSpace, GroundEstimate, Obstacle, ObstacleList, StereoFrame
 from common.ros2 import rmw
-from cores import ros2_convert as convert
-from services.ros2.main import Ros2Settings, mount_from, mount_moved
 from common.ros2.msgs import types_for
+from cores import camera
+from cores import ros2_convert as convert
 from cores.segmentation.mount import Mount
+from services.capture.ros2 import StampPairer, camera_info_topic
+from services.ros2.main import Ros2Settings, mount_from, mount_moved
 
 # RIHS01 hashes as rosidl_generator_c wrote them into a ROS 2 (Jazzy) build's *__description.c
 # (vision_msgs 4.x, sensor_msgs, nav_msgs, visualization_msgs, tf2_msgs, std_msgs).

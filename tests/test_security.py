@@ -20,14 +20,13 @@ import time
 from pathlib import Path
 
 import pytest
+from helpers import REPO, free_port, wait_port
 
 from common import codec
 from common.errors import ConnectError
 from common.keys import topic
 from common.messages import ObstacleList
 from common.zenoh_session import ZenohOptions, open_session
-
-from helpers import REPO, free_port, wait_port
 
 pytestmark = pytest.mark.system
 RID = "sec"
@@ -313,11 +312,11 @@ def test_a_worker_cannot_pose_as_a_robot_service_in_status_or_healthcheck(robot)
 
 def test_a_worker_cannot_publish_a_calibration_through_the_gateway(robot):
     """Calibration is configuration: no offboard user may put one (gateway ACL); rectify counts none."""
-    from cores import camera
+    import yaml
+
     from common.messages import CalibrationUpdate
     from common.signing import sign
-
-    import yaml
+    from cores import camera
 
     doc = camera.calibration_to_dict(camera.load_calibration("lifecam-studio"))
     doc["T"] = [t / 2 for t in doc["T"]]

@@ -8,14 +8,14 @@ import time
 import numpy as np
 import pytest
 
-from cores import camera
 from common.errors import DecodeError
 from common.messages import CameraModel, DisparityMap, Image
 from common.settings import MountSettings
+from cores import camera
 from cores.segmentation import layers, seed
 from cores.segmentation.builder import ObstacleBuilder
-from cores.segmentation.settings import SegmenterSettings
 from cores.segmentation.mount import FloorPlane, Mount
+from cores.segmentation.settings import SegmenterSettings
 
 MODEL = camera.RectifiedModel(640, 480, 665.0, 320.0, 240.0, 0.1)
 FB = MODEL.focal_px * MODEL.baseline_m

@@ -12,8 +12,8 @@ import pytest
 from ballbot_vision.cli import build_parser
 from common.errors import ConfigError
 from common.settings import MountSettings, add_settings_arguments, load_settings
-from services.capture.settings import CaptureSettings
 from cores.segmentation.settings import SegmenterSettings
+from services.capture.settings import CaptureSettings
 
 
 def capture(argv: list[str], config: str | None = None) -> CaptureSettings:

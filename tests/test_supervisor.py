@@ -111,10 +111,10 @@ def test_up_viewer_without_aiohttp_keeps_the_pipeline_and_says_what_to_install(t
     import os
     import time
 
+    from helpers import Collector, Up, free_port
+
     from common.keys import topic
     from common.messages import ObstacleList
-
-    from helpers import Collector, Up, free_port
 
     hidden = tmp_path / "hide" / "aiohttp"
     hidden.mkdir(parents=True)

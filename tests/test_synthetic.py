@@ -7,9 +7,9 @@ import cv2
 import numpy as np
 import pytest
 
-from cores import camera
-from common.errors import ConfigError
 import sim as S
+from common.errors import ConfigError
+from cores import camera
 
 
 @pytest.fixture(scope="module")

@@ -9,14 +9,12 @@ import time
 
 import numpy as np
 import pytest
+from helpers import Collector, cli, pid_alive
 
 from common import codec
 from common.keys import TOPICS, topic
+from common.messages import FreeSpace, GroundTruth, Image, ObstacleList, Odometry, ServiceStats, StereoFrame
 from common.supervisor import SERVICES
-from common.messages import (FreeSpace, GroundTruth, Image, ObstacleList, Odometry, ServiceStats,
-                                            StereoFrame)
-
-from helpers import Collector, cli, pid_alive
 
 pytestmark = pytest.mark.system
 

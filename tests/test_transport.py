@@ -13,11 +13,11 @@ import pytest
 
 from common import codec
 from common.errors import ConfigError
+from common.inbox import Inbox, meta_of
 from common.keys import topic
 from common.messages import StereoFrame
-from common.inbox import Inbox, meta_of
 from common.zenoh_session import ZenohOptions, make_config, open_session, options_from_args
-from tests.helpers import free_port
+from helpers import free_port
 
 
 def pair() -> tuple[np.ndarray, np.ndarray]:

@@ -15,14 +15,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from helpers import REPO, Collector, Up, cli, free_port, wait_port
 
 from common import codec
 from common.keys import topic
-from common.messages import (CameraModel, DisparityMap, FreeSpace, Obstacle, ObstacleList,
-                                            ReplayControl, StereoFrame)
+from common.messages import CameraModel, DisparityMap, FreeSpace, Obstacle, ObstacleList, ReplayControl, StereoFrame
 from services.viewer import core
-
-from helpers import REPO, Collector, Up, cli, free_port, wait_port
 
 CAMERA = CameraModel(width=64, height=48, focal_px=60.0, cx=32.0, cy=24.0, baseline_m=0.1, Q=[0.0] * 16)
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"

@@ -13,7 +13,8 @@ from __future__ import annotations
 import itertools
 import threading
 import time
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 from common.ros2 import rmw
 from common.ros2.msgs import RosTypes
@@ -34,13 +35,13 @@ class RosNode:
         self._token = session.liveliness().declare_token(self.token_key)
         self.entities: list[Any] = []
 
-    def publisher(self, topic: str, typename: str, qos: rmw.Qos) -> "RosPublisher":
+    def publisher(self, topic: str, typename: str, qos: rmw.Qos) -> RosPublisher:
         p = RosPublisher(self, topic, typename, qos)
         self.entities.append(p)
         return p
 
     def subscription(self, topic: str, typename: str, qos: rmw.Qos,
-                     callback: Callable[[str, bytes, bytes | None], None], any_type: bool = False) -> "RosSubscription":
+                     callback: Callable[[str, bytes, bytes | None], None], any_type: bool = False) -> RosSubscription:
         s = RosSubscription(self, topic, typename, qos, callback, any_type)
         self.entities.append(s)
         return s

@@ -8,7 +8,7 @@ endian) and the plain XCDR1 body that rmw_zenoh's Fast-CDR typesupport writes an
 """
 from __future__ import annotations
 
-from functools import lru_cache
+from functools import cache
 from typing import Any
 
 import numpy as np
@@ -88,6 +88,6 @@ class RosTypes:
         return [self._default((sub_kind, sub)) for _ in range(n)]
 
 
-@lru_cache(maxsize=None)
+@cache
 def types_for(distro_name: str) -> RosTypes:
     return RosTypes(distro_name)

@@ -16,16 +16,16 @@ from __future__ import annotations
 
 import math
 import re
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Sequence
 
 import cv2
 import numpy as np
 
-from cores import camera
 from common.errors import CalibrationError
 from common.files import IMAGE_EXTENSIONS, list_images, natural_sorted, pair_images, read_image
+from cores import camera
 
 SIGMAS = 3.0  # uncertainties are printed as +/- 3 sigma (Bouguet's convention)
 

@@ -34,9 +34,9 @@ import cv2
 import numpy as np
 import yaml
 
-from cores import camera
 from common.errors import BallbotError, CalibrationError, FileError
 from common.files import parse_yaml, read_text, read_yaml
+from cores import camera
 
 # --- OpenCV stereo_calib ------------------------------------------------------------------------
 

@@ -13,9 +13,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from cores import camera
 from common.errors import BallbotError, CalibrationError
 from common.messages import CameraModel
+from cores import camera
 
 
 def camera_model_message(m: camera.RectifiedModel) -> CameraModel:

@@ -4,7 +4,6 @@ No OpenCV import, so reading settings (`--help`, config files) stays light.
 """
 from __future__ import annotations
 
-import math
 from typing import Annotated, Literal
 
 from pydantic import Field, model_validator
@@ -72,7 +71,7 @@ class MatcherConfig(ServiceSettings):
     threads: int = Field(0, ge=0, le=64, description="OpenCV threads for matching (0: one per core)")
 
     @model_validator(mode="after")
-    def _combinations(self) -> "MatcherConfig":
+    def _combinations(self) -> MatcherConfig:
         b = self.block
         if b % 2 == 0:
             raise ValueError(f"block_size: must be odd, got {self.block_size}")
@@ -121,7 +120,7 @@ class MatcherConfig(ServiceSettings):
                                "calibration (or a rectified camera model), or set num_disparities in px")
         return self.num_disparities
 
-    def resolved(self, focal_px: float | None, baseline_m: float | None, width: int | None = None) -> "MatcherConfig":
+    def resolved(self, focal_px: float | None, baseline_m: float | None, width: int | None = None) -> MatcherConfig:
         """These settings with num_disparities auto turned into px for this camera (self if fixed)."""
         if self.num_disparities != "auto":
             return self

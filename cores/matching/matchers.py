@@ -18,9 +18,17 @@ import cv2
 import numpy as np
 
 from common.errors import BallbotError
-from cores.matching.config import (DEFAULT_BLOCK, SATURATION_WARN, SCALE, TOP_BAND_PX, MatcherConfig,  # noqa: F401
-                                   auto_num_disparities, gate_for_range)
+from cores.matching.config import (  # noqa: F401
+    DEFAULT_BLOCK,
+    SATURATION_WARN,
+    SCALE,
+    TOP_BAND_PX,
+    MatcherConfig,
+    auto_num_disparities,
+    gate_for_range,
+)
 from cores.matching.opencv import Match, create_opencv_matcher, create_sgbm, gray, saturated_share  # noqa: F401
+
 
 def _check_pair(left: np.ndarray, right: np.ndarray) -> None:
     if left.shape != right.shape:

@@ -12,15 +12,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from common import codec
-from cores import camera
 from common.errors import DecodeError
 from common.messages import DisparityMap, FreeSpace, GroundEstimate, Obstacle, ObstacleList, Odometry
+from common.settings import MountSettings
+from cores import camera
 from cores.matching.disparity import RecentValid, searched_range, to_float
 from cores.segmentation import freespace, layers, seed
 from cores.segmentation.ground import TRUSTED, GroundEstimator, frame_mount, plane_from_mount
 from cores.segmentation.mount import FloorPlane, Mount
 from cores.segmentation.seed import Detection
-from common.settings import MountSettings
 from cores.segmentation.settings import SegmenterSettings
 from cores.segmentation.tracking import Tracker
 

@@ -20,8 +20,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from common.messages import FreeSpace, ObstacleList
 from cores import camera
-from common.messages import FreeSpace, GroundEstimate, ObstacleList
 from cores.segmentation.mount import Mount
 
 # BGR

@@ -31,10 +31,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cores import camera
 from common.messages import GroundEstimate
-from cores.segmentation.mount import FloorPlane, Mount
 from common.settings import MountSettings
+from cores import camera
+from cores.segmentation.mount import FloorPlane, Mount
 from cores.segmentation.settings import SegmenterSettings
 
 log = logging.getLogger("ballbot")

@@ -49,8 +49,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from cores import camera
 from common.messages import GroundEstimate
+from cores import camera
 from cores.segmentation.ground import GroundEstimator, grid
 from cores.segmentation.mount import FloorPlane, Mount
 from cores.segmentation.seed import Detection

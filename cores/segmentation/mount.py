@@ -77,7 +77,7 @@ class Mount:
                            yaw_deg=self.yaw_deg, x_m=self.x_m, y_m=self.y_m, source=source)
 
     @classmethod
-    def of(cls, m: CameraMount | MountSettings | None) -> "Mount | None":
+    def of(cls, m: CameraMount | MountSettings | None) -> Mount | None:
         """The mount a list carries (ObstacleList.mount) or the one configured (`mount:`; None when its
         height is unknown)."""
         if m is None or m.height_m is None:
@@ -101,7 +101,7 @@ class FloorPlane:
 
     @classmethod
     def from_normal(cls, n: np.ndarray, height_m: float, f: float, cx: float, cy: float, B: float,
-                    fitted: bool = False, inliers: int = 0) -> "FloorPlane":
+                    fitted: bool = False, inliers: int = 0) -> FloorPlane:
         n = np.asarray(n, float) / np.linalg.norm(n)
         a = B * n[0] / height_m
         b = B * n[1] / height_m

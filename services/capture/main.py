@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import os
 import time
+
 import cv2
 
 from common import codec

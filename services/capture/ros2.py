@@ -21,8 +21,8 @@ from typing import Any
 
 import numpy as np
 
-from cores import camera
 from common.errors import BallbotError, SourceError
+from cores import camera
 from services.capture.sources import CapturedPair, SourceContext
 
 IMAGE = "sensor_msgs/msg/Image"
@@ -97,9 +97,9 @@ class Ros2Source:
 
     def __init__(self, settings: Any, ctx: SourceContext):
         from common.ros2 import rmw
-        from cores import ros2_convert as convert
         from common.ros2.graph import RosNode
         from common.ros2.msgs import types_for
+        from cores import ros2_convert as convert
 
         node = getattr(ctx, "node", None)
         if node is None or getattr(node, "session", None) is None:

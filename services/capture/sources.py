@@ -23,14 +23,15 @@ from __future__ import annotations
 
 import threading
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
-from cores import camera
 from common.errors import SourceError
 from common.files import natural_key  # noqa: F401  (the sources' sort order; re-exported)
+from cores import camera
 
 
 @dataclass

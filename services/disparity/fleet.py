@@ -36,8 +36,9 @@ import os
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 from common import codec
 from common.errors import BallbotError, DecodeError

@@ -64,7 +64,7 @@ class Ticket:
     nonce: bytes = field(default_factory=lambda: os.urandom(NONCE_BYTES))
 
     @classmethod
-    def for_frame(cls, msg: StereoFrame) -> "Ticket":
+    def for_frame(cls, msg: StereoFrame) -> Ticket:
         if msg.camera is None:
             raise DecodeError("StereoFrame.camera: missing; a work item needs a rectified pair")
         return cls(msg.robot_id, msg.seq, msg.stamp_ns, msg.camera.width, msg.camera.height, msg.camera,

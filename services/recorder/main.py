@@ -19,8 +19,15 @@ from typing import Literal
 from pydantic import Field
 
 from common.keys import topic
-from common.messages import (CalibrationUpdate, DisparityMap, FreeSpace, GroundTruth, ObstacleList, ServiceStats,
-                                StereoFrame)
+from common.messages import (
+    CalibrationUpdate,
+    DisparityMap,
+    FreeSpace,
+    GroundTruth,
+    ObstacleList,
+    ServiceStats,
+    StereoFrame,
+)
 from common.node import Node
 from common.settings import ServiceSettings
 from cores.recording import Converter, Recorded, RecordingWriter, RecordOptions

@@ -72,7 +72,7 @@ class RectifySettings(ServiceSettings):
                           "(frames of a real source are refused until a calibration is set or signed)")
 
 
-def reloader(node: Node, holder: CalibrationHolder, updates: "queue.Queue[tuple[CalibrationUpdate, bool]]",
+def reloader(node: Node, holder: CalibrationHolder, updates: queue.Queue[tuple[CalibrationUpdate, bool]],
              watch_s: float) -> None:
     """Off the frame loop: applies vetted calibration messages (with whether they are signed) and
     watches the calibration file."""

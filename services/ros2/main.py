@@ -29,7 +29,6 @@ from typing import Literal
 import numpy as np
 from pydantic import Field, field_validator
 
-from common.errors import ConfigError
 from common.keys import topic
 from common.messages import DisparityMap, ObstacleList
 from common.node import Node
@@ -130,9 +129,9 @@ def preflight(settings: Ros2Settings) -> None:
 
 def run(node: Node, settings: Ros2Settings) -> None:
     from common.ros2 import rmw
-    from cores import ros2_convert as convert
     from common.ros2.graph import RosNode
     from common.ros2.msgs import types_for
+    from cores import ros2_convert as convert
 
     try:
         types = types_for(settings.distro)

@@ -25,11 +25,11 @@ from pathlib import Path
 from pydantic import Field
 
 from common import codec
+from common.errors import BallbotError
+from common.inbox import stamp_of
 from common.keys import topic
 from common.messages import FreeSpace, ObstacleList, ReplayControl, ServiceStats
-from common.errors import BallbotError, DecodeError
 from common.node import Node
-from common.inbox import stamp_of
 from common.settings import ServiceSettings
 from services.viewer.core import Composer, ViewInputs
 
@@ -357,7 +357,7 @@ def make_app(viewer: Viewer, hub: Hub, gate: Gate | None = None):
                 # send the newest; whatever came in between is skipped for this client
                 try:
                     await asyncio.wait_for(acked.wait(), 3.0)
-                except asyncio.TimeoutError:
+                except TimeoutError:
                     pass
                 new_version, message = await hub.newer_than(version)
                 hub.skipped += max(0, new_version - version - 1) if version else 0
