@@ -307,7 +307,8 @@ def test_the_page_shows_the_pictures_and_draws_the_boxes_of_the_obstacle_list(tm
                                    timeout=120_000)
             checked, seqs, ages = 0, set(), []
             deadline = time.monotonic() + 120
-            while checked < 5 and time.monotonic() < deadline:
+            # (a page may redraw one pair while a loaded pipeline is slow: go on until 3 lists were drawn)
+            while (checked < 5 or len(seqs) < 3) and time.monotonic() < deadline:
                 seen = page.evaluate("window.viewer.imageUpdates")
                 page.wait_for_function(f"window.viewer.imageUpdates > {seen}", timeout=60_000)
                 state = page.evaluate("({drawn: window.viewer.drawn, age: window.viewer.lastAgeMs, "
@@ -330,7 +331,7 @@ def test_the_page_shows_the_pictures_and_draws_the_boxes_of_the_obstacle_list(tm
                     assert abs(float(label_m) - round(o.distance_m, 3)) <= 0.0051, (b["text"], o.distance_m)
                 seqs.add(drawn["seq"])
                 checked += 1
-            assert checked == 5 and len(seqs) >= 3, (checked, seqs)
+            assert checked >= 5 and len(seqs) >= 3, (checked, seqs)
             # the boxes are on the canvas, not only in the page's state: orange pixels along each box's
             # top edge (all of it for a confirmed track, dashes for one not yet confirmed). The boxes
             # and the canvas are read in one evaluation: between two, a newer picture (drawn before
