@@ -566,3 +566,33 @@ def test_pieces_one_behind_the_other_are_not_fragments_of_one_tracked_object():
     assert _side_by_side([2, 3], list(dets), list(pts), 0.25) == [[2, 3]]
     near = piece(230, 290, 2.6, 2.9, 4000)  # right behind the table's back: depths meet, one object
     assert _side_by_side([0, 1], [table[0], near[0]], [table[1], near[1]], 0.25) == [[0, 1]]
+
+
+def test_what_stands_behind_is_dropped_only_when_seen_through_the_nearer_object():
+    """A region behind a nearer one and inside its box is seen through it (a car's window) when the
+    nearer one frames it; a person standing behind a chair, seen above and beside its back, is not."""
+
+    def region(pix, z):  # pix: (n, 2) working-resolution (x, y); step 1
+        pix = np.asarray(pix, float)
+        pts = np.stack([(pix[:, 0] - MODEL.cx) * z / MODEL.focal_px, (pix[:, 1] - MODEL.cy) * z / MODEL.focal_px,
+                        np.full(len(pix), z)], 1)
+        lo, hi = np.percentile(pts, [2, 98], axis=0)
+        x0, y0 = pix.min(0).astype(int)
+        x1, y1 = pix.max(0).astype(int) + 1
+        return layers._Region(pts, lo, hi, (x0, y0, x1, y1), len(pix), len(pix), np.full(len(pix), FB / z))
+
+    ys, xs = np.mgrid[100:300, 200:400]
+    body = (ys >= 200) | (ys < 120) | (xs < 220) | (xs >= 380)  # a car: a window in its upper half
+    car = region(np.stack([xs[body], ys[body]], 1), 3.0)
+    ys, xs = np.mgrid[130:190, 240:360]
+    behind = region(np.stack([xs.ravel(), ys.ravel()], 1), 8.0)
+    assert layers._encloses(car, behind, MODEL, 1)
+    assert len(layers._absorb_contained([car, behind], 0.12, MODEL, 1)) == 1
+    ys, xs = np.mgrid[20:400, 100:400]
+    # legs out at both sides, a seat across, its back reaching up on the right
+    chair = ((ys > 200) & ((xs < 110) | (xs >= 390))) | ((ys > 200) & (ys < 220)) | (xs >= 300)
+    chair = region(np.stack([xs[chair], ys[chair]], 1), 2.0)
+    ys, xs = np.mgrid[20:180, 110:200]
+    person = region(np.stack([xs.ravel(), ys.ravel()], 1), 3.2)
+    assert not layers._encloses(chair, person, MODEL, 1)
+    assert len(layers._absorb_contained([chair, person], 0.12, MODEL, 1)) == 2

@@ -32,8 +32,8 @@ only what stands on it counts, and objects are grouped where they stand.
     object stands on it and the strip the band cut off is filled back in along the floor normal
 10. objects whose 3D extents come within merge_gap_m are one (a chair's back leg seen between its
     front legs; along the view merge_gap_depth_m: a fence seen obliquely); a small object mostly
-    inside a larger one's box is part of it (depths meet) or seen through it (wholly behind: a
-    car's windows) and dropped
+    inside a larger one's box is part of it (depths meet) or seen through it (wholly behind and
+    framed by it: a car's windows) and dropped
 11. per object: centroid (mean of the points), extent (2nd-98th percentile), nearest distance
     (2nd percentile of range), bbox, area, median disparity, confidence (mean matcher confidence,
     else the fraction of its pixels with a valid raw disparity)
@@ -182,11 +182,26 @@ def _absorb_contained(regions: list[_Region], gap_m: float, model: camera.Rectif
             zr = float(np.median(r.pts[:, 2]))
             tol = gap_m + 0.02 * zr
             if zr > zc[1] + tol:
-                alive[ri] = False  # behind it
+                if _encloses(c, r, model, step):
+                    alive[ri] = False  # behind it, seen through it
             elif zr >= zc[0] - tol:
                 alive[ri] = False
                 c = regions[ci] = _union([c, r])
     return [r for r, a in zip(regions, alive) if a]
+
+
+def _encloses(c: _Region, r: _Region, model: camera.RectifiedModel, step: int) -> bool:
+    """Whether c's points surround r's box in the image: on both sides of it within its rows, or
+    above and below it within its columns. What is seen through an object (a car's windows, a
+    gap between a person's legs) is framed by it; a person standing behind a chair, seen above and
+    beside its back, is not, though the chair's box (its back reaching up, its legs out) holds
+    theirs."""
+    u = c.pts[:, 0] / c.pts[:, 2] * model.focal_px + model.cx
+    v = c.pts[:, 1] / c.pts[:, 2] * model.focal_px + model.cy
+    x0, y0, x1, y1 = (k * step for k in r.bbox)
+    rows, cols = (v >= y0) & (v < y1), (u >= x0) & (u < x1)
+    return bool(((rows & (u < x0)).any() and (rows & (u >= x1)).any())
+                or ((cols & (v < y0)).any() and (cols & (v >= y1)).any()))
 
 
 def _union(g: list[_Region]) -> _Region:
