@@ -596,3 +596,23 @@ def test_what_stands_behind_is_dropped_only_when_seen_through_the_nearer_object(
     person = region(np.stack([xs.ravel(), ys.ravel()], 1), 3.2)
     assert not layers._encloses(chair, person, MODEL, 1)
     assert len(layers._absorb_contained([chair, person], 0.12, MODEL, 1)) == 2
+
+
+def test_a_small_thing_beyond_an_empty_stretch_of_depth_is_split_from_the_group_a_hand_is_not():
+    """A group holding a person (2000 px at 3.3 m) and a table's back leg 0.5 m nearer (150 px: less
+    than layer_min_area_m2 of surface) with no pixel at the depths between: two things. The same
+    small part joined by pixels at every depth between (an arm held out to a hand) stays one."""
+    cfg = SegmenterSettings()
+    rng = np.random.default_rng(0)
+    person = np.full(2000, FB / 3.3) + rng.normal(0, 0.1, 2000)
+    leg = np.full(150, FB / 2.8) + rng.normal(0, 0.1, 150)
+
+    def split(d):
+        d = d.astype(np.float32)
+        ys, xs = np.arange(d.size) // 40, np.arange(d.size) % 40
+        lab, family = layers._split_layers(ys, xs, d, np.ones(d.size, np.int32), cfg, MODEL, 2)
+        return np.unique(lab[lab > 0]).size
+
+    assert split(np.concatenate([person, leg])) == 2
+    arm = np.linspace(FB / 3.3, FB / 2.8, 60)
+    assert split(np.concatenate([person, arm, leg])) == 1

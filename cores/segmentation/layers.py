@@ -286,7 +286,9 @@ def _split_layers(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, lab: np.ndarra
     band a few pixels wide. A valley splits the group when
     - its density is at most layer_valley_ratio of the smaller peak's;
     - each side holds layer_min_area_m2 of surface and a tenth of the other side's (specks of
-      phantom depth beside a car or a facade stay with it);
+      phantom depth beside a car or a facade stay with it), or the valley is empty over
+      layer_gap_m of depth and each side holds min_area_m2 (a table's back leg, grouped with the
+      person beside it, is no speck of theirs);
     - the peaks stand layer_gap_m apart in depth (a torso before the legs is one person);
     - the valley's pixels are a thin band, at most layer_bridge_px wide along each image row: a
       table top or a chair seat also fills the valley between front and back legs, but across the
@@ -321,13 +323,19 @@ def _split_layers(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, lab: np.ndarra
             b0 = int(bins.min())
             rel = bins - b0
             area = (step * model.baseline_m / d) ** 2  # m^2 of surface a working pixel covers at its depth
-            hist = np.convolve(np.pad(np.bincount(rel, weights=area), kernel.size // 2), kernel, mode="valid")
+            raw = np.bincount(rel, weights=area)
+            hist = np.convolve(np.pad(raw, kernel.size // 2), kernel, mode="valid")
             if hist.size < 3:
                 continue
             mass_left = np.cumsum(hist)
             mass_right = mass_left[-1] - mass_left + hist
             least = np.maximum(cfg.layer_min_area_m2, 0.1 * np.maximum(mass_left, mass_right))
             ok = (mass_left >= least) & (mass_right >= least)
+            # a stretch of depth with no pixel at all, layer_gap_m long, is no ramp nor a hand held
+            # out: what lies beyond it is a thing of its own however small (a table's back leg seen
+            # past a person's side), as long as it is an obstacle's size
+            gap = _empty_runs(raw == 0, b0, fB) >= cfg.layer_gap_m
+            ok |= gap & (mass_left >= cfg.min_area_m2) & (mass_right >= cfg.min_area_m2)
             ok[0] = ok[-1] = False
             if not ok.any():
                 continue
@@ -358,6 +366,23 @@ def _split_layers(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, lab: np.ndarra
             next_label += 1
             todo += [(far, level + 1), (near, level + 1)]
     return out, family
+
+
+_LAYER_EMPTY_PX = 2.0  # an empty valley spans at least this much disparity: far beyond matching noise
+
+
+def _empty_runs(empty: np.ndarray, b0: int, fB: float) -> np.ndarray:
+    """Per histogram bin (of _LAYER_BIN_PX, the first at bin b0): the depth (m) spanned by the run
+    of empty bins it lies in (0 for a bin that is not empty, or in a run narrower than
+    _LAYER_EMPTY_PX of disparity: far away, a few empty bins are the matcher's noise)."""
+    out = np.zeros(empty.size)
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], empty.astype(np.int8), [0]])))
+    for a, b in zip(edges[::2], edges[1::2]):
+        if (b - a) * _LAYER_BIN_PX < _LAYER_EMPTY_PX:
+            continue
+        d_lo, d_hi = (b0 + a) * _LAYER_BIN_PX, (b0 + b) * _LAYER_BIN_PX
+        out[a:b] = fB / max(d_lo, 1e-6) - fB / d_hi
+    return out
 
 
 def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: SegmenterSettings | None = None,
