@@ -547,27 +547,6 @@ def test_walls_beside_the_way_filling_most_of_the_view_never_become_the_ground()
         assert abs(g.roll_deg) < 1.0
 
 
-def test_pieces_one_behind_the_other_are_not_fragments_of_one_tracked_object():
-    """A tracked footprint holding a table and a person walking behind it (one merged sighting) must
-    not glue them together again: pieces overlapping in image columns at depths 0.5 m apart stay
-    apart, while pieces beside each other (a fence's stretches, at any depth) join."""
-    from cores.segmentation.builder import _side_by_side
-
-    def piece(x0, x1, z0, z1, area):
-        z = np.linspace(z0, z1, 200)
-        pts = np.stack([np.zeros_like(z), np.zeros_like(z), z], 1)
-        return seed.Detection(position_m=pts.mean(0), size_m=np.ones(3), distance_m=z0, bbox_px=(x0, 0, x1, 100),
-                              area_px=area, disparity_px=FB / z0, confidence=1.0), pts
-
-    table, person, fence_a, fence_b = (piece(200, 320, 2.0, 2.5, 5000), piece(230, 290, 3.0, 3.4, 4000),
-                                       piece(0, 100, 4.0, 6.0, 3000), piece(120, 200, 6.5, 8.0, 2000))
-    dets, pts = zip(table, person, fence_a, fence_b)
-    assert sorted(map(sorted, _side_by_side([0, 1], list(dets), list(pts), 0.25))) == [[0], [1]]
-    assert _side_by_side([2, 3], list(dets), list(pts), 0.25) == [[2, 3]]
-    near = piece(230, 290, 2.6, 2.9, 4000)  # right behind the table's back: depths meet, one object
-    assert _side_by_side([0, 1], [table[0], near[0]], [table[1], near[1]], 0.25) == [[0, 1]]
-
-
 def test_what_stands_behind_is_dropped_only_when_seen_through_the_nearer_object():
     """A region behind a nearer one and inside its box is seen through it (a car's window) when the
     nearer one frames it; a person standing behind a chair, seen above and beside its back, is not."""

@@ -167,12 +167,8 @@ class ObstacleBuilder:
         texture-poor stretch of it (a fence along the road, a hedge). One object each frame keeps
         its id and its centroid, where its pieces would be tracks that flicker. Only what lies
         inside the footprint is joined: a person stepping up beside a tracked one, or standing
-        behind them, is outside it. Nor are pieces one behind the other in the image joined
-        (_side_by_side): a lost stretch leaves pieces beside each other, while a table and the
-        person walking behind it, once seen as one (a frame where the matcher's ramp joined them),
-        would otherwise stay one for as long as the merged track's footprint holds them both.
-        fps: the detections' footprints (_footprint); -> (detections, points, footprints) with each
-        group of pieces as one."""
+        behind them, is outside it. fps: the detections' footprints (_footprint); -> (detections,
+        points, footprints) with each group of pieces as one."""
         live = [tr for tr in self.tracker.tracks
                 if tr.confirmed and tr.box is not None and t_s - tr.last_seen_s <= 0.25]
         if not live or len(dets) < 2:
@@ -196,8 +192,7 @@ class ObstacleBuilder:
         for di, ti in enumerate(owner.tolist()):
             if ti >= 0:
                 groups.setdefault(ti, []).append(di)
-        merged = {c[0]: c for g in groups.values() if len(g) > 1
-                  for c in _side_by_side(g, dets, points, self.settings.merge_gap_depth_m) if len(c) > 1}
+        merged = {g[0]: g for g in groups.values() if len(g) > 1}
         if not merged:
             return dets, points, fps
         drop = {di for g in merged.values() for di in g[1:]}
@@ -309,33 +304,6 @@ class ObstacleBuilder:
         return self.process(disparity, model, t_s=msg.stamp_ns / 1e9 if t_s is None else t_s, seq=msg.seq,
                             stamp_ns=msg.stamp_ns, robot_id=msg.robot_id, confidence=confidence, odometry=odometry,
                             stale=stale, stages=msg.stages, search=(msg.min_disparity, msg.num_disparities))
-
-
-def _side_by_side(group: list[int], dets: list[Detection], points: list[np.ndarray], depth_gap_m: float
-                  ) -> list[list[int]]:
-    """Split the pieces `group` (indices into dets / points) into clusters that may be one object:
-    a piece joins a cluster unless it is in front of or behind one of its members: their image
-    columns overlap by half the narrower one's width and their depths (10th-90th percentile of
-    the points' z: the ramp block matching draws across an occlusion's contour reaches into the
-    2 % tails) stand more than depth_gap_m apart. Largest pieces first; -> clusters of indices."""
-    order = sorted(group, key=lambda i: -dets[i].area_px)
-    z = {i: np.percentile(points[i][::max(1, len(points[i]) // 1000), 2], [10, 90]) for i in order}
-    clusters: list[list[int]] = []
-
-    def apart(i: int, j: int) -> bool:
-        (a0, a1), (b0, b1) = (dets[i].bbox_px[0:3:2], dets[j].bbox_px[0:3:2])
-        overlap = min(a1, b1) - max(a0, b0)
-        gap = max(z[i][0] - z[j][1], z[j][0] - z[i][1])
-        return bool(overlap > 0.5 * max(1, min(a1 - a0, b1 - b0)) and gap > depth_gap_m)
-
-    for i in order:
-        for c in clusters:
-            if not any(apart(i, j) for j in c):
-                c.append(i)
-                break
-        else:
-            clusters.append([i])
-    return clusters
 
 
 def _footprint(mount: Mount, points_camera: np.ndarray) -> np.ndarray:
