@@ -334,8 +334,13 @@ def _split_layers(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, lab: np.ndarra
             # a stretch of depth with no pixel at all, layer_gap_m long, is no ramp nor a hand held
             # out: what lies beyond it is a thing of its own however small (a table's back leg seen
             # past a person's side), as long as it is an obstacle's size
+            # and seen with _LAYER_EMPTY_MIN_PIXELS on each side: a small thing far away is a
+            # handful of pixels, split off one frame and not the next
             gap = _empty_runs(raw == 0, b0, fB) >= cfg.layer_gap_m
-            ok |= gap & (mass_left >= cfg.min_area_m2) & (mass_right >= cfg.min_area_m2)
+            n_left = np.cumsum(np.bincount(rel, minlength=hist.size))
+            n_right = n_left[-1] - n_left + np.bincount(rel, minlength=hist.size)
+            ok |= gap & (mass_left >= cfg.min_area_m2) & (mass_right >= cfg.min_area_m2) & \
+                (np.minimum(n_left, n_right) >= _LAYER_EMPTY_MIN_PIXELS)
             ok[0] = ok[-1] = False
             if not ok.any():
                 continue
@@ -369,6 +374,7 @@ def _split_layers(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, lab: np.ndarra
 
 
 _LAYER_EMPTY_PX = 2.0  # an empty valley spans at least this much disparity: far beyond matching noise
+_LAYER_EMPTY_MIN_PIXELS = 100  # working pixels on each side of an empty valley split
 
 
 def _empty_runs(empty: np.ndarray, b0: int, fB: float) -> np.ndarray:
