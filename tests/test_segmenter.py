@@ -545,3 +545,53 @@ def test_walls_beside_the_way_filling_most_of_the_view_never_become_the_ground()
         g = _frame(d, SegmenterSettings(max_range_m=8.0), mount=told).ground
         assert g.source == "fitted" and abs(g.height_m - 1.0) < 0.05 and abs(g.pitch_deg - 5.0) < 1.0, (told, g)
         assert abs(g.roll_deg) < 1.0
+
+
+def test_what_stands_behind_is_dropped_only_when_seen_through_the_nearer_object():
+    """A region behind a nearer one and inside its box is seen through it (a car's window) when the
+    nearer one frames it; a person standing behind a chair, seen above and beside its back, is not."""
+
+    def region(pix, z):  # pix: (n, 2) working-resolution (x, y); step 1
+        pix = np.asarray(pix, float)
+        pts = np.stack([(pix[:, 0] - MODEL.cx) * z / MODEL.focal_px, (pix[:, 1] - MODEL.cy) * z / MODEL.focal_px,
+                        np.full(len(pix), z)], 1)
+        lo, hi = np.percentile(pts, [2, 98], axis=0)
+        x0, y0 = pix.min(0).astype(int)
+        x1, y1 = pix.max(0).astype(int) + 1
+        return layers._Region(pts, lo, hi, (x0, y0, x1, y1), len(pix), len(pix), np.full(len(pix), FB / z))
+
+    ys, xs = np.mgrid[100:300, 200:400]
+    body = (ys >= 200) | (ys < 120) | (xs < 220) | (xs >= 380)  # a car: a window in its upper half
+    car = region(np.stack([xs[body], ys[body]], 1), 3.0)
+    ys, xs = np.mgrid[130:190, 240:360]
+    behind = region(np.stack([xs.ravel(), ys.ravel()], 1), 8.0)
+    assert layers._encloses(car, behind, MODEL, 1)
+    assert len(layers._absorb_contained([car, behind], 0.12, MODEL, 1)) == 1
+    ys, xs = np.mgrid[20:400, 100:400]
+    # legs out at both sides, a seat across, its back reaching up on the right
+    chair = ((ys > 200) & ((xs < 110) | (xs >= 390))) | ((ys > 200) & (ys < 220)) | (xs >= 300)
+    chair = region(np.stack([xs[chair], ys[chair]], 1), 2.0)
+    ys, xs = np.mgrid[20:180, 110:200]
+    person = region(np.stack([xs.ravel(), ys.ravel()], 1), 3.2)
+    assert not layers._encloses(chair, person, MODEL, 1)
+    assert len(layers._absorb_contained([chair, person], 0.12, MODEL, 1)) == 2
+
+
+def test_a_small_thing_beyond_an_empty_stretch_of_depth_is_split_from_the_group_a_hand_is_not():
+    """A group holding a person (2000 px at 3.3 m) and a table's back leg 0.5 m nearer (150 px: less
+    than layer_min_area_m2 of surface) with no pixel at the depths between: two things. The same
+    small part joined by pixels at every depth between (an arm held out to a hand) stays one."""
+    cfg = SegmenterSettings()
+    rng = np.random.default_rng(0)
+    person = np.full(2000, FB / 3.3) + rng.normal(0, 0.1, 2000)
+    leg = np.full(150, FB / 2.8) + rng.normal(0, 0.1, 150)
+
+    def split(d):
+        d = d.astype(np.float32)
+        ys, xs = np.arange(d.size) // 40, np.arange(d.size) % 40
+        lab, family = layers._split_layers(ys, xs, d, np.ones(d.size, np.int32), cfg, MODEL, 2)
+        return np.unique(lab[lab > 0]).size
+
+    assert split(np.concatenate([person, leg])) == 2
+    arm = np.linspace(FB / 3.3, FB / 2.8, 60)
+    assert split(np.concatenate([person, arm, leg])) == 1

@@ -32,8 +32,8 @@ only what stands on it counts, and objects are grouped where they stand.
     object stands on it and the strip the band cut off is filled back in along the floor normal
 10. objects whose 3D extents come within merge_gap_m are one (a chair's back leg seen between its
     front legs; along the view merge_gap_depth_m: a fence seen obliquely); a small object mostly
-    inside a larger one's box is part of it (depths meet) or seen through it (wholly behind: a
-    car's windows) and dropped
+    inside a larger one's box is part of it (depths meet) or seen through it (wholly behind and
+    framed by it: a car's windows) and dropped
 11. per object: centroid (mean of the points), extent (2nd-98th percentile), nearest distance
     (2nd percentile of range), bbox, area, median disparity, confidence (mean matcher confidence,
     else the fraction of its pixels with a valid raw disparity)
@@ -182,11 +182,26 @@ def _absorb_contained(regions: list[_Region], gap_m: float, model: camera.Rectif
             zr = float(np.median(r.pts[:, 2]))
             tol = gap_m + 0.02 * zr
             if zr > zc[1] + tol:
-                alive[ri] = False  # behind it
+                if _encloses(c, r, model, step):
+                    alive[ri] = False  # behind it, seen through it
             elif zr >= zc[0] - tol:
                 alive[ri] = False
                 c = regions[ci] = _union([c, r])
     return [r for r, a in zip(regions, alive) if a]
+
+
+def _encloses(c: _Region, r: _Region, model: camera.RectifiedModel, step: int) -> bool:
+    """Whether c's points surround r's box in the image: on both sides of it within its rows, or
+    above and below it within its columns. What is seen through an object (a car's windows, a
+    gap between a person's legs) is framed by it; a person standing behind a chair, seen above and
+    beside its back, is not, though the chair's box (its back reaching up, its legs out) holds
+    theirs."""
+    u = c.pts[:, 0] / c.pts[:, 2] * model.focal_px + model.cx
+    v = c.pts[:, 1] / c.pts[:, 2] * model.focal_px + model.cy
+    x0, y0, x1, y1 = (k * step for k in r.bbox)
+    rows, cols = (v >= y0) & (v < y1), (u >= x0) & (u < x1)
+    return bool(((rows & (u < x0)).any() and (rows & (u >= x1)).any())
+                or ((cols & (v < y0)).any() and (cols & (v >= y1)).any()))
 
 
 def _union(g: list[_Region]) -> _Region:
@@ -271,7 +286,9 @@ def _split_layers(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, lab: np.ndarra
     band a few pixels wide. A valley splits the group when
     - its density is at most layer_valley_ratio of the smaller peak's;
     - each side holds layer_min_area_m2 of surface and a tenth of the other side's (specks of
-      phantom depth beside a car or a facade stay with it);
+      phantom depth beside a car or a facade stay with it), or the valley is empty over
+      layer_gap_m of depth and each side holds min_area_m2 (a table's back leg, grouped with the
+      person beside it, is no speck of theirs);
     - the peaks stand layer_gap_m apart in depth (a torso before the legs is one person);
     - the valley's pixels are a thin band, at most layer_bridge_px wide along each image row: a
       table top or a chair seat also fills the valley between front and back legs, but across the
@@ -306,13 +323,24 @@ def _split_layers(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, lab: np.ndarra
             b0 = int(bins.min())
             rel = bins - b0
             area = (step * model.baseline_m / d) ** 2  # m^2 of surface a working pixel covers at its depth
-            hist = np.convolve(np.pad(np.bincount(rel, weights=area), kernel.size // 2), kernel, mode="valid")
+            raw = np.bincount(rel, weights=area)
+            hist = np.convolve(np.pad(raw, kernel.size // 2), kernel, mode="valid")
             if hist.size < 3:
                 continue
             mass_left = np.cumsum(hist)
             mass_right = mass_left[-1] - mass_left + hist
             least = np.maximum(cfg.layer_min_area_m2, 0.1 * np.maximum(mass_left, mass_right))
             ok = (mass_left >= least) & (mass_right >= least)
+            # a stretch of depth with no pixel at all, layer_gap_m long, is no ramp nor a hand held
+            # out: what lies beyond it is a thing of its own however small (a table's back leg seen
+            # past a person's side), as long as it is an obstacle's size
+            # and seen with _LAYER_EMPTY_MIN_PIXELS on each side: a small thing far away is a
+            # handful of pixels, split off one frame and not the next
+            gap = _empty_runs(raw == 0, b0, fB) >= cfg.layer_gap_m
+            n_left = np.cumsum(np.bincount(rel, minlength=hist.size))
+            n_right = n_left[-1] - n_left + np.bincount(rel, minlength=hist.size)
+            ok |= gap & (mass_left >= cfg.min_area_m2) & (mass_right >= cfg.min_area_m2) & \
+                (np.minimum(n_left, n_right) >= _LAYER_EMPTY_MIN_PIXELS)
             ok[0] = ok[-1] = False
             if not ok.any():
                 continue
@@ -343,6 +371,24 @@ def _split_layers(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, lab: np.ndarra
             next_label += 1
             todo += [(far, level + 1), (near, level + 1)]
     return out, family
+
+
+_LAYER_EMPTY_PX = 2.0  # an empty valley spans at least this much disparity: far beyond matching noise
+_LAYER_EMPTY_MIN_PIXELS = 100  # working pixels on each side of an empty valley split
+
+
+def _empty_runs(empty: np.ndarray, b0: int, fB: float) -> np.ndarray:
+    """Per histogram bin (of _LAYER_BIN_PX, the first at bin b0): the depth (m) spanned by the run
+    of empty bins it lies in (0 for a bin that is not empty, or in a run narrower than
+    _LAYER_EMPTY_PX of disparity: far away, a few empty bins are the matcher's noise)."""
+    out = np.zeros(empty.size)
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], empty.astype(np.int8), [0]])))
+    for a, b in zip(edges[::2], edges[1::2]):
+        if (b - a) * _LAYER_BIN_PX < _LAYER_EMPTY_PX:
+            continue
+        d_lo, d_hi = (b0 + a) * _LAYER_BIN_PX, (b0 + b) * _LAYER_BIN_PX
+        out[a:b] = fB / max(d_lo, 1e-6) - fB / d_hi
+    return out
 
 
 def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: SegmenterSettings | None = None,
