@@ -132,7 +132,8 @@ def publish_calibration(args: argparse.Namespace, path: str) -> int:
         except DecodeError:
             return
         with changed:
-            counts[st.instance] = (st.extra.get("calibration_generation", 0.0), st.extra.get("calibration_refused", 0.0))
+            counts[st.instance] = (st.extra.get("calibration_generation", 0.0),
+                                   st.extra.get("calibration_refused", 0.0))
             changed.notify_all()
 
     def wait(pred, timeout: float) -> bool:

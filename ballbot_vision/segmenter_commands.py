@@ -34,7 +34,8 @@ def _segmenter_settings(args: argparse.Namespace):
 
 
 def _mount_settings(args: argparse.Namespace):
-    """The camera on the robot: the `mount:` section of --config, BALLBOT_MOUNT_*, --mount-* (as the services read it)."""
+    """The camera on the robot: the `mount:` section of --config, BALLBOT_MOUNT_*, --mount-* (as the
+    services read it)."""
     from common.settings import MountSettings, load_settings
 
     return load_settings(MountSettings, getattr(args, "config", None), args, prefix="mount-")

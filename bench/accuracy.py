@@ -272,7 +272,8 @@ def print_report(r: dict, out=sys.stdout) -> None:
     for name, p in r["pairs"].items():
         print(f"{name}: {p['source']}, {p['size']}, disparities 0..{p['num_disparities'] - 1}; invalid counts "
               f"as bad; EPE with invalid background-filled", file=out)
-        print(f"  {'method':20} {'bad-1':>7} {'bad-2':>7} {'bad-4':>7} {'EPE px':>7} {'invalid':>8} {'ms':>7}", file=out)
+        print(f"  {'method':20} {'bad-1':>7} {'bad-2':>7} {'bad-4':>7} {'EPE px':>7} {'invalid':>8} {'ms':>7}",
+              file=out)
         for m, s in p["methods"].items():
             print(f"  {m:20} {s['bad1'] * 100:6.1f}% {s['bad2'] * 100:6.1f}% {s['bad4'] * 100:6.1f}% "
                   f"{s['epe']:7.2f} {s['invalid'] * 100:7.1f}% {s['ms']:7.1f}", file=out)

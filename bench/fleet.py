@@ -401,7 +401,8 @@ def run(args: argparse.Namespace, say) -> dict:
     with Fleet(robots, args.method, not args.no_netns, {greedy: 8}, logdir=args.logdir) as fleet:
         report["netns"] = fleet.use_netns
         report["netns_reason"] = fleet.netns_reason
-        say(f"workers in {'their own network namespaces' if fleet.use_netns else 'this namespace: ' + fleet.netns_reason}")
+        where = "their own network namespaces" if fleet.use_netns else "this namespace: " + fleet.netns_reason
+        say(f"workers in {where}")
         for w in workers:
             fleet.add_worker(w)
         one = ceilings[0]["fps"]
@@ -539,7 +540,6 @@ def entitled(phase: dict, offered: dict[str, float]) -> dict[str, float]:
 def targets(r: dict) -> list[tuple[str, float, str, float, bool]]:
     n = len(r["robots"])
     eq = r["equal"]
-    share = eq["total_hz"] / n
     ph = r["pool_host_projection"]
     out = [("total / workers' ceiling", eq["total_hz"] / r["workers_ceiling_hz"], ">=", TARGET_SHARE,
             eq["total_hz"] / r["workers_ceiling_hz"] >= TARGET_SHARE),
@@ -590,8 +590,9 @@ def format_report(r: dict) -> str:
              + " / ".join(f"{v:.2f}" for v in r["ceiling_one_thread_fps"])
              + f" fps -> workers' ceiling {r['workers_ceiling_hz']:.2f} maps/s; "
              f"load avg {r['load_avg_1min_start']:.1f} at start, {r['load_avg_1min_end']:.1f} at end",
-             f"the equal phase's CPU per map allows {r['projected_quiet_hz']:.2f} maps/s on {r['cores']} otherwise idle "
-             f"cores; a pool host of its own (workers {r['pool_host_projection']['worker_cpu_ms']:.1f} + router "
+             f"the equal phase's CPU per map allows {r['projected_quiet_hz']:.2f} maps/s on {r['cores']} "
+             f"otherwise idle cores; a pool host of its own "
+             f"(workers {r['pool_host_projection']['worker_cpu_ms']:.1f} + router "
              f"{r['pool_host_projection']['router_cpu_ms']:.1f} ms CPU per map, the matcher in-process "
              f"{r['pool_host_projection']['inprocess_cpu_ms']:.1f} ms): {r['pool_host_projection']['maps_per_s']:.1f} "
              f"maps/s = {r['pool_host_projection']['x_ideal']:.2f} x its workers' ideal",
@@ -622,7 +623,8 @@ def format_report(r: dict) -> str:
     for robot in r["robots"]:
         b = k["back_at_share_s"][robot]
         lines.append(f"    {robot}: back at 0.9 x new share after "
-                     + (f"{b:.2f} s" if b is not None else "never") + f", longest gap {k['longest_gap_s'][robot]:.2f} s")
+                     + (f"{b:.2f} s" if b is not None else "never")
+                     + f", longest gap {k['longest_gap_s'][robot]:.2f} s")
     block("  after the kill", k["after"])
     a = r["add"]
     lines.append(f"add: process start to token {a['process_to_token_s']:.1f} s; token to its first map "

@@ -335,7 +335,8 @@ def measure_once(live: LivePipeline, frames: Frames, args: argparse.Namespace, l
 
         def probe(rate: float) -> dict:
             r = live.measure(rate, args.warmup, args.probe_seconds, compute_ms)
-            log(f"  offered {rate:6.1f}/s -> {r['fps']:5.1f} lists/s, dropped {r['seq_gaps']['dropped_fraction']:4.0%}, "
+            log(f"  offered {rate:6.1f}/s -> {r['fps']:5.1f} lists/s, "
+                f"dropped {r['seq_gaps']['dropped_fraction']:4.0%}, "
                 f"p95 {r['latency_ms']['p95']:5.1f} ms: "
                 + ("sustainable" if r["sustainable"] else "; ".join(r["why_not"])))
             return r
@@ -406,7 +407,8 @@ def format_run(r: dict, header: dict) -> str:
         best = max((q["offered_hz"] for q in r["search"] if q["sustainable"]), default=None)
         lines.append(f"offered-rate search: {len(r['search'])} probes, highest sustainable "
                      + (f"{best:.1f}/s" if best else "none (measured at the lowest probed rate)")
-                     + f"; saturated (offered {r['search'][0]['offered_hz']:.0f}/s): {r['search'][0]['fps']:.1f} lists/s")
+                     + f"; saturated (offered {r['search'][0]['offered_hz']:.0f}/s): "
+                     f"{r['search'][0]['fps']:.1f} lists/s")
     for q in r.get("rejected", []):
         lines.append(f"measured at {q['offered_hz']:.1f}/s first: not sustained ({'; '.join(q['why_not'])}), "
                      f"{BACKOFF:g} x that rate instead")
@@ -452,14 +454,16 @@ def format_run(r: dict, header: dict) -> str:
             f"  capture -> obstacles published: p50 {st['latency_ms']['p50']:.1f} ms  p95 {st['latency_ms']['p95']:.1f}"
             f"  p99 {st['latency_ms']['p99']:.1f} ms = p50 {x['latency_p50_x_compute_steady']:.2f} x the in-process "
             f"compute; CPU per list {pipeline_cpu_ms(st):.1f} ms = {x['cpu_x_matcher_1_thread_steady']:.2f} x "
-            f"{name}'s own (" + ", ".join(f"{k} {v:.1f}" for k, v in st["cpu_ms_per_list"].items() if k != "bench") + ")",
+            f"{name}'s own ("
+            + ", ".join(f"{k} {v:.1f}" for k, v in st["cpu_ms_per_list"].items() if k != "bench") + ")",
         ]
     lines.append(f"ratios: fps {x['fps_x_matcher_2_threads']:.2f} x {name} 2 threads "
                  f"({x['fps_x_matcher_1_thread']:.2f} x 1 thread, {x['fps_x_compute']:.2f} x the in-process compute); "
                  f"latency p50 {x['latency_p50_x_compute']:.2f}, p95 {x['latency_p95_x_compute']:.2f}, "
                  f"p99 {x['latency_p99_x_compute']:.2f} x the in-process compute (load avg {r['load_avg_1min']:.1f})")
-    lines.append(f"  CPU: {x['cpu_x_matcher_1_thread']:.2f} x the matcher's own (1 thread) per list; on an idle machine "
-                 f"that CPU allows {x['idle_machine_fps_bound_x_matcher_2_threads']:.2f} x {name} alone (2 threads)")
+    lines.append(f"  CPU: {x['cpu_x_matcher_1_thread']:.2f} x the matcher's own (1 thread) per list; "
+                 f"on an idle machine that CPU allows {x['idle_machine_fps_bound_x_matcher_2_threads']:.2f} x "
+                 f"{name} alone (2 threads)")
     return "\n".join(lines)
 
 
@@ -491,7 +495,8 @@ def bench_pipeline(args: argparse.Namespace) -> int:
               "sustainable": {"max_dropped_fraction": MAX_DROPPED, "max_p95_x_compute": MAX_P95_X_COMPUTE,
                               "stale_lists": 0},
               "steady_rate_hz": getattr(args, "steady_rate", 0.0),
-              "targets": {k: t for k, _, _, t in TARGETS if k != "latency_p50_x_compute_steady" or args.steady_rate > 0}}
+              "targets": {k: t for k, _, _, t in TARGETS
+                          if k != "latency_p50_x_compute_steady" or args.steady_rate > 0}}
     runs = []
     say(f"starting {procs} ...")
     with LivePipeline(method, args.preload, args.workers, nice=args.nice) as live:

@@ -124,8 +124,8 @@ def record_run(messages, rate: float, seconds: float, image_format: str, threads
             session.declare_subscriber(topic("stats").key("bench", service="record", instance="*"), on_stats)
             with open(log_path, "w") as log:
                 recorder = subprocess.Popen(cli + ["record", str(out), "--connect", endpoint, "--robot-id", "bench",
-                                                   "--image-format", image_format, "--threads", str(threads), "--raw", "true",
-                                                   "--jpeg-quality", "90"],
+                                                   "--image-format", image_format, "--threads", str(threads),
+                                                   "--raw", "true", "--jpeg-quality", "90"],
                                             stdout=log, stderr=subprocess.STDOUT)
             if not ready.wait(60):
                 raise RuntimeError(f"record did not start: {log_path.read_text()[-2000:]}")
@@ -164,7 +164,7 @@ def record_run(messages, rate: float, seconds: float, image_format: str, threads
         from mcap.reader import make_reader
 
         with open(out, "rb") as f:
-            for _, ch, m in make_reader(f).iter_messages(topics=[RAW_LEFT]):
+            for _, _ch, m in make_reader(f).iter_messages(topics=[RAW_LEFT]):
                 seqs.append(m.sequence)
         written = len(set(seqs))
         log_text = log_path.read_text()

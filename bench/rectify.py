@@ -115,7 +115,8 @@ def format_rectify(r: dict) -> str:
             a = g["accuracy"][kind]
             cpu = ", ".join(f"{k[len('cpu_ms_'):].replace('_', ' ')} {v[kind]:.2f} ms" for k, v in g.items()
                             if k.startswith("cpu_ms_"))
-            lines.append(f"    {kind:5} maps: CPU per pair {cpu}; vs exact bilinear: max {a['max_grey_error']:.2f} grey, "
+            lines.append(f"    {kind:5} maps: CPU per pair {cpu}; "
+                         f"vs exact bilinear: max {a['max_grey_error']:.2f} grey, "
                          f"{a['share_above_1_grey']:.3%} of pixels > 1 grey, source positions within "
                          f"{a['max_position_error_px']:.4f} px")
     return "\n".join(lines)

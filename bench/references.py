@@ -121,8 +121,10 @@ def mean_references(a: dict, b: dict) -> dict:
                       before_fps=a[k]["fps"], after_fps=b[k]["fps"])
     ca, cb = a["compute"], b["compute"]
     total = (ca["total_ms_p50"] + cb["total_ms_p50"]) / 2
-    out["compute"] = {"stage_ms_p50": {s: (ca["stage_ms_p50"][s] + cb["stage_ms_p50"][s]) / 2 for s in ca["stage_ms_p50"]},
-                      "stage_cpu_ms": {s: (ca["stage_cpu_ms"][s] + cb["stage_cpu_ms"][s]) / 2 for s in ca["stage_cpu_ms"]},
+    out["compute"] = {"stage_ms_p50": {s: (ca["stage_ms_p50"][s] + cb["stage_ms_p50"][s]) / 2
+                                       for s in ca["stage_ms_p50"]},
+                      "stage_cpu_ms": {s: (ca["stage_cpu_ms"][s] + cb["stage_cpu_ms"][s]) / 2
+                                       for s in ca["stage_cpu_ms"]},
                       "total_ms_p50": total, "fps": 1000.0 / total,
                       "before_ms": ca["total_ms_p50"], "after_ms": cb["total_ms_p50"]}
     return out

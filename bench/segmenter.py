@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import time
 import typing
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -56,7 +56,8 @@ def time_methods(disparities: list[np.ndarray], model, settings_for: Callable[[s
         builder = ObstacleBuilder(*settings_for(method))
         frame = iter(range(1 << 30))  # the stream's own frame count: its time never goes back
 
-        def step(k: int) -> None:
+        # _timed calls step within this iteration only; the defaults bind this iteration's pair plainly
+        def step(k: int, frame: Iterator[int] = frame, builder: ObstacleBuilder = builder) -> None:
             n = next(frame)
             builder.process(disparities[k % len(disparities)], model, t_s=n / 15.0, seq=n, stamp_ns=0)
         r = _timed(step, repeat)

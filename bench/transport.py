@@ -64,7 +64,8 @@ def copies(rounds: int = 5, n: int = 200) -> dict[str, float]:
         "ZBytes.to_bytes (the copy out of Zenoh)": (lambda: zb.to_bytes()) if zb is not None else None,
         "msgpack.unpackb (image bytes copied out)": lambda: msgpack.unpackb(payload, raw=False, strict_map_key=False),
         "pydantic model_validate (no copy)": lambda: StereoFrame.model_validate(doc),
-        "array_from_image x2 (a view, no copy)": lambda: (codec.array_from_image(msg.left), codec.array_from_image(msg.right)),
+        "array_from_image x2 (a view, no copy)": lambda: (codec.array_from_image(msg.left),
+                                                          codec.array_from_image(msg.right)),
         "memcpy of a pair (numpy copy, for scale)": lambda: (left.copy(), right.copy()),
     }
     out: dict[str, list[float]] = {k: [] for k, f in steps.items() if f is not None}
@@ -178,7 +179,8 @@ def bench_transport(repeat: int = 3) -> dict:
 
 
 def format_transport(r: dict) -> str:
-    lines = [f"the frame path, CPU per 640x480 pair (load avg {r['load_avg_1min']:.1f} -> {r['load_avg_1min_end']:.1f}):"]
+    lines = [f"the frame path, CPU per 640x480 pair "
+             f"(load avg {r['load_avg_1min']:.1f} -> {r['load_avg_1min_end']:.1f}):"]
     lines += [f"  {k:48} {v:7.1f} us" for k, v in r["copies_us"].items()]
     lines.append("one hop between two processes (60 pairs/s, through a router), CPU per message, median of runs:")
     for shm in (True, False):

@@ -394,6 +394,7 @@ def pair_images(left: Sequence[Path], right: Sequence[Path]) -> list[tuple[Path,
         only_r = natural_sorted(list(set(rk) - set(lk)))
         detail = ""
         if only_l or only_r:
-            detail = "; without a partner: " + ", ".join([str(lk[k]) for k in only_l[:5]] + [str(rk[k]) for k in only_r[:5]])
+            unpaired = [str(lk[k]) for k in only_l[:5]] + [str(rk[k]) for k in only_r[:5]]
+            detail = "; without a partner: " + ", ".join(unpaired)
         raise FileError(f"{len(left)} left images but {len(right)} right images{detail}")
     return list(zip(natural_sorted(list(left)), natural_sorted(list(right))))

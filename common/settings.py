@@ -139,7 +139,8 @@ def add_settings_arguments(p: argparse.ArgumentParser, cls: type[ServiceSettings
             else {"metavar": "V"}
         g.add_argument(cls.flag(name, prefix), dest=_dest(cls, name), default=argparse.SUPPRESS,
                        # argparse %-formats help texts: a "50 %" in a description is text, not a format
-                       help=f"{f.description or ''} (default: {_show(default)}) [{cls.env_var(name)}]".replace("%", "%%"),
+                       help=f"{f.description or ''} (default: {_show(default)}) [{cls.env_var(name)}]"
+                       .replace("%", "%%"),
                        **kw)
 
 
@@ -224,7 +225,8 @@ def load_settings(cls: type[S], config_file: str | None = None, args: argparse.N
     texts: dict[str, tuple[str, str]] = {}
     for k in list(values):
         if (cls.section, k) in MOVED:
-            problems.append(f"{sources[k]}: moved to {MOVED[cls.section, k]} (the `{MOVED[cls.section, k].split('.')[0]}:` "
+            new = MOVED[cls.section, k]
+            problems.append(f"{sources[k]}: moved to {new} (the `{new.split('.')[0]}:` "
                             f"section, read by every service)")
             values.pop(k)
     for (section, old), new in MOVED.items():

@@ -1,8 +1,8 @@
 """The processes of the pipeline (which services, in which order and priority) and the supervisor
-that runs them for `ballbot-vision up` and the benchmarks: every service as its own OS process, restarted if it dies (with a backoff
-that starts again from 0.5 s once a child has run healthily for a while), all stopped on Ctrl-C or
-SIGTERM (SIGTERM to all at once, a generous grace for a loaded machine, SIGKILL only after it),
-and none left behind if the supervisor itself is killed."""
+that runs them for `ballbot-vision up` and the benchmarks: every service as its own OS process,
+restarted if it dies (with a backoff that starts again from 0.5 s once a child has run healthily for
+a while), all stopped on Ctrl-C or SIGTERM (SIGTERM to all at once, a generous grace for a loaded
+machine, SIGKILL only after it), and none left behind if the supervisor itself is killed."""
 from __future__ import annotations
 
 import ctypes

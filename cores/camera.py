@@ -282,7 +282,8 @@ def load_calibration(spec: str | Path) -> Calibration:
     except FileError as e:
         if "not valid YAML" in str(e) and _looks_like_opencv(s):
             raise CalibrationError(f"calibration {s}: an OpenCV FileStorage file, not this program's calibration "
-                                   f"YAML; convert it with: ballbot-vision calibration import {s} ... -o rig.yaml") from None
+                                   f"YAML; convert it with: ballbot-vision calibration import {s} ... -o rig.yaml"
+                                   ) from None
         raise
     if isinstance(doc, dict) and not {"rectified", "left", "K"} & set(doc):
         foreign = [tool for key, tool in _FOREIGN_FIELDS.items() if key in doc]

@@ -520,8 +520,9 @@ class SyntheticWorld:
         shade = np.zeros(t.shape, np.float32)
         if not v.shaded:
             return _Layer(t, shade, np.full(t.shape, -1, np.int16))
+        wall = ~floor & np.isfinite(t)
         for mask, tex, normal, uv_axes in ((floor, self._floor_tex, np.array([0.0, 0.0, 1.0]), (0, 1)),
-                                           (~floor & np.isfinite(t), self._wall_tex, np.array([-1.0, 0.0, 0.0]), (1, 2))):
+                                           (wall, self._wall_tex, np.array([-1.0, 0.0, 0.0]), (1, 2))):
             idx = np.flatnonzero(mask)
             if not idx.size:
                 continue

@@ -118,7 +118,8 @@ def test_synthetic_rig_is_recovered(synthetic_result):
 
 def test_calibrate_command(synthetic_views, tmp_path, capsys):
     out = tmp_path / "calib.yaml"
-    rc = main(["calibrate", "--left", str(synthetic_views / "left*.png"), "--right", str(synthetic_views / "right*.png"),
+    rc = main(["calibrate", "--left", str(synthetic_views / "left*.png"),
+               "--right", str(synthetic_views / "right*.png"),
                "--pattern", "9x6", "--square-size", str(SQUARE), "--depth-range", "0.5", "3", "-o", str(out)])
     text = capsys.readouterr().out
     assert rc == 0

@@ -86,7 +86,8 @@ def detect_corners(gray: np.ndarray, pattern: tuple[int, int]) -> np.ndarray | N
     if found:
         # The window must stay inside one square: a fraction of the smallest corner spacing.
         c = corners.reshape(pattern[1], pattern[0], 2)
-        spacing = min(np.linalg.norm(np.diff(c, axis=1), axis=2).min(), np.linalg.norm(np.diff(c, axis=0), axis=2).min())
+        spacing = min(np.linalg.norm(np.diff(c, axis=1), axis=2).min(),
+                      np.linalg.norm(np.diff(c, axis=0), axis=2).min())
         win = int(max(2, min(11, spacing * 0.4)))
         crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 100, 1e-4)
         return cv2.cornerSubPix(gray, corners, (win, win), (-1, -1), crit)

@@ -451,7 +451,8 @@ def describe(cal: camera.Calibration, depth_range: tuple[float, float] | None = 
     if isinstance(cal, camera.RectifiedRig):
         m = cal.model
         lines += ["already rectified:",
-                  f"  f = {m.focal_px:.5f} px   cc = [ {m.cx:.5f}  {m.cy:.5f} ]   baseline = {m.baseline_m * 1000:.5f} mm"]
+                  f"  f = {m.focal_px:.5f} px   cc = [ {m.cx:.5f}  {m.cy:.5f} ]   "
+                  f"baseline = {m.baseline_m * 1000:.5f} mm"]
     else:
         for title, c in (("left", cal.left), ("right", cal.right)):
             lines += [f"{title}:",

@@ -314,7 +314,8 @@ class CameraSource:
                 self._dropping += 1
                 self.ctx.extra["dropped_skew"] = float(self.dropped_skew)
                 if self._dropping == self.SKEW_STATUS_AFTER:
-                    self.ctx.status(f"dropping pairs: left/right skew {skew:.1f} ms > {self.settings.camera_max_skew_ms:g} ms")
+                    self.ctx.status(f"dropping pairs: left/right skew {skew:.1f} ms > "
+                                    f"{self.settings.camera_max_skew_ms:g} ms")
                 continue
             if self._dropping >= self.SKEW_STATUS_AFTER:
                 self.ctx.status("ok")

@@ -41,7 +41,8 @@ class McapSource:
             raise SourceError(f"mcap: {e}") from None
         self.total = info.pairs("raw") or info.pairs("rectified")
         if not self.total:
-            raise SourceError(f"mcap: {path} holds no stereo pairs (topics: {', '.join(sorted(info.channels)) or 'none'})")
+            topics = ", ".join(sorted(info.channels)) or "none"
+            raise SourceError(f"mcap: {path} holds no stereo pairs (topics: {topics})")
         self.path = path
         self.speed = speed
         self.pace = pace

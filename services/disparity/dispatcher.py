@@ -37,9 +37,10 @@ One mechanism, push with checked answers:
   answers again. One that answers wrongly (a map that does not fit its item, a receipt claiming a
   map it never sent) is quarantined at once.
 * While no worker is trusted (or every trusted one is paused after a missed answer) the
-  dispatcher computes in-process with the onboard fallback matcher (full or half resolution), or, with fallback none, says "no worker reachable" in its status while
-  the segmenter's heartbeat marks the obstacle stream stale. The fallback is also what makes
-  `ballbot-vision up` a single process per stage: no extra hop when everything runs on one host.
+  dispatcher computes in-process with the onboard fallback matcher (full or half resolution), or,
+  with fallback none, says "no worker reachable" in its status while the segmenter's heartbeat
+  marks the obstacle stream stale. The fallback is also what makes `ballbot-vision up` a single
+  process per stage: no extra hop when everything runs on one host.
 
 * With `--pool NAME` the dispatcher also uses a fleet pool's workers (fleet.py), named
   `<instance>@<pool>` here: the same trust, checks and fallback, but a pool worker gets a frame

@@ -198,7 +198,8 @@ class Bridge:
                     self._image_subs[kind] = self.node.subscribe(topic(kind).key(self.node.robot_id),
                                                                  self._keep(kind), keep=False)
                     log.info("foxglove: a client watches %s; subscribed to %s", ", ".join(FEEDS[kind]), kind)
-            elif kind in self._image_subs and now - self._last_watched.get(kind, 0.0) >= self.settings.idle_unsubscribe_s:
+            elif (kind in self._image_subs
+                  and now - self._last_watched.get(kind, 0.0) >= self.settings.idle_unsubscribe_s):
                 self._image_subs.pop(kind).undeclare()
                 log.info("foxglove: nobody watches %s any more; %s unsubscribed", ", ".join(FEEDS[kind]), kind)
         self.node.extra["image_streams"] = float(len(self._image_subs))

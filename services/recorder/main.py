@@ -91,8 +91,8 @@ class RecordResult:
     def summary(self) -> str:
         parts = ", ".join(f"{t} {n}" for t, n in sorted(self.counts.items()))
         return (f"wrote {self.path}: {parts or 'nothing'}; {self.bytes / 1e6:.1f} MB in {self.seconds:.1f} s; "
-                f"dropped {self.dropped_queue_full} (queue full), {self.missing_pairs} {self.pair_kind} pair(s) missing "
-                f"(seq gaps), {self.decode_errors} undecodable")
+                f"dropped {self.dropped_queue_full} (queue full), "
+                f"{self.missing_pairs} {self.pair_kind} pair(s) missing (seq gaps), {self.decode_errors} undecodable")
 
 
 SYNTHETIC_RIG, SYNTHETIC_RIG_SOURCE = "lifecam-studio", "synthetic"  # what rectify assumes, for which source
@@ -214,7 +214,8 @@ class Recorder:
             self.has_calibration = True
         if msg.source == SYNTHETIC_RIG_SOURCE:
             text = calibration_text(SYNTHETIC_RIG)
-            for r in Converter.calibration(text, f"{SYNTHETIC_RIG} (assumed for the synthetic scene)", msg.stamp_ns - 1):
+            source = f"{SYNTHETIC_RIG} (assumed for the synthetic scene)"
+            for r in Converter.calibration(text, source, msg.stamp_ns - 1):
                 self.writer.write(r.topic, r.doc, r.log_time_ns)
         else:
             log.warning("record: no calibration configured (--calibration, rectify.calibration) or published; "

@@ -52,7 +52,8 @@ class RectifySettings(ServiceSettings):
                                     "video and image sources (unset: the thesis rig 'lifecam-studio', which the "
                                     "synthetic scene renders, for the synthetic source only)")
     alpha: float = Field(0.0, ge=0.0, le=1.0, description="0: crop to valid pixels, 1: keep all source pixels")
-    watch_s: float = Field(1.0, ge=0.0, le=3600.0, description="check the calibration file for changes this often (0: never)")
+    watch_s: float = Field(1.0, ge=0.0, le=3600.0,
+                           description="check the calibration file for changes this often (0: never)")
     calibration_updates: Literal["auto", "on", "off"] = Field(
         "auto", description="calibrations published on the calibration key: auto, on: take those signed with "
                             "the robot's calibration key (BALLBOT_CALIBRATION_KEY), within calibration_max_change "
