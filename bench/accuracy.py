@@ -133,7 +133,7 @@ def opencv_baselines(num_disparities: int) -> dict:
     import cv2
 
     def bm_sample(block):
-        m = cv2.StereoBM_create(num_disparities, block)
+        m = cv2.StereoBM.create(num_disparities, block)
         m.setPreFilterCap(31)
         m.setTextureThreshold(10)
         m.setUniquenessRatio(15)
@@ -144,14 +144,14 @@ def opencv_baselines(num_disparities: int) -> dict:
 
     def sgbm_sample(block, mode=cv2.STEREO_SGBM_MODE_SGBM, cn=3):
         # OpenCV's recommended penalties for cn channels and a block of w = block (stereo_match.cpp)
-        return cv2.StereoSGBM_create(0, num_disparities, block, P1=8 * cn * block * block,
+        return cv2.StereoSGBM.create(0, num_disparities, block, P1=8 * cn * block * block,
                                      P2=32 * cn * block * block, disp12MaxDiff=1, preFilterCap=63,
                                      uniquenessRatio=10, speckleWindowSize=100, speckleRange=32, mode=mode), cn == 3
 
     return {
         "opencv-bm-9": bm_sample(9),
         "opencv-bm-15": bm_sample(15),
-        "opencv-sgbm-default": (cv2.StereoSGBM_create(0, num_disparities), True),
+        "opencv-sgbm-default": (cv2.StereoSGBM.create(0, num_disparities), True),
         "opencv-sgbm-sample": sgbm_sample(3),
         "opencv-sgbm-hh": sgbm_sample(3, cv2.STEREO_SGBM_MODE_HH),
         "opencv-sgbm-3way": sgbm_sample(3, cv2.STEREO_SGBM_MODE_SGBM_3WAY),

@@ -25,7 +25,7 @@ import uuid
 from collections import deque
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from common import codec, signed_payload
 from common.errors import BallbotError, DecodeError
@@ -34,6 +34,9 @@ from common.keys import WORKER_SEGMENT, Topic, topic, topics_of
 from common.messages import Message, ServiceStats
 from common.settings import MountSettings
 from common.zenoh_session import ZenohOptions, open_session
+
+if TYPE_CHECKING:
+    import zenoh
 
 log = logging.getLogger("ballbot")
 M = TypeVar("M", bound=Message)
@@ -183,15 +186,22 @@ class Node:
         self._progress = _Progress(float(os.environ.get("BALLBOT_STALL_S", 3.0)),
                                    float(os.environ.get("BALLBOT_FAIL_S", 10.0)))
         self._bytes_last: dict[str, float] = {}
-        self.session = None
+        self._session: zenoh.Session | None = None
 
     # -- lifecycle ------------------------------------------------------------------------------
+    @property
+    def session(self) -> zenoh.Session:
+        """The Zenoh session, open inside `with node:` only."""
+        if self._session is None:
+            raise BallbotError(f"{self.service}: no Zenoh session outside `with node:`")
+        return self._session
+
     def __enter__(self) -> Node:
         if self._install_signals and threading.current_thread() is threading.main_thread():
             for sig in (signal.SIGINT, signal.SIGTERM):
                 signal.signal(sig, lambda *_: self.stop_event.set())
         release_memory_eagerly()
-        self.session = open_session(self.options)
+        self._session = open_session(self.options)
         if self.pool:
             alive_key = topic("pool_alive").key(self.robot_id, pool=self.pool, instance=self.instance)
             stats_key = topic("pool_stats").key(self.robot_id, pool=self.pool, instance=self.instance)
@@ -301,6 +311,8 @@ class Node:
         if d is None:
             return None
         model = inbox.topic.model
+        if model is None or not issubclass(model, Message):
+            raise BallbotError(f"take: {inbox.topic.name} carries no stamped message")
         msg = self.decode_or_drop(d.payload, model, f"input on {inbox.topic.name}")
         if msg is None:
             return None

@@ -101,7 +101,11 @@ def _adapter(cls: type[ServiceSettings], name: str) -> TypeAdapter:
     key = (cls, name)
     if key not in _ADAPTERS:
         f = cls.model_fields[name]
-        _ADAPTERS[key] = TypeAdapter(typing.Annotated[f.annotation, *f.metadata] if f.metadata else f.annotation)
+        if f.annotation is None:  # pydantic fills it in for every declared field
+            raise TypeError(f"{cls.__name__}.{name}: a settings field without a type")
+        # a type built at run time, which a static checker cannot follow
+        field_type: Any = typing.Annotated[f.annotation, *f.metadata] if f.metadata else f.annotation
+        _ADAPTERS[key] = TypeAdapter(field_type)
     return _ADAPTERS[key]
 
 
@@ -134,7 +138,7 @@ def add_settings_arguments(p: argparse.ArgumentParser, cls: type[ServiceSettings
     for name, f in cls.model_fields.items():
         if name in exclude:
             continue
-        default = f.default if f.default_factory is None else f.default_factory()
+        default = f.get_default(call_default_factory=True)
         kw: dict[str, Any] = {"nargs": "?", "const": "true", "metavar": "BOOL"} if _is_bool(f.annotation) \
             else {"metavar": "V"}
         g.add_argument(cls.flag(name, prefix), dest=_dest(cls, name), default=argparse.SUPPRESS,

@@ -20,6 +20,10 @@ import json
 import os
 import re
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    import zenoh
 
 DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
 MAX_MESSAGE_BYTES = 128 << 20
@@ -151,7 +155,7 @@ def make_config(o: ZenohOptions):
     return conf
 
 
-def open_session(o: ZenohOptions):
+def open_session(o: ZenohOptions) -> zenoh.Session:
     """Open a session; use as a context manager so callback threads stop on exit. A router that
     does not answer, or an endpoint that cannot be listened on, is a ConnectError (exit status 1:
     it may work a moment later, so `up` restarts a service that meets it)."""

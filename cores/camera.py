@@ -228,15 +228,15 @@ def calibration_from_dict(doc: Any, where: str = "calibration") -> Calibration:
     cams = []
     for side in ("left", "right"):
         c = doc.get(side)
-        w = f"{where}: {side}"
+        at = f"{where}: {side}"
         if not isinstance(c, dict):
             raise CalibrationError(f"{where}: missing section '{side}'")
-        K = _vec(c, "K", 9, w).reshape(3, 3)
+        K = _vec(c, "K", 9, at).reshape(3, 3)
         if not np.allclose(K[2], [0, 0, 1]) or K[1, 0] != 0 or K[0, 0] <= 0 or K[1, 1] <= 0:
-            raise CalibrationError(f"{w}: field 'K' is not a camera matrix [[fx,s,cx],[0,fy,cy],[0,0,1]]")
-        D = _vec(c, "distortion", 5, w)
-        if "image_size" in c and _size(c, w) != size:
-            raise CalibrationError(f"{w}: field 'image_size' {_size(c, w)} differs from the rig's {size}")
+            raise CalibrationError(f"{at}: field 'K' is not a camera matrix [[fx,s,cx],[0,fy,cy],[0,0,1]]")
+        D = _vec(c, "distortion", 5, at)
+        if "image_size" in c and _size(c, at) != size:
+            raise CalibrationError(f"{at}: field 'image_size' {_size(c, at)} differs from the rig's {size}")
         cams.append(Intrinsics.from_matrix(K, D))
     R = _vec(doc, "R", 9, where).reshape(3, 3)
     T = _vec(doc, "T", 3, where)

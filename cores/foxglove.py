@@ -71,11 +71,11 @@ def obstacle_annotations(msg: ObstacleList) -> fm.ImageAnnotations:
 
 def truth_annotations(msg: GroundTruth) -> fm.ImageAnnotations:
     stamp = timestamp(msg.stamp_ns)
-    shown = [t for t in msg.obstacles if t.bbox_px is not None]
+    shown = [(t, t.bbox_px) for t in msg.obstacles if t.bbox_px is not None]
     return fm.ImageAnnotations(
-        timestamp=stamp, points=[_box(stamp, t.bbox_px, TRUTH_RGBA) for t in shown],
-        texts=[_label(stamp, t.bbox_px[0], t.bbox_px[3] + 16, f"{t.name} {t.nearest_m:.2f} m", TRUTH_RGBA)
-               for t in shown])
+        timestamp=stamp, points=[_box(stamp, bbox, TRUTH_RGBA) for _, bbox in shown],
+        texts=[_label(stamp, bbox[0], bbox[3] + 16, f"{t.name} {t.nearest_m:.2f} m", TRUTH_RGBA)
+               for t, bbox in shown])
 
 
 def _identity() -> fm.Quaternion:
@@ -124,6 +124,8 @@ def base_to_camera(stamp_ns: int, camera_mount: CameraMount) -> fm.FrameTransfor
     from cores.segmentation.mount import Mount
 
     mount = Mount.of(camera_mount)
+    if mount is None:  # (a CameraMount always has a height: only settings may lack one)
+        raise ValueError("base_to_camera: a mount without a camera height")
     q = Rotation.from_matrix(mount.R_base_camera).as_quat()  # x, y, z, w
     x, y, z = (float(v) for v in mount.origin_base)
     return fm.FrameTransform(timestamp=timestamp(stamp_ns), parent_frame_id="base", child_frame_id="camera",

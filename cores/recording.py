@@ -41,6 +41,7 @@ from typing import IO, Any
 
 import cv2
 import numpy as np
+from pydantic import BaseModel
 
 from common import codec
 from common.errors import BallbotError, path_error
@@ -95,8 +96,9 @@ def schema_document(name: str) -> dict:
     """The JSON Schema of one of our own (ballbot.*) channels."""
     if name == "ballbot.Calibration":
         return _CALIBRATION_SCHEMA
-    model = {"ballbot.ObstacleList": ObstacleList, "ballbot.FreeSpace": FreeSpace,
-             "ballbot.GroundTruth": GroundTruth, "ballbot.ServiceStats": ServiceStats}[name]
+    models: dict[str, type[BaseModel]] = {"ballbot.ObstacleList": ObstacleList, "ballbot.FreeSpace": FreeSpace,
+                                          "ballbot.GroundTruth": GroundTruth, "ballbot.ServiceStats": ServiceStats}
+    model = models[name]
     doc = model.model_json_schema()
     doc["title"] = name
     return doc
@@ -284,11 +286,12 @@ class Converter:
             data, fmt = self._image(img)
             out.append(Recorded(topic, foxglove.compressed_image(msg.stamp_ns, frame_id, data, fmt),
                                 msg.stamp_ns, msg.seq))
-        if rectified and self._camera_info_due(msg.camera, msg.stamp_ns):
-            out.append(Recorded(CAMERA_INFO, foxglove.camera_calibration(msg.stamp_ns, msg.camera),
+        cam = msg.camera  # (None: raw pairs)
+        if cam is not None and self._camera_info_due(cam, msg.stamp_ns):
+            out.append(Recorded(CAMERA_INFO, foxglove.camera_calibration(msg.stamp_ns, cam),
                                 msg.stamp_ns, msg.seq))
             # log time just before the pair's, so that a reader has it when the pair comes
-            out.append(Recorded(RECT_CALIBRATION, {"yaml": rectified_calibration_yaml(msg.camera),
+            out.append(Recorded(RECT_CALIBRATION, {"yaml": rectified_calibration_yaml(cam),
                                                    "source": "the rectified camera"}, msg.stamp_ns - 1, msg.seq))
         return out
 

@@ -139,8 +139,9 @@ def _undistorted_rays(K: np.ndarray, D: np.ndarray, size: tuple[int, int]) -> np
 
 
 @functools.lru_cache(maxsize=8)
-def _undistorted_rays_cached(K: tuple, D: tuple, size: tuple[int, int]) -> np.ndarray:
-    K, D = np.array(K).reshape(3, 3), np.array(D)
+def _undistorted_rays_cached(K_values: tuple, D_values: tuple, size: tuple[int, int]) -> np.ndarray:
+    # (tuples: the cache's keys)
+    K, D = np.array(K_values).reshape(3, 3), np.array(D_values)
     w, h = size
     xs, ys = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
     pix = np.stack([xs.ravel(), ys.ravel()], 1).reshape(-1, 1, 2)

@@ -125,6 +125,12 @@ class ViewPair:
     def name(self) -> str:
         return f"{self.left_path.name}+{self.right_path.name}"
 
+    def corners(self) -> tuple[np.ndarray, np.ndarray]:
+        """(left, right) corners of a view found in both images."""
+        if self.left is None or self.right is None:
+            raise CalibrationError(f"{self.name}: the board is not found in both images")
+        return self.left, self.right
+
 
 def detect_pairs(pairs: Sequence[tuple[Path, Path]], pattern: tuple[int, int], progress: Progress = _quiet
                  ) -> tuple[list[ViewPair], tuple[int, int]]:
@@ -245,7 +251,8 @@ def calibrate_camera(obj: np.ndarray, img: list[np.ndarray], size: tuple[int, in
                      k3: bool = False) -> CameraResult:
     """obj: (N, 1, 3) board points, img: per view (N, 1, 2) corners -> one calibrated camera."""
     objs = [obj] * len(img)
-    rms, K, D, rv, tv, std_i, _, per_view = cv2.calibrateCameraExtended(
+    # (OpenCV's stubs take no None for the camera matrix and distortion; OpenCV itself does: no guess)
+    rms, K, D, rv, tv, std_i, _, per_view = cv2.calibrateCameraExtended(  # type: ignore[call-overload]
         objs, img, size, None, None, flags=_mono_flags(k3),
         criteria=(cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12))
     D5 = np.zeros(5)
@@ -375,8 +382,8 @@ def calibrate_stereo(pairs: Sequence[tuple[Path, Path]], pattern: tuple[int, int
     rejected: list[tuple[ViewPair, str]] = []
     for _round in range(3):
         progress(f"calibrating the left and right cameras on {len(views)} views ...")
-        cl = calibrate_camera(obj, [v.left for v in views], size, fix_skew, k3)
-        cr = calibrate_camera(obj, [v.right for v in views], size, fix_skew, k3)
+        cl = calibrate_camera(obj, [v.corners()[0] for v in views], size, fix_skew, k3)
+        cr = calibrate_camera(obj, [v.corners()[1] for v in views], size, fix_skew, k3)
         if not reject_outliers:
             break
         out = []
@@ -402,9 +409,11 @@ def calibrate_stereo(pairs: Sequence[tuple[Path, Path]], pattern: tuple[int, int
     Kl, Kr = _no_skew(cl.K), _no_skew(cr.K)
     for _round in range(5):
         progress(f"calibrating the pair on {len(views)} views ...")
-        pl = [deskew_points(v.left, cl.K) for v in views]
-        pr = [deskew_points(v.right, cr.K) for v in views]
-        rms, Kl2, Dl2, Kr2, Dr2, R, T, _E, _F, rvecs, tvecs, per_view = cv2.stereoCalibrateExtended(
+        pl = [deskew_points(v.corners()[0], cl.K) for v in views]
+        pr = [deskew_points(v.corners()[1], cr.K) for v in views]
+        # (OpenCV's stubs take no None for R and T; OpenCV itself does: outputs only)
+        (rms, Kl2, Dl2, Kr2, Dr2, R, T, _E, _F, rvecs, tvecs,
+         per_view) = cv2.stereoCalibrateExtended(  # type: ignore[call-overload]
             [obj] * len(views), pl, pr, Kl.copy(), cl.D.reshape(1, 5).copy(), Kr.copy(), cr.D.reshape(1, 5).copy(),
             size, None, None, flags=flags, criteria=(cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-12))
         per_view = np.asarray(per_view).reshape(-1, 2)
@@ -418,16 +427,16 @@ def calibrate_stereo(pairs: Sequence[tuple[Path, Path]], pattern: tuple[int, int
         thr = outlier_threshold(err, float("inf"))
         if not np.any(err > thr):
             thr = min(thr, max_view_rms)
-        bad = [(v, f"stereo RMS {e:.3f} px > {thr:.3f} px") for v, e in zip(views, err) if e > thr]
-        if not bad:
+        stereo_bad = [(v, f"stereo RMS {e:.3f} px > {thr:.3f} px") for v, e in zip(views, err) if e > thr]
+        if not stereo_bad:
             break
-        if len(views) - len(bad) < min_views:
-            progress(f"not rejecting {len(bad)} stereo outlier view(s): fewer than {min_views} would remain")
+        if len(views) - len(stereo_bad) < min_views:
+            progress(f"not rejecting {len(stereo_bad)} stereo outlier view(s): fewer than {min_views} would remain")
             break
-        for v, why in bad:
+        for v, why in stereo_bad:
             progress(f"rejecting {v.name}: {why}")
-        rejected.extend(bad)
-        ids = {id(v) for v, _ in bad}
+        rejected.extend(stereo_bad)
+        ids = {id(v) for v, _ in stereo_bad}
         keep = [i for i, v in enumerate(views) if id(v) not in ids]
         views = [views[i] for i in keep]
         for c in (cl, cr):  # keep the per-camera per-view errors aligned with `views`

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 import re
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -102,7 +103,7 @@ def _dist5(D: np.ndarray, where: str) -> np.ndarray:
     return out
 
 
-def read_stereo_calib(paths: list[str | Path], units_m: float = 1.0, image_size: tuple[int, int] | None = None,
+def read_stereo_calib(paths: Sequence[str | Path], units_m: float = 1.0, image_size: tuple[int, int] | None = None,
                       name: str = "") -> camera.RawRig:
     """The intrinsics.yml + extrinsics.yml pair of OpenCV's stereo_calib sample (either order, or
     one file holding all of M1 D1 M2 D2 R T)."""

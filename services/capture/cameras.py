@@ -119,7 +119,7 @@ def configure(cap: Capture, s: CaptureSettings, name: str) -> None:
             refused.append(what)
 
     if fourcc:
-        ask(cv2.CAP_PROP_FOURCC, cv2.VideoWriter_fourcc(*fourcc), f"fourcc {fourcc}")
+        ask(cv2.CAP_PROP_FOURCC, cv2.VideoWriter.fourcc(*fourcc), f"fourcc {fourcc}")
     if s.camera_width and s.camera_height:
         ask(cv2.CAP_PROP_FRAME_WIDTH, s.camera_width, f"width {s.camera_width}")
         ask(cv2.CAP_PROP_FRAME_HEIGHT, s.camera_height, f"height {s.camera_height}")
