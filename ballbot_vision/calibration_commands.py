@@ -154,7 +154,8 @@ def publish_calibration(args: argparse.Namespace, path: str) -> int:
         with changed:
             before = dict(counts)
         pub = session.declare_publisher(topic("calibration").key(rid))
-        wait(lambda: pub.matching_status.matching, args.timeout)
+        # (zenoh's stub says matching_status is a bool; it is a MatchingStatus)
+        wait(lambda: pub.matching_status.matching, args.timeout)  # type: ignore[attr-defined]
         msg = sign(CalibrationUpdate(robot_id=rid, seq=0, stamp_ns=time.time_ns(), yaml=text,
                                      source=f"calibration publish {path}"), key)
         pub.put(codec.encode(msg))
@@ -199,6 +200,7 @@ def _collect_live(args: argparse.Namespace, pattern: tuple[int, int]) -> list[tu
     from common.errors import DecodeError
     from common.inbox import Inbox, stamp_of
     from common.keys import topic
+    from common.messages import StereoFrame
     from common.zenoh_session import open_session
     from cores.calibration import calibrate as C
     from cores.calibration.views import Coverage
@@ -240,7 +242,7 @@ def _collect_live(args: argparse.Namespace, pattern: tuple[int, int]) -> list[tu
                     break
                 last = time.monotonic()
                 try:
-                    msg = codec.decode(payload, t.model)
+                    msg = codec.decode(payload, StereoFrame)
                     left = codec.array_from_image(msg.left, "left")
                     right = codec.array_from_image(msg.right, "right")
                 except DecodeError as e:
@@ -268,6 +270,8 @@ def _collect_live(args: argparse.Namespace, pattern: tuple[int, int]) -> list[tu
                 cl = C.detect_corners(gl, pattern)
                 cr = C.detect_corners(gr, pattern) if cl is not None else None
                 if cl is None or cr is None:
+                    continue
+                if cov is None:  # (set with the first frame's size above)
                     continue
                 ok, why = cov.consider(cl, C._same_order(cl, cr))
                 if not ok:

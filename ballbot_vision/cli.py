@@ -112,8 +112,8 @@ def cmd_up(args: argparse.Namespace) -> int:
 
     listen, endpoint = up_endpoints(args)
     common = ["--robot-id", robot_id(args)]
-    if config_file(args):
-        common += ["--config", config_file(args)]
+    if cfg := config_file(args):
+        common += ["--config", cfg]
     if args.nice < 0 and os.geteuid() != 0:
         log.warning("up --nice %d needs root (or CAP_SYS_NICE); the services run at the default priority", args.nice)
     import secrets

@@ -8,6 +8,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import Any
 
 from common.errors import BallbotError
 
@@ -212,8 +213,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
 # Settings for real recordings where the user set none (flag, environment or --config): a car's or a
 # room's range rather than a small robot's, and a search range that follows the calibration (64 px
 # ends at 5.8 m on Karlsruhe: nearer parked cars saturate it).
-REAL_SEGMENTER_DEFAULTS = {"max_range_m": 30.0}
-REAL_DISPARITY_DEFAULTS = {"num_disparities": "auto"}
+REAL_SEGMENTER_DEFAULTS: dict[str, Any] = {"max_range_m": 30.0}
+REAL_DISPARITY_DEFAULTS: dict[str, Any] = {"num_disparities": "auto"}
 
 
 def _explicit(cls, args: argparse.Namespace) -> set[str]:

@@ -27,6 +27,8 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import TYPE_CHECKING, Any, TypeVar
 
+from pydantic import BaseModel
+
 from common import codec, signed_payload
 from common.errors import BallbotError, DecodeError
 from common.inbox import _META, REJECTIONS, Clock, FreshnessGate, FreshnessLimits, Inbox, Meta, clock_from_env
@@ -39,7 +41,7 @@ if TYPE_CHECKING:
     import zenoh
 
 log = logging.getLogger("ballbot")
-M = TypeVar("M", bound=Message)
+M = TypeVar("M", bound=BaseModel)  # a Message, or ServiceStats: both carry robot_id
 
 
 class _Window:
@@ -370,8 +372,9 @@ class Node:
     def decode(self, payload: bytes, model: type[M]) -> M:
         """Decode a message that must be this robot's; raises DecodeError otherwise."""
         msg = codec.decode(payload, model)
-        if msg.robot_id != self.robot_id:
-            raise DecodeError(f"{model.__name__}: robot_id {msg.robot_id!r} on {self.robot_id!r}'s key")
+        robot = getattr(msg, "robot_id", None)
+        if robot != self.robot_id:
+            raise DecodeError(f"{model.__name__}: robot_id {robot!r} on {self.robot_id!r}'s key")
         return msg
 
     def decode_or_drop(self, payload: bytes, model: type[M], what: str, kind: str = "decode") -> M | None:
@@ -384,7 +387,7 @@ class Node:
             return None
 
     @contextmanager
-    def processing(self, msg: Message | None = None) -> Iterator[None]:
+    def processing(self, msg: BaseModel | None = None) -> Iterator[None]:
         """Time one unit of work; a failure is logged, counted and dropped, never fatal."""
         t0 = time.perf_counter()
         try:

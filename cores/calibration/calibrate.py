@@ -301,7 +301,7 @@ class StereoResult:
     rejected: list[tuple[ViewPair, str]] = field(default_factory=list)
     without_board: list[ViewPair] = field(default_factory=list)
     total_pairs: int = 0
-    rig: camera.RawRig | None = None
+    rig: camera.RawRig = field(kw_only=True)  # the calibrated rig (always: the rest is how it was found)
     om_std: np.ndarray = field(default_factory=lambda: np.zeros(3))
     T_std: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
@@ -458,7 +458,7 @@ def calibrate_stereo(pairs: Sequence[tuple[Path, Path]], pattern: tuple[int, int
     except CalibrationError as e:
         raise CalibrationError(f"the stereo calibration is not usable: {e}") from None
     return StereoResult(size, pattern, square_size, cl, cr, R, T, float(rms), per_view,
-                        views, rejected, missing, len(views_all), rig, om_std, T_std)
+                        views, rejected, missing, len(views_all), om_std, T_std, rig=rig)
 
 
 # --- the report ----------------------------------------------------------------------------------

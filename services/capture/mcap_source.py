@@ -171,6 +171,7 @@ class McapSource:
 
     # -- the source interface --------------------------------------------------------------------
     def read(self) -> CapturedPair | None:
+        pair: RecordedPair | None
         if self._first is not None:
             if not self._wait_ready():
                 return None
@@ -258,7 +259,11 @@ def connect_replay(node, source: McapSource) -> None:
         elif sent.get(st.instance, 0) < 4:
             announce(st.instance)
 
-    source.on_calibration = lambda text: [announce(i, text) for i in list(sent) or ["*"]]
+    def announce_all(text: str) -> None:
+        for i in list(sent) or ["*"]:
+            announce(i, text)
+
+    source.on_calibration = announce_all
     node.subscribe(topic("stats").key(node.robot_id, service="rectify", instance="*"), on_rectify_stats)
     # history=True: rectify instances already alive are announced at once
     node.watch_tokens(topic("alive").key(node.robot_id, service="rectify", instance="*"), on_rectify_alive)

@@ -57,6 +57,7 @@ import logging
 import queue
 import threading
 import time
+from collections.abc import Sequence
 from typing import Any
 
 from common import codec
@@ -257,10 +258,10 @@ class Dispatcher:
         except DecodeError as e:
             self._refuse(name, ticket.seq, str(e))
             return None
-        why, check = vet_map(m, header, ticket)
-        if not why:
+        why, check = vet_map(m, header, ticket)  # (check: None exactly when why says what is wrong)
+        if check is not None and not why:
             why = self._collapsed(name, check.valid_fraction)
-        if why:
+        if why or check is None:
             self._refuse(name, ticket.seq, why)
             return None
         return m, check.valid_fraction
@@ -325,7 +326,7 @@ class Dispatcher:
             with self._recent_lock:  # given back by the main loop: no put from a Zenoh callback
                 self._refused_grants.append(msg.grant)
 
-    def _demand(self, want: bool, decline: list[str] = ()) -> None:
+    def _demand(self, want: bool, decline: Sequence[str] = ()) -> None:
         """Tell every worker of the pool that we hold a frame and no grant (want), and give back
         grants we cannot use (decline)."""
         if self._demand_pub is None:
@@ -473,14 +474,14 @@ class Dispatcher:
             return True
         return False
 
-    def _compute_onboard(self, msg: StereoFrame) -> None:
+    def _compute_onboard(self, fallback: FrameComputer, msg: StereoFrame) -> None:
         node = self.node
         with node.processing(msg):
-            m = self.fallback.compute(msg, node.instance)
+            m = fallback.compute(msg, node.instance)
             raw = codec.array_from_image(m.image, "disparity")
             vf = measure(raw, m.invalid_value, m.scale, m.min_disparity, m.num_disparities).valid_fraction
             self._publish(m, vf, time.monotonic())
-            self.fallback.report(node)
+            fallback.report(node)
             node.extra["fallback_frames"] = node.extra.get("fallback_frames", 0) + 1
 
     def _claim(self, msg: StereoFrame) -> tuple[str | None, bytes]:
@@ -529,7 +530,7 @@ class Dispatcher:
                     self._want_since = None
                     self._dispatch(name, msg, payload, nonce)
                 elif self.fallback is not None:
-                    self._compute_onboard(msg)
+                    self._compute_onboard(self.fallback, msg)
                 continue
             if self.pool and not self.state.has_free():
                 # Pool workers give work only against grants: hold a frame and ask for one (the
@@ -549,10 +550,11 @@ class Dispatcher:
                         self._want_since = None
                     continue
                 self._want(now)
-                if self.fallback is not None and now - self._want_since > self.pool_patience_s:
+                since = self._want_since  # (set by _want)
+                if self.fallback is not None and since is not None and now - since > self.pool_patience_s:
                     # the pool is there but grants us nothing (a full fleet): the robot is not left blind
                     self._count("pool_starved")
-                    self._compute_onboard(pending[0])
+                    self._compute_onboard(self.fallback, pending[0])
                     pending, self._want_since = None, None
                     continue
                 self.state.wait_free(0.05)  # a grant wakes it

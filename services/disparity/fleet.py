@@ -36,7 +36,7 @@ import os
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -193,7 +193,7 @@ class FairScheduler:
         return sum(len(f.grants) + sum(1 for i in f.queued if i.grant) for f in self.flows.values())
 
     # -- the robots' side ---------------------------------------------------------------------------
-    def demand(self, robot: str, want: bool, decline: list[str] = ()) -> None:
+    def demand(self, robot: str, want: bool, decline: Sequence[str] = ()) -> None:
         now = self.clock()
         with self.cond:
             f = self._flow(robot, now, create=want)
@@ -251,7 +251,7 @@ class FairScheduler:
         with self.cond:
             f = self.flows.get(robot)
             issued = f.grants.pop(grant, None) if f is not None and grant else None
-            if issued is None:
+            if f is None or issued is None:
                 self.counters["unsolicited"] += 1
                 if f is not None:
                     f.counts["unsolicited"] += 1

@@ -35,7 +35,7 @@ from pydantic import Field
 
 from common.errors import BallbotError
 from common.keys import topic
-from common.messages import DisparityMap, FreeSpace, GroundTruth, ObstacleList, StereoFrame
+from common.messages import DisparityMap, FreeSpace, GroundTruth, Message, ObstacleList, StereoFrame
 from common.node import Node
 from common.settings import ServiceSettings
 
@@ -79,8 +79,8 @@ FREESPACE_GRID, GROUND, TF, TRUTH_BOXES = "/freespace/grid", "/ground", "/tf", "
 FEEDS = {"frames_rect": (RECT_LEFT, CAMERA_INFO), "disparity": (DISPARITY_COLOR,), "truth": (TRUTH_BOXES,),
          "obstacles": (OBSTACLES, OBSTACLE_BOXES, OBSTACLE_SCENE, GROUND, TF), "freespace": (FREESPACE_GRID,)}
 IMAGE_KINDS = ("frames_rect", "disparity", "truth")
-MODELS = {"frames_rect": StereoFrame, "disparity": DisparityMap, "truth": GroundTruth, "obstacles": ObstacleList,
-          "freespace": FreeSpace}
+MODELS: dict[str, type[Message]] = {"frames_rect": StereoFrame, "disparity": DisparityMap, "truth": GroundTruth,
+                                    "obstacles": ObstacleList, "freespace": FreeSpace}
 
 
 def make_channels(context) -> dict[str, Any]:
@@ -296,7 +296,7 @@ async def serve(node: Node, settings: FoxgloveSettings, bridge: Bridge, sdk_port
         await session.close()
         raise BallbotError(f"foxglove: cannot listen on {settings.host}:{settings.port}: {e.strerror or e} "
                            f"(another Foxglove server? choose one with --port)") from None
-    sockets = [s.getsockname() for s in site._server.sockets] if site._server else []
+    sockets = runner.addresses  # (the one site's: with port 0, the port the OS chose)
     port = sockets[0][1] if sockets else settings.port
     node.extra["port"] = float(port)
     shown = "127.0.0.1" if settings.host in ("0.0.0.0", "") else settings.host

@@ -81,11 +81,11 @@ def reloader(node: Node, holder: CalibrationHolder, updates: queue.Queue[tuple[C
     while node.running:
         timeout = max(0.0, next_poll - time.monotonic()) if watch_s > 0 else 0.5
         try:
-            upd = updates.get(timeout=timeout)
+            item = updates.get(timeout=timeout)
         except queue.Empty:
-            upd = None
-        if upd is not None:
-            upd, is_signed = upd
+            item = None
+        if item is not None:
+            upd, is_signed = item
             origin = f"the calibration key ({upd.source or 'message'}, {'signed' if is_signed else 'UNSIGNED'})"
             holder.offer_yaml(upd.yaml, origin)
         if watch_s > 0 and time.monotonic() >= next_poll:

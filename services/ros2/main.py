@@ -153,7 +153,7 @@ def run(node: Node, settings: Ros2Settings) -> None:
         q = rmw.Qos(reliability="reliable", durability="transient_local", depth=1) if name == "tf_static" else qos
         pubs[name] = graph.publisher(tname, typename, q)
     node.extra["ros2_publishers"] = float(len(pubs))
-    state = {"mount": None}
+    state: dict[str, Mount | None] = {"mount": None}  # the mount last sent on /tf_static
     lock = threading.Lock()
 
     def publish_tf(msg: ObstacleList | None, stamp: int) -> None:
