@@ -38,9 +38,6 @@ def cmd_sample_pair(args: argparse.Namespace) -> int:
     truths = []
     for k in range(args.frames):
         pair = src.read()
-        if pair is None:  # (a synthetic scene has no end)
-            raise BallbotError(f"scenario {args.scenario}: no pair {k}")
-        h, w = pair.left.shape[:2]
         stem = f"{k:04d}" if sequence else ""
         paths = ((out / "left" / f"left{stem}.png", out / "right" / f"right{stem}.png") if sequence
                  else (out / "left.png", out / "right.png"))
@@ -51,6 +48,7 @@ def cmd_sample_pair(args: argparse.Namespace) -> int:
         truths.append(json.loads(msg.model_dump_json()))
     camera.save_calibration(src.rig, out / "calibration.yaml")
     (out / "truth.json").write_text(json.dumps(truths if sequence else truths[0], indent=1))
+    h, w = pair.left.shape[:2]
     what = f"{args.frames} raw pairs in {out / 'left'}/ and {out / 'right'}/" if sequence \
         else f"a raw pair {out / 'left.png'} {out / 'right.png'}"
     print(f"wrote {what} ({w}x{h}, scenario {args.scenario}, rig {src.rig.name or args.calibration}), "

@@ -192,7 +192,7 @@ def matchers(num_disparities: int) -> dict:
 def _median_ms(run, left, right, repeats: int) -> tuple[np.ndarray, float, float]:
     """-> (last result, median wall ms, median process CPU ms: all threads' work, which a busy
     machine inflates less than the wall time)."""
-    wall, cpu, d = [], [], None
+    wall, cpu = [], []
     for _ in range(max(1, repeats)):
         t0, c0 = time.perf_counter(), time.process_time()
         d = run(left, right)
@@ -216,7 +216,7 @@ def timing_pair() -> tuple[np.ndarray, np.ndarray]:
     from cores import camera
     from cores.calibration.rectify import Rectifier
 
-    rig = camera.load_calibration("lifecam-studio")
+    rig = camera.load_raw_rig("lifecam-studio")
     world = S.SyntheticWorld(S.Scene.default(), rig, camera.rectify_rig(rig, 0.0), seed=0)
     left, right = Rectifier(rig).rectify(*world.render(0.0))
     if left.ndim == 2:

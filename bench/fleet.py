@@ -37,11 +37,16 @@ import threading
 import time
 import uuid
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import msgpack
 import numpy as np
 
 from bench.measure import free_port, percentiles
+from common.errors import BallbotError
+
+if TYPE_CHECKING:
+    import zenoh
 
 PY = sys.executable
 POOL = "fleet"
@@ -98,7 +103,7 @@ class Fleet:
         self.tag = uuid.uuid4().hex[:5]
         self.rates: dict[str, float] = {r: 0.0 for r in self.robots}
         self.stop = threading.Event()
-        self.session = None
+        self._session: zenoh.Session | None = None
         self.netns_reason = netns_unavailable() if self.netns else "not asked for (--no-netns)"
         self.use_netns = self.netns_reason is None
         self._octet = 16 + int(self.tag, 16) % 100
@@ -148,7 +153,7 @@ class Fleet:
                                               "--max-age-ms", f"{self.max_age_ms:g}",
                                               "--method", self.method,
                                               "--max-in-flight", str(self.greedy.get(r, 2))])
-            self.session = open_session(ZenohOptions(mode="peer", connect=[self.endpoint], listen=[]))
+            self._session = open_session(ZenohOptions(mode="peer", connect=[self.endpoint], listen=[]))
             self._subscribe()
             self.frames = _frames()
             for r in self.robots:
@@ -187,11 +192,18 @@ class Fleet:
         p.wait()
         return t
 
+    @property
+    def session(self) -> zenoh.Session:
+        """The bench's own Zenoh session, open inside `with fleet:` only."""
+        if self._session is None:
+            raise BallbotError("fleet bench: no Zenoh session outside `with fleet:`")
+        return self._session
+
     def __exit__(self, *exc) -> None:
         self.stop.set()
-        if self.session is not None:
+        if self._session is not None:
             try:
-                self.session.close()
+                self._session.close()
             except Exception:
                 pass
         for p in self.procs.values():
@@ -401,7 +413,7 @@ def run(args: argparse.Namespace, say) -> dict:
     with Fleet(robots, args.method, not args.no_netns, {greedy: 8}, logdir=args.logdir) as fleet:
         report["netns"] = fleet.use_netns
         report["netns_reason"] = fleet.netns_reason
-        where = "their own network namespaces" if fleet.use_netns else "this namespace: " + fleet.netns_reason
+        where = "their own network namespaces" if fleet.use_netns else f"this namespace: {fleet.netns_reason}"
         say(f"workers in {where}")
         for w in workers:
             fleet.add_worker(w)
@@ -460,6 +472,8 @@ def run(args: argparse.Namespace, say) -> dict:
         t_up = fleet.wait(lambda: fleet.token_time(workers[0] + "b", True, t_start) is not None, 120,
                           "the new worker's token")
         t_token = fleet.token_time(workers[0] + "b", True, t_start)
+        if t_token is None:  # (the wait above saw it)
+            raise BallbotError(f"fleet bench: the token of {workers[0]}b came and went")
         fleet.wait(lambda: any(m.worker.startswith(workers[0] + "b@") for m in fleet.between(t_token, 1e18)), 60,
                    "the new worker's first map")
         first = min(m.t for m in fleet.between(t_token, 1e18) if m.worker.startswith(workers[0] + "b@"))

@@ -29,11 +29,15 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from bench.measure import cpu_seconds, free_port, percentiles
 from bench.references import Frames, bench_frames, mean_references, references
+
+if TYPE_CHECKING:
+    from common.supervisor import Supervisor
 
 STAGES = ["capture", "rectify", "disparity", "segmenter"]
 
@@ -141,7 +145,7 @@ class LivePipeline:
         self._lock = threading.Lock()
         self._first = threading.Event()
         self._want_stamp = 0
-        self._capture = None
+        self._capture: Supervisor | None = None  # capture alone, restarted per offered rate
         self.processed: dict[str, list[tuple[int, int]]] = {}  # service -> [(stats stamp ns, frames processed)]
 
     def _env(self) -> dict[str, str]:
@@ -297,8 +301,8 @@ def ratios(ref: dict, pipe: dict, steady: dict | None = None) -> dict:
     lat = pipe["latency_ms"]
     cpu = pipeline_cpu_ms(pipe) or float("nan")  # no CPU counted: no pipeline process was seen
     cores = os.cpu_count() or 1
-    out = {"cpu_x_matcher_1_thread_by_process": {k: v / m1_cpu for k, v in pipe["cpu_ms_per_list"].items()
-                                                 if k != "bench"}}
+    out: dict[str, Any] = {"cpu_x_matcher_1_thread_by_process": {
+        k: v / m1_cpu for k, v in pipe["cpu_ms_per_list"].items() if k != "bench"}}
     if steady is not None:
         out.update({"latency_p50_x_compute_steady": steady["latency_ms"]["p50"] / comp,
                     "latency_p95_x_compute_steady": steady["latency_ms"]["p95"] / comp,
@@ -349,7 +353,7 @@ def measure_once(live: LivePipeline, frames: Frames, args: argparse.Namespace, l
     before = references(frames, method, args.reference_seconds)
     log(f"measuring the pipeline at {rate:.1f} pairs/s offered for {args.seconds:g} s ...")
     final = live.measure(rate, args.warmup, args.seconds, before["compute"]["total_ms_p50"])
-    rejected = []
+    rejected: list[dict] = []
     # A short probe can pass a rate that the longer measured run shows the pipeline does not hold
     # (a few % more drops): step down until it holds, so the figures are those of a sustained rate.
     while args.rate <= 0 and not final["sustainable"] and len(rejected) < MAX_BACKOFFS:

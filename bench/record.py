@@ -21,6 +21,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 
 def _pipeline_messages(n: int):
@@ -51,7 +52,7 @@ def _pipeline_messages(n: int):
                                 right=codec.image_from_array(r), camera=rect.model_message)
         d = computer.compute(rectified, "bench")
         obstacles = builder.process_message(d).obstacles
-        truth = truth_message("bench", k, stamp, "person-walking", pair.truth)
+        truth = truth_message("bench", k, stamp, "person-walking", pair.truth or [])
         out.append((raw, rectified, d, obstacles, truth))
     return out
 
@@ -193,7 +194,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
     messages = _pipeline_messages(16)
-    result = {"size": "640x480", "cores": os.cpu_count(), "runs": []}
+    result: dict[str, Any] = {"size": "640x480", "cores": os.cpu_count(), "runs": []}
     for fmt in args.format or ["jpeg", "png"]:
         ceiling = conversion_ceiling(messages, fmt)
         run = record_run(messages, args.rate, args.seconds, fmt, args.threads)

@@ -5,8 +5,12 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from cores.calibration.rectify import Rectifier
 
 # --- the frames and the references ---------------------------------------------------------------
 
@@ -17,7 +21,7 @@ class Frames:
 
     raw: list[tuple[np.ndarray, np.ndarray]]
     rectified: list[tuple[np.ndarray, np.ndarray]]
-    rectifier: object
+    rectifier: Rectifier
 
 
 def bench_frames(preload: int) -> Frames:
@@ -53,7 +57,7 @@ def matcher_alone(pairs: list, method: str, threads: int, seconds: float, model=
     cv2.setNumThreads(threads)
     try:
         m.compute(*pairs[0])  # first call allocates buffers
-        times = []
+        times: list[float] = []
         cpu0 = time.process_time()
         t_start = time.perf_counter()
         while time.perf_counter() - t_start < seconds or len(times) < 5:

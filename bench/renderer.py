@@ -14,7 +14,7 @@ def bench_renderer(scenarios: tuple[str, ...] = ("two-boxes", "person-walking"),
     from sim import Scene, SyntheticWorld
 
     cv2.setNumThreads(1)
-    rig = camera.load_calibration("lifecam-studio")
+    rig = camera.load_raw_rig("lifecam-studio")
     rect = camera.rectify_rig(rig)
     out = {}
     for name in scenarios:

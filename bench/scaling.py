@@ -57,7 +57,7 @@ def ceiling(method: str, threads: int, pairs: list, seconds: float = 3.0) -> dic
     cv2.setNumThreads(threads if threads else -1)
     try:
         m.compute(*pairs[0])  # the first call allocates
-        times = []
+        times: list[float] = []
         cpu0, t_start = time.process_time(), time.perf_counter()
         while time.perf_counter() - t_start < seconds or len(times) < 3:
             l, r = pairs[len(times) % len(pairs)]

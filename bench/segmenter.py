@@ -88,13 +88,14 @@ def bench_synthetic(scenario: str, methods: list[str] | None, repeat: int, frame
     pairs = [rect.rectify(p.left, p.right) for p in (src.read() for _ in range(2))]
     m = rect.model  # the disparity service's matcher for this rig (search range resolved)
     matcher_ms = _matcher_ms(MatchStage(cfg).matcher(m.focal_px, m.baseline_m, m.width), pairs, repeat)
-    m = data.mount
+    mount = data.mount
     return {"data": f"synthetic {scenario}", "image": f"{data.model.width}x{data.model.height}", "pairs": frames,
-            "mount": f"exact ({m.height_m:.2f} m, pitch {m.pitch_deg:.1f} deg)",
+            "mount": f"exact ({mount.height_m:.2f} m, pitch {mount.pitch_deg:.1f} deg)",
             "matcher": {"method": cfg.method, "ms_median": matcher_ms},
             "methods": time_methods([f.disparity for f in data.frames], data.model,
                                     lambda method: (SegmenterSettings(method=method),
-                                                    MountSettings(height_m=m.height_m, pitch_deg=m.pitch_deg)),
+                                                    MountSettings(height_m=mount.height_m,
+                                                                  pitch_deg=mount.pitch_deg)),
                                     matcher_ms, methods, repeat)}
 
 

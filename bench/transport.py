@@ -18,6 +18,7 @@ import subprocess
 import sys
 import threading
 import time
+from typing import Any
 
 import numpy as np
 
@@ -35,7 +36,7 @@ def _frame_payload() -> tuple[bytes, np.ndarray, np.ndarray]:
     rng = np.random.default_rng(1)
     left = rng.integers(0, 256, (480, 640), np.uint8)
     right = rng.integers(0, 256, (480, 640), np.uint8)
-    model = camera_model_message(camera.rectify_rig(camera.load_calibration("lifecam-studio"), 0.0).model)
+    model = camera_model_message(camera.rectify_rig(camera.load_raw_rig("lifecam-studio"), 0.0).model)
     msg = StereoFrame(robot_id="bench", seq=1, stamp_ns=time.time_ns(), left=codec.image_from_array(left),
                       right=codec.image_from_array(right), camera=model, source="synthetic")
     return codec.encode(msg), left, right
@@ -131,7 +132,7 @@ def _role(args: argparse.Namespace) -> int:
             policy = zshm.BlockOn(zshm.GarbageCollect())
         time.sleep(1.0)  # discovery: the subscriber's interest reaches this peer
         period = 1.0 / args.rate
-        c0 = None
+        c0 = time.process_time()  # (taken again when the warm-up ends)
         for i in range(args.count + args.warmup + 5):
             if i == args.warmup:
                 c0 = time.process_time()
@@ -159,6 +160,7 @@ def hop(shm: bool, rate: float = 60.0, count: int = 300, warmup: int = 30) -> di
 
         wait_for_tcp(endpoint, 15.0, threading.Event())
         sub = subprocess.Popen(base + ["--role", "sub"], env=env, stdout=subprocess.PIPE, text=True)
+        assert sub.stdout is not None  # (stdout=PIPE)
         sub.stdout.readline()  # ready
         pub = subprocess.run(base + ["--role", "pub"], env=env, capture_output=True, text=True, timeout=300)
         got = json.loads(sub.communicate(timeout=120)[0].strip().splitlines()[-1])
@@ -171,7 +173,7 @@ def hop(shm: bool, rate: float = 60.0, count: int = 300, warmup: int = 30) -> di
 
 
 def bench_transport(repeat: int = 3) -> dict:
-    out = {"load_avg_1min": os.getloadavg()[0], "copies_us": copies(), "hops": []}
+    out: dict[str, Any] = {"load_avg_1min": os.getloadavg()[0], "copies_us": copies(), "hops": []}
     for _ in range(repeat):  # interleaved: a load change moves both alike
         out["hops"] += [hop(True), hop(False)]
     out["load_avg_1min_end"] = os.getloadavg()[0]

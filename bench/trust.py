@@ -22,6 +22,7 @@ import statistics
 import sys
 import threading
 import time
+from typing import Any
 
 
 def _median_ms(fn, n: int) -> float:
@@ -119,7 +120,7 @@ def live(seconds: float = 10.0, rate: float = 15.0) -> dict:
             session.declare_subscriber(topic("work_result").pattern(rid), on("result"))
             session.declare_subscriber(topic("disparity").key(rid), on("disparity"))
             time.sleep(8.0)  # a benchmark's fixed warm-up (start-up, the worker's probation), not a synchronisation
-            pid = next(ch.proc.pid for ch in sup.children if ch.name == "dispatch")
+            pid = next(ch.proc.pid for ch in sup.children if ch.name == "dispatch" and ch.proc is not None)
             cpu0 = cpu_seconds(pid)
             measuring.set()
             time.sleep(seconds)
@@ -141,7 +142,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-live", action="store_true", help="only the in-process steps")
     p.add_argument("--json", action="store_true")
     a = p.parse_args(argv)
-    report = {"in_process": in_process(a.repeat), "cores": os.cpu_count()}
+    report: dict[str, Any] = {"in_process": in_process(a.repeat), "cores": os.cpu_count()}
     if not a.no_live:
         report["live"] = live(a.seconds)
     if a.json:

@@ -293,6 +293,14 @@ def load_calibration(spec: str | Path) -> Calibration:
     return calibration_from_dict(doc, where=s)
 
 
+def load_raw_rig(spec: str | Path) -> RawRig:
+    """load_calibration, for a use that needs the raw rig (lenses, R, T): a rectified one is refused."""
+    cal = load_calibration(spec)
+    if not isinstance(cal, RawRig):
+        raise CalibrationError(f"calibration {spec}: already rectified; this needs the raw rig")
+    return cal
+
+
 def _looks_like_opencv(path: str) -> bool:
     try:
         with open(path, "rb") as f:
