@@ -14,7 +14,7 @@ import uuid
 
 import pytest
 
-from bench.fleet import netns_unavailable  # the one check whether this machine can make test hosts
+from bench.fleet_harness import netns_unavailable  # the one check whether this machine can make test hosts
 from common.errors import DecodeError
 from services.disparity.envelope import make_attachment, parse_attachment
 from services.disparity.state import DispatchState
