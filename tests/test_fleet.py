@@ -6,7 +6,8 @@ import pytest
 
 from common.errors import ConfigError
 from services.disparity.envelope import make_attachment
-from services.disparity.fleet import FairScheduler, attachment_grant, parse_weights
+from services.disparity.fleet import attachment_grant
+from services.disparity.scheduler import FairScheduler, parse_weights
 from services.disparity.state import DispatchState
 
 

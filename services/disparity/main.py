@@ -27,7 +27,7 @@ PUBLISHES = ["disparity", "work", "work_result", "work_done", "worker", "pool_wo
 
 
 def _weights(value):
-    from services.disparity.fleet import parse_weights
+    from services.disparity.scheduler import parse_weights
 
     return parse_weights(value)
 
