@@ -46,6 +46,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     from cores.calibration import calibrate as C
     from cores.calibration.check import row_alignment
     from cores.calibration.rectify import Rectifier
+    from cores.calibration.report import format_report
 
     pattern = C.parse_pattern(args.pattern)
     depth = _depth_range(args.depth_range)
@@ -65,7 +66,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
                                 max_view_rms=args.max_view_rms, reject_outliers=not args.keep_outliers,
                                 progress=_out, name=args.name or Path(args.output).stem)
     _out()
-    _out(C.format_report(result, depth, args.alpha))
+    _out(format_report(result, depth, args.alpha))
     camera.save_calibration(result.rig, args.output)
     _out()
     _out(f"wrote {args.output}")
