@@ -38,6 +38,7 @@ from common.keys import topic
 from common.messages import DisparityMap, FreeSpace, GroundTruth, Message, ObstacleList, StereoFrame
 from common.node import Node
 from common.settings import ServiceSettings
+from common.web import start_site
 
 log = logging.getLogger("ballbot.foxglove")
 
@@ -286,18 +287,12 @@ async def serve(node: Node, settings: FoxgloveSettings, bridge: Bridge, sdk_port
     app = web.Application()
     app.router.add_get("/", websocket)
     app.router.add_get("/healthz", health)
-    runner = web.AppRunner(app, access_log=None)
-    await runner.setup()
-    site = web.TCPSite(runner, settings.host, settings.port)
     try:
-        await site.start()
-    except OSError as e:
-        await runner.cleanup()
+        runner, port = await start_site(app, settings.host, settings.port, "foxglove",
+                                        "another Foxglove server? choose one with --port")
+    except BallbotError:
         await session.close()
-        raise BallbotError(f"foxglove: cannot listen on {settings.host}:{settings.port}: {e.strerror or e} "
-                           f"(another Foxglove server? choose one with --port)") from None
-    sockets = runner.addresses  # (the one site's: with port 0, the port the OS chose)
-    port = sockets[0][1] if sockets else settings.port
+        raise
     node.extra["port"] = float(port)
     shown = "127.0.0.1" if settings.host in ("0.0.0.0", "") else settings.host
     print(f"foxglove: open ws://{shown}:{port} in Foxglove (Open connection > Foxglove WebSocket)", flush=True)

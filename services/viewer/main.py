@@ -31,6 +31,7 @@ from common.keys import topic
 from common.messages import FreeSpace, ObstacleList, ReplayControl, ServiceStats
 from common.node import Node
 from common.settings import ServiceSettings
+from common.web import start_site
 from services.viewer.core import Composer, ViewInputs
 
 log = logging.getLogger("ballbot.viewer")
@@ -417,21 +418,10 @@ def make_app(viewer: Viewer, hub: Hub, gate: Gate | None = None):
 
 async def serve(node: Node, settings: ViewerSettings, viewer: Viewer, hub: Hub,
                 started: threading.Event | None = None) -> None:
-    from aiohttp import web
-
     hub.bind(asyncio.get_running_loop())
     gate = Gate(settings, node)
-    runner = web.AppRunner(make_app(viewer, hub, gate), access_log=None)
-    await runner.setup()
-    site = web.TCPSite(runner, settings.host, settings.port)
-    try:
-        await site.start()
-    except OSError as e:
-        await runner.cleanup()
-        raise BallbotError(f"viewer: cannot listen on {settings.host}:{settings.port}: {e.strerror or e} "
-                           f"(another viewer? choose one with --port)") from None
-    sockets = runner.addresses  # (the one site's: with port 0, the port the OS chose)
-    port = sockets[0][1] if sockets else settings.port
+    runner, port = await start_site(make_app(viewer, hub, gate), settings.host, settings.port, "viewer",
+                                    "another viewer? choose one with --port")
     node.extra["port"] = float(port)
     url = f"http://{'127.0.0.1' if settings.host in ('0.0.0.0', '::', '') else settings.host}:{port}/"
     url += f"?token={gate.token}" if gate.token else ""
