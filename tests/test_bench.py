@@ -12,8 +12,9 @@ from pathlib import Path
 import pytest
 from helpers import REPO, cli
 
-from bench import pipeline, references
-from bench.pipeline import MAX_DROPPED, Received, search_rate, seq_gaps, summarize
+from bench import live_pipeline, pipeline, references
+from bench.live_pipeline import MAX_DROPPED, Received, seq_gaps, summarize
+from bench.pipeline import search_rate
 
 KARLSRUHE = Path("/work/shared/data/real/karlsruhe-0023")
 
@@ -202,7 +203,7 @@ class Idle:
 def test_every_reference_is_measured_with_capture_stopped(monkeypatch, rate):
     """The last probe's pairs kept flowing while OpenCV's matcher was measured alone: the reference
     shared the cores with the pipeline and every ratio came out flattered."""
-    live = pipeline.LivePipeline("bm", preload=2)
+    live = live_pipeline.LivePipeline("bm", preload=2)
     live.sup = Idle()
     offered = []
 
