@@ -90,7 +90,8 @@ def up_endpoints(args: argparse.Namespace) -> tuple[list[str], str]:
     the first of them on loopback; --connect alone is both, as before."""
     o = zenoh_options(args)
     explicit_listen = getattr(args, "listen", None) or [e for e in os.environ.get("BALLBOT_LISTEN", "").split(",") if e]
-    explicit_connect = getattr(args, "connect", None) or [e for e in os.environ.get("BALLBOT_CONNECT", "").split(",") if e]
+    explicit_connect = (getattr(args, "connect", None)
+                        or [e for e in os.environ.get("BALLBOT_CONNECT", "").split(",") if e])
     if not explicit_listen:
         endpoint = o.connect[0] if o.connect else DEFAULT_ROUTER
         return [endpoint], endpoint
@@ -111,8 +112,8 @@ def cmd_up(args: argparse.Namespace) -> int:
 
     listen, endpoint = up_endpoints(args)
     common = ["--robot-id", robot_id(args)]
-    if config_file(args):
-        common += ["--config", config_file(args)]
+    if cfg := config_file(args):
+        common += ["--config", cfg]
     if args.nice < 0 and os.geteuid() != 0:
         log.warning("up --nice %d needs root (or CAP_SYS_NICE); the services run at the default priority", args.nice)
     import secrets
@@ -357,7 +358,8 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
                 continue
             m, settings_cls = service_module(name)
             sp = common(run_sub.add_parser(name, help=(m.__doc__ or "").strip().splitlines()[0]))
-            sp.add_argument("--instance", default=None, help="instance name in stats and liveliness (default: host-pid)")
+            sp.add_argument("--instance", default=None,
+                            help="instance name in stats and liveliness (default: host-pid)")
             add_settings_arguments(sp, settings_cls)
             add_settings_arguments(sp, MountSettings, prefix="mount-")
             sp.set_defaults(func=cmd_run)
@@ -422,7 +424,8 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
         if needed(name):
             m, settings_cls = service_module(name)
             sp = common(sub.add_parser(name, help=(m.__doc__ or '').strip().splitlines()[0]))
-            sp.add_argument("--instance", default=None, help="instance name in stats and liveliness (default: host-pid)")
+            sp.add_argument("--instance", default=None,
+                            help="instance name in stats and liveliness (default: host-pid)")
             add_settings_arguments(sp, settings_cls)
             add_settings_arguments(sp, MountSettings, prefix="mount-")
             sp.set_defaults(func=cmd_run, service=name)

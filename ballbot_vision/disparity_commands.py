@@ -98,9 +98,9 @@ def cmd_disparity(args: argparse.Namespace) -> int:
     elif suffix == ".pfm":
         write_pfm(str(out), d)
     else:
-        if not cv2.imwrite(str(out), colour(d, cfg.min_disparity + cfg.num_disparities)):
+        if not cv2.imwrite(str(out), colour(d, cfg.min_disparity + cfg.fixed_num_disparities)):
             raise BallbotError(f"{out}: cannot write")
-    if args.confidence:
+    if args.confidence and result.confidence is not None:  # (None refused above)
         Path(args.confidence).parent.mkdir(parents=True, exist_ok=True)
         if not cv2.imwrite(args.confidence, result.confidence):
             raise BallbotError(f"{args.confidence}: cannot write")

@@ -184,8 +184,15 @@ def cmd_replay(args: argparse.Namespace) -> int:
         # A new peer learns of the subscribers a moment after it connects: wait for capture's.
         pub = session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
         matched = threading.Event()
-        listener = pub.declare_matching_listener(lambda status: status.matching and matched.set())
-        if not (pub.matching_status.matching or matched.wait(args.timeout)):
+
+        def on_matching(status: zenoh.MatchingStatus) -> None:
+            if status.matching:
+                matched.set()
+
+        listener = pub.declare_matching_listener(on_matching)
+        # (zenoh's stub says matching_status is a bool; it is a MatchingStatus)
+        if not (pub.matching_status.matching  # type: ignore[attr-defined]
+                or matched.wait(args.timeout)):
             raise BallbotError(f"no replay listens on {key} within {args.timeout:g} s (is capture running with "
                                f"--source mcap for robot {robot_id(args)!r}?)")
         pub.put(codec.encode(msg))

@@ -55,7 +55,8 @@ class PoolWatch:
                     p["warnings"].append(f"{instance}: stopped (liveliness token gone)")
                     continue
                 if now - self.seen_at[(pool, instance)] > 2.5:
-                    p["warnings"].append(f"{instance}: stopped reporting {now - self.seen_at[(pool, instance)]:.1f} s ago")
+                    silent_s = now - self.seen_at[(pool, instance)]
+                    p["warnings"].append(f"{instance}: stopped reporting {silent_s:.1f} s ago")
                 p["workers"].append({"instance": instance, "host": s.host, "rate_hz": s.rate_hz,
                                      "proc_ms_p50": s.proc_ms_p50, "health": s.health, "status": s.status})
                 for key, v in s.extra.items():
@@ -89,7 +90,7 @@ def format_pools(pools: list[dict]) -> list[str]:
         if p["robots"]:
             lines.append(f"    {'robot':20} {'weight':>6} {'share':>6} {'maps/s':>7} {'queue':>5} {'unsolicited':>11}")
         for r in p["robots"]:
-            lines.append(f"    {r['robot'][:20]:20} {r['weight']:6g} {r['share']:6.0%} {r['hz']:7.1f} {r['queue']:5.0f} "
-                         f"{r['unsolicited']:11.0f}")
+            lines.append(f"    {r['robot'][:20]:20} {r['weight']:6g} {r['share']:6.0%} {r['hz']:7.1f} "
+                         f"{r['queue']:5.0f} {r['unsolicited']:11.0f}")
         lines += [f"  WARNING: {w}" for w in p["warnings"]]
     return lines

@@ -60,7 +60,8 @@ def cmd_sample_pair(args: argparse.Namespace) -> int:
     print(f"  ballbot-vision obstacles {l} {r} --calibration {cal}")
     print(f"  ballbot-vision rectify {l} {r} --calibration {cal} -o {out / 'rect'}")
     print(f"  ballbot-vision disparity {out / 'left.png' if not sequence else l + '/left0000.png'} "
-          f"{out / 'right.png' if not sequence else r + '/right0000.png'} --calibration {cal} -o {out / 'disparity.png'}")
+          f"{out / 'right.png' if not sequence else r + '/right0000.png'} "
+          f"--calibration {cal} -o {out / 'disparity.png'}")
     return 0
 
 

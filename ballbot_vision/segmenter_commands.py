@@ -8,6 +8,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import Any
 
 from common.errors import BallbotError
 
@@ -34,7 +35,8 @@ def _segmenter_settings(args: argparse.Namespace):
 
 
 def _mount_settings(args: argparse.Namespace):
-    """The camera on the robot: the `mount:` section of --config, BALLBOT_MOUNT_*, --mount-* (as the services read it)."""
+    """The camera on the robot: the `mount:` section of --config, BALLBOT_MOUNT_*, --mount-* (as the
+    services read it)."""
     from common.settings import MountSettings, load_settings
 
     return load_settings(MountSettings, getattr(args, "config", None), args, prefix="mount-")
@@ -211,8 +213,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
 # Settings for real recordings where the user set none (flag, environment or --config): a car's or a
 # room's range rather than a small robot's, and a search range that follows the calibration (64 px
 # ends at 5.8 m on Karlsruhe: nearer parked cars saturate it).
-REAL_SEGMENTER_DEFAULTS = {"max_range_m": 30.0}
-REAL_DISPARITY_DEFAULTS = {"num_disparities": "auto"}
+REAL_SEGMENTER_DEFAULTS: dict[str, Any] = {"max_range_m": 30.0}
+REAL_DISPARITY_DEFAULTS: dict[str, Any] = {"num_disparities": "auto"}
 
 
 def _explicit(cls, args: argparse.Namespace) -> set[str]:

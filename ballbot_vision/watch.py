@@ -20,13 +20,15 @@ def format_table(msg: ObstacleList) -> str:
     ground = ("ground: unknown (no floor removed)" if g is None or g.source == "none" else
               f"ground: camera {g.height_m:.2f} m above it, pitch {g.pitch_deg:+.1f} deg, roll {g.roll_deg:+.1f} deg "
               f"({g.source})")
-    lines = [head, f"{ground}; velocities {'over the ground' if msg.velocity_reference == 'ground' else 'relative to the robot'}",
+    velocities = "over the ground" if msg.velocity_reference == "ground" else "relative to the robot"
+    lines = [head, f"{ground}; velocities {velocities}",
              f"{'id':>4} {'x m':>7} {'y m':>7} {'z m':>7} {'dist m':>7} {'w x h x d m':>17} "
              f"{'vx,vz m/s':>11} {'disp px':>8} {'conf':>5}  track"]
     for o in msg.obstacles:
         x, y, z = o.position_m
         w, h, d = o.size_m
-        track = f"{o.track_frames} frames{'' if o.confirmed else ', unconfirmed'}{', cut by the view' if o.truncated else ''}"
+        track = (f"{o.track_frames} frames{'' if o.confirmed else ', unconfirmed'}"
+                 f"{', cut by the view' if o.truncated else ''}")
         lines.append(f"{o.id:>4} {x:7.2f} {y:7.2f} {z:7.2f} {o.distance_m:7.2f} {w:5.2f}x{h:5.2f}x{d:5.2f} "
                      f"{o.velocity_mps[0]:5.2f},{o.velocity_mps[2]:5.2f} {o.disparity_px:8.2f} {o.confidence:5.2f}  "
                      f"{track}")
@@ -35,7 +37,8 @@ def format_table(msg: ObstacleList) -> str:
 
 def quiet_hint(key: str, waited_s: float, opts: ZenohOptions) -> str:
     """What to do when nothing arrives: whether anything runs is what `status` tells."""
-    where = " ".join(f"--connect {e}" for e in opts.connect) if opts.connect and opts.connect != [DEFAULT_ROUTER] else ""
+    own_connect = opts.connect and opts.connect != [DEFAULT_ROUTER]
+    where = " ".join(f"--connect {e}" for e in opts.connect) if own_connect else ""
     return (f"nothing published on {key} for {waited_s:.0f} s; still waiting. Is the pipeline running "
             f"(`ballbot-vision up`)? `ballbot-vision status{(' ' + where) if where else ''}` shows every running "
             f"service and what is wrong.")

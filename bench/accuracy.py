@@ -133,7 +133,7 @@ def opencv_baselines(num_disparities: int) -> dict:
     import cv2
 
     def bm_sample(block):
-        m = cv2.StereoBM_create(num_disparities, block)
+        m = cv2.StereoBM.create(num_disparities, block)
         m.setPreFilterCap(31)
         m.setTextureThreshold(10)
         m.setUniquenessRatio(15)
@@ -144,14 +144,14 @@ def opencv_baselines(num_disparities: int) -> dict:
 
     def sgbm_sample(block, mode=cv2.STEREO_SGBM_MODE_SGBM, cn=3):
         # OpenCV's recommended penalties for cn channels and a block of w = block (stereo_match.cpp)
-        return cv2.StereoSGBM_create(0, num_disparities, block, P1=8 * cn * block * block,
+        return cv2.StereoSGBM.create(0, num_disparities, block, P1=8 * cn * block * block,
                                      P2=32 * cn * block * block, disp12MaxDiff=1, preFilterCap=63,
                                      uniquenessRatio=10, speckleWindowSize=100, speckleRange=32, mode=mode), cn == 3
 
     return {
         "opencv-bm-9": bm_sample(9),
         "opencv-bm-15": bm_sample(15),
-        "opencv-sgbm-default": (cv2.StereoSGBM_create(0, num_disparities), True),
+        "opencv-sgbm-default": (cv2.StereoSGBM.create(0, num_disparities), True),
         "opencv-sgbm-sample": sgbm_sample(3),
         "opencv-sgbm-hh": sgbm_sample(3, cv2.STEREO_SGBM_MODE_HH),
         "opencv-sgbm-3way": sgbm_sample(3, cv2.STEREO_SGBM_MODE_SGBM_3WAY),
@@ -192,7 +192,7 @@ def matchers(num_disparities: int) -> dict:
 def _median_ms(run, left, right, repeats: int) -> tuple[np.ndarray, float, float]:
     """-> (last result, median wall ms, median process CPU ms: all threads' work, which a busy
     machine inflates less than the wall time)."""
-    wall, cpu, d = [], [], None
+    wall, cpu = [], []
     for _ in range(max(1, repeats)):
         t0, c0 = time.perf_counter(), time.process_time()
         d = run(left, right)
@@ -216,7 +216,7 @@ def timing_pair() -> tuple[np.ndarray, np.ndarray]:
     from cores import camera
     from cores.calibration.rectify import Rectifier
 
-    rig = camera.load_calibration("lifecam-studio")
+    rig = camera.load_raw_rig("lifecam-studio")
     world = S.SyntheticWorld(S.Scene.default(), rig, camera.rectify_rig(rig, 0.0), seed=0)
     left, right = Rectifier(rig).rectify(*world.render(0.0))
     if left.ndim == 2:
@@ -272,7 +272,8 @@ def print_report(r: dict, out=sys.stdout) -> None:
     for name, p in r["pairs"].items():
         print(f"{name}: {p['source']}, {p['size']}, disparities 0..{p['num_disparities'] - 1}; invalid counts "
               f"as bad; EPE with invalid background-filled", file=out)
-        print(f"  {'method':20} {'bad-1':>7} {'bad-2':>7} {'bad-4':>7} {'EPE px':>7} {'invalid':>8} {'ms':>7}", file=out)
+        print(f"  {'method':20} {'bad-1':>7} {'bad-2':>7} {'bad-4':>7} {'EPE px':>7} {'invalid':>8} {'ms':>7}",
+              file=out)
         for m, s in p["methods"].items():
             print(f"  {m:20} {s['bad1'] * 100:6.1f}% {s['bad2'] * 100:6.1f}% {s['bad4'] * 100:6.1f}% "
                   f"{s['epe']:7.2f} {s['invalid'] * 100:7.1f}% {s['ms']:7.1f}", file=out)

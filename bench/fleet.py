@@ -7,7 +7,8 @@ thread per robot: four full capture/rectify/segmenter pipelines do not fit a 2-c
 workers, and the pool is what is measured); sgbm pool workers with one OpenCV thread each, each in
 its own network namespace joined to the router's by a veth pair (`ip netns`, as root; otherwise on
 loopback, and the report says why). The maps are counted per robot on `ballbot/<robot>/disparity`,
-where each robot's dispatcher republishes what it checked.
+where each robot's dispatcher republishes what it checked. The processes and the feeders are
+bench/fleet_harness.py; this module measures with them and reports.
 
 Phases, each measured on its own:
   equal   every robot offers twice its share (at least 8 pairs/s): maps/s per robot against total/N and ceiling/N
@@ -29,281 +30,23 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import shutil
 import signal
-import subprocess
 import sys
 import threading
 import time
 import uuid
-from dataclasses import dataclass, field
 
-import msgpack
 import numpy as np
 
-from bench.measure import free_port, percentiles
+from bench.fleet_harness import Fleet, Map, fleet_frames
+from bench.measure import percentiles
+from common.errors import BallbotError
 
-PY = sys.executable
-POOL = "fleet"
 TARGET_SHARE = 0.9  # every robot >= 0.9 x its fair share; total >= 0.9 x the workers' ceiling
 TARGET_RECOVER_S = 1.0  # after a kill: every robot back at its new share within 1 s; a new worker used within 1 s
 TARGET_LATENCY_X = 1.5  # a robot's latency within 1.5 x the single-robot figure
 
 
-def netns_unavailable() -> str | None:
-    if not hasattr(os, "geteuid") or os.geteuid() != 0:
-        return "needs root (ip netns)"
-    if not shutil.which("ip"):
-        return "needs the `ip` tool (iproute2)"
-    probe = f"bbprobe{uuid.uuid4().hex[:6]}"
-    r = subprocess.run(["ip", "netns", "add", probe], capture_output=True, text=True)
-    if r.returncode != 0:
-        return f"cannot create a network namespace here: {r.stderr.strip()}"
-    subprocess.run(["ip", "netns", "del", probe], capture_output=True)
-    return None
-
-
-@dataclass
-class Map:
-    robot: str
-    seq: int
-    worker: str
-    t: float  # monotonic arrival
-    latency_ms: float
-    method: str = ""
-
-
-@dataclass
-class Fleet:
-    """The processes of one fleet run; everything started is stopped (by pid) and every namespace
-    deleted on exit, even on failure. Maps arrive in `maps`, pool worker tokens in `tokens`."""
-
-    robots: list[str]
-    method: str = "sgbm"
-    netns: bool = True
-    greedy: dict[str, int] = field(default_factory=dict)  # robot -> its dispatcher's max_in_flight
-    fallback: dict[str, str] = field(default_factory=dict)  # robot -> its onboard fallback (default none)
-    weights: str = ""
-    logdir: str | None = None
-    max_age_ms: float = 2000.0
-
-    def __post_init__(self) -> None:
-        self.procs: dict[str, subprocess.Popen] = {}
-        self.namespaces: list[str] = []
-        self.maps: list[Map] = []
-        self.tokens: list[tuple[float, str, bool]] = []  # (t, worker, up)
-        self.stats: dict[str, dict] = {}
-        self.proc_ms: list[tuple[float, float]] = []  # (t, a pool worker's compute time per map, median of 1 s)
-        self.lock = threading.Lock()
-        self.tag = uuid.uuid4().hex[:5]
-        self.rates: dict[str, float] = {r: 0.0 for r in self.robots}
-        self.stop = threading.Event()
-        self.session = None
-        self.netns_reason = netns_unavailable() if self.netns else "not asked for (--no-netns)"
-        self.use_netns = self.netns_reason is None
-        self._octet = 16 + int(self.tag, 16) % 100
-
-    # -- processes --------------------------------------------------------------------------------
-    def _start(self, name: str, argv: list[str], prefix: list[str] | None = None) -> subprocess.Popen:
-        env = dict(os.environ, BALLBOT_LOG=os.environ.get("BALLBOT_LOG", "WARNING"), PYTHONUNBUFFERED="1",
-                   PYTHONFAULTHANDLER="1")  # a process that must be looked into: SIGABRT prints its threads
-        env.setdefault("BALLBOT_CALIBRATION_KEY", os.urandom(32).hex())
-        err = open(os.path.join(self.logdir, f"{name}.log"), "w") if self.logdir else subprocess.DEVNULL
-        p = subprocess.Popen((prefix or []) + [PY, "-m", "ballbot_vision.cli", "run", *argv], env=env,
-                             stdout=subprocess.DEVNULL, stderr=err)
-        self.procs[name] = p
-        return p
-
-    def _sh(self, *args: str) -> None:
-        subprocess.run(list(args), check=True, capture_output=True)
-
-    def _namespace(self, i: int) -> tuple[list[str], str]:
-        """A fresh namespace joined to ours by a veth pair -> (command prefix, the router's address
-        seen from it)."""
-        ns = f"bbfl{self.tag}{i}"
-        here, there = f"bbh{self.tag}{i}", f"bbt{self.tag}{i}"
-        a, b = f"10.{self._octet}.{i}.1", f"10.{self._octet}.{i}.2"
-        self._sh("ip", "netns", "add", ns)
-        self.namespaces.append(ns)
-        self._sh("ip", "-n", ns, "link", "set", "lo", "up")
-        self._sh("ip", "link", "add", here, "type", "veth", "peer", "name", there, "netns", ns)
-        self._sh("ip", "addr", "add", f"{a}/30", "dev", here)
-        self._sh("ip", "link", "set", here, "up")
-        self._sh("ip", "-n", ns, "addr", "add", f"{b}/30", "dev", there)
-        self._sh("ip", "-n", ns, "link", "set", there, "up")
-        return ["ip", "netns", "exec", ns], a
-
-    def __enter__(self) -> Fleet:
-        from common.zenoh_session import ZenohOptions, open_session
-
-        self.port = free_port()
-        listen = f"tcp/0.0.0.0:{self.port}" if self.use_netns else f"tcp/127.0.0.1:{self.port}"
-        self.endpoint = f"tcp/127.0.0.1:{self.port}"
-        try:
-            self._start("router", ["router", "--listen", listen])
-            self._wait_port()
-            for r in self.robots:
-                self._start(f"dispatch-{r}", ["disparity", "--connect", self.endpoint, "--robot-id", r, "--pool", POOL,
-                                              "--fallback", self.fallback.get(r, "none"),
-                                              "--max-age-ms", f"{self.max_age_ms:g}",
-                                              "--method", self.method,
-                                              "--max-in-flight", str(self.greedy.get(r, 2))])
-            self.session = open_session(ZenohOptions(mode="peer", connect=[self.endpoint], listen=[]))
-            self._subscribe()
-            self.frames = _frames()
-            for r in self.robots:
-                threading.Thread(target=self._feed, args=(r,), daemon=True, name=f"feed-{r}").start()
-        except BaseException:
-            self.__exit__()
-            raise
-        return self
-
-    def _wait_port(self, timeout: float = 30.0) -> None:
-        import socket
-
-        deadline = time.monotonic() + timeout
-        while True:
-            try:
-                socket.create_connection(("127.0.0.1", self.port), 0.5).close()
-                return
-            except OSError:
-                if time.monotonic() > deadline or self.procs["router"].poll() is not None:
-                    raise RuntimeError(f"the router did not listen on port {self.port}") from None
-                time.sleep(0.1)  # polling a TCP port for the router to come up (no event to wait on)
-
-    def add_worker(self, name: str, *extra: str) -> None:
-        i = sum(1 for n in self.procs if n.startswith("worker"))
-        prefix, address = self._namespace(i) if self.use_netns else ([], "127.0.0.1")
-        mode = ["--mode", "client"] if self.use_netns else []
-        self._start(f"worker-{name}", ["disparity", "--role", "worker", "--pool", POOL, "--instance", name, *mode,
-                                       "--connect", f"tcp/{address}:{self.port}", "--threads", "1",
-                                       "--method", self.method, *(["--pool-weights", self.weights] if self.weights
-                                                                  else []), *extra], prefix)
-
-    def kill_worker(self, name: str) -> float:
-        p = self.procs[f"worker-{name}"]
-        t = time.monotonic()
-        p.send_signal(signal.SIGKILL)
-        p.wait()
-        return t
-
-    def __exit__(self, *exc) -> None:
-        self.stop.set()
-        if self.session is not None:
-            try:
-                self.session.close()
-            except Exception:
-                pass
-        for p in self.procs.values():
-            if p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-        deadline = time.monotonic() + 10
-        for p in self.procs.values():
-            try:
-                p.wait(max(0.1, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait()
-        for ns in self.namespaces:
-            subprocess.run(["ip", "netns", "del", ns], capture_output=True)
-        self.namespaces.clear()
-
-    # -- traffic ----------------------------------------------------------------------------------
-    def _feed(self, robot: str) -> None:
-        """Rectified pairs on the robot's frames_rect at self.rates[robot] per second."""
-        import zenoh
-
-        from common import codec
-        from common.keys import topic
-        from common.messages import StereoFrame
-
-        pub = self.session.declare_publisher(topic("frames_rect").key(robot),
-                                             congestion_control=zenoh.CongestionControl.DROP)
-        frames = [StereoFrame(**{**f.model_dump(), "robot_id": robot}) for f in self.frames]
-        seq, t_next = 0, time.monotonic()
-        while not self.stop.is_set():
-            rate = self.rates[robot]
-            if rate <= 0:
-                self.stop.wait(0.05)
-                t_next = time.monotonic()
-                continue
-            f = frames[seq % len(frames)]
-            f.seq, f.stamp_ns, f.stages = seq, time.time_ns(), {}
-            pub.put(codec.encode(f))
-            seq += 1
-            t_next = max(t_next + 1.0 / rate, time.monotonic() - 0.5)
-            self.stop.wait(max(0.0, t_next - time.monotonic()))
-
-    def flood_unsolicited(self, robot: str, workers: list[str], rate: float, seconds: float) -> int:
-        """Frames put straight on the pool workers' keys in robot's name, without grants."""
-        from common import codec
-        from common.keys import topic
-
-        payload = codec.encode(self.frames[0].model_copy(update={"robot_id": robot}))
-        n, t_end = 0, time.monotonic() + seconds
-        while time.monotonic() < t_end and not self.stop.is_set():
-            for w in workers:
-                self.session.put(topic("pool_work").key(robot, pool=POOL, instance=w), payload)
-                n += 1
-            self.stop.wait(1.0 / rate)
-        return n
-
-    def _subscribe(self) -> None:
-        import zenoh
-
-        from common import codec
-        from common.keys import topic
-        from common.messages import ServiceStats
-
-        def on_disp(sample) -> None:
-            m = msgpack.unpackb(sample.payload.to_bytes())  # a few fields only: keep the bench light
-            t = time.monotonic()
-            with self.lock:
-                self.maps.append(Map(m["robot_id"], m["seq"], m["worker"], t, (time.time_ns() - m["stamp_ns"]) / 1e6,
-                                     m.get("method", "")))
-
-        def on_token(sample) -> None:
-            with self.lock:
-                self.tokens.append((time.monotonic(), str(sample.key_expr).rsplit("/", 1)[-1],
-                                    sample.kind == zenoh.SampleKind.PUT))
-
-        def on_stats(sample) -> None:
-            try:
-                s = codec.decode(sample.payload.to_bytes(), ServiceStats)
-            except Exception:
-                return
-            with self.lock:
-                self.stats[f"{s.robot_id}/{s.role}/{s.instance}"] = {"extra": s.extra, "status": s.status,
-                                                                    "t": time.monotonic()}
-                if s.role == "pool-worker" and s.rate_hz > 0:
-                    self.proc_ms.append((time.monotonic(), s.proc_ms_p50))
-
-        self._subs = [self.session.declare_subscriber(topic("disparity").pattern("*"), on_disp),
-                      self.session.declare_subscriber(topic("pool_stats").pattern(pool=POOL), on_stats),
-                      self.session.declare_subscriber(topic("stats").pattern("*"), on_stats),
-                      self.session.liveliness().declare_subscriber(topic("pool_worker").pattern(pool=POOL), on_token,
-                                                                   history=True)]
-
-    # -- reading ----------------------------------------------------------------------------------
-    def wait(self, pred, timeout: float, what: str) -> float:
-        deadline = time.monotonic() + timeout
-        while not pred():
-            if time.monotonic() > deadline:
-                raise TimeoutError(f"timed out after {timeout:.0f} s waiting for {what}"
-                                   + (f"; service logs in {self.logdir}" if self.logdir else ""))
-            dead = [n for n, p in self.procs.items() if p.poll() is not None and not n.startswith("worker")]
-            if dead:
-                raise RuntimeError(f"{', '.join(dead)} exited" + (f"; logs in {self.logdir}" if self.logdir else ""))
-            time.sleep(0.05)  # polling shared lists filled by Zenoh callbacks
-        return time.monotonic()
-
-    def between(self, t0: float, t1: float) -> list[Map]:
-        with self.lock:
-            return [m for m in self.maps if t0 <= m.t < t1]
-
-    def token_time(self, worker: str, up: bool, after: float = 0.0) -> float | None:
-        with self.lock:
-            return next((t for t, w, u in self.tokens if w == worker and u == up and t >= after), None)
 
 
 def worker_ceiling(method: str, frames: list, seconds: float = 3.0) -> dict:
@@ -328,11 +71,6 @@ def worker_ceiling(method: str, frames: list, seconds: float = 3.0) -> dict:
         cv2.setNumThreads(before)
     return {"fps": n / wall, "ms": wall * 1e3 / n, "cpu_ms": cpu * 1e3 / n}
 
-
-def _frames() -> list:
-    from bench.scaling import rectified_pairs, rectified_payloads
-
-    return rectified_payloads("bench", rectified_pairs(4))
 
 
 def summary(maps: list[Map], robots: list[str], seconds: float) -> dict:
@@ -391,7 +129,7 @@ def back_at_share(maps: list[Map], robot: str, t_event: float, share_hz: float, 
 def run(args: argparse.Namespace, say) -> dict:
     robots = [f"r{i}{uuid.uuid4().hex[:3]}" for i in range(args.robots)]
     cores = os.cpu_count() or 1
-    frames = _frames()
+    frames = fleet_frames()
     say("in-process one-thread ceiling (the worker's own compute) ...")
     ceilings = [worker_ceiling(args.method, frames)]
     workers = [f"w{i}" for i in range(args.workers)]
@@ -401,7 +139,8 @@ def run(args: argparse.Namespace, say) -> dict:
     with Fleet(robots, args.method, not args.no_netns, {greedy: 8}, logdir=args.logdir) as fleet:
         report["netns"] = fleet.use_netns
         report["netns_reason"] = fleet.netns_reason
-        say(f"workers in {'their own network namespaces' if fleet.use_netns else 'this namespace: ' + fleet.netns_reason}")
+        where = "their own network namespaces" if fleet.use_netns else f"this namespace: {fleet.netns_reason}"
+        say(f"workers in {where}")
         for w in workers:
             fleet.add_worker(w)
         one = ceilings[0]["fps"]
@@ -459,6 +198,8 @@ def run(args: argparse.Namespace, say) -> dict:
         t_up = fleet.wait(lambda: fleet.token_time(workers[0] + "b", True, t_start) is not None, 120,
                           "the new worker's token")
         t_token = fleet.token_time(workers[0] + "b", True, t_start)
+        if t_token is None:  # (the wait above saw it)
+            raise BallbotError(f"fleet bench: the token of {workers[0]}b came and went")
         fleet.wait(lambda: any(m.worker.startswith(workers[0] + "b@") for m in fleet.between(t_token, 1e18)), 60,
                    "the new worker's first map")
         first = min(m.t for m in fleet.between(t_token, 1e18) if m.worker.startswith(workers[0] + "b@"))
@@ -539,7 +280,6 @@ def entitled(phase: dict, offered: dict[str, float]) -> dict[str, float]:
 def targets(r: dict) -> list[tuple[str, float, str, float, bool]]:
     n = len(r["robots"])
     eq = r["equal"]
-    share = eq["total_hz"] / n
     ph = r["pool_host_projection"]
     out = [("total / workers' ceiling", eq["total_hz"] / r["workers_ceiling_hz"], ">=", TARGET_SHARE,
             eq["total_hz"] / r["workers_ceiling_hz"] >= TARGET_SHARE),
@@ -590,8 +330,9 @@ def format_report(r: dict) -> str:
              + " / ".join(f"{v:.2f}" for v in r["ceiling_one_thread_fps"])
              + f" fps -> workers' ceiling {r['workers_ceiling_hz']:.2f} maps/s; "
              f"load avg {r['load_avg_1min_start']:.1f} at start, {r['load_avg_1min_end']:.1f} at end",
-             f"the equal phase's CPU per map allows {r['projected_quiet_hz']:.2f} maps/s on {r['cores']} otherwise idle "
-             f"cores; a pool host of its own (workers {r['pool_host_projection']['worker_cpu_ms']:.1f} + router "
+             f"the equal phase's CPU per map allows {r['projected_quiet_hz']:.2f} maps/s on {r['cores']} "
+             f"otherwise idle cores; a pool host of its own "
+             f"(workers {r['pool_host_projection']['worker_cpu_ms']:.1f} + router "
              f"{r['pool_host_projection']['router_cpu_ms']:.1f} ms CPU per map, the matcher in-process "
              f"{r['pool_host_projection']['inprocess_cpu_ms']:.1f} ms): {r['pool_host_projection']['maps_per_s']:.1f} "
              f"maps/s = {r['pool_host_projection']['x_ideal']:.2f} x its workers' ideal",
@@ -622,7 +363,8 @@ def format_report(r: dict) -> str:
     for robot in r["robots"]:
         b = k["back_at_share_s"][robot]
         lines.append(f"    {robot}: back at 0.9 x new share after "
-                     + (f"{b:.2f} s" if b is not None else "never") + f", longest gap {k['longest_gap_s'][robot]:.2f} s")
+                     + (f"{b:.2f} s" if b is not None else "never")
+                     + f", longest gap {k['longest_gap_s'][robot]:.2f} s")
     block("  after the kill", k["after"])
     a = r["add"]
     lines.append(f"add: process start to token {a['process_to_token_s']:.1f} s; token to its first map "

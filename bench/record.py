@@ -21,6 +21,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 
 def _pipeline_messages(n: int):
@@ -51,7 +52,7 @@ def _pipeline_messages(n: int):
                                 right=codec.image_from_array(r), camera=rect.model_message)
         d = computer.compute(rectified, "bench")
         obstacles = builder.process_message(d).obstacles
-        truth = truth_message("bench", k, stamp, "person-walking", pair.truth)
+        truth = truth_message("bench", k, stamp, "person-walking", pair.truth or [])
         out.append((raw, rectified, d, obstacles, truth))
     return out
 
@@ -124,8 +125,8 @@ def record_run(messages, rate: float, seconds: float, image_format: str, threads
             session.declare_subscriber(topic("stats").key("bench", service="record", instance="*"), on_stats)
             with open(log_path, "w") as log:
                 recorder = subprocess.Popen(cli + ["record", str(out), "--connect", endpoint, "--robot-id", "bench",
-                                                   "--image-format", image_format, "--threads", str(threads), "--raw", "true",
-                                                   "--jpeg-quality", "90"],
+                                                   "--image-format", image_format, "--threads", str(threads),
+                                                   "--raw", "true", "--jpeg-quality", "90"],
                                             stdout=log, stderr=subprocess.STDOUT)
             if not ready.wait(60):
                 raise RuntimeError(f"record did not start: {log_path.read_text()[-2000:]}")
@@ -164,7 +165,7 @@ def record_run(messages, rate: float, seconds: float, image_format: str, threads
         from mcap.reader import make_reader
 
         with open(out, "rb") as f:
-            for _, ch, m in make_reader(f).iter_messages(topics=[RAW_LEFT]):
+            for _, _ch, m in make_reader(f).iter_messages(topics=[RAW_LEFT]):
                 seqs.append(m.sequence)
         written = len(set(seqs))
         log_text = log_path.read_text()
@@ -193,7 +194,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
     messages = _pipeline_messages(16)
-    result = {"size": "640x480", "cores": os.cpu_count(), "runs": []}
+    result: dict[str, Any] = {"size": "640x480", "cores": os.cpu_count(), "runs": []}
     for fmt in args.format or ["jpeg", "png"]:
         ceiling = conversion_ceiling(messages, fmt)
         run = record_run(messages, args.rate, args.seconds, fmt, args.threads)

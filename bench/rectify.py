@@ -14,23 +14,26 @@ import json
 import os
 import time
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
 
+from common.errors import CalibrationError, FileError
 from cores.calibration.rectify import Rectifier
+from cores.camera import Calibration
 
 EUROC = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "euroc-v1-01"
 if not EUROC.is_dir():
     EUROC = Path("/work/shared/data/real/euroc-v1-01")
 
 
-def rigs() -> list[tuple[str, object, np.ndarray, np.ndarray]]:
+def rigs() -> list[tuple[str, Calibration, np.ndarray, np.ndarray]]:
     """-> [(name, calibration, raw left, raw right)]"""
     from cores import camera
     from services.capture.sources import SyntheticSource
 
-    out = []
+    out: list[tuple[str, Calibration, np.ndarray, np.ndarray]] = []
     pair = SyntheticSource("two-boxes", "lifecam-studio", 30.0, preload=1).read()
     out.append(("synthetic lifecam-studio 640x480", camera.load_calibration("lifecam-studio"), pair.left, pair.right))
     if (EUROC / "cam0_sensor.yaml").exists():
@@ -40,6 +43,8 @@ def rigs() -> list[tuple[str, object, np.ndarray, np.ndarray]]:
         first = sorted((EUROC / "cam0").iterdir())[0].name
         left = cv2.imread(str(EUROC / "cam0" / first), cv2.IMREAD_GRAYSCALE)
         right = cv2.imread(str(EUROC / "cam1" / first), cv2.IMREAD_GRAYSCALE)
+        if left is None or right is None:
+            raise FileError(f"{EUROC}: cannot read the pair {first}")
         out.append((f"EuRoC V1_01 raw {left.shape[1]}x{left.shape[0]}", rig, left, right))
     return out
 
@@ -56,17 +61,23 @@ def exact(image: np.ndarray, mx: np.ndarray, my: np.ndarray) -> tuple[np.ndarray
     return ref, inside
 
 
+def _maps_of(r: Rectifier) -> tuple:
+    if r._maps is None:  # an already rectified calibration: nothing is resampled
+        raise CalibrationError("bench rectify: this needs a raw rig, not a rectified calibration")
+    return r._maps
+
+
 def accuracy(cal, left: np.ndarray, right: np.ndarray) -> dict:
     """Per map type: grey-level error against the exact resampling at the float maps' positions
     (max, share above 1 grey level) and the largest source-position error of its maps, px."""
-    exact_maps = Rectifier(cal, maps="float")._maps
+    exact_maps = _maps_of(Rectifier(cal, maps="float"))
     out = {}
     for kind in ("float", "fixed"):
         r = Rectifier(cal, maps=kind)
         rl, rr = r.rectify(left, right)
         err, above, pos = 0.0, 0, 0.0
         n = 0
-        for (mx, my), (a, b), img, got in zip(exact_maps, r._maps, (left, right), (rl, rr)):
+        for (mx, my), (a, b), img, got in zip(exact_maps, _maps_of(r), (left, right), (rl, rr)):
             ref, inside = exact(img, mx, my)
             d = np.abs(got.astype(np.float64) - ref)[inside]
             err, above, n = max(err, float(d.max())), above + int((d > 1.0).sum()), n + d.size
@@ -97,7 +108,7 @@ def cpu_per_pair(cal, left: np.ndarray, right: np.ndarray, threads: int, rounds:
 
 def bench_rectify() -> dict:
     default_threads = cv2.getNumThreads()
-    out = {"load_avg_1min": os.getloadavg()[0], "opencv": cv2.__version__, "rigs": []}
+    out: dict[str, Any] = {"load_avg_1min": os.getloadavg()[0], "opencv": cv2.__version__, "rigs": []}
     for name, cal, left, right in rigs():
         out["rigs"].append({"rig": name, "accuracy": accuracy(cal, left, right),
                             "cpu_ms_1_thread": cpu_per_pair(cal, left, right, 1),
@@ -115,7 +126,8 @@ def format_rectify(r: dict) -> str:
             a = g["accuracy"][kind]
             cpu = ", ".join(f"{k[len('cpu_ms_'):].replace('_', ' ')} {v[kind]:.2f} ms" for k, v in g.items()
                             if k.startswith("cpu_ms_"))
-            lines.append(f"    {kind:5} maps: CPU per pair {cpu}; vs exact bilinear: max {a['max_grey_error']:.2f} grey, "
+            lines.append(f"    {kind:5} maps: CPU per pair {cpu}; "
+                         f"vs exact bilinear: max {a['max_grey_error']:.2f} grey, "
                          f"{a['share_above_1_grey']:.3%} of pixels > 1 grey, source positions within "
                          f"{a['max_position_error_px']:.4f} px")
     return "\n".join(lines)

@@ -5,8 +5,12 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from cores.calibration.rectify import Rectifier
 
 # --- the frames and the references ---------------------------------------------------------------
 
@@ -17,7 +21,7 @@ class Frames:
 
     raw: list[tuple[np.ndarray, np.ndarray]]
     rectified: list[tuple[np.ndarray, np.ndarray]]
-    rectifier: object
+    rectifier: Rectifier
 
 
 def bench_frames(preload: int) -> Frames:
@@ -53,7 +57,7 @@ def matcher_alone(pairs: list, method: str, threads: int, seconds: float, model=
     cv2.setNumThreads(threads)
     try:
         m.compute(*pairs[0])  # first call allocates buffers
-        times = []
+        times: list[float] = []
         cpu0 = time.process_time()
         t_start = time.perf_counter()
         while time.perf_counter() - t_start < seconds or len(times) < 5:
@@ -121,8 +125,10 @@ def mean_references(a: dict, b: dict) -> dict:
                       before_fps=a[k]["fps"], after_fps=b[k]["fps"])
     ca, cb = a["compute"], b["compute"]
     total = (ca["total_ms_p50"] + cb["total_ms_p50"]) / 2
-    out["compute"] = {"stage_ms_p50": {s: (ca["stage_ms_p50"][s] + cb["stage_ms_p50"][s]) / 2 for s in ca["stage_ms_p50"]},
-                      "stage_cpu_ms": {s: (ca["stage_cpu_ms"][s] + cb["stage_cpu_ms"][s]) / 2 for s in ca["stage_cpu_ms"]},
+    out["compute"] = {"stage_ms_p50": {s: (ca["stage_ms_p50"][s] + cb["stage_ms_p50"][s]) / 2
+                                       for s in ca["stage_ms_p50"]},
+                      "stage_cpu_ms": {s: (ca["stage_cpu_ms"][s] + cb["stage_cpu_ms"][s]) / 2
+                                       for s in ca["stage_cpu_ms"]},
                       "total_ms_p50": total, "fps": 1000.0 / total,
                       "before_ms": ca["total_ms_p50"], "after_ms": cb["total_ms_p50"]}
     return out

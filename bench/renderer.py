@@ -14,7 +14,7 @@ def bench_renderer(scenarios: tuple[str, ...] = ("two-boxes", "person-walking"),
     from sim import Scene, SyntheticWorld
 
     cv2.setNumThreads(1)
-    rig = camera.load_calibration("lifecam-studio")
+    rig = camera.load_raw_rig("lifecam-studio")
     rect = camera.rectify_rig(rig)
     out = {}
     for name in scenarios:
@@ -35,5 +35,6 @@ def bench_renderer(scenarios: tuple[str, ...] = ("two-boxes", "person-walking"),
 def format_renderer(result: dict) -> str:
     lines = ["synthetic world, render both images + ground truth, 640x480, 1 thread:"]
     for name, r in result.items():
-        lines.append(f"  {name:16} {'static' if r['static'] else 'moving':7} {r['ms_median']:7.2f} ms  {r['fps']:7.1f} fps")
+        lines.append(f"  {name:16} {'static' if r['static'] else 'moving':7} {r['ms_median']:7.2f} ms  "
+                     f"{r['fps']:7.1f} fps")
     return "\n".join(lines)

@@ -57,7 +57,7 @@ def ceiling(method: str, threads: int, pairs: list, seconds: float = 3.0) -> dic
     cv2.setNumThreads(threads if threads else -1)
     try:
         m.compute(*pairs[0])  # the first call allocates
-        times = []
+        times: list[float] = []
         cpu0, t_start = time.process_time(), time.perf_counter()
         while time.perf_counter() - t_start < seconds or len(times) < 3:
             l, r = pairs[len(times) % len(pairs)]
@@ -278,9 +278,10 @@ def main(argv: list[str] | None = None) -> int:
     print(f"in-process ceiling, same run, same pairs: 1 thread {one['fps']:.1f} fps (before, between and after the "
           f"runs: {' / '.join(f'{v:.1f}' for v in one['all_fps'])}), {ceil['threads']} threads {ceil['fps']:.1f} fps")
     for r in runs:
-        print(f"{r['workers']} worker(s): {r['fps']:6.1f} maps/s = {r['x_one_thread_ceiling']:.2f} x the 1-thread ceiling "
-              f"around it ({r['ceiling_one_thread']['fps']:.1f} fps), "
-              f"offered {r['offered_hz']:.1f}/s, latency p50 {r['latency_ms']['p50']:.0f} ms, per worker {r['per_worker']}, "
+        print(f"{r['workers']} worker(s): {r['fps']:6.1f} maps/s = {r['x_one_thread_ceiling']:.2f} x "
+              f"the 1-thread ceiling around it ({r['ceiling_one_thread']['fps']:.1f} fps), "
+              f"offered {r['offered_hz']:.1f}/s, latency p50 {r['latency_ms']['p50']:.0f} ms, "
+              f"per worker {r['per_worker']}, "
               f"duplicates {r['duplicates']}, load avg {r['load_avg_1min']:.1f}")
         cpu = r["cpu_ms_per_map"]
         work = sum(v for k, v in cpu.items() if k.startswith("worker"))

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import time
 import typing
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -56,7 +56,8 @@ def time_methods(disparities: list[np.ndarray], model, settings_for: Callable[[s
         builder = ObstacleBuilder(*settings_for(method))
         frame = iter(range(1 << 30))  # the stream's own frame count: its time never goes back
 
-        def step(k: int) -> None:
+        # _timed calls step within this iteration only; the defaults bind this iteration's pair plainly
+        def step(k: int, frame: Iterator[int] = frame, builder: ObstacleBuilder = builder) -> None:
             n = next(frame)
             builder.process(disparities[k % len(disparities)], model, t_s=n / 15.0, seq=n, stamp_ns=0)
         r = _timed(step, repeat)
@@ -87,13 +88,14 @@ def bench_synthetic(scenario: str, methods: list[str] | None, repeat: int, frame
     pairs = [rect.rectify(p.left, p.right) for p in (src.read() for _ in range(2))]
     m = rect.model  # the disparity service's matcher for this rig (search range resolved)
     matcher_ms = _matcher_ms(MatchStage(cfg).matcher(m.focal_px, m.baseline_m, m.width), pairs, repeat)
-    m = data.mount
+    mount = data.mount
     return {"data": f"synthetic {scenario}", "image": f"{data.model.width}x{data.model.height}", "pairs": frames,
-            "mount": f"exact ({m.height_m:.2f} m, pitch {m.pitch_deg:.1f} deg)",
+            "mount": f"exact ({mount.height_m:.2f} m, pitch {mount.pitch_deg:.1f} deg)",
             "matcher": {"method": cfg.method, "ms_median": matcher_ms},
             "methods": time_methods([f.disparity for f in data.frames], data.model,
                                     lambda method: (SegmenterSettings(method=method),
-                                                    MountSettings(height_m=m.height_m, pitch_deg=m.pitch_deg)),
+                                                    MountSettings(height_m=mount.height_m,
+                                                                  pitch_deg=mount.pitch_deg)),
                                     matcher_ms, methods, repeat)}
 
 

@@ -78,7 +78,7 @@ def profile_segmenter(frames: int = 200, top: int = 25) -> dict:
     prof.disable()
     st = pstats.Stats(prof)
     rows = []
-    for (path, line, fn), (cc, nc, tt, ct, _) in st.stats.items():  # type: ignore[attr-defined]
+    for (path, line, fn), (_cc, nc, tt, ct, _) in st.stats.items():  # type: ignore[attr-defined]
         rows.append({"function": fn, "where": _where(path, line), "calls_per_frame": nc / frames,
                      "cum_ms": ct * 1e3 / frames, "own_ms": tt * 1e3 / frames})
     profiled_ms = sum(r["own_ms"] for r in rows)

@@ -46,7 +46,7 @@ def write_files(root: Path, frames: int, width: int = 640, height: int = 480, di
     pairs = _scene_pairs(min(distinct, frames), width, height)
     for d in ("png/left", "png/right", "jpg/left", "jpg/right"):
         (root / d).mkdir(parents=True, exist_ok=True)
-    fourcc = cv2.VideoWriter_fourcc(*"MJPG")
+    fourcc = cv2.VideoWriter.fourcc(*"MJPG")
     writers = {"left": cv2.VideoWriter(str(root / "left.avi"), fourcc, 30.0, (width, height)),
                "right": cv2.VideoWriter(str(root / "right.avi"), fourcc, 30.0, (width, height)),
                "sbs": cv2.VideoWriter(str(root / "sbs.avi"), fourcc, 30.0, (2 * width, height))}

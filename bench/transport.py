@@ -18,6 +18,7 @@ import subprocess
 import sys
 import threading
 import time
+from typing import Any
 
 import numpy as np
 
@@ -35,7 +36,7 @@ def _frame_payload() -> tuple[bytes, np.ndarray, np.ndarray]:
     rng = np.random.default_rng(1)
     left = rng.integers(0, 256, (480, 640), np.uint8)
     right = rng.integers(0, 256, (480, 640), np.uint8)
-    model = camera_model_message(camera.rectify_rig(camera.load_calibration("lifecam-studio"), 0.0).model)
+    model = camera_model_message(camera.rectify_rig(camera.load_raw_rig("lifecam-studio"), 0.0).model)
     msg = StereoFrame(robot_id="bench", seq=1, stamp_ns=time.time_ns(), left=codec.image_from_array(left),
                       right=codec.image_from_array(right), camera=model, source="synthetic")
     return codec.encode(msg), left, right
@@ -64,7 +65,8 @@ def copies(rounds: int = 5, n: int = 200) -> dict[str, float]:
         "ZBytes.to_bytes (the copy out of Zenoh)": (lambda: zb.to_bytes()) if zb is not None else None,
         "msgpack.unpackb (image bytes copied out)": lambda: msgpack.unpackb(payload, raw=False, strict_map_key=False),
         "pydantic model_validate (no copy)": lambda: StereoFrame.model_validate(doc),
-        "array_from_image x2 (a view, no copy)": lambda: (codec.array_from_image(msg.left), codec.array_from_image(msg.right)),
+        "array_from_image x2 (a view, no copy)": lambda: (codec.array_from_image(msg.left),
+                                                          codec.array_from_image(msg.right)),
         "memcpy of a pair (numpy copy, for scale)": lambda: (left.copy(), right.copy()),
     }
     out: dict[str, list[float]] = {k: [] for k, f in steps.items() if f is not None}
@@ -130,7 +132,7 @@ def _role(args: argparse.Namespace) -> int:
             policy = zshm.BlockOn(zshm.GarbageCollect())
         time.sleep(1.0)  # discovery: the subscriber's interest reaches this peer
         period = 1.0 / args.rate
-        c0 = None
+        c0 = time.process_time()  # (taken again when the warm-up ends)
         for i in range(args.count + args.warmup + 5):
             if i == args.warmup:
                 c0 = time.process_time()
@@ -158,6 +160,7 @@ def hop(shm: bool, rate: float = 60.0, count: int = 300, warmup: int = 30) -> di
 
         wait_for_tcp(endpoint, 15.0, threading.Event())
         sub = subprocess.Popen(base + ["--role", "sub"], env=env, stdout=subprocess.PIPE, text=True)
+        assert sub.stdout is not None  # (stdout=PIPE)
         sub.stdout.readline()  # ready
         pub = subprocess.run(base + ["--role", "pub"], env=env, capture_output=True, text=True, timeout=300)
         got = json.loads(sub.communicate(timeout=120)[0].strip().splitlines()[-1])
@@ -170,7 +173,7 @@ def hop(shm: bool, rate: float = 60.0, count: int = 300, warmup: int = 30) -> di
 
 
 def bench_transport(repeat: int = 3) -> dict:
-    out = {"load_avg_1min": os.getloadavg()[0], "copies_us": copies(), "hops": []}
+    out: dict[str, Any] = {"load_avg_1min": os.getloadavg()[0], "copies_us": copies(), "hops": []}
     for _ in range(repeat):  # interleaved: a load change moves both alike
         out["hops"] += [hop(True), hop(False)]
     out["load_avg_1min_end"] = os.getloadavg()[0]
@@ -178,7 +181,8 @@ def bench_transport(repeat: int = 3) -> dict:
 
 
 def format_transport(r: dict) -> str:
-    lines = [f"the frame path, CPU per 640x480 pair (load avg {r['load_avg_1min']:.1f} -> {r['load_avg_1min_end']:.1f}):"]
+    lines = [f"the frame path, CPU per 640x480 pair "
+             f"(load avg {r['load_avg_1min']:.1f} -> {r['load_avg_1min_end']:.1f}):"]
     lines += [f"  {k:48} {v:7.1f} us" for k, v in r["copies_us"].items()]
     lines.append("one hop between two processes (60 pairs/s, through a router), CPU per message, median of runs:")
     for shm in (True, False):

@@ -22,6 +22,7 @@ import statistics
 import sys
 import threading
 import time
+from typing import Any
 
 
 def _median_ms(fn, n: int) -> float:
@@ -57,8 +58,7 @@ def in_process(n: int = 200) -> dict:
     ticket = Ticket.for_frame(frame)
     key = os.urandom(32)
     key_expr = topic("disparity").key("bench")
-    out = {}
-    for enc in ("raw", "png"):
+    def steps_for(enc: str) -> dict:
         result = FrameComputer(MatcherConfig(method="bm"), 1.0, enc).compute(frame, "w")
         payload = codec.encode(result)
         raw_header = result_header(result, ticket.nonce)
@@ -78,8 +78,9 @@ def in_process(n: int = 200) -> dict:
                                                                             _META.size), n),
         }
         steps["dispatcher_total"] = sum(v for k, v in steps.items() if k != "segmenter_hmac_check")
-        out[enc] = {"payload_bytes": len(payload), "ms": {k: round(v, 3) for k, v in steps.items()}}
-    return out
+        return {"payload_bytes": len(payload), "ms": {k: round(v, 3) for k, v in steps.items()}}
+
+    return {enc: steps_for(enc) for enc in ("raw", "png")}
 
 
 def live(seconds: float = 10.0, rate: float = 15.0) -> dict:
@@ -119,7 +120,7 @@ def live(seconds: float = 10.0, rate: float = 15.0) -> dict:
             session.declare_subscriber(topic("work_result").pattern(rid), on("result"))
             session.declare_subscriber(topic("disparity").key(rid), on("disparity"))
             time.sleep(8.0)  # a benchmark's fixed warm-up (start-up, the worker's probation), not a synchronisation
-            pid = next(ch.proc.pid for ch in sup.children if ch.name == "dispatch")
+            pid = next(ch.proc.pid for ch in sup.children if ch.name == "dispatch" and ch.proc is not None)
             cpu0 = cpu_seconds(pid)
             measuring.set()
             time.sleep(seconds)
@@ -141,7 +142,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-live", action="store_true", help="only the in-process steps")
     p.add_argument("--json", action="store_true")
     a = p.parse_args(argv)
-    report = {"in_process": in_process(a.repeat), "cores": os.cpu_count()}
+    report: dict[str, Any] = {"in_process": in_process(a.repeat), "cores": os.cpu_count()}
     if not a.no_live:
         report["live"] = live(a.seconds)
     if a.json:
@@ -154,7 +155,8 @@ def main(argv: list[str] | None = None) -> int:
         lv = report["live"]
         h = lv["hop_ms"]
         print(f"live at {lv['offered_hz']:g} Hz, {lv['seconds']:g} s: {lv['worker_maps']} worker maps, "
-              f"{lv['republished']} republished; hop (worker's map -> republished map) p50 {h['p50']:.2f} ms, p95 {h['p95']:.2f} ms; "
+              f"{lv['republished']} republished; hop (worker's map -> republished map) p50 {h['p50']:.2f} ms, "
+              f"p95 {h['p95']:.2f} ms; "
               f"dispatcher CPU {lv['dispatcher_cpu_ms_per_map']:.2f} ms per map (all it does); load avg "
               f"{lv['load_avg_1min']:.1f} on {report['cores']} cores")
     return 0

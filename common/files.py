@@ -18,7 +18,7 @@ import threading
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal
 
 from common.errors import FileError
 
@@ -230,7 +230,8 @@ def _bmp_size(data: bytes) -> tuple[int, int] | None:
 
 def _tiff_size(data: bytes) -> tuple[int, int] | None:
     """Width and height (tags 256, 257) of the first image of a TIFF."""
-    order = {b"II": "little", b"MM": "big"}.get(data[:2])
+    orders: dict[bytes, Literal["little", "big"]] = {b"II": "little", b"MM": "big"}
+    order = orders.get(data[:2])
     if order is None or int.from_bytes(data[2:4], order) != 42:
         return None
     ifd = int.from_bytes(data[4:8], order)
@@ -394,6 +395,7 @@ def pair_images(left: Sequence[Path], right: Sequence[Path]) -> list[tuple[Path,
         only_r = natural_sorted(list(set(rk) - set(lk)))
         detail = ""
         if only_l or only_r:
-            detail = "; without a partner: " + ", ".join([str(lk[k]) for k in only_l[:5]] + [str(rk[k]) for k in only_r[:5]])
+            unpaired = [str(lk[k]) for k in only_l[:5]] + [str(rk[k]) for k in only_r[:5]]
+            detail = "; without a partner: " + ", ".join(unpaired)
         raise FileError(f"{len(left)} left images but {len(right)} right images{detail}")
     return list(zip(natural_sorted(list(left)), natural_sorted(list(right))))

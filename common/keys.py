@@ -1,9 +1,9 @@
 """The one table of Zenoh keys. No service spells a key string itself: it asks this table.
 
-Public: `ballbot/obstacles/<robot_id>` and `ballbot/freespace/<robot_id>`. Everything else lives under `ballbot/<robot_id>/`,
-except a fleet pool's keys (`ballbot/pool/<pool>/...`, shared by the robots that use the pool): in those, the
-robot id sits where a router's access control can pin it (a robot sends only `work/*/<its id>`, reads only
-`result/<its id>/*`), see docs/fleet.md.
+Public: `ballbot/obstacles/<robot_id>` and `ballbot/freespace/<robot_id>`. Everything else lives
+under `ballbot/<robot_id>/`, except a fleet pool's keys (`ballbot/pool/<pool>/...`, shared by the
+robots that use the pool): in those, the robot id sits where a router's access control can pin it (a
+robot sends only `work/*/<its id>`, reads only `result/<its id>/*`), see docs/fleet.md.
 """
 from __future__ import annotations
 
@@ -60,7 +60,8 @@ class Topic:
 TOPICS: dict[str, Topic] = {t.name: t for t in [
     Topic("frames_raw", "ballbot/{robot_id}/frames/raw", StereoFrame, "capture", 30.0, ("rectify", "recorder"),
           "raw stereo pair, left and right share seq and stamp", image_stream=True, max_bytes=80 << 20),
-    Topic("truth", "ballbot/{robot_id}/truth", GroundTruth, "capture", 30.0, ("viewer", "foxglove", "recorder", "tests"),
+    Topic("truth", "ballbot/{robot_id}/truth", GroundTruth, "capture", 30.0,
+          ("viewer", "foxglove", "recorder", "tests"),
           "ground truth of the synthetic scene for the pair with the same seq", max_bytes=4 << 20),
     Topic("frames_rect", "ballbot/{robot_id}/frames/rectified", StereoFrame, "rectify", 30.0,
           ("disparity", "viewer", "foxglove", "recorder", "ros2"),

@@ -13,7 +13,6 @@ A service's main() reads like this (its cores know nothing of Zenoh):
 """
 from __future__ import annotations
 
-import functools
 import logging
 import os
 import signal
@@ -25,18 +24,24 @@ import uuid
 from collections import deque
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
+
+from pydantic import BaseModel
 
 from common import codec, signed_payload
 from common.errors import BallbotError, DecodeError
 from common.inbox import _META, REJECTIONS, Clock, FreshnessGate, FreshnessLimits, Inbox, Meta, clock_from_env
 from common.keys import WORKER_SEGMENT, Topic, topic, topics_of
+from common.memory import release_memory_eagerly, trim_memory
 from common.messages import Message, ServiceStats
 from common.settings import MountSettings
 from common.zenoh_session import ZenohOptions, open_session
 
+if TYPE_CHECKING:
+    import zenoh
+
 log = logging.getLogger("ballbot")
-M = TypeVar("M", bound=Message)
+M = TypeVar("M", bound=BaseModel)  # a Message, or ServiceStats: both carry robot_id
 
 
 class _Window:
@@ -183,15 +188,22 @@ class Node:
         self._progress = _Progress(float(os.environ.get("BALLBOT_STALL_S", 3.0)),
                                    float(os.environ.get("BALLBOT_FAIL_S", 10.0)))
         self._bytes_last: dict[str, float] = {}
-        self.session = None
+        self._session: zenoh.Session | None = None
 
     # -- lifecycle ------------------------------------------------------------------------------
+    @property
+    def session(self) -> zenoh.Session:
+        """The Zenoh session, open inside `with node:` only."""
+        if self._session is None:
+            raise BallbotError(f"{self.service}: no Zenoh session outside `with node:`")
+        return self._session
+
     def __enter__(self) -> Node:
         if self._install_signals and threading.current_thread() is threading.main_thread():
             for sig in (signal.SIGINT, signal.SIGTERM):
                 signal.signal(sig, lambda *_: self.stop_event.set())
         release_memory_eagerly()
-        self.session = open_session(self.options)
+        self._session = open_session(self.options)
         if self.pool:
             alive_key = topic("pool_alive").key(self.robot_id, pool=self.pool, instance=self.instance)
             stats_key = topic("pool_stats").key(self.robot_id, pool=self.pool, instance=self.instance)
@@ -301,6 +313,8 @@ class Node:
         if d is None:
             return None
         model = inbox.topic.model
+        if model is None or not issubclass(model, Message):
+            raise BallbotError(f"take: {inbox.topic.name} carries no stamped message")
         msg = self.decode_or_drop(d.payload, model, f"input on {inbox.topic.name}")
         if msg is None:
             return None
@@ -358,8 +372,9 @@ class Node:
     def decode(self, payload: bytes, model: type[M]) -> M:
         """Decode a message that must be this robot's; raises DecodeError otherwise."""
         msg = codec.decode(payload, model)
-        if msg.robot_id != self.robot_id:
-            raise DecodeError(f"{model.__name__}: robot_id {msg.robot_id!r} on {self.robot_id!r}'s key")
+        robot = getattr(msg, "robot_id", None)
+        if robot != self.robot_id:
+            raise DecodeError(f"{model.__name__}: robot_id {robot!r} on {self.robot_id!r}'s key")
         return msg
 
     def decode_or_drop(self, payload: bytes, model: type[M], what: str, kind: str = "decode") -> M | None:
@@ -372,7 +387,7 @@ class Node:
             return None
 
     @contextmanager
-    def processing(self, msg: Message | None = None) -> Iterator[None]:
+    def processing(self, msg: BaseModel | None = None) -> Iterator[None]:
         """Time one unit of work; a failure is logged, counted and dropped, never fatal."""
         t0 = time.perf_counter()
         try:
@@ -473,46 +488,6 @@ class Node:
             except Exception:  # a closing session; the loop ends with the stop event
                 if self.running and self._should_log("stats"):
                     log.exception("stats publish failed")
-
-
-# --- memory ----------------------------------------------------------------------------------------
-
-@functools.lru_cache(maxsize=1)
-def _libc():
-    import ctypes
-
-    try:
-        return ctypes.CDLL("libc.so.6")
-    except OSError:  # not glibc: nothing to tune
-        return None
-
-
-def release_memory_eagerly() -> None:
-    """Freed memory goes back to the OS once a second (trim_memory, from the stats thread), not on
-    every free. glibc by default raises its mmap threshold after the first large free and then
-    serves large buffers from the heap, which it rarely returns: under a flood of big garbage a
-    service grew by hundreds of MB and kept them; the once-a-second trim gives them back.
-
-    Large buffers still come from the heap, on purpose: a buffer above the mmap threshold is mapped
-    fresh and unmapped on free, so every image payload (0.3-12 MB, several per frame and stage)
-    would be page-faulted in again on each frame. With a 256 KB threshold a stage that only passes
-    640x480 pairs on spent 3.7 ms of CPU per pair instead of 1.7 (`ballbot-vision bench` shows it
-    as kernel time). One arena: malloc_trim returns the top of the main heap only, so the buffers
-    Zenoh's threads free must land there too (with an arena per thread a fuzz burst left a service
-    100 MB larger)."""
-    libc = _libc()
-    if libc is not None:
-        M_TRIM_THRESHOLD, M_MMAP_THRESHOLD, M_ARENA_MAX = -1, -3, -8
-        libc.mallopt(M_ARENA_MAX, 1)
-        libc.mallopt(M_MMAP_THRESHOLD, 32 << 20)  # glibc's largest; pinned, so it never moves
-        libc.mallopt(M_TRIM_THRESHOLD, 128 << 20)  # no trim on each free: trim_memory does it at 1 Hz
-
-
-def trim_memory() -> None:
-    """Give freed heap pages back to the OS (once a second, from the stats thread)."""
-    libc = _libc()
-    if libc is not None:
-        libc.malloc_trim(0)
 
 
 def setup_logging(level: str = "INFO") -> None:

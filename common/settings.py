@@ -101,7 +101,11 @@ def _adapter(cls: type[ServiceSettings], name: str) -> TypeAdapter:
     key = (cls, name)
     if key not in _ADAPTERS:
         f = cls.model_fields[name]
-        _ADAPTERS[key] = TypeAdapter(typing.Annotated[f.annotation, *f.metadata] if f.metadata else f.annotation)
+        if f.annotation is None:  # pydantic fills it in for every declared field
+            raise TypeError(f"{cls.__name__}.{name}: a settings field without a type")
+        # a type built at run time, which a static checker cannot follow
+        field_type: Any = typing.Annotated[f.annotation, *f.metadata] if f.metadata else f.annotation
+        _ADAPTERS[key] = TypeAdapter(field_type)
     return _ADAPTERS[key]
 
 
@@ -134,12 +138,13 @@ def add_settings_arguments(p: argparse.ArgumentParser, cls: type[ServiceSettings
     for name, f in cls.model_fields.items():
         if name in exclude:
             continue
-        default = f.default if f.default_factory is None else f.default_factory()
+        default = f.get_default(call_default_factory=True)
         kw: dict[str, Any] = {"nargs": "?", "const": "true", "metavar": "BOOL"} if _is_bool(f.annotation) \
             else {"metavar": "V"}
         g.add_argument(cls.flag(name, prefix), dest=_dest(cls, name), default=argparse.SUPPRESS,
                        # argparse %-formats help texts: a "50 %" in a description is text, not a format
-                       help=f"{f.description or ''} (default: {_show(default)}) [{cls.env_var(name)}]".replace("%", "%%"),
+                       help=f"{f.description or ''} (default: {_show(default)}) [{cls.env_var(name)}]"
+                       .replace("%", "%%"),
                        **kw)
 
 
@@ -224,7 +229,8 @@ def load_settings(cls: type[S], config_file: str | None = None, args: argparse.N
     texts: dict[str, tuple[str, str]] = {}
     for k in list(values):
         if (cls.section, k) in MOVED:
-            problems.append(f"{sources[k]}: moved to {MOVED[cls.section, k]} (the `{MOVED[cls.section, k].split('.')[0]}:` "
+            new = MOVED[cls.section, k]
+            problems.append(f"{sources[k]}: moved to {new} (the `{new.split('.')[0]}:` "
                             f"section, read by every service)")
             values.pop(k)
     for (section, old), new in MOVED.items():

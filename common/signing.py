@@ -98,4 +98,6 @@ def sign(msg: CalibrationUpdate, key: bytes | None = None) -> CalibrationUpdate:
 
 def signed(msg: CalibrationUpdate, key: bytes | None = None) -> bool:
     key = key if key is not None else calibration_key()
-    return bool(key) and bool(msg.signature) and hmac.compare_digest(msg.signature, _digest(msg, key))
+    if not key or not msg.signature:
+        return False
+    return hmac.compare_digest(msg.signature, _digest(msg, key))

@@ -1,8 +1,8 @@
 """The processes of the pipeline (which services, in which order and priority) and the supervisor
-that runs them for `ballbot-vision up` and the benchmarks: every service as its own OS process, restarted if it dies (with a backoff
-that starts again from 0.5 s once a child has run healthily for a while), all stopped on Ctrl-C or
-SIGTERM (SIGTERM to all at once, a generous grace for a loaded machine, SIGKILL only after it),
-and none left behind if the supervisor itself is killed."""
+that runs them for `ballbot-vision up` and the benchmarks: every service as its own OS process,
+restarted if it dies (with a backoff that starts again from 0.5 s once a child has run healthily for
+a while), all stopped on Ctrl-C or SIGTERM (SIGTERM to all at once, a generous grace for a loaded
+machine, SIGKILL only after it), and none left behind if the supervisor itself is killed."""
 from __future__ import annotations
 
 import ctypes
@@ -141,10 +141,10 @@ class Supervisor:
             while not self.stop.wait(0.1):
                 failed = self._restart_dead()
                 if failed:
+                    proc = self._child(failed).proc
+                    status = proc.returncode if proc is not None else None
                     log.error("%s refused to start (exit status %s: %s, see above); stopping everything", failed,
-                              self._child(failed).proc.returncode,
-                              "a missing dependency" if self._child(failed).proc.returncode == 3 else
-                              "a usage or configuration error")
+                              status, "a missing dependency" if status == 3 else "a usage or configuration error")
                     return 2
         finally:
             self.stop_all()
@@ -187,21 +187,21 @@ class Supervisor:
         return next(c for c in self.children if c.name == name)
 
     def stop_all(self) -> None:
-        live = [c for c in self.children if c.proc is not None and c.proc.poll() is None]
-        for c in live:
+        live = [(c.name, c.proc) for c in self.children if c.proc is not None and c.proc.poll() is None]
+        for _, proc in live:
             try:
-                c.proc.send_signal(signal.SIGTERM)
+                proc.send_signal(signal.SIGTERM)
             except ProcessLookupError:
                 pass
         t0 = time.monotonic()
         deadline = t0 + self.stop_timeout_s
-        for c in live:
+        for name, proc in live:
             try:
-                c.proc.wait(max(0.0, deadline - time.monotonic()))
+                proc.wait(max(0.0, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
-                log.warning("%s (pid %d) did not stop within %.0f s of SIGTERM; killing it", c.name, c.proc.pid,
+                log.warning("%s (pid %d) did not stop within %.0f s of SIGTERM; killing it", name, proc.pid,
                             self.stop_timeout_s)
-                c.proc.kill()
-                c.proc.wait()
+                proc.kill()
+                proc.wait()
         if live:
             log.info("all stopped in %.2f s", time.monotonic() - t0)

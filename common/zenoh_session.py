@@ -20,6 +20,10 @@ import json
 import os
 import re
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    import zenoh
 
 DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
 MAX_MESSAGE_BYTES = 128 << 20
@@ -50,7 +54,8 @@ def add_zenoh_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--mode", choices=["peer", "client", "router"], default=os.environ.get("BALLBOT_MODE"),
                    help="Zenoh session mode [BALLBOT_MODE] (default: peer)")
     g.add_argument("--connect", action="append", default=None, metavar="ENDPOINT",
-                   help=f"endpoint to connect to, repeatable [BALLBOT_CONNECT, comma separated] (default: {DEFAULT_ROUTER})")
+                   help="endpoint to connect to, repeatable [BALLBOT_CONNECT, comma separated] "
+                   f"(default: {DEFAULT_ROUTER})")
     g.add_argument("--listen", action="append", default=None, metavar="ENDPOINT",
                    help="endpoint to listen on, repeatable [BALLBOT_LISTEN] (default: tcp/127.0.0.1:0)")
     g.add_argument("--zenoh-config", default=os.environ.get("BALLBOT_ZENOH_CONFIG"), metavar="FILE",
@@ -111,8 +116,8 @@ def make_config(o: ZenohOptions):
 
     if o.config_file:
         if not os.path.isfile(o.config_file):
-            raise ConfigError(f"--zenoh-config {o.config_file}: no such file or folder" if not
-                              os.path.exists(o.config_file) else f"--zenoh-config {o.config_file}: is a folder, not a file")
+            what = "is a folder, not a file" if os.path.exists(o.config_file) else "no such file or folder"
+            raise ConfigError(f"--zenoh-config {o.config_file}: {what}")
         try:
             conf = zenoh.Config.from_file(o.config_file)
         except zenoh.ZError as e:
@@ -150,7 +155,7 @@ def make_config(o: ZenohOptions):
     return conf
 
 
-def open_session(o: ZenohOptions):
+def open_session(o: ZenohOptions) -> zenoh.Session:
     """Open a session; use as a context manager so callback threads stop on exit. A router that
     does not answer, or an endpoint that cannot be listened on, is a ConnectError (exit status 1:
     it may work a moment later, so `up` restarts a service that meets it)."""

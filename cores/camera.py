@@ -228,15 +228,15 @@ def calibration_from_dict(doc: Any, where: str = "calibration") -> Calibration:
     cams = []
     for side in ("left", "right"):
         c = doc.get(side)
-        w = f"{where}: {side}"
+        at = f"{where}: {side}"
         if not isinstance(c, dict):
             raise CalibrationError(f"{where}: missing section '{side}'")
-        K = _vec(c, "K", 9, w).reshape(3, 3)
+        K = _vec(c, "K", 9, at).reshape(3, 3)
         if not np.allclose(K[2], [0, 0, 1]) or K[1, 0] != 0 or K[0, 0] <= 0 or K[1, 1] <= 0:
-            raise CalibrationError(f"{w}: field 'K' is not a camera matrix [[fx,s,cx],[0,fy,cy],[0,0,1]]")
-        D = _vec(c, "distortion", 5, w)
-        if "image_size" in c and _size(c, w) != size:
-            raise CalibrationError(f"{w}: field 'image_size' {_size(c, w)} differs from the rig's {size}")
+            raise CalibrationError(f"{at}: field 'K' is not a camera matrix [[fx,s,cx],[0,fy,cy],[0,0,1]]")
+        D = _vec(c, "distortion", 5, at)
+        if "image_size" in c and _size(c, at) != size:
+            raise CalibrationError(f"{at}: field 'image_size' {_size(c, at)} differs from the rig's {size}")
         cams.append(Intrinsics.from_matrix(K, D))
     R = _vec(doc, "R", 9, where).reshape(3, 3)
     T = _vec(doc, "T", 3, where)
@@ -282,7 +282,8 @@ def load_calibration(spec: str | Path) -> Calibration:
     except FileError as e:
         if "not valid YAML" in str(e) and _looks_like_opencv(s):
             raise CalibrationError(f"calibration {s}: an OpenCV FileStorage file, not this program's calibration "
-                                   f"YAML; convert it with: ballbot-vision calibration import {s} ... -o rig.yaml") from None
+                                   f"YAML; convert it with: ballbot-vision calibration import {s} ... -o rig.yaml"
+                                   ) from None
         raise
     if isinstance(doc, dict) and not {"rectified", "left", "K"} & set(doc):
         foreign = [tool for key, tool in _FOREIGN_FIELDS.items() if key in doc]
@@ -290,6 +291,14 @@ def load_calibration(spec: str | Path) -> Calibration:
             raise CalibrationError(f"calibration {s}: a {foreign[0]} file, not this program's calibration YAML; "
                                    f"convert it with: ballbot-vision calibration import {s} ... -o rig.yaml")
     return calibration_from_dict(doc, where=s)
+
+
+def load_raw_rig(spec: str | Path) -> RawRig:
+    """load_calibration, for a use that needs the raw rig (lenses, R, T): a rectified one is refused."""
+    cal = load_calibration(spec)
+    if not isinstance(cal, RawRig):
+        raise CalibrationError(f"calibration {spec}: already rectified; this needs the raw rig")
+    return cal
 
 
 def _looks_like_opencv(path: str) -> bool:

@@ -71,11 +71,11 @@ def obstacle_annotations(msg: ObstacleList) -> fm.ImageAnnotations:
 
 def truth_annotations(msg: GroundTruth) -> fm.ImageAnnotations:
     stamp = timestamp(msg.stamp_ns)
-    shown = [t for t in msg.obstacles if t.bbox_px is not None]
+    shown = [(t, t.bbox_px) for t in msg.obstacles if t.bbox_px is not None]
     return fm.ImageAnnotations(
-        timestamp=stamp, points=[_box(stamp, t.bbox_px, TRUTH_RGBA) for t in shown],
-        texts=[_label(stamp, t.bbox_px[0], t.bbox_px[3] + 16, f"{t.name} {t.nearest_m:.2f} m", TRUTH_RGBA)
-               for t in shown])
+        timestamp=stamp, points=[_box(stamp, bbox, TRUTH_RGBA) for _, bbox in shown],
+        texts=[_label(stamp, bbox[0], bbox[3] + 16, f"{t.name} {t.nearest_m:.2f} m", TRUTH_RGBA)
+               for t, bbox in shown])
 
 
 def _identity() -> fm.Quaternion:
@@ -92,7 +92,8 @@ def obstacle_scene(msg: ObstacleList) -> fm.SceneUpdate:
         sx, sy, sz = (float(v) for v in o.size_m)
         cube = fm.CubePrimitive(pose=fm.Pose(position=fm.Vector3(x=x, y=y, z=z), orientation=_identity()),
                                 size=fm.Vector3(x=sx, y=sy, z=sz), color=color(OBSTACLE_RGBA[:3] + (0.5,)))
-        label = fm.TextPrimitive(pose=fm.Pose(position=fm.Vector3(x=x, y=y - sy / 2 - 0.1, z=z), orientation=_identity()),
+        label = fm.TextPrimitive(pose=fm.Pose(position=fm.Vector3(x=x, y=y - sy / 2 - 0.1, z=z),
+                                              orientation=_identity()),
                                  billboard=True, font_size=14.0, scale_invariant=True, color=color((1, 1, 1, 1)),
                                  text=f"#{o.id} {o.distance_m:.2f} m")
         entities.append(fm.SceneEntity(timestamp=stamp, frame_id="camera", id=f"obstacle-{o.id}",
@@ -123,6 +124,8 @@ def base_to_camera(stamp_ns: int, camera_mount: CameraMount) -> fm.FrameTransfor
     from cores.segmentation.mount import Mount
 
     mount = Mount.of(camera_mount)
+    if mount is None:  # (a CameraMount always has a height: only settings may lack one)
+        raise ValueError("base_to_camera: a mount without a camera height")
     q = Rotation.from_matrix(mount.R_base_camera).as_quat()  # x, y, z, w
     x, y, z = (float(v) for v in mount.origin_base)
     return fm.FrameTransform(timestamp=timestamp(stamp_ns), parent_frame_id="base", child_frame_id="camera",
@@ -166,8 +169,8 @@ def ground_scene(msg: ObstacleList, size_m: float = 10.0) -> fm.SceneUpdate:
                              size=fm.Vector3(x=size_m, y=size_m, z=0.01), color=color((0.3, 0.6, 1.0, 0.25)))
     label = fm.TextPrimitive(pose=fm.Pose(position=fm.Vector3(x=1.0, y=0.0, z=0.05), orientation=_identity()),
                              billboard=True, font_size=14.0, scale_invariant=True, color=color((1, 1, 1, 1)),
-                             text=f"ground ({g.source}): camera {g.height_m:.2f} m above, pitch {g.pitch_deg:+.1f} deg, "
-                                  f"roll {g.roll_deg:+.1f} deg")
+                             text=f"ground ({g.source}): camera {g.height_m:.2f} m above, "
+                                  f"pitch {g.pitch_deg:+.1f} deg, roll {g.roll_deg:+.1f} deg")
     return fm.SceneUpdate(deletions=deletions, entities=[
         fm.SceneEntity(timestamp=stamp, frame_id="base", id="ground", lifetime=fm.Duration(0, 0), cubes=[floor],
                        texts=[label])])

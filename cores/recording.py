@@ -12,10 +12,10 @@ up in Foxglove; MCAP `sequence` = the capture seq):
 
 | topic | schema | what |
 |---|---|---|
-| /frames/rectified/left, .../right | foxglove.CompressedImage | the rectified pairs: what the pipeline matched, what replay publishes |
-| /frames/rectified/camera_info | foxglove.CameraCalibration | the rectified left camera (Foxglove projects 3D boxes with it) |
-| /frames/rectified/calibration | ballbot.Calibration | the rectified rig as a `rectified: true` calibration (replay hands it to rectify, which passes the pairs through) |
-| /frames/raw/left, /frames/raw/right | foxglove.CompressedImage | the pairs as captured, only when asked (`record --raw true`; `mcap from-images` writes these) |
+| /frames/rectified/left, .../right | foxglove.CompressedImage | the rectified pairs: what the pipeline matched (1) |
+| /frames/rectified/camera_info | foxglove.CameraCalibration | the rectified left camera (for Foxglove's 3D boxes) |
+| /frames/rectified/calibration | ballbot.Calibration | the rectified rig as a `rectified: true` calibration (2) |
+| /frames/raw/left, /frames/raw/right | foxglove.CompressedImage | the pairs as captured, only when asked (3) |
 | /disparity/color | foxglove.CompressedImage | disparity in colour (near = warm, no measurement = black) |
 | /obstacles | ballbot.ObstacleList (JSON Schema) | the public obstacle list, as published |
 | /obstacles/boxes | foxglove.ImageAnnotations | each obstacle's box, id and distance on the rectified left image |
@@ -24,7 +24,10 @@ up in Foxglove; MCAP `sequence` = the capture seq):
 | /tf | foxglove.FrameTransform | base -> camera from the segmenter's ground estimate |
 | /truth, /truth/boxes | ballbot.GroundTruth, foxglove.ImageAnnotations | the synthetic scene's truth |
 | /stats | ballbot.ServiceStats | every service's stats, once a second each |
-| /calibration | ballbot.Calibration | the calibration YAML the raw pairs need (replay of raw pairs hands it to rectify) |
+| /calibration | ballbot.Calibration | the calibration YAML the raw pairs need (4) |
+
+(1) what replay publishes. (2) replay hands it to rectify, which passes the pairs through.
+(3) `record --raw true`; `mcap from-images` writes these. (4) replay of raw pairs hands it to rectify.
 """
 from __future__ import annotations
 
@@ -38,6 +41,7 @@ from typing import IO, Any
 
 import cv2
 import numpy as np
+from pydantic import BaseModel
 
 from common import codec
 from common.errors import BallbotError, path_error
@@ -92,8 +96,9 @@ def schema_document(name: str) -> dict:
     """The JSON Schema of one of our own (ballbot.*) channels."""
     if name == "ballbot.Calibration":
         return _CALIBRATION_SCHEMA
-    model = {"ballbot.ObstacleList": ObstacleList, "ballbot.FreeSpace": FreeSpace,
-             "ballbot.GroundTruth": GroundTruth, "ballbot.ServiceStats": ServiceStats}[name]
+    models: dict[str, type[BaseModel]] = {"ballbot.ObstacleList": ObstacleList, "ballbot.FreeSpace": FreeSpace,
+                                          "ballbot.GroundTruth": GroundTruth, "ballbot.ServiceStats": ServiceStats}
+    model = models[name]
     doc = model.model_json_schema()
     doc["title"] = name
     return doc
@@ -281,11 +286,12 @@ class Converter:
             data, fmt = self._image(img)
             out.append(Recorded(topic, foxglove.compressed_image(msg.stamp_ns, frame_id, data, fmt),
                                 msg.stamp_ns, msg.seq))
-        if rectified and self._camera_info_due(msg.camera, msg.stamp_ns):
-            out.append(Recorded(CAMERA_INFO, foxglove.camera_calibration(msg.stamp_ns, msg.camera),
+        cam = msg.camera  # (None: raw pairs)
+        if cam is not None and self._camera_info_due(cam, msg.stamp_ns):
+            out.append(Recorded(CAMERA_INFO, foxglove.camera_calibration(msg.stamp_ns, cam),
                                 msg.stamp_ns, msg.seq))
             # log time just before the pair's, so that a reader has it when the pair comes
-            out.append(Recorded(RECT_CALIBRATION, {"yaml": rectified_calibration_yaml(msg.camera),
+            out.append(Recorded(RECT_CALIBRATION, {"yaml": rectified_calibration_yaml(cam),
                                                    "source": "the rectified camera"}, msg.stamp_ns - 1, msg.seq))
         return out
 

@@ -91,6 +91,7 @@ def decode_image(data: bytes, fmt: str, where: str, strict: bool = True) -> np.n
     from common.errors import FileError
     from common.files import imdecode_checked
 
+    a: np.ndarray | None
     if strict:  # a damaged JPEG or PNG is refused, not decoded grey with libjpeg's warning on stderr
         try:
             a = imdecode_checked(data, where, cv2.IMREAD_UNCHANGED)
@@ -219,14 +220,15 @@ class RecordingReader:
         self.kind = kind
         self.unpaired = 0
         self.damaged = 0
-        halves: dict[int, dict[str, Any]] = {}
+        # seq -> topic -> ((image bytes, format), log time)
+        halves: dict[int, dict[str, tuple[tuple[bytes, str], int]]] = {}
         truths: dict[int, GroundTruth] = {}
         calibration: str | None = None
         calibration_source = ""
         decoder = foxglove.ProtobufDecoder()
         pending: tuple[int, int, dict] | None = None  # a complete pair waits for its truth (same log time)
 
-        def finish(seq: int, t: int, half: dict) -> RecordedPair | None:
+        def finish(seq: int, t: int, half: dict[str, tuple[tuple[bytes, str], int]]) -> RecordedPair | None:
             where = f"{self.path}: pair seq {seq}"
             truth = truths.pop(seq, None)
             for old in [s for s in truths if s < seq]:

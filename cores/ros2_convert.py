@@ -191,7 +191,8 @@ def tf_static(t: RosTypes, mount: Mount, stamp: int, base_frame: str, camera_fra
 
     q = Rotation.from_matrix(mount.R_base_camera).as_quat()  # x, y, z, w
     tr = t.new("geometry_msgs/msg/Transform", translation=_vec(t, mount.origin_base),
-               rotation=t.new("geometry_msgs/msg/Quaternion", x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])))
+               rotation=t.new("geometry_msgs/msg/Quaternion",
+                              x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])))
     ts = t.new("geometry_msgs/msg/TransformStamped", header=header(t, stamp, base_frame),
                child_frame_id=camera_frame, transform=tr)
     return t.new("tf2_msgs/msg/TFMessage", transforms=[ts])
@@ -272,7 +273,8 @@ def _camera_info(msg: Any, where: str) -> dict:
     return {"size": (int(msg.width), int(msg.height)), "K": K, "D": d, "R": R, "P": P, "where": where}
 
 
-def calibration_from_camera_infos(left: Any, right: Any, rectified: bool, where: str = "CameraInfo") -> camera.Calibration:
+def calibration_from_camera_infos(left: Any, right: Any, rectified: bool,
+                                  where: str = "CameraInfo") -> camera.Calibration:
     """A stereo calibration from the left and right sensor_msgs/CameraInfo, as
     camera_calibration's stereo calibrator writes them: rectified=True for image_rect topics (only
     the projection matrices count: f, cx, cy and baseline = -P_right[0,3] / P_right[0,0]); otherwise

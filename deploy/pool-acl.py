@@ -104,7 +104,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--worker", action="append", default=[], help="a worker instance allowed in the pool (repeat)")
     ap.add_argument("--listen", action="append", default=[], help="repeatable; default tls/0.0.0.0:7449 and "
                     "tcp/0.0.0.0:7450 (--plain: tcp/0.0.0.0:7449)")
-    ap.add_argument("--out", default=None, metavar="DIR", help="write pool.json5, users.txt and the clients' configs here")
+    ap.add_argument("--out", default=None, metavar="DIR",
+                    help="write pool.json5, users.txt and the clients' configs here")
     ap.add_argument("--certs-path", default="/etc/zenoh-certs", help="where the router sees users.txt (and the "
                     "TLS files)")
     mode = ap.add_mutually_exclusive_group()

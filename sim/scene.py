@@ -59,16 +59,17 @@ class Box:
     parts: list[Part] | None = None
 
     def __post_init__(self) -> None:
-        self.center = tuple(float(c) for c in self.center)  # type: ignore[assignment]
+        center = tuple(float(c) for c in self.center)
         if self.parts:
             lo, hi = self._local_extent()
-            self.size = (float(hi[1] - lo[1]), float(hi[2] - lo[2]), float(hi[0] - lo[0]))
+            size: tuple[float, ...] = (float(hi[1] - lo[1]), float(hi[2] - lo[2]), float(hi[0] - lo[0]))
         elif self.size is None:
             raise ConfigError(f"object '{self.name}': needs 'size' or 'parts'")
         else:
-            self.size = tuple(float(s) for s in self.size)  # type: ignore[assignment]
-        if len(self.center) != 3 or len(self.size) != 3:
+            size = tuple(float(s) for s in self.size)
+        if len(center) != 3 or len(size) != 3:
             raise ConfigError(f"object '{self.name}': center needs 3 numbers and size 3 numbers")
+        self.center, self.size = (center[0], center[1], center[2]), (size[0], size[1], size[2])
         if min(self.size) <= 0:
             raise ConfigError(f"object '{self.name}': size must be positive, got {self.size}")
         if self.path is not None:
@@ -81,7 +82,14 @@ class Box:
         """The boxes that make up the object (a simple box is one part at offset 0)."""
         if self.parts:
             return list(self.parts)
-        return [Part((0.0, 0.0, 0.0), self.size, 0.0, self.name)]  # type: ignore[arg-type]
+        return [Part((0.0, 0.0, 0.0), self.extent, 0.0, self.name)]
+
+    @property
+    def extent(self) -> tuple[float, float, float]:
+        """size, which construction always fills in (a compound's from its parts)."""
+        if self.size is None:
+            raise ConfigError(f"object '{self.name}': needs 'size' or 'parts'")
+        return self.size
 
     def _local_extent(self) -> tuple[np.ndarray, np.ndarray]:
         """Axis-aligned extent (lo, hi) (3,) of the union of the parts, object frame, m."""
@@ -288,7 +296,7 @@ class Scene:
                     camera_motion=d.camera_motion.motion() if d.camera_motion is not None else None,
                     range_m=d.range_m, default_eval=d.default_eval)
         for b in scene.boxes:
-            if b.center[0] - b.size[2] / 2 >= scene.wall_distance_m:
+            if b.center[0] - b.extent[2] / 2 >= scene.wall_distance_m:
                 raise ConfigError(f"{where}: object '{b.name}' stands behind the wall")
         return scene
 
@@ -362,16 +370,27 @@ class ObjectDoc(_Doc):
         return self
 
     def box(self) -> Box:
-        path = [tuple(w) for w in self.path.waypoints] if self.path else None
-        pos = tuple(self.position) if self.position is not None else path[0]  # type: ignore[index]
+        path = [(w[0], w[1]) for w in self.path.waypoints] if self.path else None
+        if self.position is not None:
+            pos = list(self.position)
+        elif path:
+            pos = list(path[0])
+        else:  # _shape refuses this already
+            raise ValueError("missing field 'position'")
         if len(pos) == 2:
-            z = 0.0 if self.parts else self.size[1] / 2.0  # type: ignore[index]
-            pos = (pos[0], pos[1], z)
-        parts = [Part(tuple(p.offset), tuple(p.size), p.yaw_deg, p.name) for p in self.parts] if self.parts else None
-        return Box(name=self.name, kind=self.kind, center=pos, size=tuple(self.size) if self.size else None,
+            # a compound (no size) stands on its origin; a simple box on its bottom face
+            pos.append(0.0 if self.size is None else self.size[1] / 2.0)
+        parts = [Part(_three(p.offset), _three(p.size), p.yaw_deg, p.name) for p in self.parts] if self.parts else None
+        return Box(name=self.name, kind=self.kind, center=_three(pos), size=_three(self.size) if self.size else None,
                    yaw_deg=self.yaw_deg, texture_seed=self.texture_seed, path=path,
                    speed_mps=self.path.speed_mps if self.path else 0.0, loop=self.path.loop if self.path else True,
-                   face_motion=self.path.face_motion if self.path else False, parts=parts)  # type: ignore[arg-type]
+                   face_motion=self.path.face_motion if self.path else False, parts=parts)
+
+
+def _three(v: list[float]) -> tuple[float, float, float]:
+    """A validated list of 3 numbers as the tuple the geometry takes."""
+    x, y, z = v
+    return x, y, z
 
 
 class WaveDoc(_Doc):
@@ -455,7 +474,8 @@ def _scene_errors(e: ValidationError, doc: Any, where: str) -> str:
     """pydantic's errors in the scenario file's words: file, object (by index and name), field."""
     out = []
     for err in e.errors():
-        loc, node, parts = list(err["loc"]), doc, []
+        loc, node = list(err["loc"]), doc
+        parts: list[str] = []
         field_name = None
         for i, key in enumerate(loc):
             if isinstance(key, int):

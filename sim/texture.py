@@ -62,8 +62,8 @@ def _remap_1d(img: np.ndarray, mx: np.ndarray, my: np.ndarray) -> np.ndarray:
     mx2 = np.zeros(rows * cols, np.float32)
     my2 = np.zeros(rows * cols, np.float32)
     mx2[:n], my2[:n] = mx, my
-    mx2, my2 = mx2.reshape(rows, cols), my2.reshape(rows, cols)
-    return cv2.remap(img, mx2, my2, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP).ravel()[:n]
+    map_x, map_y = mx2.reshape(rows, cols), my2.reshape(rows, cols)
+    return cv2.remap(img, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP).ravel()[:n]
 
 
 @dataclass(frozen=True)

@@ -32,7 +32,6 @@ z, x), i.e. width across, height, depth along the viewing direction when yaw = 0
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -41,8 +40,19 @@ import cv2
 import numpy as np
 
 from cores import camera
+from sim.raycast import (
+    FACE_NORMALS,
+    Cam,
+    Layer,
+    PlacedPart,
+    View,
+    intersect_box,
+    lambert,
+    pinhole_rays,
+    undistorted_rays,
+)
 from sim.scene import Scene, box_corners, camera_axes, rot_z
-from sim.texture import AMBIENT, LIGHT_DIR, SurfaceTexture, sample_texture, texture_pyramid
+from sim.texture import SurfaceTexture, sample_texture, texture_pyramid
 
 # --- ground truth ------------------------------------------------------------------------------------
 
@@ -79,143 +89,6 @@ class ObstacleTruth:
 
 # --- rendering ---------------------------------------------------------------------------------------
 
-@dataclass
-class _View:
-    """A camera's rays: origin (3,) and unit directions (N, 3) float32, both in the world frame,
-    one per pixel, row-major; plus what `_window` needs to bound an object in the image."""
-
-    origin: np.ndarray
-    dirs: np.ndarray
-    shape: tuple[int, int]  # H, W
-    pix_angle: float  # rad per pixel, for texture prefiltering
-    shaded: bool  # False: geometry only (the ground-truth view needs no image)
-    R_cam_world: np.ndarray  # 3x3, world -> camera rotation
-    K: np.ndarray  # 3x3 pinhole part of the camera
-    slack_px: float  # max distance between a pixel and the pinhole projection of its ray, + margin
-
-    def window(self, corners_world: np.ndarray) -> tuple[int, int, int, int] | None:
-        """Pixel rectangle (y0, y1, x0, x1), end-exclusive, holding every ray that can hit the
-        convex hull of `corners_world` (k, 3); None if it is outside the image."""
-        h, w = self.shape
-        X = (corners_world - self.origin) @ self.R_cam_world.T
-        if np.any(X[:, 2] < 0.05):  # near or behind the camera: no safe projection, test all rays
-            return 0, h, 0, w
-        uv = (X[:, :2] / X[:, 2:]) @ self.K[:2, :2].T + self.K[:2, 2]
-        x0 = max(int(math.floor(uv[:, 0].min() - self.slack_px)), 0)
-        x1 = min(int(math.ceil(uv[:, 0].max() + self.slack_px)) + 1, w)
-        y0 = max(int(math.floor(uv[:, 1].min() - self.slack_px)), 0)
-        y1 = min(int(math.ceil(uv[:, 1].max() + self.slack_px)) + 1, h)
-        return (y0, y1, x0, x1) if x0 < x1 and y0 < y1 else None
-
-
-@dataclass
-class _Layer:
-    """A rendered view: per pixel the hit distance t (m along the unit ray), shade (grey levels)
-    and obstacle index (-1 = floor/wall); (N,) arrays."""
-
-    t: np.ndarray
-    shade: np.ndarray
-    obj: np.ndarray
-
-    def copy(self) -> _Layer:
-        return _Layer(self.t.copy(), self.shade.copy(), self.obj.copy())
-
-
-@dataclass
-class _PlacedPart:
-    obj: int
-    center: np.ndarray  # (3,) world
-    yaw: float
-    half: np.ndarray  # (3,) half extents along local x, y, z
-    tex: np.ndarray  # (6, 5) texture parameters of the faces -x, +x, -y, +y, -z, +z
-    light: np.ndarray  # (6,) Lambert factor per face
-
-
-def _undistorted_rays(K: np.ndarray, D: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """Unit ray (N, 3) float64 in the camera frame through the centre of every pixel of the raw
-    (distorted) image, row-major. Read-only, shared between worlds of the same camera."""
-    return _undistorted_rays_cached(tuple(np.asarray(K, float).ravel()), tuple(np.asarray(D, float).ravel()),
-                                    tuple(size))
-
-
-@functools.lru_cache(maxsize=8)
-def _undistorted_rays_cached(K: tuple, D: tuple, size: tuple[int, int]) -> np.ndarray:
-    K, D = np.array(K).reshape(3, 3), np.array(D)
-    w, h = size
-    xs, ys = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-    pix = np.stack([xs.ravel(), ys.ravel()], 1).reshape(-1, 1, 2)
-    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
-    xy = cv2.undistortPoints(pix, K, D, criteria=crit).reshape(-1, 2)
-    d = np.concatenate([xy, np.ones((xy.shape[0], 1))], 1)
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    d.setflags(write=False)
-    return d
-
-
-def _pinhole_rays(f: float, cx: float, cy: float, size: tuple[int, int]) -> np.ndarray:
-    w, h = size
-    xs, ys = np.meshgrid((np.arange(w) - cx) / f, (np.arange(h) - cy) / f)
-    d = np.stack([xs.ravel(), ys.ravel(), np.ones(w * h)], 1)
-    return d / np.linalg.norm(d, axis=1, keepdims=True)
-
-
-def _intersect_box(origin: np.ndarray, dirs: np.ndarray, p: _PlacedPart):
-    """Slab test of unit rays `dirs` (n, 3) from `origin` (world) against an oriented box.
-
-    Returns (hits, t, face, u, v, du, dv, cos_i) for the rays that hit (the camera is never inside):
-    their indices into `dirs`, distance t (m), entry face (index into _FACE_NORMALS), the hit's
-    surface coordinates (u, v) on that face (m, part frame), the ray direction's components along
-    u and v, and |cos| of its angle to the face normal; all (k,) arrays.
-    """
-    c, s = math.cos(p.yaw), math.sin(p.yaw)
-    o = origin - p.center
-    ol = (c * o[0] + s * o[1], -s * o[0] + c * o[1], o[2])
-    dl = (c * dirs[:, 0] + s * dirs[:, 1], -s * dirs[:, 0] + c * dirs[:, 1], np.ascontiguousarray(dirs[:, 2]))
-    n = dirs.shape[0]
-    tnear = np.full(n, -np.inf, np.float32)
-    tfar = np.full(n, np.inf, np.float32)
-    axis = np.zeros(n, np.int8)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        for a in range(3):
-            inv = np.float32(1.0) / dl[a]
-            t1 = (np.float32(-p.half[a] - ol[a])) * inv
-            t2 = (np.float32(p.half[a] - ol[a])) * inv
-            lo = np.minimum(t1, t2)
-            nearer = lo > tnear  # NaN (a ray in a slab's plane) never updates
-            tnear = np.where(nearer, lo, tnear)
-            axis[nearer] = a
-            tfar = np.minimum(tfar, np.maximum(t1, t2))
-    hits = np.flatnonzero((tnear <= tfar) & (tnear > 1e-4))
-    t, axis = tnear[hits], axis[hits]
-    d = [x[hits] for x in dl]
-    local = [ol[k] + t * d[k] for k in range(3)]
-    dax = np.where(axis == 0, d[0], np.where(axis == 1, d[1], d[2]))
-    face = 2 * axis.astype(np.int64) + (dax < 0)  # entered through the face whose normal opposes the ray
-    # each face is spanned by the two other local axes: x-faces by (y, z), y-faces (x, z), z-faces (x, y)
-    u = np.where(axis == 0, local[1], local[0])
-    v = np.where(axis == 2, local[1], local[2])
-    du = np.where(axis == 0, d[1], d[0])
-    dv = np.where(axis == 2, d[1], d[2])
-    return hits, t, face, u, v, du, dv, np.abs(dax)
-
-
-@dataclass
-class _Cam:
-    """One view of the rig, independent of where the rig is: unit rays (N, 3) in its own frame,
-    rotation R_left_cam (its axes in left-camera coordinates) and centre (left-camera coordinates),
-    pinhole K, shaded or geometry only, and the window slack (see _View.slack_px)."""
-
-    dirs: np.ndarray
-    R_left_cam: np.ndarray
-    center_left: np.ndarray
-    K: np.ndarray
-    shaded: bool
-    slack_px: float = 2.0
-
-    def __post_init__(self) -> None:
-        self.dirs32 = np.ascontiguousarray(self.dirs, np.float32)  # a moving camera turns them every frame
-
-
 class SyntheticWorld:
     """Renders a `Scene` for a raw stereo rig, with ground truth in the rectified left frame.
 
@@ -249,14 +122,14 @@ class SyntheticWorld:
         R1 = np.asarray(rect.R1, float)
         Rl, Tl = np.asarray(rig.R, float), np.asarray(rig.T, float)
         m = rect.model
-        rect_dirs = _pinhole_rays(m.focal_px, m.cx, m.cy, (m.width, m.height))
+        rect_dirs = pinhole_rays(m.focal_px, m.cx, m.cy, (m.width, m.height))
         K_rect = np.array([[m.focal_px, 0.0, m.cx], [0.0, m.focal_px, m.cy], [0.0, 0.0, 1.0]])
         # per view (0 left, 1 right, 2 rectified left): its rays in its own frame, its rotation and
         # centre relative to the left camera, its pinhole K, and whether it is shaded
         self._cams = [
-            _Cam(_undistorted_rays(rig.left.K, rig.left.D, rig.image_size), np.eye(3), np.zeros(3), rig.left.K, True),
-            _Cam(_undistorted_rays(rig.right.K, rig.right.D, rig.image_size), Rl.T, -Rl.T @ Tl, rig.right.K, True),
-            _Cam(rect_dirs, R1.T, np.zeros(3), K_rect, False),
+            Cam(undistorted_rays(rig.left.K, rig.left.D, rig.image_size), np.eye(3), np.zeros(3), rig.left.K, True),
+            Cam(undistorted_rays(rig.right.K, rig.right.D, rig.image_size), Rl.T, -Rl.T @ Tl, rig.right.K, True),
+            Cam(rect_dirs, R1.T, np.zeros(3), K_rect, False),
         ]
         for c in self._cams:
             # lens distortion moves pixels off their pinhole position; objects are bounded in the
@@ -266,7 +139,7 @@ class SyntheticWorld:
             c.slack_px = float(np.abs(pin - np.stack([xs.ravel(), ys.ravel()], 1)).max()) + 2.0
         self._rect_dirs = rect_dirs.astype(np.float32)  # the rectified view's rays in the rectified frame
         self._rect_shape = (m.height, m.width)
-        self._view_cache: dict[tuple[int, float], _View] = {}
+        self._view_cache: dict[tuple[int, float], View] = {}
         # the pose at t = 0 (the only one of a camera that does not move): world frame
         self.R_world_left, self.origin_left = self.left_pose(0.0)
         self.R_world_rect = self.R_world_left @ R1.T
@@ -278,8 +151,8 @@ class SyntheticWorld:
                            for j in range(len(b.part_list()))] for b in scene.boxes]
         self._static_objs = [i for i, b in enumerate(scene.boxes) if b.is_static()]
         self._moving_objs = [i for i, b in enumerate(scene.boxes) if not b.is_static()]
-        self._static_layers: dict[int, _Layer] = {}
-        self._frame_cache: dict[tuple[int, float], _Layer] = {}
+        self._static_layers: dict[int, Layer] = {}
+        self._frame_cache: dict[tuple[int, float], Layer] = {}
         self._truth_cache: dict[float, list[ObstacleTruth]] = {}
         self._prerendered: dict[float, tuple[np.ndarray, np.ndarray]] = {}
         self._truth_prerendered: dict[float, list[ObstacleTruth]] = {}
@@ -459,16 +332,16 @@ class SyntheticWorld:
             out.append(img + np.float32(0.5))  # +0.5: the uint8 conversion truncates
         return out[0], out[1]
 
-    def _make_view(self, which: int, t: float) -> _View:
+    def _make_view(self, which: int, t: float) -> View:
         c = self._cams[which]
         R_wl, o_wl = self.left_pose(t)
         R_world_cam = R_wl @ c.R_left_cam
         dw = c.dirs32 @ R_world_cam.T.astype(np.float32)
         K = c.K
-        return _View(o_wl + R_wl @ c.center_left, dw, self.shape, 1.0 / K[0, 0], c.shaded, R_world_cam.T, K,
+        return View(o_wl + R_wl @ c.center_left, dw, self.shape, 1.0 / K[0, 0], c.shaded, R_world_cam.T, K,
                      c.slack_px)
 
-    def _view(self, which: int, t: float = 0.0) -> _View:
+    def _view(self, which: int, t: float = 0.0) -> View:
         if not self.scene.camera_moves():
             return (self._left, self._right, self._rect)[which]
         key = (which, float(t))
@@ -478,7 +351,7 @@ class SyntheticWorld:
             self._view_cache[key] = self._make_view(which, float(t))
         return self._view_cache[key]
 
-    def _layer(self, which: int, t: float) -> _Layer:
+    def _layer(self, which: int, t: float) -> Layer:
         """Depth, shade and obstacle index of view `which` (0 left, 1 right, 2 rectified left)."""
         if self.scene.camera_moves():
             # everything moves in the image: floor, wall and every object are cast for each frame
@@ -509,7 +382,7 @@ class SyntheticWorld:
             self._frame_cache[key] = layer
         return self._frame_cache[key]
 
-    def _background(self, v: _View) -> _Layer:
+    def _background(self, v: View) -> Layer:
         """Floor and wall: every ray in the field of view hits one of them."""
         o, d = v.origin, v.dirs
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -519,9 +392,10 @@ class SyntheticWorld:
         t = np.minimum(t_floor, t_wall).astype(np.float32)
         shade = np.zeros(t.shape, np.float32)
         if not v.shaded:
-            return _Layer(t, shade, np.full(t.shape, -1, np.int16))
+            return Layer(t, shade, np.full(t.shape, -1, np.int16))
+        wall = ~floor & np.isfinite(t)
         for mask, tex, normal, uv_axes in ((floor, self._floor_tex, np.array([0.0, 0.0, 1.0]), (0, 1)),
-                                           (~floor & np.isfinite(t), self._wall_tex, np.array([-1.0, 0.0, 0.0]), (1, 2))):
+                                           (wall, self._wall_tex, np.array([-1.0, 0.0, 0.0]), (1, 2))):
             idx = np.flatnonzero(mask)
             if not idx.size:
                 continue
@@ -530,8 +404,8 @@ class SyntheticWorld:
             cos_i = np.abs(d[idx] @ normal.astype(np.float32))
             di = d[idx]
             shade[idx] = self._shade(p[:, uv_axes[0]], p[:, uv_axes[1]], ti, di[:, uv_axes[0]], di[:, uv_axes[1]],
-                                     cos_i, v.pix_angle, tex.params[None]) * _lambert(normal)
-        return _Layer(t, shade, np.full(t.shape, -1, np.int16))
+                                     cos_i, v.pix_angle, tex.params[None]) * lambert(normal)
+        return Layer(t, shade, np.full(t.shape, -1, np.int16))
 
     def _shade(self, u, v, t, dir_u, dir_v, cos_i, pix_angle, tex: np.ndarray) -> np.ndarray:
         """Texture value at surface coordinates (u, v) m, for rays of length t (m) whose unit direction
@@ -543,7 +417,7 @@ class SyntheticWorld:
         return sample_texture(self._levels, u, v, minor.astype(np.float32), major.astype(np.float32),
                        dir_u / norm, dir_v / norm, np.broadcast_to(tex, (u.shape[0], 5)))
 
-    def _placed_parts(self, i: int, t: float) -> list[_PlacedPart]:
+    def _placed_parts(self, i: int, t: float) -> list[PlacedPart]:
         """Obstacle i's parts posed at time t."""
         b = self.scene.boxes[i]
         origin, yaw, _ = b.pose(t)
@@ -552,14 +426,14 @@ class SyntheticWorld:
         for j, part in enumerate(b.part_list()):
             pyaw = yaw + math.radians(part.yaw_deg)
             w, h, d = part.size
-            normals = _FACE_NORMALS @ rot_z(pyaw).T
-            out.append(_PlacedPart(
+            normals = FACE_NORMALS @ rot_z(pyaw).T
+            out.append(PlacedPart(
                 obj=i, center=origin + Rz @ np.asarray(part.offset, float), yaw=pyaw,
                 half=np.array([d, w, h]) / 2.0, tex=self._part_tex[i][j],
-                light=np.array([_lambert(n) for n in normals], np.float32)))
+                light=np.array([lambert(n) for n in normals], np.float32)))
         return out
 
-    def _draw(self, v_: _View, layer: _Layer, i: int, t: float) -> None:
+    def _draw(self, v_: View, layer: Layer, i: int, t: float) -> None:
         """Z-buffer obstacle i's parts into `layer` (in place)."""
         h, w = v_.shape
         dirs2, t2, shade2, obj2 = (a.reshape(h, w, -1) if a.ndim == 2 else a.reshape(h, w)
@@ -571,7 +445,7 @@ class SyntheticWorld:
             if win is None:
                 continue
             y0, y1, x0, x1 = win
-            hits, tt, face, u, v, du, dv, cos_i = _intersect_box(v_.origin, dirs2[y0:y1, x0:x1].reshape(-1, 3), p)
+            hits, tt, face, u, v, du, dv, cos_i = intersect_box(v_.origin, dirs2[y0:y1, x0:x1].reshape(-1, 3), p)
             r, c = np.divmod(hits, x1 - x0)
             r += y0
             c += x0
@@ -592,10 +466,3 @@ class SyntheticWorld:
         r, c = r[keep], c[keep]
         shade2[r, c] = self._shade(u[keep], v[keep], tt[keep], du[keep], dv[keep], cos_i[keep], v_.pix_angle,
                                    tex[keep]) * light[keep]
-
-
-_FACE_NORMALS = np.array([[-1, 0, 0], [1, 0, 0], [0, -1, 0], [0, 1, 0], [0, 0, -1], [0, 0, 1]], float)
-
-
-def _lambert(normal_world: np.ndarray) -> float:
-    return float(AMBIENT + (1.0 - AMBIENT) * max(0.0, float(np.dot(normal_world, LIGHT_DIR))))

@@ -17,6 +17,22 @@ def test_import_contracts_hold():
     assert "0 broken" in out.stdout
 
 
+def _tool(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", *args], cwd=ROOT, capture_output=True, text=True, timeout=600)
+
+
+def test_ruff_finds_nothing():
+    """ruff with the project's rules ([tool.ruff] in pyproject.toml) over the whole tree, tests too."""
+    out = _tool("ruff", "check", ".")
+    assert out.returncode == 0, out.stdout + out.stderr
+
+
+def test_mypy_finds_nothing():
+    """mypy with the project's settings ([tool.mypy]: every package, pydantic's plugin)."""
+    out = _tool("mypy")
+    assert out.returncode == 0, out.stdout + out.stderr
+
+
 def test_docs_key_table_is_the_key_table():
     from common.keys import TOPICS, markdown_table
 

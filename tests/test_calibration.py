@@ -16,6 +16,7 @@ from common.errors import CalibrationError
 from cores import camera
 from cores.calibration import calibrate as C
 from cores.calibration import formats as F
+from cores.calibration.report import format_report
 
 PATTERN, SQUARE = (9, 6), 0.03
 SIZE = (640, 480)
@@ -110,7 +111,7 @@ def test_synthetic_rig_is_recovered(synthetic_result):
     assert np.all(r.left.std[[0, 1, 2, 3, 5, 6, 7, 8]] > 0) and r.left.std[4] == 0 and r.left.std[9] == 0
     rect = camera.rectify_rig(r.rig).model
     assert rect.baseline_m == pytest.approx(np.linalg.norm(TRUE_T), rel=0.005)
-    report = C.format_report(r, (0.5, 3.0))
+    report = format_report(r, (0.5, 3.0))
     for text in ("Focal Length", "Principal point", "Skew", "Distortion", "Rotation vector", "Translation vector",
                  "Stereo RMS", "± 3 standard deviations", "Rectified: f =", "disparity"):
         assert text in report
@@ -118,7 +119,8 @@ def test_synthetic_rig_is_recovered(synthetic_result):
 
 def test_calibrate_command(synthetic_views, tmp_path, capsys):
     out = tmp_path / "calib.yaml"
-    rc = main(["calibrate", "--left", str(synthetic_views / "left*.png"), "--right", str(synthetic_views / "right*.png"),
+    rc = main(["calibrate", "--left", str(synthetic_views / "left*.png"),
+               "--right", str(synthetic_views / "right*.png"),
                "--pattern", "9x6", "--square-size", str(SQUARE), "--depth-range", "0.5", "3", "-o", str(out)])
     text = capsys.readouterr().out
     assert rc == 0
@@ -152,7 +154,7 @@ def test_outlier_view_is_rejected(synthetic_views, tmp_path):
     # Per camera the swapped image is still a valid view; the stereo per-view error catches it.
     assert names == {"right07.png"}
     assert r.rms < 0.3 and len(r.views) == 14
-    assert "right07.png" in C.format_report(r)
+    assert "right07.png" in format_report(r)
 
 
 def test_errors_are_clear(synthetic_views, tmp_path, capsys):

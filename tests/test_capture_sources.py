@@ -39,7 +39,7 @@ def index_of(img: np.ndarray, side: int) -> int:
 
 def write_video(path: Path, frames: list[np.ndarray], fps: float = 30.0) -> Path:
     h, w = frames[0].shape[:2]
-    vw = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), fps, (w, h))
+    vw = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"MJPG"), fps, (w, h))
     assert vw.isOpened(), "this OpenCV build cannot write MJPG .avi"
     for f in frames:
         vw.write(f)

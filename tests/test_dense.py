@@ -149,7 +149,7 @@ def test_auto_range_from_the_calibration(scene):
     assert auto_num_disparities(600.0, 0.1, 0.01, width=320) == 80  # a quarter of the width: bm's blind band
     assert auto_num_disparities(645.24, 0.5707, 0.5, width=1344) == 336  # Karlsruhe: 1.1 m, not 0.5 m
     with pytest.raises(BallbotError, match="focal length and baseline"):
-        MatcherConfig(num_disparities="auto").fixed_num_disparities
+        _ = MatcherConfig(num_disparities="auto").fixed_num_disparities
     with pytest.raises(ValidationError):
         MatcherConfig(num_disparities="far")
     cfg = MatcherConfig(method="bm", num_disparities="auto", min_range_m=0.5)

@@ -63,7 +63,8 @@ def test_every_compose_file_builds_on_the_local_base_image():
 
 
 def test_docker_up_script_parses_and_documents_itself():
-    for script in ("docker-up.sh", "build-base-image.sh", "fetch-wheels.sh", "lock-constraints.sh", "calibration-key.sh"):
+    for script in ("docker-up.sh", "build-base-image.sh", "fetch-wheels.sh", "lock-constraints.sh",
+                   "calibration-key.sh"):
         subprocess.run(["bash", "-n", str(REPO / "deploy" / script)], check=True)
     out = subprocess.run(["bash", str(REPO / "deploy" / "docker-up.sh"), "--help"], capture_output=True, text=True,
                          check=True).stdout
@@ -142,8 +143,8 @@ def test_compose_refuses_to_start_without_the_key_and_reads_it_from_env_file(tmp
     r = subprocess.run(compose + ["config"], cwd=tmp_path, capture_output=True, text=True, env=env, timeout=120)
     assert r.returncode != 0 and "calibration-key.sh" in r.stdout + r.stderr, r.stdout + r.stderr
     (tmp_path / ".env").write_text("BALLBOT_CALIBRATION_KEY=k123\n")
-    r = subprocess.run(compose + ["--profile", "viewer", "--profile", "ros2", "--profile", "foxglove", "config"], cwd=tmp_path,
-                       capture_output=True, text=True, env=env, timeout=120)
+    r = subprocess.run(compose + ["--profile", "viewer", "--profile", "ros2", "--profile", "foxglove", "config"],
+                       cwd=tmp_path, capture_output=True, text=True, env=env, timeout=120)
     assert r.returncode == 0, r.stderr
     services = yaml.safe_load(r.stdout)["services"]
     with_key = {n for n, s in services.items() if (s.get("environment") or {}).get("BALLBOT_CALIBRATION_KEY") == "k123"}
@@ -264,7 +265,8 @@ def test_the_first_readme_command_installs_what_viewer_record_replay_and_foxglov
     ours = {"ballbot_vision", "bench", "services", "evaluation", "sim", "cores", "common"}
     files = [*(REPO / "services" / "viewer").glob("*.py"), *(REPO / "services" / "recorder").glob("*.py"),
              *(REPO / "services" / "foxglove").glob("*.py"), REPO / "services" / "capture" / "mcap_source.py",
-             REPO / "cores" / "recording.py", REPO / "cores" / "recording_reader.py", REPO / "cores" / "foxglove.py", REPO / "ballbot_vision" / "mcap_commands.py"]
+             REPO / "cores" / "recording.py", REPO / "cores" / "recording_reader.py", REPO / "cores" / "foxglove.py",
+             REPO / "ballbot_vision" / "mcap_commands.py"]
     modules = set()
     for f in files:
         for node in ast.walk(ast.parse(f.read_text())):

@@ -14,7 +14,7 @@ import uuid
 
 import pytest
 
-from bench.fleet import netns_unavailable  # the one check whether this machine can make test hosts
+from bench.fleet_harness import netns_unavailable  # the one check whether this machine can make test hosts
 from common.errors import DecodeError
 from services.disparity.envelope import make_attachment, parse_attachment
 from services.disparity.state import DispatchState
@@ -322,7 +322,8 @@ def start_robot(procs: Procs, rid: str, endpoint: str, listen: str, rate: float 
     procs.service("router", "router", "--listen", listen, *common)
     host, port = listen[4:].rsplit(":", 1)
     deadline = time.monotonic() + 20
-    probe = procs.prefix + [PY, "-c", f"import socket; socket.create_connection(('{endpoint[4:].rsplit(':', 1)[0]}', {port}), 1).close()"]
+    host = endpoint[4:].rsplit(":", 1)[0]
+    probe = procs.prefix + [PY, "-c", f"import socket; socket.create_connection(('{host}', {port}), 1).close()"]
     while subprocess.run(probe, stderr=subprocess.DEVNULL).returncode != 0:
         assert time.monotonic() < deadline, "router did not start listening"
         time.sleep(0.1)  # polling a TCP port for the router to come up (no event to wait on)
@@ -401,7 +402,8 @@ def test_three_worker_processes_survive_a_kill_and_garbage():
         inj = procs.start("inject", [PY, "-c", INJECT, rid, endpoint, workers[1]])
         assert inj.wait(60) == 0
         col.wait_for(lambda ev: any(e["k"] == "S" and e["extra"].get("pool_unknown_frame", 0) >= 1
-                                    and e["extra"].get("pool_duplicate", 0) + e["extra"].get("pool_unknown_frame", 0) >= 2
+                                    and e["extra"].get("pool_duplicate", 0)
+                                    + e["extra"].get("pool_unknown_frame", 0) >= 2
                                     and e["extra"].get("pool_unknown_worker", 0) >= 1 and e["decode_errors"] >= 1
                                     for e in ev), 30, "the dispatcher to count bad receipts")
         col.wait_for(lambda ev: any(e["k"] == "S" and e["instance"] == workers[1] and e["decode_errors"] >= 2

@@ -42,7 +42,8 @@ def _docker_missing() -> str | None:
         return "no docker CLI on this machine"
     r = subprocess.run(["docker", "info"], capture_output=True, text=True, timeout=60)
     if r.returncode != 0:
-        return f"no Docker engine answers `docker info` (not in the docker group?): {(r.stderr or r.stdout).strip()[:200]}"
+        return ("no Docker engine answers `docker info` (not in the docker group?): "
+                f"{(r.stderr or r.stdout).strip()[:200]}")
     if subprocess.run(["docker", "image", "inspect", BASE_IMAGE], capture_output=True).returncode != 0 \
             and os.geteuid() != 0:
         return (f"the base image {BASE_IMAGE} is missing and building it needs root (debootstrap): "

@@ -70,7 +70,8 @@ def test_caption_band_and_colour_input():
     assert (band == 255).all(axis=-1).sum() > 50  # white text
     assert band[..., 2].max() <= 255 and np.median(band[..., 2]) < 100  # darkened
     text = D.caption(lst)
-    assert "seq 7" in text and "1 obstacle" in text and "h 1.00 m" in text and "pitch +20.0" in text and "fitted" in text
+    for part in ("seq 7", "1 obstacle", "h 1.00 m", "pitch +20.0", "fitted"):
+        assert part in text, (part, text)
     assert _is(out[200, 10], (0, 0, 200))  # elsewhere the colour image as it was
 
 

@@ -6,7 +6,8 @@ import pytest
 
 from common.errors import ConfigError
 from services.disparity.envelope import make_attachment
-from services.disparity.fleet import FairScheduler, attachment_grant, parse_weights
+from services.disparity.fleet import attachment_grant
+from services.disparity.scheduler import FairScheduler, parse_weights
 from services.disparity.state import DispatchState
 
 
@@ -313,7 +314,7 @@ def test_a_fleet_shares_a_pool_fairly_and_survives_a_kill_and_a_join(tmp_path):
     import threading
     import time
 
-    from bench.fleet import Fleet
+    from bench.fleet_harness import Fleet
 
     robots = ["fa", "fb", "fc"]
     with Fleet(robots, greedy={"fa": 8}, fallback={"fc": "half"}, logdir=str(tmp_path)) as fleet:

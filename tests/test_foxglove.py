@@ -163,7 +163,8 @@ def test_a_foxglove_client_subscribes_and_decodes_the_live_pipeline():
             lists = [doc for _, doc in got["/obstacles"]]
             assert all(doc["robot_id"] == "fox" for doc in lists)
             grid = got["/freespace/grid"][-1][1]
-            assert grid.frame_id == "base" and len(grid.data) == grid.column_count * (len(grid.data) // grid.column_count)
+            assert grid.frame_id == "base"
+            assert len(grid.data) == grid.column_count * (len(grid.data) // grid.column_count)
             tf = got["/tf"][-1][1]
             assert (tf.parent_frame_id, tf.child_frame_id) == ("base", "camera") and 0.3 < tf.translation.z < 3.0
             ground = got["/ground"][-1][1]

@@ -292,7 +292,8 @@ def test_up_maps_stamped_ahead_on_the_disparity_key_are_refused_unsigned(up_robo
     obs.wait(lambda: obs.extra("segmenter", "in_disparity_unsigned") >= 1
              and obs.extra("segmenter", "in_disparity_forged") >= 1, 30, "the segmenter to count the forgeries")
     unsigned, forged = obs.extra("segmenter", "in_disparity_unsigned"), obs.extra("segmenter", "in_disparity_forged")
-    print(f"    segmenter refused {unsigned + forged - before:.0f} (unsigned {unsigned:.0f}, bad signature {forged:.0f}); "
+    print(f"    segmenter refused {unsigned + forged - before:.0f} "
+          f"(unsigned {unsigned:.0f}, bad signature {forged:.0f}); "
           f"future {obs.extra('segmenter', 'in_disparity_future'):.0f}")
     assert obs.extra("segmenter", "in_disparity_future") == 0, "a forged stamp reached the freshness gate"
 

@@ -56,7 +56,8 @@ def _bad_images() -> dict[str, tuple[str, bytes, str]]:
     return {
         "1x1": (".png", cv2.imencode(".png", np.zeros((1, 1), np.uint8))[1].tobytes(), "1x1 pixels is too small"),
         "huge-header": (".png", _png_header_only(100000, 100000), "100000x100000 pixels is larger than"),
-        "huge-pgm-header": (".pgm", b"P5\n# a comment\n30000 30000\n255\n" + bytes(100), "30000x30000 pixels is larger than"),
+        "huge-pgm-header": (".pgm", b"P5\n# a comment\n30000 30000\n255\n" + bytes(100),
+                            "30000x30000 pixels is larger than"),
         "huge-bmp-header": (".bmp", _bmp_header_only(50000, -50000), "50000x50000 pixels is larger than"),
         "empty": (".png", b"", "the file is empty"),
         "binary": (".png", bytes(range(256)) * 8, "not an image file OpenCV can decode"),

@@ -29,7 +29,7 @@ def chain():
 def test_rectified_rows_are_epipolar_lines(chain):
     import cv2
     _, _, left, right, _ = chain
-    orb = cv2.ORB_create(2000)
+    orb = cv2.ORB.create(2000)
     kl, dl = orb.detectAndCompute(left, None)
     kr, dr = orb.detectAndCompute(right, None)
     matches = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True).match(dl, dr)

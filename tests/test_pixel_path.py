@@ -1,4 +1,4 @@
-"""The memory policy every service runs with (common/node.py: release_memory_eagerly, trim_memory):
+"""The memory policy every service runs with (common/memory.py: release_memory_eagerly, trim_memory):
 image-sized buffers are reused from frame to frame instead of being page-faulted in again, and what
 a burst of big payloads leaves behind goes back to the OS at the next trim. Counted in page faults
 and RSS (deterministic), not in time; the CPU it saves is measured by `ballbot-vision bench`."""
@@ -10,7 +10,7 @@ import sys
 
 PROBE = r"""
 import json, os, resource, sys, threading
-from common.node import release_memory_eagerly, trim_memory
+from common.memory import release_memory_eagerly, trim_memory
 
 release_memory_eagerly()
 

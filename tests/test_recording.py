@@ -12,10 +12,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-
-pytest.importorskip("mcap", reason="recordings need the `mcap` package (the `record` extra)")
-jsonschema = pytest.importorskip("jsonschema", reason="schema checks need jsonschema (the `test` extra)")
-
 from helpers import cli, read_mcap
 
 from common import codec
@@ -38,6 +34,9 @@ from cores import recording as R
 from cores.recording_reader import RecordingReader, decode_image
 from services.capture.mcap_source import McapSource
 from services.capture.sources import SourceContext
+
+# (mcap is a dependency of the package itself, so only jsonschema may be missing)
+jsonschema = pytest.importorskip("jsonschema", reason="schema checks need jsonschema (the `test` extra)")
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
 if not REAL.is_dir():
@@ -70,8 +69,8 @@ def obstacles(k: int, stamp0: int = 10**18) -> ObstacleList:
 
 def truth(k: int, stamp0: int = 10**18) -> GroundTruth:
     return GroundTruth(robot_id="r", seq=k, stamp_ns=stamp0 + k * 50_000_000, scenario="two-boxes", obstacles=[
-        TruthObstacle(name="box", kind="box", center_m=(0, 0, 2), size_m=(0.4, 0.5, 0.3), visible_centroid_m=(0, 0, 1.9),
-                      nearest_m=1.85, visible_px=500, bbox_px=(4, 5, 31, 41))])
+        TruthObstacle(name="box", kind="box", center_m=(0, 0, 2), size_m=(0.4, 0.5, 0.3),
+                      visible_centroid_m=(0, 0, 1.9), nearest_m=1.85, visible_px=500, bbox_px=(4, 5, 31, 41))])
 
 
 def write_recording(path: Path, n: int = 5, image_format: str = "png", chunk_size: int = 4 << 20,
@@ -177,7 +176,8 @@ def test_rectified_pairs_replay_with_their_rectified_camera_and_raw_ones_only_wh
     for p in got:
         left, right = pair_images(p.seq)
         assert np.array_equal(p.left, left) and np.array_equal(p.right, right)
-        assert [np.array_equal(a, b) for a, b in zip(Rectifier(cal).rectify(p.left, p.right), (left, right))] == [True, True]
+        rectified = Rectifier(cal).rectify(p.left, p.right)
+        assert [np.array_equal(a, b) for a, b in zip(rectified, (left, right))] == [True, True]
     with pytest.raises(R.RecordingError, match=r"no raw stereo pairs .*\(`record` keeps them with --raw true\)"):
         list(reader.pairs("raw"))
 
@@ -194,9 +194,11 @@ def write_layout1(path: Path, n: int) -> None:
         sid = w.register_schema(name="foxglove.CompressedImage", encoding="jsonschema",
                                 data=json.dumps({"title": "foxglove.CompressedImage", "type": "object"}).encode())
         cal = w.register_schema(name="ballbot.Calibration", encoding="jsonschema", data=b"{}")
-        ids = {t: w.register_channel(topic=t, message_encoding="json", schema_id=sid) for t in (R.RAW_LEFT, R.RAW_RIGHT)}
+        ids = {t: w.register_channel(topic=t, message_encoding="json", schema_id=sid)
+               for t in (R.RAW_LEFT, R.RAW_RIGHT)}
         c = w.register_channel(topic=R.CALIBRATION, message_encoding="json", schema_id=cal)
-        w.add_message(c, log_time=1, publish_time=1, data=json.dumps({"yaml": "rectified: true", "source": "x"}).encode())
+        w.add_message(c, log_time=1, publish_time=1,
+                      data=json.dumps({"yaml": "rectified: true", "source": "x"}).encode())
         for k in range(n):
             for t, img in zip((R.RAW_LEFT, R.RAW_RIGHT), pair_images(k)):
                 data = cv2.imencode(".png", img)[1].tobytes()
@@ -248,7 +250,8 @@ def test_jpeg_recording_is_close_to_the_original(tmp_path):
     w = R.RecordingWriter(path)
     conv = R.Converter(R.RecordOptions(image_format="jpeg", jpeg_quality=95, raw=True))
     img = cv2.GaussianBlur(pair_images(0)[0], (7, 7), 2)
-    msg = StereoFrame(robot_id="r", seq=0, stamp_ns=1, left=codec.image_from_array(img), right=codec.image_from_array(img))
+    msg = StereoFrame(robot_id="r", seq=0, stamp_ns=1, left=codec.image_from_array(img),
+                      right=codec.image_from_array(img))
     for r in conv.frame(msg):
         w.write(r.topic, r.doc, r.log_time_ns, r.sequence)
     w.close()

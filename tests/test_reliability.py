@@ -250,8 +250,8 @@ def publish_calibrations(pipeline: Pipeline, docs: list[dict], key: bytes | None
         msg = CalibrationUpdate(robot_id=pipeline.rid, seq=i, stamp_ns=time.time_ns(), yaml=yaml.safe_dump(doc),
                                 source=what)
         pipeline.session.put(pipeline.key("calibration"), codec.encode(sign(msg, key) if key else msg))
-        st.wait(lambda: st.extra("rectify", "calibration_generation") + st.extra("rectify", "calibration_refused")
-                > g0 + r0, 30, f"rectify to take or refuse {what} {i + 1}")
+        st.wait(lambda g0=g0, r0=r0: st.extra("rectify", "calibration_generation")
+                + st.extra("rectify", "calibration_refused") > g0 + r0, 30, f"rectify to take or refuse {what} {i + 1}")
         out.append("taken" if st.extra("rectify", "calibration_generation") > g0 else "refused")
     return out
 
@@ -495,8 +495,8 @@ def fuzz(session, rid: str, keys: list[str], rounds: int) -> int:
     over = b"\x00" * (90 << 20)  # over every image cap (80 MB), under Zenoh's reassembly cap
     now = time.time_ns()
     img = {"width": 640, "height": 480, "channels": 1, "dtype": "uint8", "encoding": "raw", "data": big}
-    doc = msgpack.packb({"schema_version": SCHEMA_VERSION, "robot_id": rid, "seq": 1, "stamp_ns": now, "left": img, "right": img,
-                         "image": img, "scale": 16.0}, use_bin_type=True)
+    doc = msgpack.packb({"schema_version": SCHEMA_VERSION, "robot_id": rid, "seq": 1, "stamp_ns": now,
+                         "left": img, "right": img, "image": img, "scale": 16.0}, use_bin_type=True)
     sent = 0
     block = zenoh.CongestionControl.BLOCK
     for r in range(rounds):

@@ -167,13 +167,14 @@ def test_bridge_topics_read_by_raw_zenoh_rosbags_and_zenoh_ros2_sdk(tmp_path):
             from zenoh_ros2_sdk.discovery import get_topic_info, get_topic_names_and_types
 
             got_sdk: list = []
-            sdk.entities.append(ROS2Subscriber(topic="/obstacles/detections", msg_type="vision_msgs/msg/Detection3DArray",
+            sdk.entities.append(ROS2Subscriber(topic="/obstacles/detections",
+                                               msg_type="vision_msgs/msg/Detection3DArray",
                                                callback=got_sdk.append, router_port=port, domain_id=0))
 
             def enough() -> bool:
                 with lock:
-                    counts = {k.split("/sensor_msgs")[0].split("/vision_msgs")[0].split("/visualization_msgs")[0]: len(v)
-                              for k, v in samples.items()}
+                    counts = {k.split("/sensor_msgs")[0].split("/vision_msgs")[0].split("/visualization_msgs")[0]:
+                              len(v) for k, v in samples.items()}
                 return len(got_sdk) >= 3 and all(any(c >= 4 for k, c in counts.items() if k == "0/" + t)
                                                  for t in ("obstacles/detections", "obstacles/markers",
                                                            "obstacles/points", "camera/left/image_rect"))
@@ -243,7 +244,7 @@ def test_bridge_topics_read_by_raw_zenoh_rosbags_and_zenoh_ros2_sdk(tmp_path):
     grids_checked = 0
     tf_heights: list[float] = []
     checked = 0
-    for name, (key, items) in by_topic.items():
+    for name, (_key, items) in by_topic.items():
         seqs = []
         for payload, att in items:
             seq, ts, gid = zext.z_deserialize(tuple[zext.Int64, zext.Int64, list[zext.UInt8]], zenoh.ZBytes(att))
@@ -252,8 +253,9 @@ def test_bridge_topics_read_by_raw_zenoh_rosbags_and_zenoh_ros2_sdk(tmp_path):
             seqs.append(seq)
             assert payload[:4] == b"\x00\x01\x00\x00"
             msg = store.deserialize_cdr(payload, EXPECTED[name])
-            if name == "obstacles/detections" and msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec in lists_by_stamp:
-                ol = lists_by_stamp[msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec]
+            stamp_ns = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+            if name == "obstacles/detections" and stamp_ns in lists_by_stamp:
+                ol = lists_by_stamp[stamp_ns]
                 assert [d.id for d in msg.detections] == [str(o.id) for o in ol.obstacles]
                 for d, o in zip(msg.detections, ol.obstacles):
                     c = d.bbox.center.position
@@ -264,7 +266,8 @@ def test_bridge_topics_read_by_raw_zenoh_rosbags_and_zenoh_ros2_sdk(tmp_path):
             if name == "freespace":
                 fs = grids_by_stamp.get(msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec)
                 if fs is not None:  # the grid the segmenter published with that capture stamp
-                    assert np.array_equal(msg.data, np.frombuffer(fs.cells, np.int8)) and msg.header.frame_id == "base_link"
+                    assert np.array_equal(msg.data, np.frombuffer(fs.cells, np.int8))
+                    assert msg.header.frame_id == "base_link"
                     assert (msg.info.width, msg.info.height) == (fs.width, fs.height)
                     assert msg.info.origin.position.x == pytest.approx(fs.origin_m[0])
                     assert (np.frombuffer(fs.cells, np.int8) == 0).any()  # the synthetic floor is seen free

@@ -163,7 +163,8 @@ def test_without_credentials_nothing_connects(robot, tmp_path, case):
         config = _config_with(robot, tmp_path, "c.json5", lambda t: re.sub(r'password: "\w+"', 'password: "guess"', t))
         mode, endpoint = "client", robot["external"]
     elif case == "password but no client certificate":
-        config = _config_with(robot, tmp_path, "c.json5", lambda t: re.sub(r"\s*connect_(certificate|private_key): .*", "", t)
+        config = _config_with(robot, tmp_path, "c.json5",
+                              lambda t: re.sub(r"\s*connect_(certificate|private_key): .*", "", t)
                               .replace("enable_mtls: true", "enable_mtls: false"))
         mode, endpoint = "client", robot["external"]
     elif case == "certificate but no password":

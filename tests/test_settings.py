@@ -93,8 +93,8 @@ def test_a_misspelled_config_section_is_an_error_naming_the_known_ones(tmp_path)
     msg = str(e.value)
     assert (f"{cfg}: unknown sections 'captur' (did you mean 'capture'?), 'segmentr' (did you mean 'segmenter'?), "
             f"'nonsense'; the known sections are capture, rectify, ") in msg, msg
-    r = subprocess.run([sys.executable, "-m", "ballbot_vision.cli", "obstacles", "a.png", "b.png", "--config", str(cfg)],
-                       capture_output=True, text=True, timeout=120)
+    r = subprocess.run([sys.executable, "-m", "ballbot_vision.cli", "obstacles", "a.png", "b.png",
+                        "--config", str(cfg)], capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and "unknown sections 'captur'" in r.stderr and "Traceback" not in r.stderr, r.stderr
     cfg.write_text("capture: {rate_hz: 15}\nmount: {}\nforxglove: {}\n")
     with pytest.raises(ConfigError, match=r"unknown section 'forxglove' \(did you mean 'foxglove'\?\)"):

@@ -126,7 +126,8 @@ def test_up_viewer_without_aiohttp_keeps_the_pipeline_and_says_what_to_install(t
     try:
         with up.session() as s:
             s.declare_subscriber(topic("obstacles").key(up.robot_id), lists)
-            assert lists.wait_for(lambda items: sum(not m.stale for m in items) >= 20, 180), up.log_path.read_text()[-3000:]
+            assert lists.wait_for(lambda items: sum(not m.stale for m in items) >= 20, 180), \
+                up.log_path.read_text()[-3000:]
             n = len(lists.items)
             t0 = time.monotonic()
             assert lists.wait_for(lambda items: sum(not m.stale for m in items[n:]) >= 30, 120)
@@ -137,7 +138,9 @@ def test_up_viewer_without_aiohttp_keeps_the_pipeline_and_says_what_to_install(t
         up.stop()
     viewer_starts = log.count("started viewer")
     print(f"up --viewer without aiohttp: {len(lists.items)} obstacle lists ({sum(not m.stale for m in lists.items)} "
-          f"fresh; 30 new ones in {seconds:.1f} s after the viewer was disabled); viewer started {viewer_starts} time(s)")
+          f"fresh; 30 new ones in {seconds:.1f} s after the viewer was disabled); "
+          f"viewer started {viewer_starts} time(s)")
     assert "viewer is disabled" in log and "pip install 'ballbot-vision[viewer]'" in log
     assert viewer_starts == 1, log[-3000:]
-    assert " viewer " not in "".join(line for line in log.splitlines(True) if line.rstrip().endswith(f"up (robot {up.robot_id})"))
+    up_lines = [line for line in log.splitlines(True) if line.rstrip().endswith(f"up (robot {up.robot_id})")]
+    assert " viewer " not in "".join(up_lines)

@@ -120,7 +120,8 @@ def test_up_publishes_obstacles_matching_ground_truth_and_stops_cleanly(up):
             if inst["service"] in SERVICES:
                 m = importlib.import_module(SERVICES[inst["service"]][0])
                 assert set(inst["subscribes"]) <= set(m.SUBSCRIBES), (inst["service"], inst["subscribes"])
-                assert set(inst["publishes"]) - {"stats", "alive"} <= set(m.PUBLISHES), (inst["service"], inst["publishes"])
+                assert set(inst["publishes"]) - {"stats", "alive"} <= set(m.PUBLISHES), \
+                    (inst["service"], inst["publishes"])
 
     pids = up.child_pids()
     assert set(pids) == {"router", "capture", "rectify", "disparity", "segmenter"}

@@ -10,6 +10,7 @@ import time
 import msgpack
 import numpy as np
 import pytest
+from helpers import free_port
 
 from common import codec
 from common.errors import ConfigError
@@ -17,7 +18,6 @@ from common.inbox import Inbox, meta_of
 from common.keys import topic
 from common.messages import StereoFrame
 from common.zenoh_session import ZenohOptions, make_config, open_session, options_from_args
-from helpers import free_port
 
 
 def pair() -> tuple[np.ndarray, np.ndarray]:

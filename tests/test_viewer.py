@@ -319,7 +319,7 @@ def test_the_page_shows_the_pictures_and_draws_the_boxes_of_the_obstacle_list(tm
                     continue
                 ages.append((state["age"], state["pipeline"]))
                 # (by seq: JavaScript numbers cannot hold a ns stamp exactly)
-                assert lists.wait_for(lambda items: any(m.seq == drawn["seq"] for m in items), 30)
+                assert lists.wait_for(lambda items, seq=drawn["seq"]: any(m.seq == seq for m in items), 30)
                 msg = next(m for m in lists.items if m.seq == drawn["seq"])
                 assert sorted((b["id"], tuple(b["bbox_px"])) for b in drawn["boxes"]) == \
                     sorted((o.id, tuple(o.bbox_px)) for o in msg.obstacles), (drawn, msg.obstacles)
@@ -341,7 +341,8 @@ def test_the_page_shows_the_pictures_and_draws_the_boxes_of_the_obstacle_list(tm
                 const ctx = document.getElementById('image').getContext('2d');
                 return window.viewer.drawn.boxes.map((b) => {
                     const [x0, y0, x1, y1] = b.bbox_px;
-                    const a = x0 + Math.floor((x1 - x0) / 4), n = Math.floor(3 * (x1 - x0) / 4) - Math.floor((x1 - x0) / 4);
+                    const a = x0 + Math.floor((x1 - x0) / 4);
+                    const n = Math.floor(3 * (x1 - x0) / 4) - Math.floor((x1 - x0) / 4);
                     return {box: b, row: Array.from(ctx.getImageData(a, y0, n, 1).data)};
                 });
             }""")

@@ -83,7 +83,7 @@ class RosPublisher:
         if qos.durability == "transient_local":
             kwargs.update(publisher_detection=True, cache=zenoh.ext.CacheConfig(max_samples=max(1, qos.depth)))
             if reliable:
-                kwargs["sample_miss_detection"] = zenoh.ext.MissDetectionConfig(sporadic_heartbeat=0.5)
+                kwargs["sample_miss_detection"] = zenoh.ext.MissDetectionConfig(heartbeat=None, sporadic_heartbeat=0.5)
         self._pub = zenoh.ext.declare_advanced_publisher(node.session, self.key, **kwargs)
         self._token = node.session.liveliness().declare_token(self.token_key)
         self._lock = threading.Lock()

@@ -1,5 +1,5 @@
 """Stereo calibration from chessboard pairs: corner detection, per-camera and stereo calibration,
-outlier views, uncertainties and a report in the style of Bouguet's toolbox (and the thesis).
+outlier views and uncertainties (the report on them: report.py).
 
 No CLI and no Zenoh here: `ballbot-vision calibrate` (ballbot_vision/calibration_commands.py) and the
 tests drive this module.
@@ -8,13 +8,11 @@ Conventions (those of cores/camera.py): pixel centres at integer coordinates; K 
 [0, fy, cy], [0, 0, 1]] with s the skew in pixels (Bouguet's alpha_c = s / fx); distortion
 (k1, k2, p1, p2, k3); ``X_right = R @ X_left + T``, T in the unit of --square-size (metres).
 
-Uncertainties are reported as 3 standard deviations, like Bouguet's Camera Calibration Toolbox.
 The standard deviations come from OpenCV's calibrateCameraExtended (skew fixed) or from the
 Jacobian of our own refinement (skew free), scaled by the residual variance.
 """
 from __future__ import annotations
 
-import math
 import re
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -26,8 +24,6 @@ import numpy as np
 from common.errors import CalibrationError
 from common.files import IMAGE_EXTENSIONS, list_images, natural_sorted, pair_images, read_image
 from cores import camera
-
-SIGMAS = 3.0  # uncertainties are printed as +/- 3 sigma (Bouguet's convention)
 
 Progress = Callable[[str], None]
 
@@ -86,7 +82,8 @@ def detect_corners(gray: np.ndarray, pattern: tuple[int, int]) -> np.ndarray | N
     if found:
         # The window must stay inside one square: a fraction of the smallest corner spacing.
         c = corners.reshape(pattern[1], pattern[0], 2)
-        spacing = min(np.linalg.norm(np.diff(c, axis=1), axis=2).min(), np.linalg.norm(np.diff(c, axis=0), axis=2).min())
+        spacing = min(np.linalg.norm(np.diff(c, axis=1), axis=2).min(),
+                      np.linalg.norm(np.diff(c, axis=0), axis=2).min())
         win = int(max(2, min(11, spacing * 0.4)))
         crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 100, 1e-4)
         return cv2.cornerSubPix(gray, corners, (win, win), (-1, -1), crit)
@@ -123,6 +120,12 @@ class ViewPair:
     @property
     def name(self) -> str:
         return f"{self.left_path.name}+{self.right_path.name}"
+
+    def corners(self) -> tuple[np.ndarray, np.ndarray]:
+        """(left, right) corners of a view found in both images."""
+        if self.left is None or self.right is None:
+            raise CalibrationError(f"{self.name}: the board is not found in both images")
+        return self.left, self.right
 
 
 def detect_pairs(pairs: Sequence[tuple[Path, Path]], pattern: tuple[int, int], progress: Progress = _quiet
@@ -244,7 +247,8 @@ def calibrate_camera(obj: np.ndarray, img: list[np.ndarray], size: tuple[int, in
                      k3: bool = False) -> CameraResult:
     """obj: (N, 1, 3) board points, img: per view (N, 1, 2) corners -> one calibrated camera."""
     objs = [obj] * len(img)
-    rms, K, D, rv, tv, std_i, _, per_view = cv2.calibrateCameraExtended(
+    # (OpenCV's stubs take no None for the camera matrix and distortion; OpenCV itself does: no guess)
+    rms, K, D, rv, tv, std_i, _, per_view = cv2.calibrateCameraExtended(  # type: ignore[call-overload]
         objs, img, size, None, None, flags=_mono_flags(k3),
         criteria=(cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12))
     D5 = np.zeros(5)
@@ -293,7 +297,7 @@ class StereoResult:
     rejected: list[tuple[ViewPair, str]] = field(default_factory=list)
     without_board: list[ViewPair] = field(default_factory=list)
     total_pairs: int = 0
-    rig: camera.RawRig | None = None
+    rig: camera.RawRig = field(kw_only=True)  # the calibrated rig (always: the rest is how it was found)
     om_std: np.ndarray = field(default_factory=lambda: np.zeros(3))
     T_std: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
@@ -374,8 +378,8 @@ def calibrate_stereo(pairs: Sequence[tuple[Path, Path]], pattern: tuple[int, int
     rejected: list[tuple[ViewPair, str]] = []
     for _round in range(3):
         progress(f"calibrating the left and right cameras on {len(views)} views ...")
-        cl = calibrate_camera(obj, [v.left for v in views], size, fix_skew, k3)
-        cr = calibrate_camera(obj, [v.right for v in views], size, fix_skew, k3)
+        cl = calibrate_camera(obj, [v.corners()[0] for v in views], size, fix_skew, k3)
+        cr = calibrate_camera(obj, [v.corners()[1] for v in views], size, fix_skew, k3)
         if not reject_outliers:
             break
         out = []
@@ -401,9 +405,11 @@ def calibrate_stereo(pairs: Sequence[tuple[Path, Path]], pattern: tuple[int, int
     Kl, Kr = _no_skew(cl.K), _no_skew(cr.K)
     for _round in range(5):
         progress(f"calibrating the pair on {len(views)} views ...")
-        pl = [deskew_points(v.left, cl.K) for v in views]
-        pr = [deskew_points(v.right, cr.K) for v in views]
-        rms, Kl2, Dl2, Kr2, Dr2, R, T, _E, _F, rvecs, tvecs, per_view = cv2.stereoCalibrateExtended(
+        pl = [deskew_points(v.corners()[0], cl.K) for v in views]
+        pr = [deskew_points(v.corners()[1], cr.K) for v in views]
+        # (OpenCV's stubs take no None for R and T; OpenCV itself does: outputs only)
+        (rms, Kl2, Dl2, Kr2, Dr2, R, T, _E, _F, rvecs, tvecs,
+         per_view) = cv2.stereoCalibrateExtended(  # type: ignore[call-overload]
             [obj] * len(views), pl, pr, Kl.copy(), cl.D.reshape(1, 5).copy(), Kr.copy(), cr.D.reshape(1, 5).copy(),
             size, None, None, flags=flags, criteria=(cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-12))
         per_view = np.asarray(per_view).reshape(-1, 2)
@@ -417,16 +423,16 @@ def calibrate_stereo(pairs: Sequence[tuple[Path, Path]], pattern: tuple[int, int
         thr = outlier_threshold(err, float("inf"))
         if not np.any(err > thr):
             thr = min(thr, max_view_rms)
-        bad = [(v, f"stereo RMS {e:.3f} px > {thr:.3f} px") for v, e in zip(views, err) if e > thr]
-        if not bad:
+        stereo_bad = [(v, f"stereo RMS {e:.3f} px > {thr:.3f} px") for v, e in zip(views, err) if e > thr]
+        if not stereo_bad:
             break
-        if len(views) - len(bad) < min_views:
-            progress(f"not rejecting {len(bad)} stereo outlier view(s): fewer than {min_views} would remain")
+        if len(views) - len(stereo_bad) < min_views:
+            progress(f"not rejecting {len(stereo_bad)} stereo outlier view(s): fewer than {min_views} would remain")
             break
-        for v, why in bad:
+        for v, why in stereo_bad:
             progress(f"rejecting {v.name}: {why}")
-        rejected.extend(bad)
-        ids = {id(v) for v, _ in bad}
+        rejected.extend(stereo_bad)
+        ids = {id(v) for v, _ in stereo_bad}
         keep = [i for i, v in enumerate(views) if id(v) not in ids]
         views = [views[i] for i in keep]
         for c in (cl, cr):  # keep the per-camera per-view errors aligned with `views`
@@ -448,78 +454,4 @@ def calibrate_stereo(pairs: Sequence[tuple[Path, Path]], pattern: tuple[int, int
     except CalibrationError as e:
         raise CalibrationError(f"the stereo calibration is not usable: {e}") from None
     return StereoResult(size, pattern, square_size, cl, cr, R, T, float(rms), per_view,
-                        views, rejected, missing, len(views_all), rig, om_std, T_std)
-
-
-# --- the report ----------------------------------------------------------------------------------
-
-def disparity_range(model: camera.RectifiedModel, near_m: float, far_m: float) -> tuple[float, float, int]:
-    """Disparities (px) of the far and near depth, and numDisparities (a multiple of 16) covering
-    [0, near]."""
-    if not (0 < near_m < far_m):
-        raise CalibrationError(f"--depth-range {near_m} {far_m}: expected 0 < near < far (metres)")
-    d_far = model.disparity_for_depth(far_m)
-    d_near = model.disparity_for_depth(near_m)
-    return d_far, d_near, int(16 * math.ceil(d_near / 16.0))
-
-
-def _pm(v: float, s: float, fmt: str = "{:.5f}") -> str:
-    return fmt.format(v) + (" (fixed)" if s == 0 else f" ± {fmt.format(SIGMAS * s)}")
-
-
-def format_camera(title: str, c: CameraResult) -> list[str]:
-    K, D, s = c.K, c.D, c.std
-    alpha = K[0, 1] / K[0, 0]
-    alpha_sd = s[4] / K[0, 0]
-    angle = 90.0 - math.degrees(math.atan(alpha))
-    kc = "[ " + "  ".join(f"{d:.5f}" for d in D) + " ]"
-    kc_sd = "[ " + "  ".join("fixed" if e == 0 else f"{SIGMAS * e:.5f}" for e in s[5:]) + " ]"
-    return [
-        f"{title}:",
-        f"  Focal Length:     fc = [ {K[0, 0]:.5f}  {K[1, 1]:.5f} ] ± [ {SIGMAS * s[0]:.5f}  {SIGMAS * s[1]:.5f} ]",
-        f"  Principal point:  cc = [ {K[0, 2]:.5f}  {K[1, 2]:.5f} ] ± [ {SIGMAS * s[2]:.5f}  {SIGMAS * s[3]:.5f} ]",
-        f"  Skew:        alpha_c = {_pm(alpha, s[4] and alpha_sd)}  => angle of pixel axes = {angle:.5f} degrees",
-        f"  Distortion:       kc = {kc} ± {kc_sd}",
-        f"  Pixel error:     RMS = {c.rms:.5f} px over {len(c.per_view)} views",
-    ]
-
-
-def format_report(r: StereoResult, depth_range: tuple[float, float] | None = (0.5, 3.0), alpha: float = 0.0
-                  ) -> str:
-    om = cv2.Rodrigues(r.R)[0].ravel()
-    lines = [f"Calibration of {len(r.views)} view pairs ({r.total_pairs} given, {len(r.without_board)} without "
-             f"a board, {len(r.rejected)} rejected), pattern {r.pattern[0]}x{r.pattern[1]} inner corners, "
-             f"square {r.square_size * 1000:.2f} mm, image {r.image_size[0]}x{r.image_size[1]}",
-             f"Uncertainties are ± {SIGMAS:g} standard deviations (as in Bouguet's toolbox).", ""]
-    lines += format_camera("Left camera", r.left) + [""] + format_camera("Right camera", r.right) + [""]
-    T_mm = r.T * 1000.0
-    lines += [
-        "Extrinsic parameters (position of right camera wrt left camera):",
-        f"  Rotation vector:     om = [ {om[0]:.5f}  {om[1]:.5f}  {om[2]:.5f} ] ± "
-        f"[ {SIGMAS * r.om_std[0]:.5f}  {SIGMAS * r.om_std[1]:.5f}  {SIGMAS * r.om_std[2]:.5f} ]",
-        f"  Translation vector:   T = [ {T_mm[0]:.5f}  {T_mm[1]:.5f}  {T_mm[2]:.5f} ] mm ± "
-        f"[ {SIGMAS * r.T_std[0] * 1000:.5f}  {SIGMAS * r.T_std[1] * 1000:.5f}  {SIGMAS * r.T_std[2] * 1000:.5f} ]",
-        "  Rotation matrix:      R = " + " / ".join("[ " + "  ".join(f"{x:+.6f}" for x in row) + " ]" for row in r.R),
-        f"  Stereo RMS reprojection error: {r.rms:.5f} px",
-        "",
-        "Per-view RMS reprojection error (px): single-camera left / right, stereo left / right:",
-    ]
-    for i, v in enumerate(r.views):
-        lines.append(f"  {v.name:40s} {r.left.per_view[i]:.4f} / {r.right.per_view[i]:.4f}   "
-                     f"{r.per_view[i, 0]:.4f} / {r.per_view[i, 1]:.4f}")
-    if r.rejected:
-        lines.append("Rejected views (outliers; calibrated again without them):")
-        for v, why in r.rejected:
-            lines.append(f"  {v.left_path}  {v.right_path}: {why}")
-    if r.without_board:
-        lines.append("Pairs without a detected board (skipped): "
-                     + ", ".join(v.name for v in r.without_board))
-    if r.rig is not None:
-        m = camera.rectify_rig(r.rig, alpha).model
-        lines += ["", f"Rectified: f = {m.focal_px:.3f} px, baseline = {m.baseline_m * 1000:.3f} mm, "
-                      f"principal point = [ {m.cx:.3f}  {m.cy:.3f} ] (alpha {alpha:g})"]
-        if depth_range:
-            d_far, d_near, nd = disparity_range(m, *depth_range)
-            lines.append(f"Depth {depth_range[0]:g}..{depth_range[1]:g} m -> disparity {d_far:.1f}..{d_near:.1f} px "
-                         f"(numDisparities >= {nd})")
-    return "\n".join(lines)
+                        views, rejected, missing, len(views_all), om_std, T_std, rig=rig)

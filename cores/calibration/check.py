@@ -71,7 +71,7 @@ def row_alignment(left: np.ndarray, right: np.ndarray, n_features: int = 4000, r
                   min_matches: int = 8, ransac_px: float = 2.0,
                   subpixel: bool = True) -> RowCheck:
     """left, right: a rectified pair (H, W) or (H, W, 3), uint8 -> |dy| statistics of matches."""
-    orb = cv2.ORB_create(nfeatures=n_features)
+    orb = cv2.ORB.create(nfeatures=n_features)
     kl, dl = orb.detectAndCompute(_gray(left), None)
     kr, dr = orb.detectAndCompute(_gray(right), None)
     if dl is None or dr is None or len(kl) < 2 or len(kr) < 2:

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 import re
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -102,7 +103,7 @@ def _dist5(D: np.ndarray, where: str) -> np.ndarray:
     return out
 
 
-def read_stereo_calib(paths: list[str | Path], units_m: float = 1.0, image_size: tuple[int, int] | None = None,
+def read_stereo_calib(paths: Sequence[str | Path], units_m: float = 1.0, image_size: tuple[int, int] | None = None,
                       name: str = "") -> camera.RawRig:
     """The intrinsics.yml + extrinsics.yml pair of OpenCV's stereo_calib sample (either order, or
     one file holding all of M1 D1 M2 D2 R T)."""
@@ -451,7 +452,8 @@ def describe(cal: camera.Calibration, depth_range: tuple[float, float] | None = 
     if isinstance(cal, camera.RectifiedRig):
         m = cal.model
         lines += ["already rectified:",
-                  f"  f = {m.focal_px:.5f} px   cc = [ {m.cx:.5f}  {m.cy:.5f} ]   baseline = {m.baseline_m * 1000:.5f} mm"]
+                  f"  f = {m.focal_px:.5f} px   cc = [ {m.cx:.5f}  {m.cy:.5f} ]   "
+                  f"baseline = {m.baseline_m * 1000:.5f} mm"]
     else:
         for title, c in (("left", cal.left), ("right", cal.right)):
             lines += [f"{title}:",

@@ -178,7 +178,7 @@ class CalibrationHolder:
             except cv2.error as e:
                 return self._refuse(origin, f"OpenCV cannot rectify with it: {str(e).strip().splitlines()[-1]}")
             first = self.reference is None
-            if not first:
+            if self.reference is not None:
                 jump = implausible_change(self.reference, new.model, self.max_change,
                                           f"the calibration rectify started with ('{self.reference_name}')")
                 if jump:

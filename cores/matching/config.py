@@ -29,6 +29,11 @@ MAX_NUM_DISPARITIES = 512
 AUTO_WIDTH_SHARE = 4  # num_disparities auto searches at most a quarter of the image width
 
 
+def _auto_needs_camera() -> BallbotError:
+    return BallbotError("num_disparities auto needs the camera's focal length and baseline: give a "
+                        "calibration (or a rectified camera model), or set num_disparities in px")
+
+
 class MatcherConfig(ServiceSettings):
     """Matching settings (the `disparity` section of a config file). Disparities and windows in px,
     ranges in metres. Defaults live here and nowhere else."""
@@ -116,8 +121,7 @@ class MatcherConfig(ServiceSettings):
     @property
     def fixed_num_disparities(self) -> int:
         if self.num_disparities == "auto":
-            raise BallbotError("num_disparities auto needs the camera's focal length and baseline: give a "
-                               "calibration (or a rectified camera model), or set num_disparities in px")
+            raise _auto_needs_camera()
         return self.num_disparities
 
     def resolved(self, focal_px: float | None, baseline_m: float | None, width: int | None = None) -> MatcherConfig:
@@ -125,7 +129,7 @@ class MatcherConfig(ServiceSettings):
         if self.num_disparities != "auto":
             return self
         if not focal_px or not baseline_m:
-            self.fixed_num_disparities  # raises, naming what is missing
+            raise _auto_needs_camera()
         # capped so that the image stays wider than the search range plus the block (check_width)
         room = None if width is None else width - self.block - self.min_disparity + 1
         n = auto_num_disparities(focal_px, baseline_m, self.min_range_m, self.min_disparity, room)
@@ -142,7 +146,8 @@ def auto_num_disparities(focal_px: float, baseline_m: float, min_range_m: float,
     for the last metre in front of it."""
     d_near = focal_px * abs(baseline_m) / min_range_m
     n = max(16, round((d_near - min_disparity + 1) / 16) * 16)
-    cap = MAX_NUM_DISPARITIES if width is None else max(16, min(MAX_NUM_DISPARITIES, width // AUTO_WIDTH_SHARE // 16 * 16))
+    cap = (MAX_NUM_DISPARITIES if width is None
+           else max(16, min(MAX_NUM_DISPARITIES, width // AUTO_WIDTH_SHARE // 16 * 16)))
     return min(n, cap)
 
 

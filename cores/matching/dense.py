@@ -131,7 +131,7 @@ def fill_and_confidence(disparity: np.ndarray, valid: np.ndarray, guide: np.ndar
     small_guide = cv2.resize(guide, (ws, hs), interpolation=cv2.INTER_AREA)
     u = fast_global_smoother(small, small_guide, lam * FILL_SCALE ** 2, sigma_color, FILL_ITERATIONS)
     support = np.clip(u[..., 1], 0.0, 1.0).astype(np.float32)
-    smoothed = np.where(support > 1e-6, u[..., 0] / np.maximum(u[..., 1], 1e-12), np.nan).astype(np.float32)
+    smoothed: np.ndarray = np.where(support > 1e-6, u[..., 0] / np.maximum(u[..., 1], 1e-12), np.nan).astype(np.float32)
     if np.isnan(smoothed).any():
         smoothed = background_fill(smoothed)
     if np.isnan(smoothed).all():

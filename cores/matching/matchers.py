@@ -62,7 +62,7 @@ class StereoMatcher:
         d = self._m.compute(gl, gr)
         invalid = d < c.min_disparity * SCALE  # OpenCV marks failures below min_disparity*16
         if self._mr is not None:
-            invalid |= ~self._consistent(d, gl, gr)
+            invalid |= ~self._consistent(self._mr, d, gl, gr)
         saturated = saturated_share(d, ~invalid, c.max_disparity)
         if min_valid_disparity > 0:
             invalid |= d < min_valid_disparity * SCALE
@@ -71,10 +71,11 @@ class StereoMatcher:
         d[invalid] = c.invalid_value
         return Match(d, None, saturated)
 
-    def _consistent(self, d: np.ndarray, gl: np.ndarray, gr: np.ndarray) -> np.ndarray:
-        """True where the left disparity at x agrees with the right disparity at x - d."""
+    def _consistent(self, mr: cv2.StereoMatcher, d: np.ndarray, gl: np.ndarray, gr: np.ndarray) -> np.ndarray:
+        """True where the left disparity at x agrees with the right disparity at x - d (mr: the
+        matcher for the right image, as the left one mirrored)."""
         c = self.config
-        dr = self._mr.compute(np.ascontiguousarray(gr[:, ::-1]), np.ascontiguousarray(gl[:, ::-1]))[:, ::-1]
+        dr = mr.compute(np.ascontiguousarray(gr[:, ::-1]), np.ascontiguousarray(gl[:, ::-1]))[:, ::-1]
         h, w = d.shape
         xs = np.arange(w, dtype=np.int32)[None, :]
         xr = xs - ((d.astype(np.int32) + 8) >> 4)  # round(d) in px

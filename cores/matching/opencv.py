@@ -55,7 +55,7 @@ def create_sgbm(c: MatcherConfig):
     """OpenCV's StereoSGBM with these settings (penalties default to the recommended 8 and 32 x block^2)."""
     b = c.block
     area = b * b
-    return cv2.StereoSGBM_create(minDisparity=c.min_disparity, numDisparities=c.fixed_num_disparities, blockSize=b,
+    return cv2.StereoSGBM.create(minDisparity=c.min_disparity, numDisparities=c.fixed_num_disparities, blockSize=b,
                                  P1=c.p1 or 8 * area, P2=c.p2 or 32 * area, disp12MaxDiff=c.disp12_max_diff,
                                  preFilterCap=c.prefilter_cap, uniquenessRatio=c.uniqueness_ratio,
                                  speckleWindowSize=c.speckle_window, speckleRange=c.speckle_range,
@@ -66,7 +66,7 @@ def create_opencv_matcher(c: MatcherConfig):
     """OpenCV's StereoBM or StereoSGBM with these settings: the one place their parameters are set."""
     if c.method != "bm":
         return create_sgbm(c)
-    m = cv2.StereoBM_create(numDisparities=c.fixed_num_disparities, blockSize=c.block)
+    m = cv2.StereoBM.create(numDisparities=c.fixed_num_disparities, blockSize=c.block)
     m.setMinDisparity(c.min_disparity)
     m.setUniquenessRatio(c.uniqueness_ratio)
     m.setTextureThreshold(c.texture_threshold)

@@ -119,7 +119,7 @@ def configure(cap: Capture, s: CaptureSettings, name: str) -> None:
             refused.append(what)
 
     if fourcc:
-        ask(cv2.CAP_PROP_FOURCC, cv2.VideoWriter_fourcc(*fourcc), f"fourcc {fourcc}")
+        ask(cv2.CAP_PROP_FOURCC, cv2.VideoWriter.fourcc(*fourcc), f"fourcc {fourcc}")
     if s.camera_width and s.camera_height:
         ask(cv2.CAP_PROP_FRAME_WIDTH, s.camera_width, f"width {s.camera_width}")
         ask(cv2.CAP_PROP_FRAME_HEIGHT, s.camera_height, f"height {s.camera_height}")
@@ -131,12 +131,12 @@ def configure(cap: Capture, s: CaptureSettings, name: str) -> None:
         ask(cv2.CAP_PROP_AUTO_EXPOSURE, 1, "manual exposure")  # V4L2_EXPOSURE_MANUAL
         ask(cv2.CAP_PROP_EXPOSURE, s.camera_exposure, f"exposure {s.camera_exposure:g}")
     w, h = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
-    fps, fourcc = cap.get(cv2.CAP_PROP_FPS), _fourcc_text(cap.get(cv2.CAP_PROP_FOURCC))
+    fps, got_fourcc = cap.get(cv2.CAP_PROP_FPS), _fourcc_text(cap.get(cv2.CAP_PROP_FOURCC))
     if refused:
         log.warning("camera %s: the driver refused %s", name, ", ".join(refused))
     if s.camera_width and s.camera_height and (w, h) != (s.camera_width, s.camera_height):
         log.warning("camera %s delivers %dx%d, not the requested %dx%d", name, w, h, s.camera_width, s.camera_height)
-    log.info("camera %s: %dx%d %s %.1f fps", name, w, h, fourcc, fps)
+    log.info("camera %s: %dx%d %s %.1f fps", name, w, h, got_fourcc, fps)
 
 
 # --- the source ----------------------------------------------------------------------------------
@@ -266,20 +266,22 @@ class CameraSource:
     # -- reading --------------------------------------------------------------------------------
     def _read_once(self) -> CapturedPair:
         grabbed = []
+        caps = []
         for d in self.devs:
             if d.cap is None or not d.cap.grab():
                 raise _Lost(d, "grab failed")
             grabbed.append(time.monotonic_ns())
+            caps.append((d, d.cap))
         mono, wall = time.monotonic_ns(), time.time_ns()
         times = grabbed
         if self.settings.camera_skew_clock == "driver":
-            drv = [d.cap.get(cv2.CAP_PROP_POS_MSEC) for d in self.devs]
+            drv = [cap.get(cv2.CAP_PROP_POS_MSEC) for _, cap in caps]
             # V4L2 buffer timestamps are kernel monotonic ms; anything else (a file position) is not
             if all(0 < t and abs(mono / 1e6 - t) < 5000 for t in drv):
                 times = [int(t * 1e6) for t in drv]
         imgs = []
-        for d in self.devs:
-            ok, img = d.cap.retrieve()
+        for d, cap in caps:
+            ok, img = cap.retrieve()
             if not ok or img is None:
                 raise _Lost(d, "retrieve failed")
             imgs.append(img)
@@ -314,7 +316,8 @@ class CameraSource:
                 self._dropping += 1
                 self.ctx.extra["dropped_skew"] = float(self.dropped_skew)
                 if self._dropping == self.SKEW_STATUS_AFTER:
-                    self.ctx.status(f"dropping pairs: left/right skew {skew:.1f} ms > {self.settings.camera_max_skew_ms:g} ms")
+                    self.ctx.status(f"dropping pairs: left/right skew {skew:.1f} ms > "
+                                    f"{self.settings.camera_max_skew_ms:g} ms")
                 continue
             if self._dropping >= self.SKEW_STATUS_AFTER:
                 self.ctx.status("ok")

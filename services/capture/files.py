@@ -208,8 +208,8 @@ class VideoSource:
 
     def read(self) -> CapturedPair | None:
         if self._pending is not None:
-            pair, self._pending = self._pending, None
-            return pair
+            pending, self._pending = self._pending, None
+            return pending
         if self.ended:
             return None
         pair = self._grab()

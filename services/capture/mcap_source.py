@@ -41,7 +41,8 @@ class McapSource:
             raise SourceError(f"mcap: {e}") from None
         self.total = info.pairs("raw") or info.pairs("rectified")
         if not self.total:
-            raise SourceError(f"mcap: {path} holds no stereo pairs (topics: {', '.join(sorted(info.channels)) or 'none'})")
+            topics = ", ".join(sorted(info.channels)) or "none"
+            raise SourceError(f"mcap: {path} holds no stereo pairs (topics: {topics})")
         self.path = path
         self.speed = speed
         self.pace = pace
@@ -170,6 +171,7 @@ class McapSource:
 
     # -- the source interface --------------------------------------------------------------------
     def read(self) -> CapturedPair | None:
+        pair: RecordedPair | None
         if self._first is not None:
             if not self._wait_ready():
                 return None
@@ -257,7 +259,11 @@ def connect_replay(node, source: McapSource) -> None:
         elif sent.get(st.instance, 0) < 4:
             announce(st.instance)
 
-    source.on_calibration = lambda text: [announce(i, text) for i in list(sent) or ["*"]]
+    def announce_all(text: str) -> None:
+        for i in list(sent) or ["*"]:
+            announce(i, text)
+
+    source.on_calibration = announce_all
     node.subscribe(topic("stats").key(node.robot_id, service="rectify", instance="*"), on_rectify_stats)
     # history=True: rectify instances already alive are announced at once
     node.watch_tokens(topic("alive").key(node.robot_id, service="rectify", instance="*"), on_rectify_alive)

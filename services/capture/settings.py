@@ -94,5 +94,6 @@ class CaptureSettings(ServiceSettings):
                                                     "only the projection matrices count")
     # --- mcap (replay a recording; see mcap_source.py)
     mcap: str = Field("", description="mcap: the recording to replay (ballbot-vision record, mcap from-images)")
-    mcap_speed: float = Field(1.0, gt=0, le=1000, description="mcap: playback speed with --pace auto (2: twice as fast)")
+    mcap_speed: float = Field(1.0, gt=0, le=1000,
+                              description="mcap: playback speed with --pace auto (2: twice as fast)")
     mcap_step: bool = Field(False, description="mcap: start paused; one pair per `ballbot-vision replay step`")

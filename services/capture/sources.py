@@ -112,7 +112,7 @@ class SyntheticSource:
         left, right = self.world.render(t)
         return CapturedPair(left, right, t, self.world.truth(t))
 
-    def read(self) -> CapturedPair | None:
+    def read(self) -> CapturedPair:  # (a synthetic scene never ends)
         if self._loop:
             pair = self._loop[self.k % len(self._loop)]
             self.k += 1

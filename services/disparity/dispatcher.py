@@ -37,9 +37,10 @@ One mechanism, push with checked answers:
   answers again. One that answers wrongly (a map that does not fit its item, a receipt claiming a
   map it never sent) is quarantined at once.
 * While no worker is trusted (or every trusted one is paused after a missed answer) the
-  dispatcher computes in-process with the onboard fallback matcher (full or half resolution), or, with fallback none, says "no worker reachable" in its status while
-  the segmenter's heartbeat marks the obstacle stream stale. The fallback is also what makes
-  `ballbot-vision up` a single process per stage: no extra hop when everything runs on one host.
+  dispatcher computes in-process with the onboard fallback matcher (full or half resolution), or,
+  with fallback none, says "no worker reachable" in its status while the segmenter's heartbeat
+  marks the obstacle stream stale. The fallback is also what makes `ballbot-vision up` a single
+  process per stage: no extra hop when everything runs on one host.
 
 * With `--pool NAME` the dispatcher also uses a fleet pool's workers (fleet.py), named
   `<instance>@<pool>` here: the same trust, checks and fallback, but a pool worker gets a frame
@@ -48,7 +49,8 @@ One mechanism, push with checked answers:
 
 The pieces: state.py (DispatchState, the pure bookkeeping, unit-tested without Zenoh), envelope.py
 (what travels beside an item), results.py (the checks of an answer), computer.py (one frame, for
-workers and the fallback), this file (the dispatcher's Zenoh shell), worker.py (the worker's).
+workers and the fallback), demand.py (asking a pool for grants), this file (the dispatcher's Zenoh
+shell), worker.py (the worker's).
 """
 from __future__ import annotations
 
@@ -61,11 +63,12 @@ from typing import Any
 from common import codec
 from common.errors import BallbotError, DecodeError
 from common.keys import POOL_ROOT, topic
-from common.messages import DisparityMap, PoolDemand, PoolGrant, StereoFrame, WorkDone
+from common.messages import DisparityMap, PoolGrant, StereoFrame, WorkDone
 from common.node import Node, qos
 from common.signing import calibration_key
 from cores.matching.disparity import RecentValid
 from services.disparity.computer import FrameComputer, reencode_frame
+from services.disparity.demand import GrantDemand, KeyPut
 from services.disparity.envelope import (
     _attachment_bytes,
     make_attachment,
@@ -85,16 +88,6 @@ from services.disparity.state import DispatchState
 log = logging.getLogger("ballbot.pool")
 
 
-class _KeyPut:
-    """session.put on one key, shaped like a publisher."""
-
-    def __init__(self, session: Any, key: str, qos_: dict[str, Any]):
-        self.session, self.key, self.qos = session, key, qos_
-
-    def put(self, payload: bytes) -> None:
-        self.session.put(self.key, payload, **self.qos)
-
-
 class Dispatcher:
     """frames_rect -> one worker's work key, following the workers' liveliness tokens; each
     worker's map from its result key, checked against the item (results.py), -> `disparity`,
@@ -107,15 +100,7 @@ class Dispatcher:
             raise BallbotError(f"transport: raw, png or jpeg, got {transport!r}")
         # a fleet pool (fleet.py): its workers are named <instance>@<pool> here and work against grants
         self.pool, self.pool_patience_s = pool, pool_patience_s
-        self._want_at = 0.0  # last demand sent
-        self._want_since: float | None = None  # wanting without a grant since
-        self._demand_seq = 0
-        self._demand_pub: Any = None
-        self._refused_grants: list[str] = []  # grants add_grant refused, to give back
-        self._frame_interval_s = 1.0  # between the frames that arrive (_input_rate)
-        self._rx = (time.monotonic(), 0)
-        self._inbox: Any = None
-        self._wanted_at = -1e9  # last want with a frame in hand
+        self.demand = GrantDemand(node.robot_id, state, self._count)  # asking the pool for grants
         self.pool_load: dict[str, tuple[int, float, int]] = {}  # pool worker -> (robots, our share, queued)
         self.node, self.state = node, state
         self.max_age_ms = max_age_ms
@@ -256,10 +241,10 @@ class Dispatcher:
         except DecodeError as e:
             self._refuse(name, ticket.seq, str(e))
             return None
-        why, check = vet_map(m, header, ticket)
-        if not why:
+        why, check = vet_map(m, header, ticket)  # (check: None exactly when why says what is wrong)
+        if check is not None and not why:
             why = self._collapsed(name, check.valid_fraction)
-        if why:
+        if why or check is None:
             self._refuse(name, ticket.seq, why)
             return None
         return m, check.valid_fraction
@@ -321,70 +306,10 @@ class Dispatcher:
         self.pool_load[name] = (msg.robots, msg.share, msg.queued)
         # a little under the worker's ttl: a frame sent at the last moment must still find its grant
         if not self.state.add_grant(name, msg.grant, 0.8 * msg.ttl_ms / 1e3, msg.wait_ms / 1e3):
-            with self._recent_lock:  # given back by the main loop: no put from a Zenoh callback
-                self._refused_grants.append(msg.grant)
-
-    def _demand(self, want: bool, decline: list[str] = ()) -> None:
-        """Tell every worker of the pool that we hold a frame and no grant (want), and give back
-        grants we cannot use (decline)."""
-        if self._demand_pub is None:
-            return
-        self._demand_seq += 1
-        for i in range(0, max(1, len(decline)), 32):
-            msg = PoolDemand(robot_id=self.rid, seq=self._demand_seq, stamp_ns=time.time_ns(), want=want,
-                             decline=list(decline[i:i + 32]))
-            self._demand_pub.put(codec.encode(msg))
-        if want:
-            self._want_at = time.monotonic()
-            self._count("pool_wants")
-        if decline:
-            self._count("pool_declined", len(decline))
-
-    def _want(self, now: float, ahead: bool = False) -> None:
-        """While we hold a frame and no grant: ask, again every 0.1 s (a worker forgets a want after
-        0.5 s, and a worker that joins learns of it so). ahead: no frame yet, one is due (see
-        _backlogged); a grant that comes first is held for it (_hold_s)."""
-        if not ahead:
-            self._wanted_at = now
-        if self._want_since is None and not ahead:
-            self._want_since = now
-            self._demand(want=True)
-        elif now - self._want_at >= 0.1:
-            self._demand(want=True)
-
-    def _backlogged(self, now: float) -> bool:
-        """Frames come faster than grants: we wanted with a frame in hand lately, and the next
-        frame is due within the time a grant is held."""
-        return now - self._wanted_at < 0.3 and self._frame_interval_s <= 0.5
-
-    def _decline_unused(self, held_s: float = 0.0) -> None:
-        grants = [g for _, g in self.state.take_grants(held_s)]
-        with self._recent_lock:
-            grants += self._refused_grants
-            self._refused_grants = []
-        if grants:
-            self._demand(want=False, decline=grants)
-
-    def _hold_s(self) -> float:
-        """How long a grant that came while we hold no frame is kept for the next one: about one
-        frame interval, and never past the moment its worker would start it (the worker computes
-        another robot's item meanwhile, so the hold costs it nothing and saves a round of decline
-        and re-grant; see DispatchState.take_grants)."""
-        return min(0.5, 1.2 * self._frame_interval_s)
+            self.demand.refused(msg.grant)
 
     def _take(self, inbox: Any, timeout: float) -> tuple[StereoFrame, bytes] | None:
         return self.node.take(inbox, timeout)
-
-    def _input_rate(self, now: float) -> None:
-        """The interval between frames arriving (the inbox counts them all, taken or not)."""
-        if self._inbox is None:
-            return
-        n, dt = self._inbox.received, now - self._rx[0]
-        if dt >= 0.5:
-            arrived = n - self._rx[1]
-            interval = min(1.0, dt / arrived) if arrived else 1.0
-            self._frame_interval_s = 0.5 * self._frame_interval_s + 0.5 * interval
-            self._rx = (now, n)
 
     def start(self) -> None:
         s = self.node.session
@@ -402,7 +327,7 @@ class Dispatcher:
             # a put per demand, not a declared publisher: no publisher state that could go stale while
             # workers come and go (in one bench run a robot's demands stopped reaching the workers
             # after a worker was replaced; the cause is not established)
-            self._demand_pub = _KeyPut(s, key, qos(topic("pool_demand")))
+            self.demand.pub = KeyPut(s, key, qos(topic("pool_demand")))
             self.node.uses("publishes", key)
             self.node.uses("publishes", topic("pool_work").pattern(self.rid, pool=p))
         threading.Thread(target=self._results_loop, name="results", daemon=True).start()
@@ -423,11 +348,8 @@ class Dispatcher:
         self.rates.add(f"out_work_{name}", len(payload))
 
     def _housekeeping(self, out) -> None:
-        self._input_rate(time.monotonic())
-        if self._refused_grants:
-            with self._recent_lock:
-                refused, self._refused_grants = self._refused_grants, []
-            self._demand(want=False, decline=refused)
+        self.demand.input_rate(time.monotonic())
+        self.demand.give_back_refused()
         for name, seq in self.state.expire():
             self.node.warn("timeout", f"worker {name}: no map for seq {seq} in time; slot freed")
         alive, trusted = self.state.alive(), self.state.trusted()
@@ -472,14 +394,14 @@ class Dispatcher:
             return True
         return False
 
-    def _compute_onboard(self, msg: StereoFrame) -> None:
+    def _compute_onboard(self, fallback: FrameComputer, msg: StereoFrame) -> None:
         node = self.node
         with node.processing(msg):
-            m = self.fallback.compute(msg, node.instance)
+            m = fallback.compute(msg, node.instance)
             raw = codec.array_from_image(m.image, "disparity")
             vf = measure(raw, m.invalid_value, m.scale, m.min_disparity, m.num_disparities).valid_fraction
             self._publish(m, vf, time.monotonic())
-            self.fallback.report(node)
+            fallback.report(node)
             node.extra["fallback_frames"] = node.extra.get("fallback_frames", 0) + 1
 
     def _claim(self, msg: StereoFrame) -> tuple[str | None, bytes]:
@@ -494,7 +416,7 @@ class Dispatcher:
 
     def run(self) -> None:
         node = self.node
-        inbox = self._inbox = node.latest("frames_rect")
+        inbox = self.demand.inbox = node.latest("frames_rect")
         self.out = node.publisher("disparity", sign_key=self.sign_key)
         if self.sign_key is None:
             log.warning("dispatcher: no BALLBOT_CALIBRATION_KEY: the disparity maps are published unsigned, so the "
@@ -521,14 +443,14 @@ class Dispatcher:
                 msg, payload = got
                 name, nonce = self._claim(msg)
                 if name is None and self.state.pooled():
-                    self._want(time.monotonic())  # a pool worker on probation probes only with a grant
+                    self.demand.want(time.monotonic())  # a pool worker on probation probes only with a grant
                     if self.fallback is None and self.state.wait_free(0.1):
                         name, nonce = self._claim(msg)
                 if name is not None:
-                    self._want_since = None
+                    self.demand.want_since = None
                     self._dispatch(name, msg, payload, nonce)
                 elif self.fallback is not None:
-                    self._compute_onboard(msg)
+                    self._compute_onboard(self.fallback, msg)
                 continue
             if self.pool and not self.state.has_free():
                 # Pool workers give work only against grants: hold a frame and ask for one (the
@@ -542,17 +464,18 @@ class Dispatcher:
                     continue
                 now = time.monotonic()
                 if pending is None:
-                    if self._backlogged(now):
-                        self._want(now, ahead=True)
+                    if self.demand.backlogged(now):
+                        self.demand.want(now, ahead=True)
                     else:
-                        self._want_since = None
+                        self.demand.want_since = None
                     continue
-                self._want(now)
-                if self.fallback is not None and now - self._want_since > self.pool_patience_s:
+                self.demand.want(now)
+                since = self.demand.want_since  # (set by want)
+                if self.fallback is not None and since is not None and now - since > self.pool_patience_s:
                     # the pool is there but grants us nothing (a full fleet): the robot is not left blind
                     self._count("pool_starved")
-                    self._compute_onboard(pending[0])
-                    pending, self._want_since = None, None
+                    self._compute_onboard(self.fallback, pending[0])
+                    pending, self.demand.want_since = None, None
                     continue
                 self.state.wait_free(0.05)  # a grant wakes it
                 continue
@@ -567,8 +490,8 @@ class Dispatcher:
                 if self.pool:
                     # nothing to send: a grant held about a frame interval is given back (the pool
                     # worker then grants another robot)
-                    self._decline_unused(self._hold_s())
-                    self._want_since = None
+                    self.demand.decline_unused(self.demand.hold_s())
+                    self.demand.want_since = None
                     if not self.state.has_free():
                         continue
                     got = self._take(inbox, 0.01 if self.state.holds_grants() else 0.1)
@@ -587,7 +510,7 @@ class Dispatcher:
                     pending = None  # not a frame a worker can answer
                 continue  # the free worker vanished meanwhile; keep the frame for the next one
             pending = None
-            self._want_since = None
+            self.demand.want_since = None
             self._dispatch(name, msg, payload, nonce)
 
     def _dispatch(self, name: str, msg: StereoFrame, payload: bytes, nonce: bytes) -> None:

@@ -27,7 +27,7 @@ PUBLISHES = ["disparity", "work", "work_result", "work_done", "worker", "pool_wo
 
 
 def _weights(value):
-    from services.disparity.fleet import parse_weights
+    from services.disparity.scheduler import parse_weights
 
     return parse_weights(value)
 
@@ -47,7 +47,8 @@ class DisparitySettings(MatcherConfig):
     transport: Literal["raw", "png", "jpeg"] = Field("raw", description="image encoding of frames sent to workers")
     jpeg_quality: int = Field(90, ge=1, le=100, description="for transport jpeg")
     fallback: Literal["none", "full", "half"] = Field("full", description="onboard matcher used only while no "
-                                                     "worker is alive (half: half resolution; none: report \"no worker reachable\")")
+                                                     "worker is alive (half: half resolution; "
+                                                     "none: report \"no worker reachable\")")
     # fleet pool (both sides)
     pool: str = Field("", pattern=r"^([A-Za-z0-9_.-]{1,64})?$", description="a fleet pool's name: a worker serves "
                       "any robot of it (its stats go to the pool's keys); a dispatcher also sends work to its workers "

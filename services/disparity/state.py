@@ -226,7 +226,7 @@ class DispatchState:
             out = []
             for w in self.workers.values():
                 self._prune_grants(w, now)
-                keep = deque()
+                keep: deque = deque()  # (the type of w.grants)
                 for held in w.grants:
                     if now - held[2] >= held_s or now >= held[3]:
                         out.append((w.name, held[0]))

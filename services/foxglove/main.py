@@ -35,9 +35,10 @@ from pydantic import Field
 
 from common.errors import BallbotError
 from common.keys import topic
-from common.messages import DisparityMap, FreeSpace, GroundTruth, ObstacleList, StereoFrame
+from common.messages import DisparityMap, FreeSpace, GroundTruth, Message, ObstacleList, StereoFrame
 from common.node import Node
 from common.settings import ServiceSettings
+from common.web import start_site
 
 log = logging.getLogger("ballbot.foxglove")
 
@@ -79,8 +80,8 @@ FREESPACE_GRID, GROUND, TF, TRUTH_BOXES = "/freespace/grid", "/ground", "/tf", "
 FEEDS = {"frames_rect": (RECT_LEFT, CAMERA_INFO), "disparity": (DISPARITY_COLOR,), "truth": (TRUTH_BOXES,),
          "obstacles": (OBSTACLES, OBSTACLE_BOXES, OBSTACLE_SCENE, GROUND, TF), "freespace": (FREESPACE_GRID,)}
 IMAGE_KINDS = ("frames_rect", "disparity", "truth")
-MODELS = {"frames_rect": StereoFrame, "disparity": DisparityMap, "truth": GroundTruth, "obstacles": ObstacleList,
-          "freespace": FreeSpace}
+MODELS: dict[str, type[Message]] = {"frames_rect": StereoFrame, "disparity": DisparityMap, "truth": GroundTruth,
+                                    "obstacles": ObstacleList, "freespace": FreeSpace}
 
 
 def make_channels(context) -> dict[str, Any]:
@@ -198,7 +199,8 @@ class Bridge:
                     self._image_subs[kind] = self.node.subscribe(topic(kind).key(self.node.robot_id),
                                                                  self._keep(kind), keep=False)
                     log.info("foxglove: a client watches %s; subscribed to %s", ", ".join(FEEDS[kind]), kind)
-            elif kind in self._image_subs and now - self._last_watched.get(kind, 0.0) >= self.settings.idle_unsubscribe_s:
+            elif (kind in self._image_subs
+                  and now - self._last_watched.get(kind, 0.0) >= self.settings.idle_unsubscribe_s):
                 self._image_subs.pop(kind).undeclare()
                 log.info("foxglove: nobody watches %s any more; %s unsubscribed", ", ".join(FEEDS[kind]), kind)
         self.node.extra["image_streams"] = float(len(self._image_subs))
@@ -285,18 +287,12 @@ async def serve(node: Node, settings: FoxgloveSettings, bridge: Bridge, sdk_port
     app = web.Application()
     app.router.add_get("/", websocket)
     app.router.add_get("/healthz", health)
-    runner = web.AppRunner(app, access_log=None)
-    await runner.setup()
-    site = web.TCPSite(runner, settings.host, settings.port)
     try:
-        await site.start()
-    except OSError as e:
-        await runner.cleanup()
+        runner, port = await start_site(app, settings.host, settings.port, "foxglove",
+                                        "another Foxglove server? choose one with --port")
+    except BallbotError:
         await session.close()
-        raise BallbotError(f"foxglove: cannot listen on {settings.host}:{settings.port}: {e.strerror or e} "
-                           f"(another Foxglove server? choose one with --port)") from None
-    sockets = [s.getsockname() for s in site._server.sockets] if site._server else []
-    port = sockets[0][1] if sockets else settings.port
+        raise
     node.extra["port"] = float(port)
     shown = "127.0.0.1" if settings.host in ("0.0.0.0", "") else settings.host
     print(f"foxglove: open ws://{shown}:{port} in Foxglove (Open connection > Foxglove WebSocket)", flush=True)

@@ -12,11 +12,12 @@ import queue
 import signal
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
-from pydantic import Field
+from pydantic import BaseModel, Field
 
 from common.keys import topic
 from common.messages import (
@@ -91,13 +92,13 @@ class RecordResult:
     def summary(self) -> str:
         parts = ", ".join(f"{t} {n}" for t, n in sorted(self.counts.items()))
         return (f"wrote {self.path}: {parts or 'nothing'}; {self.bytes / 1e6:.1f} MB in {self.seconds:.1f} s; "
-                f"dropped {self.dropped_queue_full} (queue full), {self.missing_pairs} {self.pair_kind} pair(s) missing "
-                f"(seq gaps), {self.decode_errors} undecodable")
+                f"dropped {self.dropped_queue_full} (queue full), "
+                f"{self.missing_pairs} {self.pair_kind} pair(s) missing (seq gaps), {self.decode_errors} undecodable")
 
 
 SYNTHETIC_RIG, SYNTHETIC_RIG_SOURCE = "lifecam-studio", "synthetic"  # what rectify assumes, for which source
 
-MODELS = {"frames_raw": StereoFrame, "frames_rect": StereoFrame, "disparity": DisparityMap,
+MODELS: dict[str, type[BaseModel]] = {"frames_raw": StereoFrame, "frames_rect": StereoFrame, "disparity": DisparityMap,
           "obstacles": ObstacleList, "freespace": FreeSpace, "truth": GroundTruth, "stats": ServiceStats,
           "calibration": CalibrationUpdate}
 
@@ -157,7 +158,10 @@ class Recorder:
                 continue
             t = topic(kind)
             key = t.pattern(self.node.robot_id) if kind == "stats" else t.key(self.node.robot_id)
-            self.node.subscribe(key, lambda sample, k=kind: self.offer(k, sample.payload.to_bytes()))
+            def on_sample(sample: Any, k: str = kind) -> None:  # (k: this iteration's kind)
+                self.offer(k, sample.payload.to_bytes())
+
+            self.node.subscribe(key, on_sample)
 
     def start(self) -> None:
         for i in range(self.settings.threads):
@@ -165,14 +169,16 @@ class Recorder:
             t.start()
             self._threads.append(t)
 
-    def _convert(self, kind: str, msg) -> list[Recorded]:
+    def _convert(self, kind: str, msg: Any) -> list[Recorded]:
         c = self.converter
         if kind in ("frames_raw", "frames_rect"):
             return c.frame(msg)
         if kind == "calibration":
             return c.calibration(msg.yaml, msg.source or "calibration key", msg.stamp_ns)
-        return {"disparity": c.disparity, "obstacles": c.obstacles, "freespace": c.freespace, "truth": c.truth,
-                "stats": c.stats}[kind](msg)
+        convert: dict[str, Callable[[Any], list[Recorded]]] = {
+            "disparity": c.disparity, "obstacles": c.obstacles, "freespace": c.freespace, "truth": c.truth,
+            "stats": c.stats}
+        return convert[kind](msg)
 
     def _work(self) -> None:
         while True:
@@ -187,11 +193,11 @@ class Recorder:
                 with self.node.processing(msg):
                     if kind == "calibration":
                         self.has_calibration = True
-                    elif kind == "frames_raw" and not self.has_calibration:
+                    elif kind == "frames_raw" and not self.has_calibration and isinstance(msg, StereoFrame):
                         self._assume_calibration(msg)
                     for r in self._convert(kind, msg):
                         self.writer.write(r.topic, r.doc, r.log_time_ns, r.sequence)
-                    if kind == self.pair_kind:
+                    if kind == self.pair_kind and isinstance(msg, StereoFrame):
                         with self._lock:
                             self.result.pair_seqs.append(msg.seq)
                             n = len(self.result.pair_seqs)
@@ -214,7 +220,8 @@ class Recorder:
             self.has_calibration = True
         if msg.source == SYNTHETIC_RIG_SOURCE:
             text = calibration_text(SYNTHETIC_RIG)
-            for r in Converter.calibration(text, f"{SYNTHETIC_RIG} (assumed for the synthetic scene)", msg.stamp_ns - 1):
+            source = f"{SYNTHETIC_RIG} (assumed for the synthetic scene)"
+            for r in Converter.calibration(text, source, msg.stamp_ns - 1):
                 self.writer.write(r.topic, r.doc, r.log_time_ns)
         else:
             log.warning("record: no calibration configured (--calibration, rectify.calibration) or published; "
@@ -247,7 +254,7 @@ def record(node: Node, settings: RecordSettings, path: str | Path, calibration_s
     t0 = time.monotonic()
     rec = Recorder(node, settings, writer)
     try:
-        if text is not None:
+        if text is not None and calibration_spec:
             for r in Converter.calibration(text, calibration_spec):
                 writer.write(r.topic, r.doc, r.log_time_ns)
             rec.has_calibration = True

@@ -52,7 +52,8 @@ class RectifySettings(ServiceSettings):
                                     "video and image sources (unset: the thesis rig 'lifecam-studio', which the "
                                     "synthetic scene renders, for the synthetic source only)")
     alpha: float = Field(0.0, ge=0.0, le=1.0, description="0: crop to valid pixels, 1: keep all source pixels")
-    watch_s: float = Field(1.0, ge=0.0, le=3600.0, description="check the calibration file for changes this often (0: never)")
+    watch_s: float = Field(1.0, ge=0.0, le=3600.0,
+                           description="check the calibration file for changes this often (0: never)")
     calibration_updates: Literal["auto", "on", "off"] = Field(
         "auto", description="calibrations published on the calibration key: auto, on: take those signed with "
                             "the robot's calibration key (BALLBOT_CALIBRATION_KEY), within calibration_max_change "
@@ -80,11 +81,11 @@ def reloader(node: Node, holder: CalibrationHolder, updates: queue.Queue[tuple[C
     while node.running:
         timeout = max(0.0, next_poll - time.monotonic()) if watch_s > 0 else 0.5
         try:
-            upd = updates.get(timeout=timeout)
+            item = updates.get(timeout=timeout)
         except queue.Empty:
-            upd = None
-        if upd is not None:
-            upd, is_signed = upd
+            item = None
+        if item is not None:
+            upd, is_signed = item
             origin = f"the calibration key ({upd.source or 'message'}, {'signed' if is_signed else 'UNSIGNED'})"
             holder.offer_yaml(upd.yaml, origin)
         if watch_s > 0 and time.monotonic() >= next_poll:

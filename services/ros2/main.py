@@ -13,11 +13,12 @@ and publishes, as the ROS node `<namespace>/<node_name>` of ROS domain `domain_i
 
 The camera->base transform is the mount each obstacle list carries (ObstacleList.mount: where the
 segmenter placed the camera for that list, from its fitted ground and the configured yaw and
-offsets), else the configured one (the `mount:` section); it is re-published when it moves by more than tf_update_m / tf_update_deg. Obstacle lists flagged stale
-are not republished unless publish_stale (ROS messages have no stale flag); even then the
-segmenter's heartbeat repeats of its last list (same capture stamp, sent while its input has
-stopped) never are: the node inbox refuses a stamp it has already handed on, and a ROS consumer
-tells a stopped stream from the header stamps' age.
+offsets), else the configured one (the `mount:` section); it is re-published when it moves by more
+than tf_update_m / tf_update_deg. Obstacle lists flagged stale are not republished unless
+publish_stale (ROS messages have no stale flag); even then the segmenter's heartbeat repeats of its
+last list (same capture stamp, sent while its input has stopped) never are: the node inbox refuses a
+stamp it has already handed on, and a ROS consumer tells a stopped stream from the header stamps'
+age.
 """
 from __future__ import annotations
 
@@ -68,7 +69,8 @@ class Ros2Settings(ServiceSettings):
     points_max: int = Field(5000, ge=1, le=1_000_000, description="points: at most this many per cloud")
     publish_stale: bool = Field(False, description="also republish obstacle lists computed from late "
                                                "input (flagged stale); heartbeat repeats of the last list never are")
-    marker_lifetime_s: float = Field(0.5, ge=0, le=60, description="markers vanish after this unless renewed (0: never)")
+    marker_lifetime_s: float = Field(0.5, ge=0, le=60,
+                                     description="markers vanish after this unless renewed (0: never)")
     tf_static: bool = Field(True, description="publish base_frame -> camera_frame on /tf_static")
     tf_update_m: float = Field(0.02, ge=0, le=1, description="re-publish /tf_static when the camera moved this much")
     tf_update_deg: float = Field(1.0, ge=0, le=90, description="... or turned this much")
@@ -151,7 +153,7 @@ def run(node: Node, settings: Ros2Settings) -> None:
         q = rmw.Qos(reliability="reliable", durability="transient_local", depth=1) if name == "tf_static" else qos
         pubs[name] = graph.publisher(tname, typename, q)
     node.extra["ros2_publishers"] = float(len(pubs))
-    state = {"mount": None}
+    state: dict[str, Mount | None] = {"mount": None}  # the mount last sent on /tf_static
     lock = threading.Lock()
 
     def publish_tf(msg: ObstacleList | None, stamp: int) -> None:

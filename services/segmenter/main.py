@@ -6,6 +6,8 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from dataclasses import dataclass
+from typing import Generic, TypeVar
 
 from common.keys import topic
 from common.messages import ObstacleList, Odometry
@@ -22,6 +24,17 @@ PUBLISHES = ["obstacles", "freespace"]
 __all__ = ["SegmenterSettings", "run"]
 
 
+T = TypeVar("T")
+
+
+@dataclass
+class _Latest(Generic[T]):
+    """The newest message of a kind and when it came (monotonic s)."""
+
+    msg: T | None
+    at: float
+
+
 def run(node: Node, settings: SegmenterSettings) -> None:
     builder = ObstacleBuilder(settings, node.mount)
     # Only the robot's dispatcher signs maps (with the key the robot's services share): anyone else's
@@ -36,8 +49,8 @@ def run(node: Node, settings: SegmenterSettings) -> None:
     out = node.publisher("obstacles")
     free_out = node.publisher("freespace")
     lock = threading.Lock()
-    last: dict[str, ObstacleList | float] = {"list": None, "time": time.monotonic()}
-    odometry: dict[str, Odometry | float | None] = {"msg": None, "at": 0.0}
+    last = _Latest[ObstacleList](None, time.monotonic())  # the last list published, for the heartbeat
+    odometry = _Latest[Odometry](None, 0.0)
     odometry_cap = topic("odometry").max_bytes
     if node.mount.height_m is None and settings.method == "layers":
         log.info("segmenter: no camera mount configured: the ground is estimated from the disparity every frame "
@@ -51,21 +64,21 @@ def run(node: Node, settings: SegmenterSettings) -> None:
             return
         msg = node.decode_or_drop(payload, Odometry, "odometry message", "odometry")
         if msg is not None:
-            odometry["msg"], odometry["at"] = msg, time.monotonic()
+            odometry.msg, odometry.at = msg, time.monotonic()
 
     node.subscribe(topic("odometry").key(node.robot_id), on_odometry)
 
     def fresh_odometry() -> Odometry | None:
-        msg = odometry["msg"]
-        return msg if msg is not None and time.monotonic() - odometry["at"] <= settings.odometry_timeout_s else None
+        msg = odometry.msg
+        return msg if msg is not None and time.monotonic() - odometry.at <= settings.odometry_timeout_s else None
 
     def heartbeat() -> None:
         # With no input the last list goes out again, flagged stale, so subscribers can tell a quiet
         # scene from a dead pipeline.
         while not node.stop_event.wait(settings.stale_after_s):
             with lock:
-                prev = last["list"]
-                quiet = time.monotonic() - last["time"] > settings.stale_after_s
+                prev = last.msg
+                quiet = time.monotonic() - last.at > settings.stale_after_s
                 if quiet:
                     node.status = "stale: no disparity input" + unsigned_note
                     if prev is not None:
@@ -82,7 +95,7 @@ def run(node: Node, settings: SegmenterSettings) -> None:
             result = builder.process_message(msg, stale=stale, t_s=node.frame_time_s(msg), odometry=fresh_odometry())
             with lock:
                 out.put(result.obstacles)
-                last["list"], last["time"] = result.obstacles, time.monotonic()
+                last.msg, last.at = result.obstacles, time.monotonic()
             if result.freespace is not None:
                 free_out.put(result.freespace, count=False)
             g = result.obstacles.ground

@@ -147,7 +147,8 @@ class Composer:
             frame = codec.decode(frame_payload, StereoFrame)
             left = codec.array_from_image(frame.left, "left")
             if left.dtype != np.uint8:
-                left = cv2.normalize(left, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+                # (OpenCV's stubs refuse dst None; OpenCV takes it: a new array)
+                left = cv2.normalize(left, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)  # type: ignore[call-overload]
             blobs.append(Blob("left", "image/jpeg", encode_jpeg(left, self.jpeg_quality)))
             doc["image"] = {"seq": frame.seq, "stamp_ns": frame.stamp_ns, "width": frame.left.width,
                             "height": frame.left.height, "matched": frame_matched}

@@ -31,6 +31,7 @@ from common.keys import topic
 from common.messages import FreeSpace, ObstacleList, ReplayControl, ServiceStats
 from common.node import Node
 from common.settings import ServiceSettings
+from common.web import start_site
 from services.viewer.core import Composer, ViewInputs
 
 log = logging.getLogger("ballbot.viewer")
@@ -88,14 +89,23 @@ class Hub:
         self.latest = message
         asyncio.ensure_future(self._notify())
 
+    def _condition(self) -> asyncio.Condition:
+        if self._changed is None:
+            raise BallbotError("viewer: the hub is used before bind() gave it the event loop")
+        return self._changed
+
     async def _notify(self) -> None:
-        async with self._changed:
-            self._changed.notify_all()
+        changed = self._condition()
+        async with changed:
+            changed.notify_all()
 
     async def newer_than(self, version: int) -> tuple[int, bytes]:
-        async with self._changed:
-            await self._changed.wait_for(lambda: self.version > version and self.latest is not None)
-            return self.version, self.latest
+        changed = self._condition()
+        async with changed:
+            await changed.wait_for(lambda: self.version > version and self.latest is not None)
+            latest = self.latest
+            assert latest is not None  # what wait_for waited for
+            return self.version, latest
 
 
 class Viewer:
@@ -397,7 +407,10 @@ def make_app(viewer: Viewer, hub: Hub, gate: Gate | None = None):
     app = web.Application(middlewares=[gate.middleware()] if gate is not None else [])
     app.router.add_get("/", index)
     app.router.add_get("/healthz", health)
-    app.router.add_get("/favicon.ico", lambda _request: web.Response(status=204))
+    async def no_favicon(_request: web.Request) -> web.Response:
+        return web.Response(status=204)
+
+    app.router.add_get("/favicon.ico", no_favicon)
     app.router.add_get("/ws", websocket)
     app.router.add_static("/static/", STATIC)
     return app
@@ -405,21 +418,10 @@ def make_app(viewer: Viewer, hub: Hub, gate: Gate | None = None):
 
 async def serve(node: Node, settings: ViewerSettings, viewer: Viewer, hub: Hub,
                 started: threading.Event | None = None) -> None:
-    from aiohttp import web
-
     hub.bind(asyncio.get_running_loop())
     gate = Gate(settings, node)
-    runner = web.AppRunner(make_app(viewer, hub, gate), access_log=None)
-    await runner.setup()
-    site = web.TCPSite(runner, settings.host, settings.port)
-    try:
-        await site.start()
-    except OSError as e:
-        await runner.cleanup()
-        raise BallbotError(f"viewer: cannot listen on {settings.host}:{settings.port}: {e.strerror or e} "
-                           f"(another viewer? choose one with --port)") from None
-    sockets = [s.getsockname() for s in site._server.sockets] if site._server else []
-    port = sockets[0][1] if sockets else settings.port
+    runner, port = await start_site(make_app(viewer, hub, gate), settings.host, settings.port, "viewer",
+                                    "another viewer? choose one with --port")
     node.extra["port"] = float(port)
     url = f"http://{'127.0.0.1' if settings.host in ('0.0.0.0', '::', '') else settings.host}:{port}/"
     url += f"?token={gate.token}" if gate.token else ""
