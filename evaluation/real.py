@@ -45,12 +45,15 @@ from common.errors import BallbotError
 from common.messages import GroundEstimate, Odometry
 from common.settings import MountSettings
 from cores import camera
+from cores.matching.opencv import Match
+from cores.segmentation.builder import FrameResult
 
 FLAT_HEIGHT_M = 0.25  # an obstacle nothing of which stands higher above the road is flat
 NEAR_M = 20.0  # the track-life figure counts obstacles this near
 LONG_TRACK_FRAMES = 5
 JUMP_M, JUMP_NEAR_M = 2.0, 12.0  # a track's ground position moving this far between sightings this near
-REAL_MAX_RANGE_M = 30.0  # vision range for recordings when none is configured (the segmenter's default is a small robot's)
+# vision range for recordings when none is configured (the segmenter's default is a small robot's)
+REAL_MAX_RANGE_M = 30.0
 # Targets of issue 10, set for the Karlsruhe recording: (figure, comparison, value)
 TARGETS = {"median_obstacles_per_frame": ("<=", 25.0), "flat_fraction": ("<=", 0.05),
            "near_long_track_fraction": (">=", 0.80)}
@@ -98,7 +101,7 @@ def open_recording(root: str | Path, fps: float = 10.0) -> Recording:
     sensors = [_first(root, f"cam{k}_sensor.yaml", f"cam{k}/sensor.yaml") for k in (0, 1)]
     if cal_file is not None:
         cal, cal_source = camera.load_calibration(cal_file), cal_file.name
-    elif all(sensors):
+    elif sensors[0] is not None and sensors[1] is not None:
         cal = import_files([str(s) for s in sensors], name=root.name)
         cal_source = f"{sensors[0].relative_to(root)} + {sensors[1].relative_to(root)} (EuRoC, imported)"
     else:
@@ -345,8 +348,8 @@ class ProcessedFrame:
     left_path: Path
     left: np.ndarray
     disparity: np.ndarray
-    match: object  # matchers.Match
-    result: object  # main.FrameResult
+    match: Match
+    result: FrameResult
     model: camera.RectifiedModel
     segment_ms: float
     match_ms: float
@@ -426,7 +429,9 @@ def evaluate_recording(rec: Recording, seg_settings, matcher_cfg, frames: int | 
             world = speed = None
             if odo is not None and o.position_base_m is not None:
                 w = pose[:2] + np.array([[c, -s], [s, c]]) @ np.asarray(o.position_base_m[:2], float)
-                world, speed = (float(w[0]), float(w[1])), float(np.hypot(*o.velocity_base_mps[:2]))
+                world = (float(w[0]), float(w[1]))
+                if o.velocity_base_mps is not None:
+                    speed = float(np.hypot(*o.velocity_base_mps[:2]))
             obs.append(ObstacleRecord(o.id, o.distance_m, o.confirmed, h95,
                                       None if h95 is None else bool(h95 < FLAT_HEIGHT_M), world, speed,
                                       not o.truncated, o.track_frames))
@@ -451,6 +456,13 @@ def evaluate_recording(rec: Recording, seg_settings, matcher_cfg, frames: int | 
 
 
 # --- figures -------------------------------------------------------------------------------------------
+
+def _meets(value, op: str, target: float) -> bool | None:
+    """Whether a figure meets its target (None: nothing measured)."""
+    if not isinstance(value, (int, float)):
+        return None
+    return value <= target if op == "<=" else value >= target
+
 
 def _stats(values: list[float]) -> dict | None:
     if not values:
@@ -523,8 +535,7 @@ def figures(frames: list[FrameRecord]) -> dict:
         "match_ms": _stats([f.match_ms for f in frames]),
         "saturated_max": max((f.saturated for f in frames), default=0.0),
     }
-    out["targets"] = {name: {"value": out[name], "target": f"{op} {val:g}",
-                             "met": None if out[name] is None else (out[name] <= val if op == "<=" else out[name] >= val)}
+    out["targets"] = {name: {"value": out[name], "target": f"{op} {val:g}", "met": _meets(out[name], op, val)}
                       for name, (op, val) in TARGETS.items()}
     return out
 

@@ -115,7 +115,8 @@ def mount_from_T(T: np.ndarray) -> Mount:
                  float(T[0, 3]), float(T[1, 3]))
 
 
-def _truth_maps(world: S.SyntheticWorld, t: float, x_valid: int) -> tuple[np.ndarray, dict[int, tuple[np.ndarray, int, float]]]:
+def _truth_maps(world: S.SyntheticWorld, t: float,
+                x_valid: int) -> tuple[np.ndarray, dict[int, tuple[np.ndarray, int, float]]]:
     """(kind map (H, W) int8: -3 nothing, -2 wall, -1 floor, >= 0 obstacle index;
     {obstacle index: (centroid (3,) m, pixels, nearest distance m)} of the obstacle's surface that
     the matcher can measure: visible in the left image at columns >= x_valid, where block matching
@@ -137,7 +138,8 @@ def _truth_maps(world: S.SyntheticWorld, t: float, x_valid: int) -> tuple[np.nda
         mask = (ids == i) & cols
         n = int(mask.sum())
         p = pts[mask]
-        seen[i] = (p.mean(0) if n else np.full(3, np.nan), n, float(np.sqrt((p * p).sum(1).min())) if n else float("nan"))
+        nearest = float(np.sqrt((p * p).sum(1).min())) if n else float("nan")
+        seen[i] = (p.mean(0) if n else np.full(3, np.nan), n, nearest)
     return kind, seen
 
 
@@ -148,12 +150,13 @@ def default_sequence(scene: S.Scene) -> tuple[int, float]:
 
 
 def render_scenario(name: str, frames: int | None = None, fps: float | None = None, seed: int = 0,
-                    calibration: str = "lifecam-studio", matcher: MatcherConfig = MatcherConfig()) -> ScenarioData:
+                    calibration: str = "lifecam-studio", matcher: MatcherConfig | None = None) -> ScenarioData:
     """Render `frames` pairs at `fps` (scene time), rectify and match them."""
     t0 = time.perf_counter()
     scene = S.Scene.builtin(name)
-    rig = camera.load_calibration(calibration)
-    pipe = Pipeline(rig, matcher)  # rectify and match as the services do; each method segments apart
+    rig = camera.load_raw_rig(calibration)  # the world renders through the lenses
+    pipe = Pipeline(rig, matcher or MatcherConfig())  # rectify and match as the services do; each method segments apart
+    assert pipe.rectifier.rectification is not None  # a raw rig is rectified
     world = S.SyntheticWorld(scene, rig, pipe.rectifier.rectification, seed=seed)
     n_def, fps_def = default_sequence(scene)
     frames = frames or n_def
@@ -213,7 +216,8 @@ class Score:
     border_truths: int = 0  # matched truths cut by the image's left or right side
     border_flagged: int = 0  # of which the detection says truncated
     border_edge_err_px: float = float("nan")  # median error of the box side away from the border, px
-    per_truth: dict = field(default_factory=dict)  # name -> {"seen", "matched", "ids", "hidden", "gaps"[, "wobble_p95_m"]}
+    # name -> {"seen", "matched", "ids", "hidden", "gaps"[, "wobble_p95_m"]}
+    per_truth: dict = field(default_factory=dict)
     ground: list = field(default_factory=list)  # per frame: {"frame", "source", "true": (h, p, r), "est": (h, p, r)}
     _pos: list = field(default_factory=list, repr=False)
     _pct: list = field(default_factory=list, repr=False)
@@ -230,7 +234,8 @@ class Score:
 
     def finish(self) -> Score:
         self.recall = self.matched / self.truths if self.truths else float("nan")
-        self.precision = self.matched / self.detections if self.detections else (1.0 if self.truths == 0 else float("nan"))
+        self.precision = (self.matched / self.detections if self.detections
+                          else (1.0 if self.truths == 0 else float("nan")))
         med = lambda a: float(np.median(a)) if len(a) else float("nan")  # noqa: E731
         p95 = lambda a: float(np.percentile(a, 95)) if len(a) else float("nan")  # noqa: E731
         self.pos_err_med_m, self.pos_err_p95_m = med(self._pos), p95(self._pos)
@@ -275,8 +280,8 @@ class Score:
             for k in ("frames", "truths", "detections", "matched", "floor_fp", "wall_fp", "split_fp", "id_switches",
                       "border_truths", "border_flagged"):
                 setattr(out, k, getattr(out, k) + getattr(s, k))
-            for k in ("_pos", "_pct", "_depth", "_center", "_visible", "_vel", "_ms", "_base", "_wobble", "ground", "_near",
-                      "_edge"):
+            for k in ("_pos", "_pct", "_depth", "_center", "_visible", "_vel", "_ms", "_base", "_wobble", "ground",
+                      "_near", "_edge"):
                 getattr(out, k).extend(getattr(s, k))
         return out.finish()
 
@@ -308,6 +313,8 @@ class _TrueGround:
 
     def update(self, dm: np.ndarray, model: camera.RectifiedModel, step: int):
         m = self.mount
+        if m is None:
+            raise RuntimeError("_TrueGround.update before the frame's true mount was set")
         return plane_from_mount(m, model), GroundEstimate(height_m=m.height_m, pitch_deg=m.pitch_deg,
                                                           roll_deg=m.roll_deg, source="fitted", inlier_fraction=1.0,
                                                           confidence=1.0)
@@ -323,10 +330,10 @@ def score_method(data: ScenarioData, method: str, overrides: dict | None = None,
     if eval_range_m is None:
         eval_range_m = data.scene.range_m or 4.5
     m = data.mount
-    err = {"height_m": 0.0, "pitch_deg": 0.0, "roll_deg": 0.0, **(mount_error or {})}
+    off = {"height_m": 0.0, "pitch_deg": 0.0, "roll_deg": 0.0, **(mount_error or {})}
     cfg = dict(METHODS[method])
-    mount = MountSettings(height_m=m.height_m + err["height_m"], pitch_deg=m.pitch_deg + err["pitch_deg"],
-                          yaw_deg=m.yaw_deg, roll_deg=m.roll_deg + err["roll_deg"], x_m=m.x_m, y_m=m.y_m)
+    mount = MountSettings(height_m=m.height_m + off["height_m"], pitch_deg=m.pitch_deg + off["pitch_deg"],
+                          yaw_deg=m.yaw_deg, roll_deg=m.roll_deg + off["roll_deg"], x_m=m.x_m, y_m=m.y_m)
     if data.scene.range_m:
         cfg["max_range_m"] = data.scene.range_m
     cfg.update(overrides or {})
@@ -425,7 +432,7 @@ def score_method(data: ScenarioData, method: str, overrides: dict | None = None,
             kinds = fr.kind[y0:y1, x0:x1]
             counts = {"floor": int((kinds == -1).sum()), "wall": int((kinds == -2).sum()),
                       "object": int((kinds >= 0).sum())}
-            what = max(counts, key=counts.get)
+            what = max(counts, key=lambda k: counts[k])
             if what == "floor":
                 sc.floor_fp += 1
             elif what == "wall":
@@ -448,7 +455,7 @@ def _vec3(v) -> tuple[float, float, float]:
 
 
 def evaluate(scenarios: list[str] | None = None, methods: list[str] | None = None, frames: int | None = None,
-             fps: float | None = None, seed: int = 0, matcher: MatcherConfig = MatcherConfig(),
+             fps: float | None = None, seed: int = 0, matcher: MatcherConfig | None = None,
              overrides: dict | None = None, data: dict[str, ScenarioData] | None = None,
              mount_error: dict | None = None, true_ground: bool = False) -> dict:
     """-> {"scenarios": {name: {method: Score}}, "overall": {method: Score}, "render_s": {name: s}}.
@@ -474,7 +481,8 @@ def evaluate(scenarios: list[str] | None = None, methods: list[str] | None = Non
 COLUMNS = [("recall", "recall", "{:.0%}"), ("precision", "prec", "{:.0%}"), ("pos_err_med_m", "err med m", "{:.3f}"),
            ("pos_err_p95_m", "err p95 m", "{:.3f}"), ("pos_err_med_pct", "err med %", "{:.1f}"),
            ("pos_err_p95_pct", "err p95 %", "{:.1f}"), ("depth_err_med_pct", "depth med %", "{:.1f}"),
-           ("center_err_med_m", "vs centre m", "{:.3f}"), ("visible_err_med_m", "vs visib. m", "{:.3f}"), ("floor_fp", "floor FP", "{}"), ("wall_fp", "wall FP", "{}"),
+           ("center_err_med_m", "vs centre m", "{:.3f}"), ("visible_err_med_m", "vs visib. m", "{:.3f}"),
+           ("floor_fp", "floor FP", "{}"), ("wall_fp", "wall FP", "{}"),
            ("split_fp", "split FP", "{}"), ("id_switches", "id sw", "{}"), ("vel_err_mps", "vel err m/s", "{:.2f}"),
            ("seg_ms", "seg ms", "{:.1f}")]
 

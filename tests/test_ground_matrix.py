@@ -14,10 +14,11 @@ the lower half of the image, no plane fit, no roll, no temporal state, no prior.
   the sgbm map (the road itself) is printed beside it.
 - Flatness is judged against the profile of the semi-global (sgbm) map of the same pair, ungated,
   as eval --real does: on block matching's own map the far road comes out a degree or more too
-  steep, which at 25 m misplaces it by half a metre and would call kerbs and bollards flat. The room's camera looks ~22 deg down, so
-its floor fills the lower half and the same line is the floor (its figures agree with the fit of
-`mount estimate`: see test_real_eval). The mount offsets are taken from the recording's own road
-profile (median over the frames), the true mount as far as the data tell.
+  steep, which at 25 m misplaces it by half a metre and would call kerbs and bollards flat. The room's
+  camera looks ~22 deg down, so its floor fills the lower half and the same line is the floor (its
+  figures agree with the fit of `mount estimate`: see test_real_eval). The mount offsets are taken
+  from the recording's own road profile (median over the frames), the true mount as far as the data
+  tell.
 
 Each method's maps are computed once per recording (the matcher's search follows the calibration:
 num_disparities auto; the vision range only gates the segmenter), and shared by the 15 cells.
@@ -126,9 +127,10 @@ def _cells(name: str, root, room: bool) -> list[dict]:
 
 def _check(rows: list[dict]) -> None:
     lines = [f"{r['recording']:9} {r['method']:5} {r['range_m']:4.0f} m {r['mount']:11} "
-             f"dh {r['height_err_m']:.3f} m dp {r['pitch_err_deg']:.2f} deg (vs sgbm's road {r['height_err_vs_sgbm_m']:.3f} m "
-             f"{r['pitch_err_vs_sgbm_deg']:.2f} deg) flat {r['flat']}/{r['judged']} "
-             f"({r['flat_fraction']:.1%}){' boxes on the floor ' + str(r['boxes_on_floor']) if r['boxes_on_floor'] else ''}"
+             f"dh {r['height_err_m']:.3f} m dp {r['pitch_err_deg']:.2f} deg "
+             f"(vs sgbm's road {r['height_err_vs_sgbm_m']:.3f} m {r['pitch_err_vs_sgbm_deg']:.2f} deg) "
+             f"flat {r['flat']}/{r['judged']} ({r['flat_fraction']:.1%})"
+             f"{' boxes on the floor ' + str(r['boxes_on_floor']) if r['boxes_on_floor'] else ''}"
              f" {'ok' if r['ok'] else 'FAIL'}" for r in rows]
     print("\n" + "\n".join(lines))
     out = os.environ.get("BALLBOT_MATRIX_REPORT")

@@ -285,7 +285,7 @@ def test_euroc_tape_and_mat_on_the_floor_are_free_the_mattresses_and_chessboard_
         assert lst.ground.source == "fitted" and 0.8 < lst.ground.height_m < 1.1
         boxes = [o.bbox_px for o in lst.obstacles]
 
-        def covered(u, v):
+        def covered(u, v, boxes=boxes):
             return any(x0 <= u < x1 and y0 <= v < y1 for x0, y0, x1, y1 in boxes)
         assert covered(690, 230), "the chessboard"
         assert covered(400, 180), "the mattress leaning on the back wall"

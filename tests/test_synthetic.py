@@ -383,9 +383,9 @@ def test_swaying_camera_pose_follows_the_scenario(rig, rect):
         T = world.T_base_rect(t)
         R_left = T[:3, :3] @ R1  # the (unrectified) left camera's axes, whose pitch and roll the scene sets
         pitch, roll, yaw = _mount_angles(R_left)
-        dp = sum(w.amplitude * math.sin(2 * math.pi * w.frequency_hz * t + math.radians(w.phase_deg)) for w in m.pitch_deg)
-        dr = sum(w.amplitude * math.sin(2 * math.pi * w.frequency_hz * t + math.radians(w.phase_deg)) for w in m.roll_deg)
-        dh = sum(w.amplitude * math.sin(2 * math.pi * w.frequency_hz * t + math.radians(w.phase_deg)) for w in m.height_m)
+        def wave(ws, t=t):
+            return sum(w.amplitude * math.sin(2 * math.pi * w.frequency_hz * t + math.radians(w.phase_deg)) for w in ws)
+        dp, dr, dh = wave(m.pitch_deg), wave(m.roll_deg), wave(m.height_m)
         assert pitch == pytest.approx(sc.camera_pitch_deg + dp, abs=1e-6)
         assert roll == pytest.approx(dr, abs=1e-6)
         assert yaw == pytest.approx(0.0, abs=1e-6)

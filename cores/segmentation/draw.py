@@ -78,7 +78,7 @@ def ground_cells(freespace: FreeSpace, mount: Mount, model: camera.RectifiedMode
 def _blend(img: np.ndarray, mask: np.ndarray, colour: tuple[int, int, int], alpha: float) -> None:
     if mask.any():
         px = img[mask].astype(np.float32)
-        img[mask] = (px * (1 - alpha) + np.float32(colour) * alpha).round().astype(np.uint8)
+        img[mask] = (px * (1 - alpha) + np.asarray(colour, np.float32) * alpha).round().astype(np.uint8)
 
 
 def _dashed_rect(img: np.ndarray, x0: int, y0: int, x1: int, y1: int, colour, dash: int = 6) -> None:
@@ -109,7 +109,8 @@ def caption(obstacles: ObstacleList) -> str:
     ground = ("ground: unknown" if g is None else
               f"ground: h {g.height_m:.2f} m  pitch {g.pitch_deg:+.1f} deg  roll {g.roll_deg:+.1f} deg  {g.source}"
               + (f" ({g.inlier_fraction:.0%} inliers)" if g.inlier_fraction else ""))
-    return f"seq {obstacles.seq}  {n} obstacle(s), {confirmed} confirmed  {ground}" + ("  STALE" if obstacles.stale else "")
+    stale = "  STALE" if obstacles.stale else ""
+    return f"seq {obstacles.seq}  {n} obstacle(s), {confirmed} confirmed  {ground}{stale}"
 
 
 def draw_frame(image: np.ndarray, obstacles: ObstacleList, model: camera.RectifiedModel,
