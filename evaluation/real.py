@@ -481,6 +481,16 @@ def figures(frames: list[FrameRecord]) -> dict:
         for i in {o.id for o in f.obstacles}:
             seen[i] = seen.get(i, 0) + 1
     near = [o for o in all_obs if o.distance_m <= NEAR_M]
+    # a short track that was already there in the first frame or still there in the last may have
+    # lived longer than the run shows (censored): the run's length, not the tracker, cut it short
+    first: dict[int, int] = {}
+    last_k: dict[int, int] = {}
+    for k, f in enumerate(frames):
+        for o in f.obstacles:
+            first.setdefault(o.id, k)
+            last_k[o.id] = k
+    judged_life = [o for o in near if seen[o.id] >= LONG_TRACK_FRAMES
+                   or (first[o.id] > 0 and last_k[o.id] < len(frames) - 1)]
     # track quality over the ground (with odometry): how often a track's ground position jumps more
     # than JUMP_M between consecutive sightings within JUMP_NEAR_M (a different object took its id,
     # or its detection changed shape), and, on a street that mostly stands still, the speed of whole
@@ -517,6 +527,9 @@ def figures(frames: list[FrameRecord]) -> dict:
         "near_long_track_fraction": (sum(seen[o.id] >= LONG_TRACK_FRAMES for o in near) / len(near)) if near else None,
         "near_confirmed_long_track_fraction": (sum(seen[o.id] >= LONG_TRACK_FRAMES for o in near if o.confirmed)
                                                / max(1, sum(o.confirmed for o in near))) if near else None,
+        "near_long_track_fraction_uncensored": (sum(seen[o.id] >= LONG_TRACK_FRAMES for o in judged_life)
+                                                / len(judged_life)) if judged_life else None,
+        "near_censored": len(near) - len(judged_life),
         "tracks": len(seen),
         "median_track_frames": float(np.median(list(seen.values()))) if seen else None,
         "track_jump_fraction": (sum(x > JUMP_M for x in steps) / len(steps)) if steps else None,
@@ -579,7 +592,8 @@ def format_report(report: RealReport) -> str:
         f"(of {f['obstacles']})  {target('flat_fraction')}",
         f"  near (<= {NEAR_M:g} m) in tracks seen >= {LONG_TRACK_FRAMES} frames  {_pct(f['near_long_track_fraction'])} "
         f"of {f['near_obstacles']}  {target('near_long_track_fraction')}; of the confirmed ones "
-        f"{_pct(f['near_confirmed_long_track_fraction'])}",
+        f"{_pct(f['near_confirmed_long_track_fraction'])}; leaving out the {f['near_censored']} of short tracks "
+        f"cut by the run's first or last frame {_pct(f['near_long_track_fraction_uncensored'])}",
         f"  tracks {f['tracks']}, median frames per track {f['median_track_frames']}, "
         f"confirmed {_pct(f['confirmed_fraction'])} of sightings",
         f"  track jumps > {JUMP_M:g} m over the ground (within {JUMP_NEAR_M:g} m)  "

@@ -116,6 +116,13 @@ def test_figures_count_flat_obstacles_and_track_life():
     assert f["flat_judged"] == 8 and f["flat_fraction"] == pytest.approx(2 / 8)
     assert f["near_obstacles"] == 8 and f["near_long_track_fraction"] == pytest.approx(6 / 8)
     assert f["tracks"] == 3 and f["median_track_frames"] == 6
+    # track 2 was there in the first frame: it may have lived longer before the run began, so its
+    # sightings say nothing of the tracker and are left out of the censored figure
+    assert f["near_censored"] == 2 and f["near_long_track_fraction_uncensored"] == pytest.approx(1.0)
+    # a short track wholly inside the run counts against it
+    frames[3].obstacles.append(R.ObstacleRecord(4, 6.0, False, 1.0, False))
+    f = R.figures(frames)
+    assert f["near_censored"] == 2 and f["near_long_track_fraction_uncensored"] == pytest.approx(6 / 7)
     assert f["targets"]["flat_fraction"]["met"] is False and f["targets"]["median_obstacles_per_frame"]["met"] is True
 
 
