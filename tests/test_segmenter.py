@@ -594,6 +594,24 @@ def test_what_stands_behind_is_dropped_only_when_seen_through_the_nearer_object(
     person = region(np.stack([xs.ravel(), ys.ravel()], 1), 3.2)
     assert not layers._encloses(chair, person, MODEL, 1)
     assert len(layers._absorb_contained([chair, person], 0.12, MODEL, 1)) == 2
+    # seen between a person's legs, standing on the floor seen there (filled to it), its top seen: a
+    # crate of its own; a table's back leg under its top, the top hiding its upper end: dropped
+    ys, xs = np.mgrid[20:400, 200:400]
+    walker = (ys < 200) | (xs < 260) | (xs >= 340)
+    walker = region(np.stack([xs[walker], ys[walker]], 1), 2.6)
+    ys, xs = np.mgrid[300:390, 270:330]
+    crate = region(np.stack([xs.ravel(), ys.ravel()], 1), 3.4)
+    assert layers._encloses(walker, crate, MODEL, 1)
+    assert len(layers._absorb_contained([walker, crate], 0.12, MODEL, 1)) == 1  # no foot on the floor seen
+    crate.filled = 40
+    assert len(layers._absorb_contained([walker, crate], 0.12, MODEL, 1)) == 2
+    ys, xs = np.mgrid[100:300, 100:500]
+    table = (ys < 130) | (xs < 120) | (xs >= 480)
+    table = region(np.stack([xs[table], ys[table]], 1), 2.0)
+    ys, xs = np.mgrid[130:280, 300:310]
+    leg = region(np.stack([xs.ravel(), ys.ravel()], 1), 2.5)
+    leg.filled = 20
+    assert len(layers._absorb_contained([table, leg], 0.12, MODEL, 1)) == 1
 
 
 def test_a_small_thing_beyond_an_empty_stretch_of_depth_is_split_from_the_group_a_hand_is_not():
