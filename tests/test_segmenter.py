@@ -612,6 +612,18 @@ def test_what_stands_behind_is_dropped_only_when_seen_through_the_nearer_object(
     leg = region(np.stack([xs.ravel(), ys.ravel()], 1), 2.5)
     leg.filled = 20
     assert len(layers._absorb_contained([table, leg], 0.12, MODEL, 1)) == 1
+    # a back leg beside the front leg at the table's end, under its top (not framed by the table:
+    # nothing of it to the leg's right), is under it all the same, also when the layer split cut it
+    # from the table's group
+    ys, xs = np.mgrid[100:300, 100:500]
+    table = region(np.stack([xs[(ys < 130) | (xs >= 480)], ys[(ys < 130) | (xs >= 480)]], 1), 2.0)
+    ys, xs = np.mgrid[130:280, 460:472]
+    leg = region(np.stack([xs.ravel(), ys.ravel()], 1), 2.5)
+    leg.filled = 20
+    assert not layers._encloses(table, leg, MODEL, 1)
+    assert len(layers._absorb_contained([table, leg], 0.12, MODEL, 1)) == 1
+    table.groups = leg.groups = frozenset({7})
+    assert len(layers._absorb_contained([table, leg], 0.12, MODEL, 1)) == 1
 
 
 def test_a_small_thing_beyond_an_empty_stretch_of_depth_is_split_from_the_group_a_hand_is_not():

@@ -167,8 +167,8 @@ def _absorb_contained(regions: list[_Region], gap_m: float, model: camera.Rectif
         c = regions[ci]
         for ri in order:
             r = regions[ri]
-            if ri == ci or not alive[ri] or r.area >= c.area or r.groups & c.groups:
-                continue  # (two depth layers of one group: one stands behind the other, both are there)
+            if ri == ci or not alive[ri] or r.area >= c.area:
+                continue
             ix = max(0, min(r.bbox[2], c.bbox[2]) - max(r.bbox[0], c.bbox[0]))
             iy = max(0, min(r.bbox[3], c.bbox[3]) - max(r.bbox[1], c.bbox[1]))
             own = (r.bbox[2] - r.bbox[0]) * (r.bbox[3] - r.bbox[1])
@@ -181,12 +181,16 @@ def _absorb_contained(regions: list[_Region], gap_m: float, model: camera.Rectif
             zc = np.percentile(c.pts[there, 2], [10, 90])
             zr = float(np.median(r.pts[:, 2]))
             tol = gap_m + 0.02 * zr
+            capped = _capped(c, r, model, step)
+            if r.groups & c.groups and not capped:
+                continue  # two depth layers of one group: one stands behind the other, both are there
             if zr > zc[1] + tol:
-                # behind it, seen through it: dropped, unless it is whole in the gap: it stands on the
-                # floor seen there and its own top is seen (a box between a person's legs). What is seen
-                # through a car's windows ends at their lower edge; a table's back leg under its top
-                # is cut by the top, and may be its own leg
-                if _encloses(c, r, model, step) and not (r.filled and not _capped(c, r, model, step)):
+                # behind it and seen under it (its top hidden by it: a table's back leg under the top,
+                # beside or between the front legs) or seen through it (framed by it: a car's windows)
+                # it is dropped: the nearer object stands in the way. Unless it is whole in a gap: it
+                # stands on the floor seen there and its own top is seen (a box between a person's
+                # legs); what is seen through a car's windows ends at their lower edge
+                if capped or (_encloses(c, r, model, step) and not r.filled):
                     alive[ri] = False
             elif zr >= zc[0] - tol:
                 alive[ri] = False
