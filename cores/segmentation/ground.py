@@ -20,8 +20,12 @@ or a lost track costs at most a frame:
   (the scene rarely jumps), the configured mount none: a mount is a prior, never a cage. When the
   fitted ground and the configured mount disagree, the data win; this is logged once and both are
   published (GroundEstimate.prior_*).
-Without an acceptable candidate the smoothed estimate stands in for up to `ground_reinit_frames`
-frames ("tracked", its confidence decaying), then the configured mount ("prior"), then nothing
+- prediction: the "tracked" candidate is the last fitted frame's ground carried on at its rate of
+  turn (a balancing robot leans by several degrees a frame). With little floor in view (the robot
+  close to a table) a fit that is not this expected ground and is trusted less than it (a plane on
+  the furniture and the strip of floor at its foot) does not replace it: the expected ground stands in.
+Without an acceptable candidate the expected ground stands in for up to `ground_reinit_frames`
+frames ("tracked", its confidence halving each frame), then the configured mount ("prior"), then nothing
 ("none"). GroundEstimate.confidence says how far each frame's ground can be trusted.
 """
 from __future__ import annotations
@@ -61,6 +65,14 @@ SCORE_SAMPLES = 2000  # RANSAC hypotheses are scored on this many pixels; the re
 TILT_RATE = 0.2  # weight of a new fit in the running tilt doubt
 MAX_TILT_DOUBT_DEG = 1.0
 SEARCH_EVERY = 4  # frames: a full search at least this often (in between, the last frames' ground refined)
+# A camera on a balancing robot leans by several degrees a frame, smoothly: its ground is predicted
+# from the last two frames' at their rate of turn, which carries on into the frames without a fit,
+# slowing by RATE_DECAY a frame (a lean swings back: carried at most twice as far as it went in the
+# last frame), and never faster than ground_step_deg a frame.
+RATE_DECAY = 0.5
+# ... when it turned by more than this a frame: less is within the scatter of fits on a real road
+# (MAX_TILT_DOUBT_DEG), a car's camera hardly turns, and its ground is the last frames', smoothed
+TURN_MIN_DEG = 1.0
 
 
 def grid(h: int, w: int, step: int) -> tuple[np.ndarray, np.ndarray]:
@@ -362,6 +374,10 @@ class GroundEstimator:
         self.missed = 0  # frames in a row without an acceptable fit
         self.since_search = 0  # frames since every candidate last competed
         self.tilt_var = 0.0  # running mean square (deg^2) of each fit's tilt from the last frames' ground
+        self.last_n: np.ndarray | None = None  # the last fitted frame's ground (normal, height) ...
+        self.last_h = 0.0
+        self.rate_n = np.zeros(3)  # ... and its change a frame (from the frame before it; 0 without one)
+        self.rate_h = 0.0
         self.prior_disagreement_logged = False
         self.rng = np.random.default_rng(0)
 
@@ -371,6 +387,29 @@ class GroundEstimator:
         frames' ground (a fit on a real road moves by a few tenths of a degree; an exact plane by
         hardly any), at most MAX_TILT_DOUBT_DEG. The segmenter widens its floor band by it at a distance."""
         return float(min(MAX_TILT_DOUBT_DEG, np.sqrt(self.tilt_var)))
+
+    def predicted(self) -> tuple[np.ndarray, float] | None:
+        """The ground expected in this frame: the last fitted frame's, carried on at its rate of turn
+        (and of rise) for the frames since (module constants: RATE_DECAY, TURN_MIN_DEG); None
+        without a fit."""
+        if self.last_n is None:
+            return None
+        if self.smooth_n is not None and float(np.degrees(np.linalg.norm(self.rate_n))) <= TURN_MIN_DEG:
+            return self.smooth_n, self.smooth_h  # no turn to speak of: the last frames' ground, smoothed
+        k = sum(RATE_DECAY ** i for i in range(self.missed + 1))
+        n = self.last_n + k * self.rate_n
+        return n / np.linalg.norm(n), max(MIN_HEIGHT_M, self.last_h + k * self.rate_h)
+
+    def _remember(self, n: np.ndarray, h: float, follows: bool) -> None:
+        """A frame's fitted ground (normal, height); follows: it is the ground of the frame right after
+        the last fitted one, and agrees with it (else the rate of turn is not known: 0)."""
+        if follows and self.last_n is not None:
+            step = float(np.degrees(np.arccos(np.clip(n @ self.last_n, -1, 1))))
+            scale = min(1.0, self.cfg.ground_step_deg / step) if step > 0 else 1.0
+            self.rate_n, self.rate_h = scale * (n - self.last_n), scale * (h - self.last_h)
+        else:
+            self.rate_n, self.rate_h = np.zeros(3), 0.0
+        self.last_n, self.last_h = n.copy(), float(h)
 
     def _plane(self, n: np.ndarray, h: float, model: camera.RectifiedModel) -> FloorPlane:
         return FloorPlane.from_normal(n, h, model.focal_px, model.cx, model.cy, model.baseline_m)
@@ -401,8 +440,9 @@ class GroundEstimator:
             return plane_from_mount(self.prior, model), self._estimate(prior_n, prior_h, "prior", confidence=0.5)
         u, v, d = _points(dm, step)
         guesses = {}
-        if self.smooth_n is not None:
-            guesses["tracked"] = self._plane(self.smooth_n, self.smooth_h, model)
+        expected = self.predicted() if self.smooth_n is not None else None
+        if expected is not None:
+            guesses["tracked"] = self._plane(*expected, model)
         consistent = None
         ref_roll = pitch_roll(self.smooth_n)[1] if self.smooth_n is not None else 0.0
 
@@ -411,11 +451,12 @@ class GroundEstimator:
                                                         cfg.ground_step_deg, 0.15)
 
         def closeness(f: Fit) -> float:
-            """1 for the last frames' ground, falling to 0 at ground_step_deg or 15 % of the height away."""
-            if self.smooth_n is None:
+            """1 for the ground expected from the last frames, falling to 0 at ground_step_deg or 15 %
+            of the height away."""
+            if expected is None:
                 return 0.0
-            tilt = float(np.degrees(np.arccos(np.clip(f.normal @ self.smooth_n, -1, 1))))
-            dh = abs(f.plane.height_m - self.smooth_h) / max(self.smooth_h, 1e-3)
+            tilt = float(np.degrees(np.arccos(np.clip(f.normal @ expected[0], -1, 1))))
+            dh = abs(f.plane.height_m - expected[1]) / max(expected[1], 1e-3)
             return max(0.0, 1.0 - tilt / max(cfg.ground_step_deg, 1e-3)) * max(0.0, 1.0 - dh / 0.15)
 
         def rank(f: Fit) -> float:
@@ -445,7 +486,15 @@ class GroundEstimator:
                               fit.origin)
             if polished is not None:
                 fit = polished
+        if fit is not None and expected is not None and self.missed < self.cfg.ground_reinit_frames:
+            # little floor in view (the robot close to a table): a fit that is not the ground the last
+            # frames expect (a plane on the furniture, on a strip of floor and the furniture's foot)
+            # does not replace that ground while that is trusted more (its trust halving with each
+            # frame it stands in: a fit that is right wins within a frame or two)
+            if closeness(fit) <= 0 and fit_confidence(fit, False) < self.confidence * 0.5 ** (self.missed + 1):
+                fit = None
         if fit is not None:
+            self._remember(fit.normal, fit.plane.height_m, self.missed == 0 and consistent is True)
             self.missed = 0
             if consistent:
                 tilt = float(np.degrees(np.arccos(np.clip(fit.normal @ self.smooth_n, -1, 1))))
@@ -472,11 +521,10 @@ class GroundEstimator:
             return fit.plane, self._estimate(fit.normal, fit.plane.height_m, "fitted", fit.inlier_fraction, conf,
                                              agrees_prior)
         self.missed += 1
-        if self.smooth_n is not None and self.missed <= cfg.ground_reinit_frames:
+        if expected is not None and self.missed <= cfg.ground_reinit_frames:
             conf = self.confidence * 0.5 ** self.missed  # a robot that sways moves its ground every frame
-            return self._plane(self.smooth_n, self.smooth_h, model), self._estimate(self.smooth_n, self.smooth_h,
-                                                                                    "tracked", confidence=conf)
-        self.smooth_n = None
+            return self._plane(*expected, model), self._estimate(*expected, "tracked", confidence=conf)
+        self.smooth_n = self.last_n = None
         if self.prior is not None:
             return plane_from_mount(self.prior, model), self._estimate(prior_n, prior_h, "prior", confidence=0.1)
         return None, self._none()

@@ -167,8 +167,8 @@ def _absorb_contained(regions: list[_Region], gap_m: float, model: camera.Rectif
         c = regions[ci]
         for ri in order:
             r = regions[ri]
-            if ri == ci or not alive[ri] or r.area >= c.area or r.groups & c.groups:
-                continue  # (two depth layers of one group: one stands behind the other, both are there)
+            if ri == ci or not alive[ri] or r.area >= c.area:
+                continue
             ix = max(0, min(r.bbox[2], c.bbox[2]) - max(r.bbox[0], c.bbox[0]))
             iy = max(0, min(r.bbox[3], c.bbox[3]) - max(r.bbox[1], c.bbox[1]))
             own = (r.bbox[2] - r.bbox[0]) * (r.bbox[3] - r.bbox[1])
@@ -181,9 +181,17 @@ def _absorb_contained(regions: list[_Region], gap_m: float, model: camera.Rectif
             zc = np.percentile(c.pts[there, 2], [10, 90])
             zr = float(np.median(r.pts[:, 2]))
             tol = gap_m + 0.02 * zr
+            capped = _capped(c, r, model, step)
+            if r.groups & c.groups and not capped:
+                continue  # two depth layers of one group: one stands behind the other, both are there
             if zr > zc[1] + tol:
-                if _encloses(c, r, model, step):
-                    alive[ri] = False  # behind it, seen through it
+                # behind it and seen under it (its top hidden by it: a table's back leg under the top,
+                # beside or between the front legs) or seen through it (framed by it: a car's windows)
+                # it is dropped: the nearer object stands in the way. Unless it is whole in a gap: it
+                # stands on the floor seen there and its own top is seen (a box between a person's
+                # legs); what is seen through a car's windows ends at their lower edge
+                if capped or (_encloses(c, r, model, step) and not r.filled):
+                    alive[ri] = False
             elif zr >= zc[0] - tol:
                 alive[ri] = False
                 c = regions[ci] = _union([c, r])
@@ -202,6 +210,18 @@ def _encloses(c: _Region, r: _Region, model: camera.RectifiedModel, step: int) -
     rows, cols = (v >= y0) & (v < y1), (u >= x0) & (u < x1)
     return bool(((rows & (u < x0)).any() and (rows & (u >= x1)).any())
                 or ((cols & (v < y0)).any() and (cols & (v >= y1)).any()))
+
+
+def _capped(c: _Region, r: _Region, model: camera.RectifiedModel, step: int, rows: int = 3) -> bool:
+    """Whether c's points lie right above r's box (within `rows` working rows of its top) across
+    most of its columns: r's top is hidden by c, r may reach on up behind it. (A few of c's points
+    there are the ragged edge of the frame beside r, not a cap over it.)"""
+    u = c.pts[:, 0] / c.pts[:, 2] * model.focal_px + model.cx
+    v = c.pts[:, 1] / c.pts[:, 2] * model.focal_px + model.cy
+    x0, y0, x1, _ = r.bbox
+    over = (u >= x0 * step) & (u < x1 * step) & (v >= (y0 - rows) * step) & (v < (y0 + 1) * step)
+    cols = np.unique((u[over] / step).astype(np.int64))
+    return cols.size >= 0.5 * (x1 - x0)
 
 
 def _union(g: list[_Region]) -> _Region:
