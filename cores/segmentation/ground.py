@@ -158,7 +158,8 @@ def ransac_planes(u: np.ndarray, v: np.ndarray, d: np.ndarray, rng: np.random.Ge
     ok = np.abs(det) > 1e-3
     if not ok.any():
         return []
-    planes = (np.stack([det3(dd, vv, one), det3(uu, dd, one), det3(uu, vv, dd)], 1) / np.where(ok, det, 1.0)[:, None])[ok]
+    planes = np.stack([det3(dd, vv, one), det3(uu, dd, one), det3(uu, vv, dd)], 1)
+    planes = (planes / np.where(ok, det, 1.0)[:, None])[ok]
     planes = planes[(planes[:, 1] > 1e-4) & (np.abs(planes[:, 0]) <= np.tan(np.radians(MAX_ROLL_DEG)) * planes[:, 1])]
     if not len(planes):
         return []
@@ -285,7 +286,8 @@ def _judge(p: np.ndarray, u: np.ndarray, v: np.ndarray, d: np.ndarray, model: ca
     # seen through the plane: farther along the ray than the floor by more than a kerb and matching
     # noise (a real road is not quite a plane: it drains to its sides)
     # (only where the plane's disparity is NEAR_PX or more: farther, matching noise is the plane's height)
-    below = (pred >= NEAR_PX) & (d < np.minimum(pred - np.float32(BELOW_PX), pred * np.float32(height / (height + UNDER_M))))
+    beyond = np.minimum(pred - np.float32(BELOW_PX), pred * np.float32(height / (height + UNDER_M)))
+    below = (pred >= NEAR_PX) & (d < beyond)
     k = int(np.count_nonzero(inl))
     if k < MIN_INLIERS:
         return None
@@ -301,7 +303,8 @@ def _judge(p: np.ndarray, u: np.ndarray, v: np.ndarray, d: np.ndarray, model: ca
 def _points(dm: np.ndarray, step: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     s = 2  # every other working pixel is plenty for three parameters
     sub = dm[::s, ::s]
-    uu, vv = grid(*sub.shape, step * s)
+    h, w = sub.shape
+    uu, vv = grid(h, w, step * s)
     valid = sub > 0
     return np.broadcast_to(uu, sub.shape)[valid], np.broadcast_to(vv, sub.shape)[valid], sub[valid]
 
@@ -428,16 +431,16 @@ class GroundEstimator:
     def _none(self) -> GroundEstimate:
         return self._estimate(np.array([0.0, 1.0, 0.0]), 0.0, "none")
 
-    def update(self, dm: np.ndarray, model: camera.RectifiedModel, step: int) -> tuple[FloorPlane | None, GroundEstimate]:
+    def update(self, dm: np.ndarray, model: camera.RectifiedModel,
+               step: int) -> tuple[FloorPlane | None, GroundEstimate]:
         cfg = self.cfg
-        prior_n = prior_h = None
-        if self.prior is not None:
-            prior_n, prior_h = self.prior.down_camera, self.prior.height_m
+        prior = self.prior
         if not cfg.fit_floor:
-            if self.prior is None:
+            if prior is None:
                 return None, self._none()
             # the user chose the configured mount over fitting: trusted as far as a mount measured once can be
-            return plane_from_mount(self.prior, model), self._estimate(prior_n, prior_h, "prior", confidence=0.5)
+            return plane_from_mount(prior, model), self._estimate(prior.down_camera, prior.height_m, "prior",
+                                                                  confidence=0.5)
         u, v, d = _points(dm, step)
         guesses = {}
         expected = self.predicted() if self.smooth_n is not None else None
@@ -509,15 +512,16 @@ class GroundEstimator:
             conf = fit_confidence(fit, consistent is not False)
             self.confidence = conf
             agrees_prior = None
-            if prior_n is not None:
-                agrees_prior = _close(fit.normal, fit.plane.height_m, prior_n, prior_h, cfg.max_tilt_deg)
+            if prior is not None:
+                agrees_prior = _close(fit.normal, fit.plane.height_m, prior.down_camera, prior.height_m,
+                                      cfg.max_tilt_deg)
                 if not agrees_prior and not self.prior_disagreement_logged and conf >= TRUSTED:
                     self.prior_disagreement_logged = True
                     pitch, roll = fit.pitch_roll
                     log.warning("segmenter: the ground in the disparity (camera %.2f m above it, pitch %+.1f deg, "
                                 "roll %+.1f deg) disagrees with the configured mount (%.2f m, %+.1f deg, %+.1f deg): "
                                 "using the data; both are published with each list (GroundEstimate.prior_*)",
-                                fit.plane.height_m, pitch, roll, prior_h, self.prior.pitch_deg, self.prior.roll_deg)
+                                fit.plane.height_m, pitch, roll, prior.height_m, prior.pitch_deg, prior.roll_deg)
             return fit.plane, self._estimate(fit.normal, fit.plane.height_m, "fitted", fit.inlier_fraction, conf,
                                              agrees_prior)
         self.missed += 1
@@ -525,6 +529,7 @@ class GroundEstimator:
             conf = self.confidence * 0.5 ** self.missed  # a robot that sways moves its ground every frame
             return self._plane(*expected, model), self._estimate(*expected, "tracked", confidence=conf)
         self.smooth_n = self.last_n = None
-        if self.prior is not None:
-            return plane_from_mount(self.prior, model), self._estimate(prior_n, prior_h, "prior", confidence=0.1)
+        if prior is not None:
+            return plane_from_mount(prior, model), self._estimate(prior.down_camera, prior.height_m, "prior",
+                                                                  confidence=0.1)
         return None, self._none()

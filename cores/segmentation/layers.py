@@ -64,7 +64,7 @@ class _Region:
     hi: np.ndarray  # (3,) 98th percentile
     bbox: tuple[int, int, int, int]  # working-resolution x0, y0, x1, y1 (exclusive)
     area: int  # working-resolution pixels
-    valid: int  # of which with a valid raw disparity
+    valid: float  # of which with a valid raw disparity (with a confidence map: its sum / 255)
     disparities: np.ndarray  # (n,) px
     filled: int = 0  # points added by _fill_to_floor (included in pts)
     groups: frozenset = frozenset()  # the split groups (_split_layers) it holds a depth layer of
@@ -434,11 +434,12 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
     keep = cv2.inRange(dm, fB / range_m, fB / cfg.min_range_m) > 0
     dk = np.where(keep, dm, np.float32(0))
     floor, estimate = None, None
+    doubt_deg = 0.0
     if cfg.floor_removal:
         ground = ground or GroundEstimator(cfg)
         floor, estimate = ground.update(dk, model, step)
-    doubt_deg = ground.tilt_doubt_deg if floor is not None else 0.0
-    doubt_deg = doubt_deg if doubt_deg >= MIN_DOUBT_DEG else 0.0
+        if floor is not None and ground.tilt_doubt_deg >= MIN_DOUBT_DEG:
+            doubt_deg = ground.tilt_doubt_deg
     floor_points = np.zeros((0, 3))
     if floor is not None:
         u, v = grid(h, w, step)
@@ -486,8 +487,8 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
             continue
         if area * px_m * px_m < 0.25 * cfg.min_area_m2:
             continue
-        if above is not None and float(np.percentile(above[gy, gx], 98)) < cfg.min_height_m + _floor_doubt(
-                floor, med, fB, doubt_deg):
+        if floor is not None and above is not None and float(np.percentile(above[gy, gx], 98)) < \
+                cfg.min_height_m + _floor_doubt(floor, med, fB, doubt_deg):
             continue  # nothing of it stands up: a marking, a shadow, a mat
         pts = _points(gy, gx, gd, model, step)
         valid = (int(np.count_nonzero(d0[gy, gx])) if confidence is None
@@ -515,7 +516,8 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
         if floor is None and cfg.floor_removal and _floor_like(r.pts):
             continue  # no ground to tell it by: a patch of floor is still no obstacle (the list says no-ground)
         size = r.hi - r.lo
-        if max(size[0], size[1]) < cfg.min_size_m or r.area * (float(np.mean(r.pts[:, 2])) / f * step) ** 2 < cfg.min_area_m2:
+        px_m = float(np.mean(r.pts[:, 2])) / f * step
+        if max(size[0], size[1]) < cfg.min_size_m or r.area * px_m * px_m < cfg.min_area_m2:
             continue
         sub = r.pts[::max(1, len(r.pts) // _STAT_SAMPLES)]
         rng = np.sqrt((sub * sub).sum(1))
