@@ -10,6 +10,8 @@ depth (a buggy or hostile producer must not turn "unmeasured" into "far away" or
 """
 from __future__ import annotations
 
+import statistics
+
 import numpy as np
 
 
@@ -22,14 +24,26 @@ def to_float(raw: np.ndarray, scale: float, invalid_value: float,
              valid_range: tuple[float, float] | None = None) -> np.ndarray:
     """(H, W) fixed-point disparity -> (H, W) float32 px, NaN where raw == invalid_value, where
     it is not finite and, with valid_range (lo, hi) px, where it lies outside [lo, hi]."""
+    d = raw.astype(np.float32)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        d = raw.astype(np.float32) / np.float32(scale)  # a scale too small for float32 gives inf: masked
-    bad = (raw == invalid_value) | ~np.isfinite(d)
+        np.divide(d, np.float32(scale), out=d)  # a scale too small for float32 gives inf: masked
+        # integers scaled by a finite divisor stay finite when the largest of their type does:
+        # the full-image isfinite pass is then known to find nothing
+        finite = raw.dtype.kind in "iu" and bool(np.isfinite(_largest_float32(raw.dtype) / np.float32(scale)))
+    bad = raw == invalid_value
+    if not finite:
+        bad |= ~np.isfinite(d)
     if valid_range is not None:
         with np.errstate(invalid="ignore"):
-            bad |= (d < valid_range[0]) | (d > valid_range[1])
-    d[bad] = np.nan
+            bad |= d < valid_range[0]
+            bad |= d > valid_range[1]
+    np.copyto(d, np.float32(np.nan), where=bad)
     return d
+
+
+def _largest_float32(dtype: np.dtype) -> np.float32:
+    info = np.iinfo(dtype)
+    return np.float32(max(-int(info.min), int(info.max)))
 
 
 class RecentValid:
@@ -51,7 +65,7 @@ class RecentValid:
             self._recent.popleft()
         if len(self._recent) < self.min_frames:
             return None
-        return float(np.median([v for _, v in self._recent]))
+        return float(statistics.median(v for _, v in self._recent))  # np.median's array costs ~0.2 ms here
 
     def collapsed(self, valid_fraction: float, now_s: float) -> bool:
         m = self.median(now_s)
