@@ -10,8 +10,10 @@ depth (a buggy or hostile producer must not turn "unmeasured" into "far away" or
 """
 from __future__ import annotations
 
+import functools
 import statistics
 
+import cv2
 import numpy as np
 
 
@@ -30,6 +32,18 @@ def to_float(raw: np.ndarray, scale: float, invalid_value: float,
         # integers scaled by a finite divisor stay finite when the largest of their type does:
         # the full-image isfinite pass is then known to find nothing
         finite = raw.dtype.kind in "iu" and bool(np.isfinite(_largest_float32(raw.dtype) / np.float32(scale)))
+    interval = None
+    if finite and valid_range is not None and raw.ndim == 2 and raw.size and raw.flags.c_contiguous:
+        interval = _valid_interval(raw.dtype, float(scale), (float(valid_range[0]), float(valid_range[1])))
+    if interval is not None:
+        # the valid raw values are one interval (d grows monotonically with raw): two integer
+        # bounds on the raw map replace the float comparisons (~0.4 ms at 640x480)
+        lo, hi = interval
+        ok = cv2.inRange(raw, lo, hi) if lo <= hi else np.zeros(raw.shape, np.uint8)
+        if lo <= invalid_value <= hi and float(invalid_value).is_integer():
+            ok[raw == invalid_value] = 0
+        np.copyto(d, np.float32(np.nan), where=ok == 0)
+        return d
     bad = raw == invalid_value
     if not finite:
         bad |= ~np.isfinite(d)
@@ -39,6 +53,24 @@ def to_float(raw: np.ndarray, scale: float, invalid_value: float,
             bad |= d > valid_range[1]
     np.copyto(d, np.float32(np.nan), where=bad)
     return d
+
+
+@functools.lru_cache(maxsize=16)
+def _valid_interval(dtype: np.dtype, scale: float, valid_range: tuple[float, float]) -> tuple[int, int] | None:
+    """(lo, hi) inclusive: the raw values of this 8/16-bit integer type whose disparity (computed as
+    to_float does) lies in valid_range; None when they are no single interval or the type is wider."""
+    if dtype.kind not in "iu" or dtype.itemsize > 2:
+        return None
+    info = np.iinfo(dtype)
+    vals = np.arange(int(info.min), int(info.max) + 1).astype(dtype)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        d = vals.astype(np.float32) / np.float32(scale)
+        inside = np.flatnonzero(np.isfinite(d) & (d >= valid_range[0]) & (d <= valid_range[1]))
+    if not inside.size:
+        return 1, 0  # none valid
+    if inside[-1] - inside[0] + 1 != inside.size:
+        return None
+    return int(vals[inside[0]]), int(vals[inside[-1]])
 
 
 def _largest_float32(dtype: np.dtype) -> np.float32:
