@@ -56,7 +56,9 @@ def occupancy(floor_points: np.ndarray, obstacle_points: list[np.ndarray], mount
         col = np.floor((p[:, 0] - origin[0]) / res).astype(np.int64)
         row = np.floor((p[:, 1] - origin[1]) / res).astype(np.int64)
         ok = (col >= 0) & (col < width) & (row >= 0) & (row < height)
-        return row[ok] * width + col[ok]
+        row *= width
+        row += col
+        return row[ok]  # one selection of the flat index, not one of each coordinate
 
     cells[index(floor_points)] = 0
     if obstacle_points:

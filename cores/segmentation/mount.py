@@ -59,9 +59,17 @@ class Mount:
     def origin_base(self) -> np.ndarray:
         return np.array([self.x_m, self.y_m, self.height_m])
 
+    @cached_property
+    def _origin(self) -> np.ndarray:
+        return self.origin_base
+
     def to_base(self, p_camera: np.ndarray) -> np.ndarray:
         """(..., 3) camera-frame points (m) -> (..., 3) base-frame points (m)."""
-        return np.asarray(p_camera, float) @ self.R_base_camera.T + self.origin_base
+        # the product by the transposed view as it is (a contiguous copy of it gives other last
+        # bits); the offset added in place: a second large array costs more than the product
+        out = np.asarray(p_camera, float) @ self.R_base_camera.T
+        out += self._origin
+        return out
 
     def vector_to_base(self, v_camera: np.ndarray) -> np.ndarray:
         """(..., 3) camera-frame vectors (velocities) -> base frame."""
