@@ -94,7 +94,8 @@ def test_move_carries_tracks_by_the_robots_own_motion():
     # the robot drives 0.8 m forward and turns 90 degrees left: the object is now 1.2 m to its right
     R = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # rotation by -90 deg about z
     tr.move(R, -R @ np.array([0.8, 0.0, 0.0]))
-    assert np.allclose(tr.tracks[0].position, [0.0, -1.2, 0.3]) and np.allclose(tr.tracks[0].box, [[-0.2, -1.4], [0.2, -1.0]])
+    assert np.allclose(tr.tracks[0].position, [0.0, -1.2, 0.3])
+    assert np.allclose(tr.tracks[0].box, [[-0.2, -1.4], [0.2, -1.0]])
     (t1,) = tr.update([np.array([0.0, -1.2, 0.3])], 0.1, [np.array([[-0.2, -1.4], [0.2, -1.0]])])
     assert t1.id == t0.id and np.linalg.norm(t1.velocity) < 1e-6
 

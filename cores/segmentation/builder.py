@@ -238,7 +238,7 @@ class ObstacleBuilder:
         self._last_t = t_s
         dets, points = frame.detections, frame.points
         fps = [_footprint(mount, pts) for pts in points] if mount is not None and len(points) == len(dets) else None
-        if fps is not None and cfg.track_merge_fragments:
+        if fps is not None and mount is not None and cfg.track_merge_fragments:
             dets, points, fps = self._merge_fragments(dets, points, fps, mount, model, t_s)
         positions = [mount.to_base(d.position_m) if mount is not None else np.asarray(d.position_m, float)
                      for d in dets]
@@ -289,11 +289,11 @@ class ObstacleBuilder:
                            velocity_reference="ground" if over_ground else "camera")
         free = None
         if cfg.freespace and mount is not None and frame.floor is not None and cfg.method == "layers":
-            g = freespace.occupancy(frame.floor_points, frame.points, mount, model, cfg.range_for(model),
-                                    cfg.freespace_resolution_m)
+            grid = freespace.occupancy(frame.floor_points, frame.points, mount, model, cfg.range_for(model),
+                                       cfg.freespace_resolution_m)
             free = FreeSpace(robot_id=robot_id, seq=seq, stamp_ns=stamp_ns, stages=dict(stages or {}), publish_ns=now,
-                             resolution_m=g.resolution_m, width=g.width, height=g.height,
-                             origin_m=(float(g.origin_m[0]), float(g.origin_m[1])), cells=g.cells.tobytes(),
+                             resolution_m=grid.resolution_m, width=grid.width, height=grid.height,
+                             origin_m=(float(grid.origin_m[0]), float(grid.origin_m[1])), cells=grid.cells.tobytes(),
                              ground=frame.ground, mount=out.mount)
         return FrameResult(out, free, frame.floor)
 

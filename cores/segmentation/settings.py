@@ -93,7 +93,8 @@ class SegmenterSettings(ServiceSettings):
     freespace_resolution_m: float = Field(0.1, gt=0, le=10, description="free-space cell size, m")
     fill_to_floor: bool = Field(True, description="layers: extend objects standing on the floor down to it")
     downsample: Literal[1, 2, 4] = Field(2, description="layers: work on every n-th pixel")
-    edge_refine: bool = Field(False, description="layers: snap boxes to intensity edges (needs the image; off in the service)")
+    edge_refine: bool = Field(False, description="layers: snap boxes to intensity edges "
+                                                 "(needs the image; off in the service)")
     # tracking
     track_gate_m: float = Field(0.6, gt=0, description="max distance between a track and its next detection")
     track_timeout_s: float = Field(1.0, gt=0, description="a track unseen this long is dropped")

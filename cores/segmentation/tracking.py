@@ -45,7 +45,8 @@ class Track:
     missed: int = 0  # frames since it was last seen
     seen_bits: int = 1  # bit k: seen k frames ago
     confirmed: bool = False
-    P: np.ndarray = field(default_factory=lambda: np.array([0.05, 0.05, 1.0]))  # pos var, pos-vel cov, vel var (per axis)
+    # pos var, pos-vel cov, vel var (per axis)
+    P: np.ndarray = field(default_factory=lambda: np.array([0.05, 0.05, 1.0]))
     box: np.ndarray | None = None  # (2, 2): lo, hi of the footprint on the ground (x, y), when known
     last_whole: bool = True  # the last sighting was not cut by the edge of the view (see _correct)
     moving: bool = False  # the velocity has been measured (two sightings that measure motion)
@@ -99,8 +100,8 @@ class Tracker:
 
     def measurement_var(self, p: np.ndarray) -> float:
         """Centroid noise (m^2) of a detection at p: stereo depth noise grows with the square of the
-        distance over f B (half a pixel of centroid disparity noise: measured on a real street); without the rig, a generic
-        indoor one. The distance is |p|: the same in the camera and the base frame, near enough."""
+        distance over f B (half a pixel of centroid disparity noise: measured on a real street); without
+        the rig, a generic indoor one. The distance is |p|: the same in the camera and the base frame, near enough."""
         z2 = float(p @ p)
         k = 0.5 / self.depth_scale if self.depth_scale else 0.005
         return (0.01 + k * z2) ** 2
@@ -163,7 +164,8 @@ class Tracker:
         of the centroid distance, so a long wall or railing whose visible part slides along as the
         robot drives keeps its id. cuts and edges:
         per position, where the edge of the view cuts it and its left/right edge points (_correct)."""
-        self.tracks = [tr for tr in self.tracks if t_s - tr.last_seen_s <= self.timeout_s or tr.missed < self.min_missed]
+        self.tracks = [tr for tr in self.tracks
+                       if t_s - tr.last_seen_s <= self.timeout_s or tr.missed < self.min_missed]
         pos = [np.asarray(p, dtype=float) for p in positions]
         assigned: dict[int, Track] = {}
         if self.tracks and pos:
