@@ -165,27 +165,60 @@ def ransac_planes(u: np.ndarray, v: np.ndarray, d: np.ndarray, rng: np.random.Ge
         return []
     s = rng.choice(n, size=min(n, SCORE_SAMPLES), replace=False)
     us, vs, ds = u[s], v[s], d[s]
-    pred = planes[:, 0:1] * us[None] + planes[:, 1:2] * vs[None] + planes[:, 2:3]
-    score = ((pred > 0) & (np.abs(pred - ds[None]) < np.maximum(1.0, 0.05 * pred))).sum(1)
+    score = _support_counts(planes, us.astype(np.float64), vs.astype(np.float64), ds.astype(np.float64))
     out: list[np.ndarray] = []
+    kept: list[np.ndarray] = []  # their disparities on the pixels telling planes apart
     uc, vc = us[:256], vs[:256]  # enough to tell two planes apart
-    for q in np.argsort(-score)[:24]:  # the best few: most hypotheses are one floor drawn again
+    best = np.argsort(-score)[:24]  # the best few: most hypotheses are one floor drawn again
+    preds = planes[best, 0:1] * uc + planes[best, 1:2] * vc + planes[best, 2:3]
+    for q, dp in zip(best, preds):
         if score[q] < 10 or len(out) >= keep:
             break
-        p = planes[q]
-        if all(not _similar_planes(p, o, uc, vc) for o in out):
-            out.append(p)
+        if all(not _similar_disparities(dp, dq) for dq in kept):
+            out.append(planes[q])
+            kept.append(dp)
     return out
+
+
+def _support_counts(planes: np.ndarray, u: np.ndarray, v: np.ndarray, d: np.ndarray, block: int = 32) -> np.ndarray:
+    """Per plane, the pixels (float64 u, v, d) within 1 px (5 %) of it in front of the camera. In
+    blocks of planes into buffers reused: a (planes, pixels) array at once, and float32 pixels
+    broadcast against float64 planes, cost several times more (the same values either way)."""
+    score = np.empty(len(planes), np.int64)
+    shape = (min(block, len(planes)), d.size)
+    pred, tol = np.empty(shape), np.empty(shape)
+    front, near = np.empty(shape, bool), np.empty(shape, bool)
+    for i in range(0, len(planes), block):
+        pl = planes[i:i + block]
+        k = len(pl)
+        pr, t, f, m = pred[:k], tol[:k], front[:k], near[:k]
+        np.multiply(pl[:, 0:1], u, out=pr)
+        np.multiply(pl[:, 1:2], v, out=t)
+        pr += t
+        pr += pl[:, 2:3]
+        np.greater(pr, 0, out=f)
+        np.multiply(0.05, pr, out=t)
+        np.maximum(1.0, t, out=t)
+        pr -= d
+        np.abs(pr, out=pr)
+        np.less(pr, t, out=m)
+        f &= m
+        score[i:i + k] = np.count_nonzero(f, axis=1)
+    return score
 
 
 def _similar_planes(p: np.ndarray, q: np.ndarray, u: np.ndarray, v: np.ndarray) -> bool:
     """Two planes predicting within 5 % of each other on the pixels where either is in view."""
-    dp = p[0] * u + p[1] * v + p[2]
-    dq = q[0] * u + q[1] * v + q[2]
+    return _similar_disparities(p[0] * u + p[1] * v + p[2], q[0] * u + q[1] * v + q[2])
+
+
+def _similar_disparities(dp: np.ndarray, dq: np.ndarray) -> bool:
+    """_similar_planes on the two planes' disparities (float64) at the same pixels."""
     m = (dp > 0) | (dq > 0)
     if not m.any():
         return True
-    return bool(np.mean(np.abs(dp[m] - dq[m]) / np.maximum(np.abs(dq[m]), 1.0)) < 0.05)
+    r = np.abs(dp[m] - dq[m]) / np.maximum(np.abs(dq[m]), 1.0)
+    return bool(r.sum() / r.size < 0.05)  # np.mean's sum and division, without its dispatch
 
 
 def vdisparity_planes(u: np.ndarray, v: np.ndarray, d: np.ndarray, model: camera.RectifiedModel,
@@ -326,15 +359,20 @@ def _candidates(u: np.ndarray, v: np.ndarray, d: np.ndarray, model: camera.Recti
         starts += [("ransac", p) for p in ransac_planes(u, v, d, rng)]
         starts += [("v-disparity", p) for p in vdisparity_planes(u, v, d, model, rng)]
     fits: list[Fit] = []
-    refined: list[np.ndarray] = []
+    refined: list[np.ndarray] = []  # the refined planes' disparities on the pixels telling planes apart
     uc, vc = u[::max(1, u.size // 256)], v[::max(1, v.size // 256)]
     for origin, p0 in starts:
-        if any(_similar_planes(p0, q, uc, vc) for q in refined):
-            continue  # it would refine to a plane already judged
+        if refined:
+            dp = p0[0] * uc + p0[1] * vc + p0[2]
+            if any(_similar_disparities(dp, q) for q in refined):
+                continue  # it would refine to a plane already judged
         p = _refine(p0, u, v, d)
-        if p is None or any(_similar_planes(p, q, uc, vc) for q in refined):
+        if p is None:
             continue
-        refined.append(p)
+        dp = p[0] * uc + p[1] * vc + p[2]
+        if any(_similar_disparities(dp, q) for q in refined):
+            continue
+        refined.append(dp)
         fit = _judge(p, u, v, d, model, origin)
         if fit is not None:
             fits.append(fit)
