@@ -105,16 +105,23 @@ def frame_mount(ground: GroundEstimate | None, configured: MountSettings) -> tup
 
 def lstsq_plane(u: np.ndarray, v: np.ndarray, d: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
     """Least-squares (a, b, c) of d = a u + b v + c (weights w), by the 3x3 normal equations (centred)."""
-    u = u.astype(np.float64)
-    v = v.astype(np.float64)
-    d = d.astype(np.float64)
-    w = np.ones_like(d) if w is None else w.astype(np.float64)
-    sw = w.sum()
-    mu, mv, md = (w @ u) / sw, (w @ v) / sw, (w @ d) / sw
+    return _lstsq(u.astype(np.float64), v.astype(np.float64), d.astype(np.float64),
+                  None if w is None else w.astype(np.float64))
+
+
+def _lstsq(u: np.ndarray, v: np.ndarray, d: np.ndarray, w: np.ndarray | None) -> np.ndarray:
+    """lstsq_plane on float64 arrays of the caller's own (centred in place)."""
+    if w is None:  # unit weights: their products are the values themselves, their sum the count
+        ones = np.ones_like(d)
+        sw = float(d.size)
+        mu, mv, md = (ones @ u) / sw, (ones @ v) / sw, (ones @ d) / sw
+    else:
+        sw = w.sum()
+        mu, mv, md = (w @ u) / sw, (w @ v) / sw, (w @ d) / sw
     u -= mu
     v -= mv
     d -= md
-    wu, wv = w * u, w * v
+    wu, wv = (u, v) if w is None else (w * u, w * v)
     p, q, r = wu @ u + 1e-9, wu @ v, wv @ v + 1e-9  # the 2x2 normal equations, solved by hand
     x, y = wu @ d, wv @ d
     det = p * r - q * q
@@ -124,8 +131,41 @@ def lstsq_plane(u: np.ndarray, v: np.ndarray, d: np.ndarray, w: np.ndarray | Non
     return np.array([a, b, md - a * mu - b * mv])
 
 
-def _tolerance(pred: np.ndarray, rel: float) -> np.ndarray:
-    return np.maximum(np.float32(0.6), np.float32(rel) * pred)
+class _Pixels:
+    """A frame's valid working pixels: float32 u, v, d, where the bands are drawn, and float64
+    copies for the least squares, made once a frame instead of at every fit."""
+
+    def __init__(self, u: np.ndarray, v: np.ndarray, d: np.ndarray):
+        self.u, self.v, self.d = u, v, d
+        self.u64, self.v64, self.d64 = u.astype(np.float64), v.astype(np.float64), d.astype(np.float64)
+        self._left: tuple[float, np.ndarray] | None = None
+
+    def disparity(self, p: np.ndarray) -> np.ndarray:
+        """The plane's float32 disparity at the pixels: (a u + b v) + c, in place."""
+        pred = np.float32(p[0]) * self.u
+        pred += np.float32(p[1]) * self.v
+        pred += np.float32(p[2])
+        return pred
+
+    def band(self, pred: np.ndarray, rel: float) -> np.ndarray:
+        """The pixels within max(0.6, rel pred) of the plane's disparity pred, in front of the camera."""
+        tol = np.multiply(np.float32(rel), pred)
+        np.maximum(np.float32(0.6), tol, out=tol)
+        off = np.subtract(self.d, pred)
+        np.abs(off, out=off)
+        inl = off <= tol
+        inl &= pred > 0
+        return inl
+
+    def fit(self, m: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
+        """lstsq_plane on the pixels of mask m (weights w: one per pixel of m)."""
+        return _lstsq(self.u64[m], self.v64[m], self.d64[m], None if w is None else w.astype(np.float64))
+
+    def left(self, cx: float) -> np.ndarray:
+        """The pixels left of column cx."""
+        if self._left is None or self._left[0] != cx:
+            self._left = (cx, self.u < cx)
+        return self._left[1]
 
 
 def ransac_planes(u: np.ndarray, v: np.ndarray, d: np.ndarray, rng: np.random.Generator,
@@ -276,36 +316,37 @@ class Fit:
         return pitch_roll(self.normal)
 
 
-def _refine(p: np.ndarray, u: np.ndarray, v: np.ndarray, d: np.ndarray,
-            tols: tuple[float, ...] = (0.15, 0.08, 0.04)) -> np.ndarray | None:
+def _refine(p: np.ndarray, px: _Pixels, tols: tuple[float, ...] = (0.15, 0.08, 0.04)) -> np.ndarray | None:
     for tol in tols:
-        pred = np.float32(p[0]) * u + np.float32(p[1]) * v + np.float32(p[2])
-        inl = (pred > 0) & (np.abs(d - pred) <= _tolerance(pred, tol))
+        inl = px.band(px.disparity(p), tol)
         if np.count_nonzero(inl) < MIN_INLIERS:
             return None
-        p = lstsq_plane(u[inl], v[inl], d[inl])
+        p = px.fit(inl)
     return p
 
 
-def _polish(p: np.ndarray, u: np.ndarray, v: np.ndarray, d: np.ndarray, iterations: int = 2) -> np.ndarray:
+def _polish(p: np.ndarray, px: _Pixels, iterations: int = 2) -> np.ndarray:
     """The chosen plane settled on its surface: iteratively reweighted least squares with Cauchy
     weights on the residual relative to 3 % of the plane's disparity (0.3 px at least), so that
     starts a little apart on one road end on one plane, frame after frame (band fits stop wherever
     their last band left them, and a base frame that jitters by a few tenths of a degree moves far
     obstacles by decimetres)."""
     for _ in range(iterations):
-        pred = np.float32(p[0]) * u + np.float32(p[1]) * v + np.float32(p[2])
-        sigma = np.maximum(np.float32(0.3), np.float32(0.03) * pred)
-        r = (d - pred) / sigma
-        m = (pred > 0) & (np.abs(r) < 3)
+        pred = px.disparity(p)
+        sigma = np.multiply(np.float32(0.03), pred)
+        np.maximum(np.float32(0.3), sigma, out=sigma)
+        r = np.subtract(px.d, pred)
+        r /= sigma
+        m = np.abs(r) < 3
+        m &= pred > 0
         if np.count_nonzero(m) < MIN_INLIERS:
             break
-        p = lstsq_plane(u[m], v[m], d[m], 1.0 / (1.0 + r[m] * r[m]))
+        rm = r[m]
+        p = px.fit(m, 1.0 / (1.0 + rm * rm))
     return p
 
 
-def _judge(p: np.ndarray, u: np.ndarray, v: np.ndarray, d: np.ndarray, model: camera.RectifiedModel,
-           origin: str) -> Fit | None:
+def _judge(p: np.ndarray, px: _Pixels, model: camera.RectifiedModel, origin: str) -> Fit | None:
     """A refined plane -> its Fit (support, pixels under it, score), or None when it is no floor
     under the camera (module doc: geometry)."""
     plane = FloorPlane(float(p[0]), float(p[1]), float(p[2]), 1.0, True, 0)
@@ -314,20 +355,23 @@ def _judge(p: np.ndarray, u: np.ndarray, v: np.ndarray, d: np.ndarray, model: ca
     if not (MIN_HEIGHT_M <= height <= MAX_HEIGHT_M and n[1] > 0 and abs(pitch) <= MAX_PITCH_DEG
             and abs(roll) <= MAX_ROLL_DEG):
         return None
-    pred = np.float32(p[0]) * u + np.float32(p[1]) * v + np.float32(p[2])
-    inl = (pred > 0) & (np.abs(d - pred) <= _tolerance(pred, 0.04))
-    # seen through the plane: farther along the ray than the floor by more than a kerb and matching
-    # noise (a real road is not quite a plane: it drains to its sides)
-    # (only where the plane's disparity is NEAR_PX or more: farther, matching noise is the plane's height)
-    beyond = np.minimum(pred - np.float32(BELOW_PX), pred * np.float32(height / (height + UNDER_M)))
-    below = (pred >= NEAR_PX) & (d < beyond)
+    pred = px.disparity(p)
+    inl = px.band(pred, 0.04)
     k = int(np.count_nonzero(inl))
     if k < MIN_INLIERS:
         return None
-    support, under = k / d.size, float(np.count_nonzero(below)) / d.size
+    # seen through the plane: farther along the ray than the floor by more than a kerb and matching
+    # noise (a real road is not quite a plane: it drains to its sides)
+    # (only where the plane's disparity is NEAR_PX or more: farther, matching noise is the plane's height)
+    beyond = np.subtract(pred, np.float32(BELOW_PX))
+    np.minimum(beyond, pred * np.float32(height / (height + UNDER_M)), out=beyond)
+    below = px.d < beyond
+    below &= pred >= NEAR_PX
+    n_px = px.d.size
+    support, under = k / n_px, float(np.count_nonzero(below)) / n_px
     # the floor is under the robot, on both sides of its heading: a surface seen only to one side (a
     # plaza draining away beside the road, a pavement) is worth less than one that spans the view
-    left = int(np.count_nonzero(inl & (u < model.cx)))
+    left = int(np.count_nonzero(inl & px.left(model.cx)))
     balance = min(left, k - left) / max(1, max(left, k - left))
     return Fit(FloorPlane(plane.a, plane.b, plane.c, height, True, k), n, support, under,
                support * (0.5 + 0.5 * balance) - BELOW_WEIGHT * under, origin)
@@ -346,12 +390,13 @@ def fit_candidates(dm: np.ndarray, model: camera.RectifiedModel, step: int, gues
                    rng: np.random.Generator) -> list[Fit]:
     """Every acceptable floor candidate of a working-resolution disparity map dm (0 = invalid), best
     score first: from the guesses (name -> plane), RANSAC and the v-disparity histogram."""
-    return _candidates(*_points(dm, step), model, guesses, rng)
+    return _candidates(_Pixels(*_points(dm, step)), model, guesses, rng)
 
 
-def _candidates(u: np.ndarray, v: np.ndarray, d: np.ndarray, model: camera.RectifiedModel,
-                guesses: dict[str, FloorPlane], rng: np.random.Generator, search: bool = True) -> list[Fit]:
-    """fit_candidates on the pixels (u, v, d); search False: from the guesses alone."""
+def _candidates(px: _Pixels, model: camera.RectifiedModel, guesses: dict[str, FloorPlane], rng: np.random.Generator,
+                search: bool = True) -> list[Fit]:
+    """fit_candidates on the pixels px; search False: from the guesses alone."""
+    u, v, d = px.u, px.v, px.d
     if d.size < MIN_INLIERS:
         return []
     starts: list[tuple[str, np.ndarray]] = [(name, np.array([g.a, g.b, g.c])) for name, g in guesses.items()]
@@ -366,14 +411,14 @@ def _candidates(u: np.ndarray, v: np.ndarray, d: np.ndarray, model: camera.Recti
             dp = p0[0] * uc + p0[1] * vc + p0[2]
             if any(_similar_disparities(dp, q) for q in refined):
                 continue  # it would refine to a plane already judged
-        p = _refine(p0, u, v, d)
+        p = _refine(p0, px)
         if p is None:
             continue
         dp = p[0] * uc + p[1] * vc + p[2]
         if any(_similar_disparities(dp, q) for q in refined):
             continue
         refined.append(dp)
-        fit = _judge(p, u, v, d, model, origin)
+        fit = _judge(p, px, model, origin)
         if fit is not None:
             fits.append(fit)
     fits.sort(key=lambda f: -f.score)
@@ -479,7 +524,7 @@ class GroundEstimator:
             # the user chose the configured mount over fitting: trusted as far as a mount measured once can be
             return plane_from_mount(prior, model), self._estimate(prior.down_camera, prior.height_m, "prior",
                                                                   confidence=0.5)
-        u, v, d = _points(dm, step)
+        px = _Pixels(*_points(dm, step))
         guesses = {}
         expected = self.predicted() if self.smooth_n is not None else None
         if expected is not None:
@@ -509,7 +554,7 @@ class GroundEstimator:
         self.since_search += 1
         fits: list[Fit] = []
         if guesses and self.since_search < SEARCH_EVERY:
-            fits = _candidates(u, v, d, model, guesses, self.rng, search=False)
+            fits = _candidates(px, model, guesses, self.rng, search=False)
             if not (fits and closeness(fits[0]) > 0 and fits[0].inlier_fraction >= MIN_SUPPORT
                     and fit_confidence(fits[0], True) >= TRUSTED):
                 fits = []
@@ -517,14 +562,13 @@ class GroundEstimator:
             self.since_search = 0
             if self.prior is not None:
                 guesses["prior"] = plane_from_mount(self.prior, model)
-            fits = _candidates(u, v, d, model, guesses, self.rng)
+            fits = _candidates(px, model, guesses, self.rng)
         fits.sort(key=lambda f: -rank(f))
         if fits and self.smooth_n is not None:
             consistent = agrees(fits[0])
         fit = fits[0] if fits and fits[0].inlier_fraction >= MIN_SUPPORT else None
         if fit is not None:
-            polished = _judge(_polish(np.array([fit.plane.a, fit.plane.b, fit.plane.c]), u, v, d), u, v, d, model,
-                              fit.origin)
+            polished = _judge(_polish(np.array([fit.plane.a, fit.plane.b, fit.plane.c]), px), px, model, fit.origin)
             if polished is not None:
                 fit = polished
         if fit is not None and expected is not None and self.missed < self.cfg.ground_reinit_frames:
