@@ -80,6 +80,23 @@ def grid(h: int, w: int, step: int) -> tuple[np.ndarray, np.ndarray]:
     return (np.arange(w, dtype=np.float32)[None, :] * step, np.arange(h, dtype=np.float32)[:, None] * step)
 
 
+_FULL_GRIDS: dict[tuple[int, int, int], tuple[np.ndarray, np.ndarray]] = {}
+
+
+def _full_grid(h: int, w: int, step: int) -> tuple[np.ndarray, np.ndarray]:
+    """grid's u and v as (h, w) arrays, made once per shape and step (read only: shared by every frame)."""
+    g = _FULL_GRIDS.get((h, w, step))
+    if g is None:
+        if len(_FULL_GRIDS) >= 8:  # a few models at most in one process
+            _FULL_GRIDS.clear()
+        uu, vv = grid(h, w, step)
+        g = np.broadcast_to(uu, (h, w)).copy(), np.broadcast_to(vv, (h, w)).copy()
+        for a in g:
+            a.flags.writeable = False
+        _FULL_GRIDS[(h, w, step)] = g
+    return g
+
+
 def pitch_roll(n_down: np.ndarray) -> tuple[float, float]:
     """(pitch, roll) in degrees of a camera whose floor normal (unit, camera frame, pointing at the
     floor) is n_down; the inverse of mount.Mount.down_camera: n = (sin r cos p, cos r cos p, sin p)."""
@@ -289,16 +306,30 @@ def vdisparity_planes(u: np.ndarray, v: np.ndarray, d: np.ndarray, model: camera
         return []
     slope = slope[good]
     hv = cv[i][good] - cd[i][good] / slope
-    pred = slope[:, None] * (cv[None] - hv[:, None])
-    on = (pred > 0) & (np.abs(cd[None] - pred) <= 1.0 + 0.03 * pred)
-    score = (on * cnt[None]).sum(1)
+    pred = np.subtract(cv, hv[:, None])  # the same operations as slope (cv - hv) etc., in place
+    pred *= slope[:, None]
+    tol = np.multiply(0.03, pred)
+    tol += 1.0
+    off = np.subtract(cd, pred)
+    np.abs(off, out=off)
+    on = off <= tol
+    on &= pred > 0
+    score = on @ cnt  # whole counts: their sum is exact in any order
+    order = np.argsort(-score)
+    slope, hv = slope[order], hv[order]
+    # best first, each unlike the ones before it: the first line still unlike all kept, found by
+    # one mask over all lines per kept one (most lines are the one floor's, drawn again)
+    unlike = np.ones(len(order), bool)
     out: list[np.ndarray] = []
-    for q in np.argsort(-score):
-        if len(out) >= keep:
+    while len(out) < keep:
+        rest = np.flatnonzero(unlike)
+        if not rest.size:
             break
+        q = rest[0]
         plane = np.array([0.0, slope[q], -slope[q] * hv[q]])
-        if all(abs(plane[1] - o[1]) > 0.05 * o[1] or abs(hv[q] + o[2] / o[1]) > 5 for o in out):
-            out.append(plane)
+        out.append(plane)
+        unlike[:q + 1] = False
+        unlike &= (np.abs(slope - plane[1]) > 0.05 * plane[1]) | (np.abs(hv + plane[2] / plane[1]) > 5)
     return out
 
 
@@ -381,9 +412,9 @@ def _points(dm: np.ndarray, step: int) -> tuple[np.ndarray, np.ndarray, np.ndarr
     s = 2  # every other working pixel is plenty for three parameters
     sub = dm[::s, ::s]
     h, w = sub.shape
-    uu, vv = grid(h, w, step * s)
+    uu, vv = _full_grid(h, w, step * s)
     valid = sub > 0
-    return np.broadcast_to(uu, sub.shape)[valid], np.broadcast_to(vv, sub.shape)[valid], sub[valid]
+    return uu[valid], vv[valid], sub[valid]
 
 
 def fit_candidates(dm: np.ndarray, model: camera.RectifiedModel, step: int, guesses: dict[str, FloorPlane],
