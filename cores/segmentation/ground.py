@@ -97,11 +97,16 @@ def _full_grid(h: int, w: int, step: int) -> tuple[np.ndarray, np.ndarray]:
     return g
 
 
+def _within_1(x: float) -> float:
+    """np.clip(x, -1, 1) of one number (NaN stays NaN), without numpy's dispatch on a scalar."""
+    return -1.0 if x < -1.0 else 1.0 if x > 1.0 else x
+
+
 def pitch_roll(n_down: np.ndarray) -> tuple[float, float]:
     """(pitch, roll) in degrees of a camera whose floor normal (unit, camera frame, pointing at the
     floor) is n_down; the inverse of mount.Mount.down_camera: n = (sin r cos p, cos r cos p, sin p)."""
     n = np.asarray(n_down, float)
-    return float(np.degrees(np.arcsin(np.clip(n[2], -1, 1)))), float(np.degrees(np.arctan2(n[0], n[1])))
+    return float(np.degrees(np.arcsin(_within_1(n[2])))), float(np.degrees(np.arctan2(n[0], n[1])))
 
 
 def plane_from_mount(mount: Mount, model: camera.RectifiedModel) -> FloorPlane:
@@ -464,7 +469,7 @@ def fit_plane(dm: np.ndarray, model: camera.RectifiedModel, step: int, guess: Fl
 
 
 def _close(n: np.ndarray, h: float, n0: np.ndarray, h0: float, tilt_deg: float, rel_h: float = 0.3) -> bool:
-    tilt = np.degrees(np.arccos(np.clip(float(n @ n0), -1, 1)))
+    tilt = np.degrees(np.arccos(_within_1(float(n @ n0))))
     return bool(tilt <= tilt_deg and abs(h - h0) <= rel_h * h0)
 
 
@@ -521,7 +526,7 @@ class GroundEstimator:
         """A frame's fitted ground (normal, height); follows: it is the ground of the frame right after
         the last fitted one, and agrees with it (else the rate of turn is not known: 0)."""
         if follows and self.last_n is not None:
-            step = float(np.degrees(np.arccos(np.clip(n @ self.last_n, -1, 1))))
+            step = float(np.degrees(np.arccos(_within_1(n @ self.last_n))))
             scale = min(1.0, self.cfg.ground_step_deg / step) if step > 0 else 1.0
             self.rate_n, self.rate_h = scale * (n - self.last_n), scale * (h - self.last_h)
         else:
@@ -572,7 +577,7 @@ class GroundEstimator:
             of the height away."""
             if expected is None:
                 return 0.0
-            tilt = float(np.degrees(np.arccos(np.clip(f.normal @ expected[0], -1, 1))))
+            tilt = float(np.degrees(np.arccos(_within_1(f.normal @ expected[0]))))
             dh = abs(f.plane.height_m - expected[1]) / max(expected[1], 1e-3)
             return max(0.0, 1.0 - tilt / max(cfg.ground_step_deg, 1e-3)) * max(0.0, 1.0 - dh / 0.15)
 
@@ -613,7 +618,7 @@ class GroundEstimator:
             self._remember(fit.normal, fit.plane.height_m, self.missed == 0 and consistent is True)
             self.missed = 0
             if consistent:
-                tilt = float(np.degrees(np.arccos(np.clip(fit.normal @ self.smooth_n, -1, 1))))
+                tilt = float(np.degrees(np.arccos(_within_1(fit.normal @ self.smooth_n))))
                 self.tilt_var = (1 - TILT_RATE) * self.tilt_var + TILT_RATE * tilt * tilt
             a = cfg.ground_smoothing
             if self.smooth_n is None or not consistent:
