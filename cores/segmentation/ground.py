@@ -80,11 +80,33 @@ def grid(h: int, w: int, step: int) -> tuple[np.ndarray, np.ndarray]:
     return (np.arange(w, dtype=np.float32)[None, :] * step, np.arange(h, dtype=np.float32)[:, None] * step)
 
 
+_FULL_GRIDS: dict[tuple[int, int, int], tuple[np.ndarray, np.ndarray]] = {}
+
+
+def _full_grid(h: int, w: int, step: int) -> tuple[np.ndarray, np.ndarray]:
+    """grid's u and v as (h, w) arrays, made once per shape and step (read only: shared by every frame)."""
+    g = _FULL_GRIDS.get((h, w, step))
+    if g is None:
+        if len(_FULL_GRIDS) >= 8:  # a few models at most in one process
+            _FULL_GRIDS.clear()
+        uu, vv = grid(h, w, step)
+        g = np.broadcast_to(uu, (h, w)).copy(), np.broadcast_to(vv, (h, w)).copy()
+        for a in g:
+            a.flags.writeable = False
+        _FULL_GRIDS[(h, w, step)] = g
+    return g
+
+
+def _within_1(x: float) -> float:
+    """np.clip(x, -1, 1) of one number (NaN stays NaN), without numpy's dispatch on a scalar."""
+    return -1.0 if x < -1.0 else 1.0 if x > 1.0 else x
+
+
 def pitch_roll(n_down: np.ndarray) -> tuple[float, float]:
     """(pitch, roll) in degrees of a camera whose floor normal (unit, camera frame, pointing at the
     floor) is n_down; the inverse of mount.Mount.down_camera: n = (sin r cos p, cos r cos p, sin p)."""
     n = np.asarray(n_down, float)
-    return float(np.degrees(np.arcsin(np.clip(n[2], -1, 1)))), float(np.degrees(np.arctan2(n[0], n[1])))
+    return float(np.degrees(np.arcsin(_within_1(n[2])))), float(np.degrees(np.arctan2(n[0], n[1])))
 
 
 def plane_from_mount(mount: Mount, model: camera.RectifiedModel) -> FloorPlane:
@@ -105,16 +127,23 @@ def frame_mount(ground: GroundEstimate | None, configured: MountSettings) -> tup
 
 def lstsq_plane(u: np.ndarray, v: np.ndarray, d: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
     """Least-squares (a, b, c) of d = a u + b v + c (weights w), by the 3x3 normal equations (centred)."""
-    u = u.astype(np.float64)
-    v = v.astype(np.float64)
-    d = d.astype(np.float64)
-    w = np.ones_like(d) if w is None else w.astype(np.float64)
-    sw = w.sum()
-    mu, mv, md = (w @ u) / sw, (w @ v) / sw, (w @ d) / sw
+    return _lstsq(u.astype(np.float64), v.astype(np.float64), d.astype(np.float64),
+                  None if w is None else w.astype(np.float64))
+
+
+def _lstsq(u: np.ndarray, v: np.ndarray, d: np.ndarray, w: np.ndarray | None) -> np.ndarray:
+    """lstsq_plane on float64 arrays of the caller's own (centred in place)."""
+    if w is None:  # unit weights: their products are the values themselves, their sum the count
+        ones = np.ones_like(d)
+        sw = float(d.size)
+        mu, mv, md = (ones @ u) / sw, (ones @ v) / sw, (ones @ d) / sw
+    else:
+        sw = w.sum()
+        mu, mv, md = (w @ u) / sw, (w @ v) / sw, (w @ d) / sw
     u -= mu
     v -= mv
     d -= md
-    wu, wv = w * u, w * v
+    wu, wv = (u, v) if w is None else (w * u, w * v)
     p, q, r = wu @ u + 1e-9, wu @ v, wv @ v + 1e-9  # the 2x2 normal equations, solved by hand
     x, y = wu @ d, wv @ d
     det = p * r - q * q
@@ -124,8 +153,41 @@ def lstsq_plane(u: np.ndarray, v: np.ndarray, d: np.ndarray, w: np.ndarray | Non
     return np.array([a, b, md - a * mu - b * mv])
 
 
-def _tolerance(pred: np.ndarray, rel: float) -> np.ndarray:
-    return np.maximum(np.float32(0.6), np.float32(rel) * pred)
+class _Pixels:
+    """A frame's valid working pixels: float32 u, v, d, where the bands are drawn, and float64
+    copies for the least squares, made once a frame instead of at every fit."""
+
+    def __init__(self, u: np.ndarray, v: np.ndarray, d: np.ndarray):
+        self.u, self.v, self.d = u, v, d
+        self.u64, self.v64, self.d64 = u.astype(np.float64), v.astype(np.float64), d.astype(np.float64)
+        self._left: tuple[float, np.ndarray] | None = None
+
+    def disparity(self, p: np.ndarray) -> np.ndarray:
+        """The plane's float32 disparity at the pixels: (a u + b v) + c, in place."""
+        pred = np.float32(p[0]) * self.u
+        pred += np.float32(p[1]) * self.v
+        pred += np.float32(p[2])
+        return pred
+
+    def band(self, pred: np.ndarray, rel: float) -> np.ndarray:
+        """The pixels within max(0.6, rel pred) of the plane's disparity pred, in front of the camera."""
+        tol = np.multiply(np.float32(rel), pred)
+        np.maximum(np.float32(0.6), tol, out=tol)
+        off = np.subtract(self.d, pred)
+        np.abs(off, out=off)
+        inl = off <= tol
+        inl &= pred > 0
+        return inl
+
+    def fit(self, m: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
+        """lstsq_plane on the pixels of mask m (weights w: one per pixel of m)."""
+        return _lstsq(self.u64[m], self.v64[m], self.d64[m], None if w is None else w.astype(np.float64))
+
+    def left(self, cx: float) -> np.ndarray:
+        """The pixels left of column cx."""
+        if self._left is None or self._left[0] != cx:
+            self._left = (cx, self.u < cx)
+        return self._left[1]
 
 
 def ransac_planes(u: np.ndarray, v: np.ndarray, d: np.ndarray, rng: np.random.Generator,
@@ -165,27 +227,60 @@ def ransac_planes(u: np.ndarray, v: np.ndarray, d: np.ndarray, rng: np.random.Ge
         return []
     s = rng.choice(n, size=min(n, SCORE_SAMPLES), replace=False)
     us, vs, ds = u[s], v[s], d[s]
-    pred = planes[:, 0:1] * us[None] + planes[:, 1:2] * vs[None] + planes[:, 2:3]
-    score = ((pred > 0) & (np.abs(pred - ds[None]) < np.maximum(1.0, 0.05 * pred))).sum(1)
+    score = _support_counts(planes, us.astype(np.float64), vs.astype(np.float64), ds.astype(np.float64))
     out: list[np.ndarray] = []
+    kept: list[np.ndarray] = []  # their disparities on the pixels telling planes apart
     uc, vc = us[:256], vs[:256]  # enough to tell two planes apart
-    for q in np.argsort(-score)[:24]:  # the best few: most hypotheses are one floor drawn again
+    best = np.argsort(-score)[:24]  # the best few: most hypotheses are one floor drawn again
+    preds = planes[best, 0:1] * uc + planes[best, 1:2] * vc + planes[best, 2:3]
+    for q, dp in zip(best, preds):
         if score[q] < 10 or len(out) >= keep:
             break
-        p = planes[q]
-        if all(not _similar_planes(p, o, uc, vc) for o in out):
-            out.append(p)
+        if all(not _similar_disparities(dp, dq) for dq in kept):
+            out.append(planes[q])
+            kept.append(dp)
     return out
+
+
+def _support_counts(planes: np.ndarray, u: np.ndarray, v: np.ndarray, d: np.ndarray, block: int = 32) -> np.ndarray:
+    """Per plane, the pixels (float64 u, v, d) within 1 px (5 %) of it in front of the camera. In
+    blocks of planes into buffers reused: a (planes, pixels) array at once, and float32 pixels
+    broadcast against float64 planes, cost several times more (the same values either way)."""
+    score = np.empty(len(planes), np.int64)
+    shape = (min(block, len(planes)), d.size)
+    pred, tol = np.empty(shape), np.empty(shape)
+    front, near = np.empty(shape, bool), np.empty(shape, bool)
+    for i in range(0, len(planes), block):
+        pl = planes[i:i + block]
+        k = len(pl)
+        pr, t, f, m = pred[:k], tol[:k], front[:k], near[:k]
+        np.multiply(pl[:, 0:1], u, out=pr)
+        np.multiply(pl[:, 1:2], v, out=t)
+        pr += t
+        pr += pl[:, 2:3]
+        np.greater(pr, 0, out=f)
+        np.multiply(0.05, pr, out=t)
+        np.maximum(1.0, t, out=t)
+        pr -= d
+        np.abs(pr, out=pr)
+        np.less(pr, t, out=m)
+        f &= m
+        score[i:i + k] = np.count_nonzero(f, axis=1)
+    return score
 
 
 def _similar_planes(p: np.ndarray, q: np.ndarray, u: np.ndarray, v: np.ndarray) -> bool:
     """Two planes predicting within 5 % of each other on the pixels where either is in view."""
-    dp = p[0] * u + p[1] * v + p[2]
-    dq = q[0] * u + q[1] * v + q[2]
+    return _similar_disparities(p[0] * u + p[1] * v + p[2], q[0] * u + q[1] * v + q[2])
+
+
+def _similar_disparities(dp: np.ndarray, dq: np.ndarray) -> bool:
+    """_similar_planes on the two planes' disparities (float64) at the same pixels."""
     m = (dp > 0) | (dq > 0)
     if not m.any():
         return True
-    return bool(np.mean(np.abs(dp[m] - dq[m]) / np.maximum(np.abs(dq[m]), 1.0)) < 0.05)
+    r = np.abs(dp[m] - dq[m]) / np.maximum(np.abs(dq[m]), 1.0)
+    return bool(r.sum() / r.size < 0.05)  # np.mean's sum and division, without its dispatch
 
 
 def vdisparity_planes(u: np.ndarray, v: np.ndarray, d: np.ndarray, model: camera.RectifiedModel,
@@ -216,16 +311,30 @@ def vdisparity_planes(u: np.ndarray, v: np.ndarray, d: np.ndarray, model: camera
         return []
     slope = slope[good]
     hv = cv[i][good] - cd[i][good] / slope
-    pred = slope[:, None] * (cv[None] - hv[:, None])
-    on = (pred > 0) & (np.abs(cd[None] - pred) <= 1.0 + 0.03 * pred)
-    score = (on * cnt[None]).sum(1)
+    pred = np.subtract(cv, hv[:, None])  # the same operations as slope (cv - hv) etc., in place
+    pred *= slope[:, None]
+    tol = np.multiply(0.03, pred)
+    tol += 1.0
+    off = np.subtract(cd, pred)
+    np.abs(off, out=off)
+    on = off <= tol
+    on &= pred > 0
+    score = on @ cnt  # whole counts: their sum is exact in any order
+    order = np.argsort(-score)
+    slope, hv = slope[order], hv[order]
+    # best first, each unlike the ones before it: the first line still unlike all kept, found by
+    # one mask over all lines per kept one (most lines are the one floor's, drawn again)
+    unlike = np.ones(len(order), bool)
     out: list[np.ndarray] = []
-    for q in np.argsort(-score):
-        if len(out) >= keep:
+    while len(out) < keep:
+        rest = np.flatnonzero(unlike)
+        if not rest.size:
             break
+        q = rest[0]
         plane = np.array([0.0, slope[q], -slope[q] * hv[q]])
-        if all(abs(plane[1] - o[1]) > 0.05 * o[1] or abs(hv[q] + o[2] / o[1]) > 5 for o in out):
-            out.append(plane)
+        out.append(plane)
+        unlike[:q + 1] = False
+        unlike &= (np.abs(slope - plane[1]) > 0.05 * plane[1]) | (np.abs(hv + plane[2] / plane[1]) > 5)
     return out
 
 
@@ -243,36 +352,37 @@ class Fit:
         return pitch_roll(self.normal)
 
 
-def _refine(p: np.ndarray, u: np.ndarray, v: np.ndarray, d: np.ndarray,
-            tols: tuple[float, ...] = (0.15, 0.08, 0.04)) -> np.ndarray | None:
+def _refine(p: np.ndarray, px: _Pixels, tols: tuple[float, ...] = (0.15, 0.08, 0.04)) -> np.ndarray | None:
     for tol in tols:
-        pred = np.float32(p[0]) * u + np.float32(p[1]) * v + np.float32(p[2])
-        inl = (pred > 0) & (np.abs(d - pred) <= _tolerance(pred, tol))
+        inl = px.band(px.disparity(p), tol)
         if np.count_nonzero(inl) < MIN_INLIERS:
             return None
-        p = lstsq_plane(u[inl], v[inl], d[inl])
+        p = px.fit(inl)
     return p
 
 
-def _polish(p: np.ndarray, u: np.ndarray, v: np.ndarray, d: np.ndarray, iterations: int = 2) -> np.ndarray:
+def _polish(p: np.ndarray, px: _Pixels, iterations: int = 2) -> np.ndarray:
     """The chosen plane settled on its surface: iteratively reweighted least squares with Cauchy
     weights on the residual relative to 3 % of the plane's disparity (0.3 px at least), so that
     starts a little apart on one road end on one plane, frame after frame (band fits stop wherever
     their last band left them, and a base frame that jitters by a few tenths of a degree moves far
     obstacles by decimetres)."""
     for _ in range(iterations):
-        pred = np.float32(p[0]) * u + np.float32(p[1]) * v + np.float32(p[2])
-        sigma = np.maximum(np.float32(0.3), np.float32(0.03) * pred)
-        r = (d - pred) / sigma
-        m = (pred > 0) & (np.abs(r) < 3)
+        pred = px.disparity(p)
+        sigma = np.multiply(np.float32(0.03), pred)
+        np.maximum(np.float32(0.3), sigma, out=sigma)
+        r = np.subtract(px.d, pred)
+        r /= sigma
+        m = np.abs(r) < 3
+        m &= pred > 0
         if np.count_nonzero(m) < MIN_INLIERS:
             break
-        p = lstsq_plane(u[m], v[m], d[m], 1.0 / (1.0 + r[m] * r[m]))
+        rm = r[m]
+        p = px.fit(m, 1.0 / (1.0 + rm * rm))
     return p
 
 
-def _judge(p: np.ndarray, u: np.ndarray, v: np.ndarray, d: np.ndarray, model: camera.RectifiedModel,
-           origin: str) -> Fit | None:
+def _judge(p: np.ndarray, px: _Pixels, model: camera.RectifiedModel, origin: str) -> Fit | None:
     """A refined plane -> its Fit (support, pixels under it, score), or None when it is no floor
     under the camera (module doc: geometry)."""
     plane = FloorPlane(float(p[0]), float(p[1]), float(p[2]), 1.0, True, 0)
@@ -281,20 +391,23 @@ def _judge(p: np.ndarray, u: np.ndarray, v: np.ndarray, d: np.ndarray, model: ca
     if not (MIN_HEIGHT_M <= height <= MAX_HEIGHT_M and n[1] > 0 and abs(pitch) <= MAX_PITCH_DEG
             and abs(roll) <= MAX_ROLL_DEG):
         return None
-    pred = np.float32(p[0]) * u + np.float32(p[1]) * v + np.float32(p[2])
-    inl = (pred > 0) & (np.abs(d - pred) <= _tolerance(pred, 0.04))
-    # seen through the plane: farther along the ray than the floor by more than a kerb and matching
-    # noise (a real road is not quite a plane: it drains to its sides)
-    # (only where the plane's disparity is NEAR_PX or more: farther, matching noise is the plane's height)
-    beyond = np.minimum(pred - np.float32(BELOW_PX), pred * np.float32(height / (height + UNDER_M)))
-    below = (pred >= NEAR_PX) & (d < beyond)
+    pred = px.disparity(p)
+    inl = px.band(pred, 0.04)
     k = int(np.count_nonzero(inl))
     if k < MIN_INLIERS:
         return None
-    support, under = k / d.size, float(np.count_nonzero(below)) / d.size
+    # seen through the plane: farther along the ray than the floor by more than a kerb and matching
+    # noise (a real road is not quite a plane: it drains to its sides)
+    # (only where the plane's disparity is NEAR_PX or more: farther, matching noise is the plane's height)
+    beyond = np.subtract(pred, np.float32(BELOW_PX))
+    np.minimum(beyond, pred * np.float32(height / (height + UNDER_M)), out=beyond)
+    below = px.d < beyond
+    below &= pred >= NEAR_PX
+    n_px = px.d.size
+    support, under = k / n_px, float(np.count_nonzero(below)) / n_px
     # the floor is under the robot, on both sides of its heading: a surface seen only to one side (a
     # plaza draining away beside the road, a pavement) is worth less than one that spans the view
-    left = int(np.count_nonzero(inl & (u < model.cx)))
+    left = int(np.count_nonzero(inl & px.left(model.cx)))
     balance = min(left, k - left) / max(1, max(left, k - left))
     return Fit(FloorPlane(plane.a, plane.b, plane.c, height, True, k), n, support, under,
                support * (0.5 + 0.5 * balance) - BELOW_WEIGHT * under, origin)
@@ -304,21 +417,22 @@ def _points(dm: np.ndarray, step: int) -> tuple[np.ndarray, np.ndarray, np.ndarr
     s = 2  # every other working pixel is plenty for three parameters
     sub = dm[::s, ::s]
     h, w = sub.shape
-    uu, vv = grid(h, w, step * s)
+    uu, vv = _full_grid(h, w, step * s)
     valid = sub > 0
-    return np.broadcast_to(uu, sub.shape)[valid], np.broadcast_to(vv, sub.shape)[valid], sub[valid]
+    return uu[valid], vv[valid], sub[valid]
 
 
 def fit_candidates(dm: np.ndarray, model: camera.RectifiedModel, step: int, guesses: dict[str, FloorPlane],
                    rng: np.random.Generator) -> list[Fit]:
     """Every acceptable floor candidate of a working-resolution disparity map dm (0 = invalid), best
     score first: from the guesses (name -> plane), RANSAC and the v-disparity histogram."""
-    return _candidates(*_points(dm, step), model, guesses, rng)
+    return _candidates(_Pixels(*_points(dm, step)), model, guesses, rng)
 
 
-def _candidates(u: np.ndarray, v: np.ndarray, d: np.ndarray, model: camera.RectifiedModel,
-                guesses: dict[str, FloorPlane], rng: np.random.Generator, search: bool = True) -> list[Fit]:
-    """fit_candidates on the pixels (u, v, d); search False: from the guesses alone."""
+def _candidates(px: _Pixels, model: camera.RectifiedModel, guesses: dict[str, FloorPlane], rng: np.random.Generator,
+                search: bool = True) -> list[Fit]:
+    """fit_candidates on the pixels px; search False: from the guesses alone."""
+    u, v, d = px.u, px.v, px.d
     if d.size < MIN_INLIERS:
         return []
     starts: list[tuple[str, np.ndarray]] = [(name, np.array([g.a, g.b, g.c])) for name, g in guesses.items()]
@@ -326,16 +440,21 @@ def _candidates(u: np.ndarray, v: np.ndarray, d: np.ndarray, model: camera.Recti
         starts += [("ransac", p) for p in ransac_planes(u, v, d, rng)]
         starts += [("v-disparity", p) for p in vdisparity_planes(u, v, d, model, rng)]
     fits: list[Fit] = []
-    refined: list[np.ndarray] = []
+    refined: list[np.ndarray] = []  # the refined planes' disparities on the pixels telling planes apart
     uc, vc = u[::max(1, u.size // 256)], v[::max(1, v.size // 256)]
     for origin, p0 in starts:
-        if any(_similar_planes(p0, q, uc, vc) for q in refined):
-            continue  # it would refine to a plane already judged
-        p = _refine(p0, u, v, d)
-        if p is None or any(_similar_planes(p, q, uc, vc) for q in refined):
+        if refined:
+            dp = p0[0] * uc + p0[1] * vc + p0[2]
+            if any(_similar_disparities(dp, q) for q in refined):
+                continue  # it would refine to a plane already judged
+        p = _refine(p0, px)
+        if p is None:
             continue
-        refined.append(p)
-        fit = _judge(p, u, v, d, model, origin)
+        dp = p[0] * uc + p[1] * vc + p[2]
+        if any(_similar_disparities(dp, q) for q in refined):
+            continue
+        refined.append(dp)
+        fit = _judge(p, px, model, origin)
         if fit is not None:
             fits.append(fit)
     fits.sort(key=lambda f: -f.score)
@@ -350,7 +469,7 @@ def fit_plane(dm: np.ndarray, model: camera.RectifiedModel, step: int, guess: Fl
 
 
 def _close(n: np.ndarray, h: float, n0: np.ndarray, h0: float, tilt_deg: float, rel_h: float = 0.3) -> bool:
-    tilt = np.degrees(np.arccos(np.clip(float(n @ n0), -1, 1)))
+    tilt = np.degrees(np.arccos(_within_1(float(n @ n0))))
     return bool(tilt <= tilt_deg and abs(h - h0) <= rel_h * h0)
 
 
@@ -407,7 +526,7 @@ class GroundEstimator:
         """A frame's fitted ground (normal, height); follows: it is the ground of the frame right after
         the last fitted one, and agrees with it (else the rate of turn is not known: 0)."""
         if follows and self.last_n is not None:
-            step = float(np.degrees(np.arccos(np.clip(n @ self.last_n, -1, 1))))
+            step = float(np.degrees(np.arccos(_within_1(n @ self.last_n))))
             scale = min(1.0, self.cfg.ground_step_deg / step) if step > 0 else 1.0
             self.rate_n, self.rate_h = scale * (n - self.last_n), scale * (h - self.last_h)
         else:
@@ -441,7 +560,7 @@ class GroundEstimator:
             # the user chose the configured mount over fitting: trusted as far as a mount measured once can be
             return plane_from_mount(prior, model), self._estimate(prior.down_camera, prior.height_m, "prior",
                                                                   confidence=0.5)
-        u, v, d = _points(dm, step)
+        px = _Pixels(*_points(dm, step))
         guesses = {}
         expected = self.predicted() if self.smooth_n is not None else None
         if expected is not None:
@@ -458,7 +577,7 @@ class GroundEstimator:
             of the height away."""
             if expected is None:
                 return 0.0
-            tilt = float(np.degrees(np.arccos(np.clip(f.normal @ expected[0], -1, 1))))
+            tilt = float(np.degrees(np.arccos(_within_1(f.normal @ expected[0]))))
             dh = abs(f.plane.height_m - expected[1]) / max(expected[1], 1e-3)
             return max(0.0, 1.0 - tilt / max(cfg.ground_step_deg, 1e-3)) * max(0.0, 1.0 - dh / 0.15)
 
@@ -471,7 +590,7 @@ class GroundEstimator:
         self.since_search += 1
         fits: list[Fit] = []
         if guesses and self.since_search < SEARCH_EVERY:
-            fits = _candidates(u, v, d, model, guesses, self.rng, search=False)
+            fits = _candidates(px, model, guesses, self.rng, search=False)
             if not (fits and closeness(fits[0]) > 0 and fits[0].inlier_fraction >= MIN_SUPPORT
                     and fit_confidence(fits[0], True) >= TRUSTED):
                 fits = []
@@ -479,14 +598,13 @@ class GroundEstimator:
             self.since_search = 0
             if self.prior is not None:
                 guesses["prior"] = plane_from_mount(self.prior, model)
-            fits = _candidates(u, v, d, model, guesses, self.rng)
+            fits = _candidates(px, model, guesses, self.rng)
         fits.sort(key=lambda f: -rank(f))
         if fits and self.smooth_n is not None:
             consistent = agrees(fits[0])
         fit = fits[0] if fits and fits[0].inlier_fraction >= MIN_SUPPORT else None
         if fit is not None:
-            polished = _judge(_polish(np.array([fit.plane.a, fit.plane.b, fit.plane.c]), u, v, d), u, v, d, model,
-                              fit.origin)
+            polished = _judge(_polish(np.array([fit.plane.a, fit.plane.b, fit.plane.c]), px), px, model, fit.origin)
             if polished is not None:
                 fit = polished
         if fit is not None and expected is not None and self.missed < self.cfg.ground_reinit_frames:
@@ -500,7 +618,7 @@ class GroundEstimator:
             self._remember(fit.normal, fit.plane.height_m, self.missed == 0 and consistent is True)
             self.missed = 0
             if consistent:
-                tilt = float(np.degrees(np.arccos(np.clip(fit.normal @ self.smooth_n, -1, 1))))
+                tilt = float(np.degrees(np.arccos(_within_1(fit.normal @ self.smooth_n))))
                 self.tilt_var = (1 - TILT_RATE) * self.tilt_var + TILT_RATE * tilt * tilt
             a = cfg.ground_smoothing
             if self.smooth_n is None or not consistent:
