@@ -134,8 +134,17 @@ def _merge_close(regions: list[_Region], gap_m: float, depth_gap_m: float = 0.0)
     for i, j in zip(*np.nonzero(np.triu(close, 1))):
         a, b = root(int(i)), root(int(j))
         # two depth layers of one group (a person behind another) are not joined again by the gap
-        # along the view that joins a fence's stretches, only where they touch
-        if a == b or (gap[i, j, 2] > gap_m and held[a] & held[b]):
+        # along the view that joins a fence's stretches, only where they touch: their points, not
+        # just their boxes (a person walking past a table's back corner)
+        if a == b or (held[a] & held[b] and (gap[i, j, 2] > gap_m or not _touch(regions[i], regions[j], gap_m))):
+            continue
+        # boxes that share image columns are apart along the view only: one stands in front of the
+        # other, and how close the boxes come says little of how close the things do (a table's
+        # top reaches back over the floor where a person walks behind it). The slack along the view
+        # is for one surface receding from the camera (a fence, a wall seen obliquely), whose
+        # stretches lie side by side in the image: these two are joined only where their points touch
+        if _share_columns(regions[i], regions[j]) and \
+                (gap[i, j, 2] > gap_m or not _touch(regions[i], regions[j], gap_m)):
             continue
         parent[a] = b
         held[b] |= held[a]
@@ -149,6 +158,19 @@ def _merge_close(regions: list[_Region], gap_m: float, depth_gap_m: float = 0.0)
             continue
         out.append(_union(g))
     return out
+
+
+def _share_columns(p: _Region, q: _Region, share: float = 0.25) -> bool:
+    """Whether p's and q's image boxes overlap in columns by at least `share` of the narrower one's width."""
+    overlap = min(p.bbox[2], q.bbox[2]) - max(p.bbox[0], q.bbox[0])
+    return overlap >= share * min(p.bbox[2] - p.bbox[0], q.bbox[2] - q.bbox[0])
+
+
+def _touch(p: _Region, q: _Region, gap_m: float, samples: int = 400) -> bool:
+    """Whether some point of p comes within gap_m of some point of q (on up to `samples` of each)."""
+    a = p.pts[::max(1, len(p.pts) // samples)]
+    b = q.pts[::max(1, len(q.pts) // samples)]
+    return bool((((a[:, None, :] - b[None, :, :]) ** 2).sum(2) <= gap_m * gap_m).any())
 
 
 def _absorb_contained(regions: list[_Region], gap_m: float, model: camera.RectifiedModel, step: int,
@@ -290,10 +312,12 @@ _LAYER_BIN_PX = 1.0 / 16.0  # disparity histogram bins of the layer split: the m
 _LAYER_SMOOTH_BINS = 1.0  # Gaussian smoothing of that histogram, bins (sub-pixel matching noise)
 _LAYER_BAND = 0.35  # the valley band: bins below this share of the smaller peak's density
 _LAYER_MAX_SPLITS = 3  # each side of a split is split again, this many levels deep at most
+_LAYER_ON_TOP_M = 0.25  # a valley at most this far above the farther side's top rests on it
 
 
 def _split_layers(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, lab: np.ndarray, cfg: SegmenterSettings,
-                  model: camera.RectifiedModel, step: int) -> tuple[np.ndarray, dict[int, int]]:
+                  model: camera.RectifiedModel, step: int, heights: np.ndarray | None = None
+                  ) -> tuple[np.ndarray, dict[int, int]]:
     """Split grouped objects that are two things one behind the other: (new labels for the grouped
     pixels, sorted by label as _group gives them, 0 = dropped; {label: the group it was split
     from} for every label of a split group, whose layers later steps do not join again by depth).
@@ -385,6 +409,15 @@ def _split_layers(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, lab: np.ndarra
             if in_band.sum() > bridge * max(1, np.unique(ys[idx[in_band]]).size):
                 continue
             far, near = idx[rel < lo], idx[rel > hi]
+            # the ramp across an occlusion runs down the nearer thing's side where the farther one is
+            # seen beside it: at heights up to the farther one's top. A valley mostly just above that
+            # top (within _LAYER_ON_TOP_M) is a surface resting on the farther side (a table's top and
+            # side apron seen end-on, on its back leg): one object
+            if heights is not None:
+                top = float(np.percentile(heights[far], 98))
+                hb = heights[idx[in_band]]
+                if np.mean((hb > top) & (hb <= top + _LAYER_ON_TOP_M)) > 0.5:
+                    continue
             out[idx[in_band]] = 0
             out[far] = next_label
             family[next_label] = family[int(lab[a])] = int(lab[a])
@@ -468,7 +501,7 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
         return LayersFrame([], [], floor, estimate, floor_points)
 
     ys, xs, dv, lab = _group(dm, stand, cfg, model, step)
-    lab, family = _split_layers(ys, xs, dv, lab, cfg, model, step)
+    lab, family = _split_layers(ys, xs, dv, lab, cfg, model, step, None if above is None else above[ys, xs])
     order = np.argsort(lab, kind="stable")
     ys, xs, dv, lab = ys[order], xs[order], dv[order], lab[order]
     first = int(np.searchsorted(lab, 1))
