@@ -117,23 +117,27 @@ def test_the_depth_layer_split_parts_a_person_behind_another_and_keeps_a_table_a
 
 
 def test_the_depth_layer_split_keeps_a_surface_resting_on_the_far_side_s_top_whole():
-    """A table's back leg (d 11) and its front (d 12) joined through a thin valley: split when the
-    valley runs down beside the far side, at its heights (the ramp of an occlusion), kept whole when
-    the valley lies just above the far side's top (the table's side rail seen end-on, on the leg)."""
-    rows = np.arange(50, 200)
-    ramp = [(rows, [139], 11.75), (rows, [140], 11.5), (rows, [141], 11.25)]
-    ys, xs, dv, lab = _grouped((rows, np.arange(100, 139), 12.0), *ramp, (rows, np.arange(142, 165), 11.0))
+    """A table's front (d 12) and its back leg (d 11) joined through a thin valley of in-between
+    depths: split when the valley runs down beside the leg at its heights (the ramp of an
+    occlusion), kept whole when the valley lies right on top of the leg, in its columns and less
+    than 0.25 m above it (the table's side rail seen end-on, resting on the leg)."""
     cfg = SegmenterSettings(max_range_m=10.0)
+    near = (np.arange(50, 200), np.arange(100, 139), 12.0)
+    leg = (np.arange(120, 200), np.arange(142, 165), 11.0)
 
-    def parts(heights):
+    def parts(valley, height_of):
+        ys, xs, dv, lab = _grouped(near, *valley, leg)
+        heights = None if height_of is None else height_of(ys, xs)
         out = layers._split_layers(ys, xs, dv, lab, cfg, MODEL, 2, heights)[0]
         return np.unique(out[out > 0]).size
 
-    beside = (200 - ys) * 0.01  # all three from the floor up to 1.5 m
-    assert parts(beside) == 2
-    on_top = np.where(xs >= 142, beside * 0.5 / 1.5, beside)  # the far side only 0.5 m tall ...
-    on_top = np.where((xs >= 139) & (xs <= 141), 0.55 + 0.1 * (ys - 50) / 150, on_top)  # ... the valley just above it
-    assert parts(on_top) == 1
+    floor_up = lambda ys, xs: (200 - ys) * 0.01  # noqa: E731 - the leg's top (row 120) is 0.8 m high
+    beside = [(np.arange(120, 200), [139], 11.75), (np.arange(120, 200), [140], 11.5),
+              (np.arange(120, 200), [141], 11.25)]
+    assert parts(beside, None) == 2 and parts(beside, floor_up) == 2
+    rail = [(np.arange(104, 120), np.arange(142, 146), 11.75), (np.arange(104, 120), np.arange(146, 150), 11.5),
+            (np.arange(104, 120), np.arange(150, 154), 11.25)]
+    assert parts(rail, None) == 2 and parts(rail, floor_up) == 1
 
 
 def test_depth_layers_of_one_group_are_not_joined_again_but_a_fence_s_stretches_are():

@@ -413,17 +413,32 @@ def _split_layers(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, lab: np.ndarra
             # seen beside it: at heights up to the farther one's top. A valley mostly just above that
             # top (within _LAYER_ON_TOP_M) is a surface resting on the farther side (a table's top and
             # side apron seen end-on, on its back leg): one object
-            if heights is not None:
-                top = float(np.percentile(heights[far], 98))
-                hb = heights[idx[in_band]]
-                if np.mean((hb > top) & (hb <= top + _LAYER_ON_TOP_M)) > 0.5:
-                    continue
+            if heights is not None and _rests_on(ys, xs, heights, idx[in_band], far):
+                continue
             out[idx[in_band]] = 0
             out[far] = next_label
             family[next_label] = family[int(lab[a])] = int(lab[a])
             next_label += 1
             todo += [(far, level + 1), (near, level + 1)]
     return out, family
+
+
+def _rests_on(ys: np.ndarray, xs: np.ndarray, heights: np.ndarray, band: np.ndarray, far: np.ndarray) -> bool:
+    """Whether most of a valley's pixels (indices `band`) lie right on top of the farther side: in
+    an image column where the farther side is seen, above its topmost pixel there, and at most
+    _LAYER_ON_TOP_M higher than its top in that column (a table's side rail seen end-on, on its
+    back leg). The ramp across an occlusion runs down beside the farther thing, at its heights."""
+    if band.size == 0 or far.size == 0:
+        return False
+    cols = int(max(xs[band].max(), xs[far].max())) + 1
+    top_row = np.full(cols, np.iinfo(np.int64).max)
+    np.minimum.at(top_row, xs[far], ys[far].astype(np.int64))
+    top_h = np.full(cols, -np.inf)
+    np.maximum.at(top_h, xs[far], heights[far])
+    xb = xs[band]
+    hb = heights[band]
+    on = (ys[band] < top_row[xb]) & (hb > top_h[xb]) & (hb <= top_h[xb] + _LAYER_ON_TOP_M)
+    return bool(np.mean(on) > 0.5)
 
 
 _LAYER_EMPTY_PX = 2.0  # an empty valley spans at least this much disparity: far beyond matching noise
