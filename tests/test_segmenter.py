@@ -116,6 +116,18 @@ def test_the_depth_layer_split_parts_a_person_behind_another_and_keeps_a_table_a
                                     (np.arange(120, 200), np.arange(104, 136), 33.0)))) == 1
 
 
+def test_a_few_wide_rows_of_the_valley_do_not_keep_two_things_one_behind_the_other_whole():
+    """A person (d 12) and a person 0.5 m behind (d 11) joined by the ramp along the near one's side
+    (3 px a row, 150 rows) and, in 30 rows, by a surface reaching back between them (a table's
+    rail, 80 px a row). The ramp is what most of the valley's rows hold: two things.
+    A valley wide in most of its rows (a table's top between its legs) still keeps one whole."""
+    rows = np.arange(50, 200)
+    ramp = [(rows, [139], 11.75), (rows, [140], 11.5), (rows, [141], 11.25)]
+    rail = [(np.arange(150, 180), [142 + k], 11.9 - 0.01 * k) for k in range(80)]  # receding: depth along it
+    two = _layers_of(*_grouped((rows, np.arange(100, 139), 12.0), *ramp, *rail, (rows, np.arange(222, 262), 11.0)))
+    assert sorted(round(v[0]) for v in two.values()) == [11, 12]
+
+
 def test_the_depth_layer_split_keeps_a_surface_resting_on_the_far_side_s_top_whole():
     """A table's front (d 12) and its back leg (d 11) joined through a thin valley of in-between
     depths: split when the valley runs down beside the leg at its heights (the ramp of an

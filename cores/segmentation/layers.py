@@ -334,9 +334,10 @@ def _split_layers(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, lab: np.ndarra
       layer_gap_m of depth and each side holds min_area_m2 (a table's back leg, grouped with the
       person beside it, is no speck of theirs);
     - the peaks stand layer_gap_m apart in depth (a torso before the legs is one person);
-    - the valley's pixels are a thin band, at most layer_bridge_px wide along each image row: a
-      table top or a chair seat also fills the valley between front and back legs, but across the
-      object's whole width, and keeps it whole;
+    - the valley's pixels are a thin band, at most layer_bridge_px wide along most image rows
+      they are in (the median row): a table top or a chair seat also fills the valley between
+      front and back legs, but across the object's whole width in all its rows, and keeps it
+      whole; a rail reaching back in a few rows beside a ramp along a person's whole side does not;
     - the far side is within layer_split_range_m (a far street's facades and shelters would fall
       apart into panels).
     The valley's pixels (the ramp: phantom depths) are dropped; each side may be split again."""
@@ -404,9 +405,11 @@ def _split_layers(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, lab: np.ndarra
             if z_far > cfg.layer_split_range_m or z_far - z_near < cfg.layer_gap_m:
                 continue
             in_band = (rel >= lo) & (rel <= hi)
-            # how wide the valley's pixels are along each image row they are in: a ramp along an
-            # occlusion's contour is a few pixels wide whatever the contour's shape
-            if in_band.sum() > bridge * max(1, np.unique(ys[idx[in_band]]).size):
+            # how wide the valley's pixels are along the image rows they are in: a ramp along an
+            # occlusion's contour is a few pixels wide whatever the contour's shape. The median row,
+            # not the mean: a surface reaching across the valley in a few rows (a table's rail seen
+            # end-on, beside a person walking behind it) must not outweigh the contour's many rows
+            if np.median(np.unique(ys[idx[in_band]], return_counts=True)[1]) > bridge:
                 continue
             far, near = idx[rel < lo], idx[rel > hi]
             # the ramp across an occlusion runs down the nearer thing's side where the farther one is
