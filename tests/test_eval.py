@@ -191,6 +191,14 @@ def test_sway_the_ground_is_found_every_frame(sway):
         [g for g in s.ground if g["source"] != "fitted"]
 
 
+def test_sway_a_table_s_back_leg_is_not_cut_from_it_nor_the_person_behind_joined_to_it(sway):
+    """With the ground estimate: the table's side rail, seen end-on on its back leg, keeps the leg
+    with the table (the layer split once cut it off: a false positive beside the table in most
+    frames, precision 91 %), and the person walking behind the table stays apart from it."""
+    s = E.score_method(sway, "layers")
+    assert s.recall >= 0.99 and s.precision >= 0.95, s.to_dict()
+
+
 def test_eval_ground_figures_agree_with_the_estimator_on_a_still_camera(data):
     """The eval's true mount and the estimator's ground use one convention: on the still scenes
     the fitted ground is within a few tenths of a degree and a centimetre."""

@@ -116,19 +116,79 @@ def test_the_depth_layer_split_parts_a_person_behind_another_and_keeps_a_table_a
                                     (np.arange(120, 200), np.arange(104, 136), 33.0)))) == 1
 
 
+def test_a_few_wide_rows_of_the_valley_do_not_keep_two_things_one_behind_the_other_whole():
+    """A person (d 12) and a person 0.5 m behind (d 11) joined by the ramp along the near one's side
+    (3 px a row, 150 rows) and, in 30 rows, by a surface reaching back between them (a table's
+    rail, 80 px a row). The ramp is what most of the valley's rows hold: two things.
+    A valley wide in most of its rows (a table's top between its legs) still keeps one whole."""
+    rows = np.arange(50, 200)
+    ramp = [(rows, [139], 11.75), (rows, [140], 11.5), (rows, [141], 11.25)]
+    rail = [(np.arange(150, 180), [142 + k], 11.9 - 0.01 * k) for k in range(80)]  # receding: depth along it
+    two = _layers_of(*_grouped((rows, np.arange(100, 139), 12.0), *ramp, *rail, (rows, np.arange(222, 262), 11.0)))
+    assert sorted(round(v[0]) for v in two.values()) == [11, 12]
+
+
+def test_the_depth_layer_split_keeps_a_surface_resting_on_the_far_side_s_top_whole():
+    """A table's front (d 12) and its back leg (d 11) joined through a thin valley of in-between
+    depths: split when the valley runs down beside the leg at its heights (the ramp of an
+    occlusion), kept whole when the valley lies right on top of the leg, in its columns and less
+    than 0.25 m above it (the table's side rail seen end-on, resting on the leg)."""
+    cfg = SegmenterSettings(max_range_m=10.0)
+    near = (np.arange(50, 200), np.arange(100, 139), 12.0)
+    leg = (np.arange(120, 200), np.arange(142, 165), 11.0)
+
+    def parts(valley, height_of):
+        ys, xs, dv, lab = _grouped(near, *valley, leg)
+        heights = None if height_of is None else height_of(ys, xs)
+        out = layers._split_layers(ys, xs, dv, lab, cfg, MODEL, 2, heights)[0]
+        return np.unique(out[out > 0]).size
+
+    floor_up = lambda ys, xs: (200 - ys) * 0.01  # noqa: E731 - the leg's top (row 120) is 0.8 m high
+    beside = [(np.arange(120, 200), [139], 11.75), (np.arange(120, 200), [140], 11.5),
+              (np.arange(120, 200), [141], 11.25)]
+    assert parts(beside, None) == 2 and parts(beside, floor_up) == 2
+    rail = [(np.arange(104, 120), np.arange(142, 146), 11.75), (np.arange(104, 120), np.arange(146, 150), 11.5),
+            (np.arange(104, 120), np.arange(150, 154), 11.25)]
+    assert parts(rail, None) == 2 and parts(rail, floor_up) == 1
+
+
 def test_depth_layers_of_one_group_are_not_joined_again_but_a_fence_s_stretches_are():
     """Regions whose extents come within merge_gap_depth_m along the view join (the stretches of a
     fence the matcher left out), unless the depth-layer split made them two (one behind the other)."""
-    def region(z0, z1, groups=frozenset()):
-        pts = np.array([[-1.0, -0.5, z0], [-0.8, 0.5, z1]])
-        return layers._Region(pts, pts[0], pts[1], (0, 0, 10, 10), 100, 100, np.full(2, FB / z0), 0, groups)
+    def region(z0, z1, groups=frozenset(), cols=(0, 10)):
+        x, y, z = np.meshgrid(np.linspace(-1.0, -0.8, 5), np.linspace(-0.5, 0.5, 11), np.linspace(z0, z1, 11))
+        pts = np.stack([x.ravel(), y.ravel(), z.ravel()], 1)
+        return layers._Region(pts, pts.min(0), pts.max(0), (cols[0], 0, cols[1], 10), 100, 100,
+                              np.full(len(pts), FB / z0), 0, groups)
 
-    fence = layers._merge_close([region(5.0, 5.5), region(5.7, 6.2)], 0.12, 0.25)
+    # a fence's stretches recede side by side in the image
+    fence = layers._merge_close([region(5.0, 5.5, cols=(0, 10)), region(5.7, 6.2, cols=(10, 16))], 0.12, 0.25)
     assert len(fence) == 1
     people = layers._merge_close([region(5.0, 5.5, frozenset({7})), region(5.7, 6.2, frozenset({7}))], 0.12, 0.25)
     assert len(people) == 2
     touching = layers._merge_close([region(5.0, 5.5, frozenset({7})), region(5.55, 6.2, frozenset({7}))], 0.12, 0.25)
     assert len(touching) == 1
+
+
+def _box_points(x0, x1, y0, y1, z0, z1, n=6):
+    x, y, z = np.meshgrid(np.linspace(x0, x1, n), np.linspace(y0, y1, n), np.linspace(z0, z1, n))
+    return np.stack([x.ravel(), y.ravel(), z.ravel()], 1)
+
+
+def test_a_person_walking_behind_a_table_is_not_joined_to_it_by_their_boxes():
+    """A table (its top, and a back leg at its left) and a person 0.1 m behind its back leg, to the
+    right of it: their boxes come within merge_gap_m, in the same image columns, but nothing of
+    them does (the top ends 0.35 m before the person, the leg 0.2 m to their left). The occluder
+    and what it hides are two; the same boxes side by side in the image (a fence's stretches)
+    are one."""
+    def region(pts, cols):
+        return layers._Region(pts, pts.min(0), pts.max(0), (cols[0], 0, cols[1], 10), 100, 100,
+                              FB / pts[:, 2], 0, frozenset())
+
+    table = np.concatenate([_box_points(0.5, 0.92, 0.0, 0.02, 1.9, 2.3), _box_points(0.5, 0.53, 0.0, 0.7, 2.5, 2.56)])
+    person = _box_points(0.75, 1.06, -0.96, 0.7, 2.65, 2.9)
+    assert len(layers._merge_close([region(table, (220, 320)), region(person, (240, 300))], 0.12, 0.25)) == 2
+    assert len(layers._merge_close([region(table, (220, 320)), region(person, (320, 380))], 0.12, 0.25)) == 1
 
 
 def test_layers_keeps_an_object_cut_by_the_image_border():

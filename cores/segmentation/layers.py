@@ -134,8 +134,17 @@ def _merge_close(regions: list[_Region], gap_m: float, depth_gap_m: float = 0.0)
     for i, j in zip(*np.nonzero(np.triu(close, 1))):
         a, b = root(int(i)), root(int(j))
         # two depth layers of one group (a person behind another) are not joined again by the gap
-        # along the view that joins a fence's stretches, only where they touch
-        if a == b or (gap[i, j, 2] > gap_m and held[a] & held[b]):
+        # along the view that joins a fence's stretches, only where they touch: their points, not
+        # just their boxes (a person walking past a table's back corner)
+        if a == b or (held[a] & held[b] and (gap[i, j, 2] > gap_m or not _touch(regions[i], regions[j], gap_m))):
+            continue
+        # boxes that share image columns are apart along the view only: one stands in front of the
+        # other, and how close the boxes come says little of how close the things do (a table's
+        # top reaches back over the floor where a person walks behind it). The slack along the view
+        # is for one surface receding from the camera (a fence, a wall seen obliquely), whose
+        # stretches lie side by side in the image: these two are joined only where their points touch
+        if _share_columns(regions[i], regions[j]) and \
+                (gap[i, j, 2] > gap_m or not _touch(regions[i], regions[j], gap_m)):
             continue
         parent[a] = b
         held[b] |= held[a]
@@ -149,6 +158,19 @@ def _merge_close(regions: list[_Region], gap_m: float, depth_gap_m: float = 0.0)
             continue
         out.append(_union(g))
     return out
+
+
+def _share_columns(p: _Region, q: _Region, share: float = 0.25) -> bool:
+    """Whether p's and q's image boxes overlap in columns by at least `share` of the narrower one's width."""
+    overlap = min(p.bbox[2], q.bbox[2]) - max(p.bbox[0], q.bbox[0])
+    return overlap >= share * min(p.bbox[2] - p.bbox[0], q.bbox[2] - q.bbox[0])
+
+
+def _touch(p: _Region, q: _Region, gap_m: float, samples: int = 400) -> bool:
+    """Whether some point of p comes within gap_m of some point of q (on up to `samples` of each)."""
+    a = p.pts[::max(1, len(p.pts) // samples)]
+    b = q.pts[::max(1, len(q.pts) // samples)]
+    return bool((((a[:, None, :] - b[None, :, :]) ** 2).sum(2) <= gap_m * gap_m).any())
 
 
 def _absorb_contained(regions: list[_Region], gap_m: float, model: camera.RectifiedModel, step: int,
@@ -290,10 +312,12 @@ _LAYER_BIN_PX = 1.0 / 16.0  # disparity histogram bins of the layer split: the m
 _LAYER_SMOOTH_BINS = 1.0  # Gaussian smoothing of that histogram, bins (sub-pixel matching noise)
 _LAYER_BAND = 0.35  # the valley band: bins below this share of the smaller peak's density
 _LAYER_MAX_SPLITS = 3  # each side of a split is split again, this many levels deep at most
+_LAYER_ON_TOP_M = 0.25  # a valley at most this far above the farther side's top rests on it
 
 
 def _split_layers(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, lab: np.ndarray, cfg: SegmenterSettings,
-                  model: camera.RectifiedModel, step: int) -> tuple[np.ndarray, dict[int, int]]:
+                  model: camera.RectifiedModel, step: int, heights: np.ndarray | None = None
+                  ) -> tuple[np.ndarray, dict[int, int]]:
     """Split grouped objects that are two things one behind the other: (new labels for the grouped
     pixels, sorted by label as _group gives them, 0 = dropped; {label: the group it was split
     from} for every label of a split group, whose layers later steps do not join again by depth).
@@ -310,9 +334,10 @@ def _split_layers(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, lab: np.ndarra
       layer_gap_m of depth and each side holds min_area_m2 (a table's back leg, grouped with the
       person beside it, is no speck of theirs);
     - the peaks stand layer_gap_m apart in depth (a torso before the legs is one person);
-    - the valley's pixels are a thin band, at most layer_bridge_px wide along each image row: a
-      table top or a chair seat also fills the valley between front and back legs, but across the
-      object's whole width, and keeps it whole;
+    - the valley's pixels are a thin band, at most layer_bridge_px wide along most image rows
+      they are in (the median row): a table top or a chair seat also fills the valley between
+      front and back legs, but across the object's whole width in all its rows, and keeps it
+      whole; a rail reaching back in a few rows beside a ramp along a person's whole side does not;
     - the far side is within layer_split_range_m (a far street's facades and shelters would fall
       apart into panels).
     The valley's pixels (the ramp: phantom depths) are dropped; each side may be split again."""
@@ -380,17 +405,43 @@ def _split_layers(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, lab: np.ndarra
             if z_far > cfg.layer_split_range_m or z_far - z_near < cfg.layer_gap_m:
                 continue
             in_band = (rel >= lo) & (rel <= hi)
-            # how wide the valley's pixels are along each image row they are in: a ramp along an
-            # occlusion's contour is a few pixels wide whatever the contour's shape
-            if in_band.sum() > bridge * max(1, np.unique(ys[idx[in_band]]).size):
+            # how wide the valley's pixels are along the image rows they are in: a ramp along an
+            # occlusion's contour is a few pixels wide whatever the contour's shape. The median row,
+            # not the mean: a surface reaching across the valley in a few rows (a table's rail seen
+            # end-on, beside a person walking behind it) must not outweigh the contour's many rows
+            if np.median(np.unique(ys[idx[in_band]], return_counts=True)[1]) > bridge:
                 continue
             far, near = idx[rel < lo], idx[rel > hi]
+            # the ramp across an occlusion runs down the nearer thing's side where the farther one is
+            # seen beside it: at heights up to the farther one's top. A valley mostly just above that
+            # top (within _LAYER_ON_TOP_M) is a surface resting on the farther side (a table's top and
+            # side apron seen end-on, on its back leg): one object
+            if heights is not None and _rests_on(ys, xs, heights, idx[in_band], far):
+                continue
             out[idx[in_band]] = 0
             out[far] = next_label
             family[next_label] = family[int(lab[a])] = int(lab[a])
             next_label += 1
             todo += [(far, level + 1), (near, level + 1)]
     return out, family
+
+
+def _rests_on(ys: np.ndarray, xs: np.ndarray, heights: np.ndarray, band: np.ndarray, far: np.ndarray) -> bool:
+    """Whether most of a valley's pixels (indices `band`) lie right on top of the farther side: in
+    an image column where the farther side is seen, above its topmost pixel there, and at most
+    _LAYER_ON_TOP_M higher than its top in that column (a table's side rail seen end-on, on its
+    back leg). The ramp across an occlusion runs down beside the farther thing, at its heights."""
+    if band.size == 0 or far.size == 0:
+        return False
+    cols = int(max(xs[band].max(), xs[far].max())) + 1
+    top_row = np.full(cols, np.iinfo(np.int64).max)
+    np.minimum.at(top_row, xs[far], ys[far].astype(np.int64))
+    top_h = np.full(cols, -np.inf)
+    np.maximum.at(top_h, xs[far], heights[far])
+    xb = xs[band]
+    hb = heights[band]
+    on = (ys[band] < top_row[xb]) & (hb > top_h[xb]) & (hb <= top_h[xb] + _LAYER_ON_TOP_M)
+    return bool(np.mean(on) > 0.5)
 
 
 _LAYER_EMPTY_PX = 2.0  # an empty valley spans at least this much disparity: far beyond matching noise
@@ -468,7 +519,7 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
         return LayersFrame([], [], floor, estimate, floor_points)
 
     ys, xs, dv, lab = _group(dm, stand, cfg, model, step)
-    lab, family = _split_layers(ys, xs, dv, lab, cfg, model, step)
+    lab, family = _split_layers(ys, xs, dv, lab, cfg, model, step, None if above is None else above[ys, xs])
     order = np.argsort(lab, kind="stable")
     ys, xs, dv, lab = ys[order], xs[order], dv[order], lab[order]
     first = int(np.searchsorted(lab, 1))
