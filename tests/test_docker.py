@@ -261,9 +261,17 @@ def test_compose_up_scale_stop_and_offboard_network_drop(project):
         t_rejoined = time.monotonic()
         print(f"network back: workers rejoined after {t_rejoined - t_back:.1f} s")
         s.wait(lambda: s.fresh_since(t_rejoined + 2) >= 10, 60, "fresh lists after the workers rejoined")
-        with s.cond:
-            tail = [stale for (rt, _, stale) in s.lists if rt >= t_rejoined + 2]
-        assert not any(tail[-5:]), "the stream is still stale after the workers came back"
+
+        # recovered: a run of fresh lists (one stale list among them is what a loaded 2-core machine
+        # costs now and then; a stream still stale after the rejoin never gets a run of ten)
+        def fresh_run() -> int:
+            n = 0
+            for _, _, stale in reversed([x for x in s.lists if x[0] >= t_rejoined]):
+                if stale:
+                    break
+                n += 1
+            return n
+        s.wait(lambda: fresh_run() >= 10, 60, "ten fresh lists in a row after the workers rejoined")
     finally:
         s.close()
 

@@ -345,9 +345,12 @@ def test_a_fleet_shares_a_pool_fairly_and_survives_a_kill_and_a_join(tmp_path):
         fleet.rates["fa"] = 6.0
         print("flood maps/s", flooded)
         others = (flooded["fb"] + flooded["fc"]) / 2
-        # Max-min fairness: the others keep what they had; the flooder gets more than they do only out
-        # of capacity they leave unused (a faster machine serves all 6/s of theirs and fa's surplus too).
-        assert min(flooded["fb"], flooded["fc"]) >= 0.8 * min(equal["fb"], equal["fc"]), (equal, flooded)
+        # Max-min fairness: each of the others gets what it asks (6/s) or an equal share of what the pool
+        # delivered, whichever is less; the flooder gets more than they do only out of capacity they leave
+        # unused (a faster machine serves all 6/s of theirs and fa's surplus too). Against what the pool
+        # delivered in this window, not before: on a shared machine its capacity moves with the load.
+        entitled = min(6.0, sum(flooded.values()) / 3)
+        assert min(flooded["fb"], flooded["fc"]) >= 0.8 * entitled, (equal, flooded)
         others_fully_served = min(flooded["fb"], flooded["fc"]) >= 0.9 * 6.0
         assert others_fully_served or flooded["fa"] <= 1.6 * others, (equal, flooded)
         fleet.wait(lambda: any(v["extra"].get("robot.fa.unsolicited", 0) > 0 for k, v in fleet.stats.items()

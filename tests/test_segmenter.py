@@ -26,7 +26,10 @@ def floor_plane(mount: Mount) -> FloorPlane:
                                   MODEL.baseline_m)
 
 
-def scene(boxes=(), mount: Mount = Mount(1.0, 15.0), wall_m: float = 5.0, noise: float = 0.08,
+SCENE_MOUNT = Mount(1.0, 15.0)  # the synthetic scene's camera
+
+
+def scene(boxes=(), mount: Mount = SCENE_MOUNT, wall_m: float = 5.0, noise: float = 0.08,
           holes: float = 0.03, seed_: int = 0) -> np.ndarray:
     """Disparity (H, W) float32 of a floor seen from `mount`, a wall at wall_m, and boxes standing on
     the floor: (u0, u1, z_m, height_px) columns u0..u1 at depth z, bottom where the floor is at z."""
@@ -243,7 +246,8 @@ def test_bad_input_gives_no_obstacles_and_a_size_mismatch_raises():
         assert seed.segment(d, MODEL, SegmenterSettings(method="seed")) == []
     with pytest.raises(ValueError, match="camera model"):
         layers.segment(np.zeros((10, 10), np.float32), MODEL, cfg)
-    empty = ObstacleBuilder(SegmenterSettings()).process(np.zeros((0, 0), np.float32), MODEL, t_s=0.0, seq=0, stamp_ns=0)
+    empty = ObstacleBuilder(SegmenterSettings()).process(np.zeros((0, 0), np.float32), MODEL, t_s=0.0, seq=0,
+                                                         stamp_ns=0)
     assert empty.obstacles.obstacles == [] and "no-valid-disparity" in empty.obstacles.degraded
 
 
