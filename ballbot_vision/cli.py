@@ -325,6 +325,16 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     def stub(name: str) -> None:
         sub.add_parser(name, add_help=False)
 
+    def service_parser(subparsers, name: str) -> argparse.ArgumentParser:
+        """A service's arguments (`run NAME`, and the top-level `viewer` and `foxglove`): its settings,
+        the mount section, the Zenoh session."""
+        m, settings_cls = service_module(name)
+        sp = common(subparsers.add_parser(name, help=(m.__doc__ or "").strip().splitlines()[0]))
+        sp.add_argument("--instance", default=None, help="instance name in stats and liveliness (default: host-pid)")
+        add_settings_arguments(sp, settings_cls)
+        add_settings_arguments(sp, MountSettings, prefix="mount-")
+        return sp
+
     if needed("up"):
         up = common(sub.add_parser("up", help="start every service as a separate process; Ctrl-C stops all",
                                    description="--listen: where the router listens (e.g. tcp/0.0.0.0:7447 for "
@@ -356,13 +366,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
             if wanted_service not in (None, name) and wanted_service in list(SERVICES) + ["router"]:
                 run_sub.add_parser(name, add_help=False)
                 continue
-            m, settings_cls = service_module(name)
-            sp = common(run_sub.add_parser(name, help=(m.__doc__ or "").strip().splitlines()[0]))
-            sp.add_argument("--instance", default=None,
-                            help="instance name in stats and liveliness (default: host-pid)")
-            add_settings_arguments(sp, settings_cls)
-            add_settings_arguments(sp, MountSettings, prefix="mount-")
-            sp.set_defaults(func=cmd_run)
+            service_parser(run_sub, name).set_defaults(func=cmd_run)
     else:
         stub("run")
 
@@ -422,13 +426,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
 
     for name in SERVICE_COMMANDS:
         if needed(name):
-            m, settings_cls = service_module(name)
-            sp = common(sub.add_parser(name, help=(m.__doc__ or '').strip().splitlines()[0]))
-            sp.add_argument("--instance", default=None,
-                            help="instance name in stats and liveliness (default: host-pid)")
-            add_settings_arguments(sp, settings_cls)
-            add_settings_arguments(sp, MountSettings, prefix="mount-")
-            sp.set_defaults(func=cmd_run, service=name)
+            service_parser(sub, name).set_defaults(func=cmd_run, service=name)
         else:
             stub(name)
 
