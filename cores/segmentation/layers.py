@@ -409,7 +409,9 @@ def _split_layers(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, lab: np.ndarra
             # occlusion's contour is a few pixels wide whatever the contour's shape. The median row,
             # not the mean: a surface reaching across the valley in a few rows (a table's rail seen
             # end-on, beside a person walking behind it) must not outweigh the contour's many rows
-            if np.median(np.unique(ys[idx[in_band]], return_counts=True)[1]) > bridge:
+            # (an empty valley bridges nothing: two things with clear space between them in depth)
+            rows = np.unique(ys[idx[in_band]], return_counts=True)[1]
+            if rows.size and np.median(rows) > bridge:
                 continue
             far, near = idx[rel < lo], idx[rel > hi]
             # the ramp across an occlusion runs down the nearer thing's side where the farther one is
