@@ -267,13 +267,14 @@ def _describe_defaults(applied: dict) -> str:
 
 def cmd_eval_real(args: argparse.Namespace) -> int:
     from evaluation import real as R
+    from evaluation import recordings
 
     if args.scenarios:
         raise BallbotError("eval --real DIR runs a recording; leave out the scenario names")
     if args.true_ground:
         raise BallbotError("eval --real: --true-ground needs a synthetic scenario (a recording has no true ground)")
     seg, disp, applied = _real_settings(args, **_method_override(args))
-    rec = R.open_recording(args.real, fps=args.fps or 10.0)
+    rec = recordings.open_recording(args.real, fps=args.fps or 10.0)
     if args.frames is not None and args.frames < 1:
         raise BallbotError(f"--frames {args.frames}: at least 1")
     on_frame = None
@@ -300,16 +301,17 @@ def cmd_eval_real(args: argparse.Namespace) -> int:
 def cmd_mount_estimate(args: argparse.Namespace) -> int:
     from cores.segmentation.mount_estimate import estimate_from_grounds, format_estimate, merge_into_config
     from evaluation import real as R
+    from evaluation import recordings
 
     if args.real:
         if args.left or args.right:
             raise BallbotError("mount estimate: give either LEFT RIGHT --calibration CAL or --real DIR")
-        rec = R.open_recording(args.real, fps=10.0)
+        rec = recordings.open_recording(args.real, fps=10.0)
     elif not (args.left and args.right and args.calibration):
         raise BallbotError("mount estimate: give LEFT RIGHT --calibration CAL (folders, globs or files), "
                            "or --real DIR (a recording folder)")
     else:
-        rec = R.recording_from_files(args.left, args.right, args.calibration)
+        rec = recordings.recording_from_files(args.left, args.right, args.calibration)
     if args.frames < 1:
         raise BallbotError(f"--frames {args.frames}: at least 1")
     seg, disp, applied = _real_settings(args)  # no mount: the ground is what is measured

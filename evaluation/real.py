@@ -2,13 +2,8 @@
 
     image files -> Rectifier -> matcher (the disparity settings' method) -> ObstacleBuilder.process
 
-A recording is a folder in one of two layouts (see ../shared/data/real/README.md):
-- `left/` and `right/` image folders (paired by name, else in order) and `calibration.yaml` (this
-  program's format), optionally `insdata.txt` (INS poses, one line per pair: odometry and stamps);
-- EuRoC: `cam0/` and `cam1/` (or `cam0/data/`, `cam1/data/`) and the two sensor yamls
-  (`cam0_sensor.yaml` + `cam1_sensor.yaml`, or `cam0/sensor.yaml` + `cam1/sensor.yaml`), imported
-  in-process as `calibration import` does; the raw pairs are rectified. Image names that are
-  nanosecond stamps give the frame times.
+The recordings (folders of pairs with a calibration) are read by evaluation/recordings.py; the
+independent road model that judges flatness is evaluation/road_profile.py.
 
 Without labels the figures are what a wrong segmenter cannot hide:
 - obstacles per frame (median, max);
@@ -22,19 +17,9 @@ Without labels the figures are what a wrong segmenter cannot hide:
 - the segmenter's ground estimates (height, pitch, roll: median and 10th-90th percentile; sources),
   beside the independent road profile's height and pitch;
 - segmentation time per frame (ObstacleBuilder.process only; matching is reported apart).
-
-insdata.txt (Karlsruhe; the column convention is inferred and checked against the data, see
-read_insdata): timestamp ns, latitude deg, longitude deg, altitude m, x m (east), y m (north),
-z m (up, equal to the altitude), roll rad, pitch rad, yaw rad (heading, counter-clockwise from x =
-east). Checked: the displacement between lines agrees with latitude/longitude (x with east, y with
-north, ~1.26 m and -0.10 m per 0.1 s at the start); the direction of travel atan2(dy, dx) matches
-yaw within 1 deg; the speed is ~12.4 m/s falling to ~9 m/s, forward. The pitch column is not
-usable (a constant ~2.07 rad, one line -0.001): it is not read.
 """
 from __future__ import annotations
 
-import math
-import re
 from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -42,11 +27,13 @@ from pathlib import Path
 import numpy as np
 
 from common.errors import BallbotError
-from common.messages import GroundEstimate, Odometry
+from common.messages import GroundEstimate
 from common.settings import MountSettings
 from cores import camera
 from cores.matching.opencv import Match
 from cores.segmentation.builder import FrameResult
+from evaluation.recordings import Recording
+from evaluation.road_profile import fit_road_profile, obstacle_height_p95
 
 FLAT_HEIGHT_M = 0.25  # an obstacle nothing of which stands higher above the road is flat
 NEAR_M = 20.0  # the track-life figure counts obstacles this near
@@ -57,240 +44,6 @@ REAL_MAX_RANGE_M = 30.0
 # Targets of issue 10, set for the Karlsruhe recording: (figure, comparison, value)
 TARGETS = {"median_obstacles_per_frame": ("<=", 25.0), "flat_fraction": ("<=", 0.05),
            "near_long_track_fraction": (">=", 0.80)}
-INSDATA_COLUMNS = ("stamp_ns", "lat_deg", "lon_deg", "alt_m", "x_east_m", "y_north_m", "z_up_m",
-                   "roll_rad", "pitch_rad", "yaw_rad")
-_NS_STAMP = re.compile(r"^\d{16,20}$")
-
-
-# --- the recording -------------------------------------------------------------------------------
-
-@dataclass
-class Recording:
-    root: Path
-    pairs: list[tuple[Path, Path]]
-    calibration: camera.Calibration
-    calibration_source: str
-    stamps_s: list[float]  # per pair, seconds (relative clock)
-    stamps_from: str  # where the stamps came from
-    odometry: list[Odometry] | None = None  # per pair, base frame
-
-    @property
-    def name(self) -> str:
-        return self.root.name
-
-
-def _first(root: Path, *names: str) -> Path | None:
-    return next((root / n for n in names if (root / n).exists()), None)
-
-
-def open_recording(root: str | Path, fps: float = 10.0) -> Recording:
-    """A recording folder (layouts in the module doc) -> its pairs, calibration, stamps, odometry."""
-    from common.files import list_images, pair_images
-    from cores.calibration.formats import import_files
-
-    root = Path(root).expanduser()
-    if not root.is_dir():
-        raise BallbotError(f"--real {root}: not a folder")
-    left_dir = _first(root, "left", "cam0/data", "cam0")
-    right_dir = _first(root, "right", "cam1/data", "cam1")
-    if left_dir is None or right_dir is None:
-        raise BallbotError(f"--real {root}: expected left/ and right/ (with calibration.yaml) or EuRoC's cam0/ "
-                           "and cam1/ (with their sensor yamls)")
-    pairs = pair_images(list_images(str(left_dir), "left images"), list_images(str(right_dir), "right images"))
-    cal_file = _first(root, "calibration.yaml", "calibration.yml")
-    sensors = [_first(root, f"cam{k}_sensor.yaml", f"cam{k}/sensor.yaml") for k in (0, 1)]
-    if cal_file is not None:
-        cal, cal_source = camera.load_calibration(cal_file), cal_file.name
-    elif sensors[0] is not None and sensors[1] is not None:
-        cal = import_files([str(s) for s in sensors], name=root.name)
-        cal_source = f"{sensors[0].relative_to(root)} + {sensors[1].relative_to(root)} (EuRoC, imported)"
-    else:
-        raise BallbotError(f"--real {root}: no calibration.yaml and no EuRoC cam0/cam1 sensor yamls")
-    rec = Recording(root, pairs, cal, cal_source, [k / fps for k in range(len(pairs))], f"{fps:g} fps (--fps)")
-    ins = root / "insdata.txt"
-    stems = [p.stem for p, _ in pairs]
-    if ins.exists():
-        poses = read_insdata(ins)
-        if len(poses) != len(pairs):
-            raise BallbotError(f"{ins}: {len(poses)} poses for {len(pairs)} pairs (expected one line per pair)")
-        rec.stamps_s = list((poses[:, 0] - poses[0, 0]) / 1e9)
-        rec.stamps_from = "insdata.txt"
-        rec.odometry = odometry_from_poses(poses)
-    elif stems and all(_NS_STAMP.match(s) for s in stems):
-        t0 = int(stems[0])
-        rec.stamps_s = [(int(s) - t0) / 1e9 for s in stems]
-        rec.stamps_from = "image names (ns)"
-    return rec
-
-
-def recording_from_files(left: str, right: str, calibration: str, fps: float = 10.0) -> Recording:
-    """LEFT and RIGHT (folders, globs or files, paired as everywhere) with a calibration -> a Recording
-    (stamps from nanosecond image names, else `fps`; no odometry)."""
-    from common.files import list_images, pair_images
-
-    pairs = pair_images(list_images(left, "LEFT"), list_images(right, "RIGHT"))
-    rec = Recording(Path(left), pairs, camera.load_calibration(calibration), str(calibration),
-                    [k / fps for k in range(len(pairs))], f"{fps:g} fps (--fps)")
-    stems = [p.stem for p, _ in pairs]
-    if stems and all(_NS_STAMP.match(s) for s in stems):
-        rec.stamps_s = [(int(s) - int(stems[0])) / 1e9 for s in stems]
-        rec.stamps_from = "image names (ns)"
-    return rec
-
-
-def read_insdata(path: str | Path) -> np.ndarray:
-    """(N, 10) float64, columns INSDATA_COLUMNS (module doc). Refuses a file whose positions and
-    headings disagree with that convention (the direction of travel within 10 deg of yaw)."""
-    try:
-        a = np.loadtxt(path, ndmin=2)
-    except ValueError as e:
-        raise BallbotError(f"{path}: not a table of numbers ({e})") from None
-    if a.shape[1] != len(INSDATA_COLUMNS):
-        raise BallbotError(f"{path}: {a.shape[1]} columns, expected {len(INSDATA_COLUMNS)} "
-                           f"({', '.join(INSDATA_COLUMNS)})")
-    if len(a) >= 2:
-        step = np.hypot(np.diff(a[:, 4]), np.diff(a[:, 5]))
-        moving = step > 0.05
-        if moving.any():
-            travel = np.arctan2(np.diff(a[:, 5]), np.diff(a[:, 4]))[moving]
-            off = np.angle(np.exp(1j * (travel - a[:-1, 9][moving])))
-            if np.median(np.abs(off)) > math.radians(10):
-                raise BallbotError(f"{path}: the direction of travel differs from the yaw column by "
-                                   f"{math.degrees(float(np.median(np.abs(off)))):.0f} deg: not the expected "
-                                   f"convention ({', '.join(INSDATA_COLUMNS)})")
-    return a
-
-
-def odometry_from_poses(poses: np.ndarray, robot_id: str = "offline") -> list[Odometry]:
-    """INS poses (read_insdata) -> per line the base-frame motion: linear velocity (x forward along
-    the heading, y left; z 0: the vehicle moves along the road, the base frame's plane) from the
-    positions by central differences, angular velocity (0, 0, yaw rate) from the unwrapped yaw."""
-    t = (poses[:, 0] - poses[0, 0]) / 1e9
-    yaw = np.unwrap(poses[:, 9])
-    if len(poses) < 2:
-        return [Odometry(robot_id=robot_id, seq=0, stamp_ns=int(poses[0, 0]), linear_mps=(0.0, 0.0, 0.0),
-                         source="insdata.txt")]
-    ve, vn = np.gradient(poses[:, 4], t), np.gradient(poses[:, 5], t)
-    rate = np.gradient(yaw, t)
-    fwd = np.cos(yaw) * ve + np.sin(yaw) * vn
-    left = -np.sin(yaw) * ve + np.cos(yaw) * vn
-    return [Odometry(robot_id=robot_id, seq=k, stamp_ns=int(poses[k, 0]),
-                     linear_mps=(float(fwd[k]), float(left[k]), 0.0), angular_radps=(0.0, 0.0, float(rate[k])),
-                     source="insdata.txt") for k in range(len(poses))]
-
-
-# --- the independent ground model ------------------------------------------------------------------
-
-@dataclass(frozen=True)
-class RoadProfile:
-    """The road in v-disparity: d = slope * (v - horizon_v) on the rectified left image (a flat road
-    without roll seen by a camera pitched by theta: slope = B cos(theta) / h, horizon_v = cy - f tan(theta)).
-    Independent of the segmenter's ground fit: a robust line in the lower image's d-vs-v histogram."""
-
-    slope: float  # px of disparity per image row
-    horizon_v: float  # row, px
-    support: float  # share of the lower image's valid pixels on the line
-    focal_px: float
-    cy: float
-    baseline_m: float
-
-    @property
-    def pitch_deg(self) -> float:
-        return math.degrees(math.atan2(self.cy - self.horizon_v, self.focal_px))
-
-    @property
-    def height_m(self) -> float:
-        return self.baseline_m * math.cos(math.radians(self.pitch_deg)) / self.slope
-
-    def road_row(self, d: np.ndarray) -> np.ndarray:
-        return self.horizon_v + np.asarray(d) / self.slope
-
-    def height_above(self, v: np.ndarray, d: np.ndarray) -> np.ndarray:
-        """Height (m) above the road of pixels at rows v with disparities d (> 0)."""
-        d = np.asarray(d, np.float64)
-        return math.cos(math.radians(self.pitch_deg)) * (self.road_row(d) - v) * self.baseline_m / d
-
-
-def fit_road_profile(disparity: np.ndarray, model: camera.RectifiedModel, min_height_m: float = 0.1,
-                     max_height_m: float = 10.0, hypotheses: int = 300, seed: int = 0) -> RoadProfile | None:
-    """disparity: (H, W) float px, NaN invalid. The v-disparity histogram of the lower half of the
-    image (1 px disparity bins), then RANSAC over lines through two of its occupied cells (drawn by
-    count) whose slope puts the camera min_height_m..max_height_m above the road, scored by the pixel
-    count within 1 px + 3 % of the line; refined by count-weighted least squares on the inliers.
-    None: too few valid pixels or no line with 5 % support."""
-    h, w = disparity.shape
-    v0 = h // 2
-    d = disparity[v0:]
-    ok = np.isfinite(d) & (d > 0.5)
-    if np.count_nonzero(ok) < 200:
-        return None
-    rows = np.broadcast_to(np.arange(v0, h)[:, None], d.shape)[ok]
-    bins = np.round(d[ok]).astype(np.int64)
-    nd = int(bins.max()) + 1
-    hist = np.bincount((rows - v0) * nd + bins, minlength=(h - v0) * nd).reshape(h - v0, nd).astype(np.float64)
-    hist[:, 0] = 0
-    vv, dd = np.nonzero(hist)
-    cnt = hist[vv, dd]
-    vv = vv + v0
-    total = float(cnt.sum())
-    B = model.baseline_m
-    lo, hi = B / max_height_m, B / min_height_m
-    rng = np.random.default_rng(seed)
-    p = cnt / total
-    i = rng.choice(len(cnt), size=hypotheses, p=p)
-    j = rng.choice(len(cnt), size=hypotheses, p=p)
-    dv = (vv[j] - vv[i]).astype(np.float64)
-    good = np.abs(dv) >= 2
-    slope = np.where(good, (dd[j] - dd[i]) / np.where(good, dv, 1.0), 0.0)
-    good &= (slope >= lo) & (slope <= hi)
-    if not good.any():
-        return None
-    slope = slope[good]
-    hv = vv[i][good] - dd[i][good] / slope  # the horizon row of each candidate line
-
-    def inliers(s: float, v_h: float) -> np.ndarray:
-        pred = s * (vv - v_h)
-        return (pred > 0) & (np.abs(dd - pred) <= 1.0 + 0.03 * pred)
-
-    scores = [cnt[inliers(s, v_h)].sum() for s, v_h in zip(slope, hv)]
-    k = int(np.argmax(scores))
-    s, v_h = float(slope[k]), float(hv[k])
-    for _ in range(3):
-        m = inliers(s, v_h)
-        if m.sum() < 3:
-            return None
-        wts, x, y = cnt[m], vv[m].astype(np.float64), dd[m].astype(np.float64)
-        xm, ym = np.average(x, weights=wts), np.average(y, weights=wts)
-        var = np.average((x - xm) ** 2, weights=wts)
-        if var <= 0:
-            return None
-        s_new = float(np.average((x - xm) * (y - ym), weights=wts) / var)
-        if not lo <= s_new <= hi:
-            break
-        s, v_h = s_new, float(xm - ym / s_new)
-    support = float(cnt[inliers(s, v_h)].sum() / total)
-    if support < 0.05:
-        return None
-    return RoadProfile(s, v_h, support, model.focal_px, model.cy, B)
-
-
-def obstacle_height_p95(disparity: np.ndarray, bbox: tuple[int, int, int, int], disparity_px: float,
-                        road: RoadProfile, rel_tol: float = 0.1, min_pixels: int = 10) -> float | None:
-    """95th percentile height (m) above the road of the obstacle's pixels: those in its box whose
-    disparity is within max(1 px, rel_tol * d) of its own. None with fewer than min_pixels."""
-    h, w = disparity.shape
-    x0, y0, x1, y1 = bbox
-    x0, x1 = max(0, x0), min(w, x1)
-    y0, y1 = max(0, y0), min(h, y1)
-    if x1 <= x0 or y1 <= y0:
-        return None
-    box = disparity[y0:y1, x0:x1]
-    tol = max(1.0, rel_tol * disparity_px)
-    m = np.isfinite(box) & (box > 0.5) & (np.abs(box - disparity_px) <= tol)
-    if np.count_nonzero(m) < min_pixels:
-        return None
-    v = np.broadcast_to(np.arange(y0, y1)[:, None], box.shape)[m]
-    return float(np.percentile(road.height_above(v, box[m]), 95))
 
 
 # --- the run -------------------------------------------------------------------------------------------

@@ -33,6 +33,7 @@ import pytest
 from test_real_eval import EUROC, KARLSRUHE
 
 from evaluation import real as R
+from evaluation import recordings, road_profile
 
 pytestmark = pytest.mark.slow
 
@@ -52,7 +53,7 @@ def _maps(root, method: str):
     from cores.matching.config import MatcherConfig
     from cores.pipeline import Pipeline
 
-    rec = R.open_recording(root)
+    rec = recordings.open_recording(root)
     pipe = Pipeline(rec.calibration, MatcherConfig(method=method, num_disparities="auto"))
     out, cfg = [], None
     for lp, rp in rec.pairs[:FRAMES]:
@@ -79,15 +80,15 @@ def _cells(name: str, root, room: bool) -> list[dict]:
     # the road of each frame from the semi-global map of the pair: what flatness is judged by
     _, model, _, ref_maps = computed[REFERENCE]
     fB = model.focal_px * model.baseline_m
-    full = [R.fit_road_profile(d, model) for d, _ in ref_maps]  # judges flatness, as eval --real does
+    full = [road_profile.fit_road_profile(d, model) for d, _ in ref_maps]  # judges flatness, as eval --real does
     assert all(r is not None for r in full), f"{name}: no road profile in some frame"
     h0 = float(np.median([r.height_m for r in full]))
     p0 = float(np.median([r.pitch_deg for r in full]))
     for method in METHODS:
         rec, model, mcfg, maps = computed[method]
         for rng in RANGES:
-            gated = [R.fit_road_profile(np.where(d >= fB / rng, d, np.nan), model) for d, _ in maps]
-            truth = [R.fit_road_profile(np.where(d >= fB / rng, d, np.nan), model) for d, _ in ref_maps]
+            gated = [road_profile.fit_road_profile(np.where(d >= fB / rng, d, np.nan), model) for d, _ in maps]
+            truth = [road_profile.fit_road_profile(np.where(d >= fB / rng, d, np.nan), model) for d, _ in ref_maps]
             for kind in MOUNTS:
                 settings = SegmenterSettings(max_range_m=rng)
                 builder = ObstacleBuilder(settings, MountSettings(**_mount(kind, h0, p0)))
@@ -106,7 +107,7 @@ def _cells(name: str, root, room: bool) -> list[dict]:
                             dh_ref.append(g.height_m - truth[k].height_m)
                             dp_ref.append(g.pitch_deg - truth[k].pitch_deg)
                     for o in lst.obstacles:
-                        h95 = R.obstacle_height_p95(d, o.bbox_px, o.disparity_px, full[k])
+                        h95 = road_profile.obstacle_height_p95(d, o.bbox_px, o.disparity_px, full[k])
                         if h95 is not None:
                             judged += 1
                             flat += h95 < R.FLAT_HEIGHT_M

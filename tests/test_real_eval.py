@@ -22,6 +22,7 @@ from cores.segmentation.mount import Mount
 from cores.segmentation.mount_estimate import estimate_from_grounds, merge_into_config
 from cores.segmentation.settings import SegmenterSettings
 from evaluation import real as R
+from evaluation import recordings, road_profile
 
 
 def _real_data() -> Path:
@@ -70,15 +71,15 @@ def _road_scene(height_m: float, pitch_deg: float) -> tuple[np.ndarray, tuple[in
 
 def test_road_profile_recovers_height_and_pitch_and_judges_heights():
     d, wall_box, wall_d = _road_scene(1.6, 6.0)
-    road = R.fit_road_profile(d, MODEL)
+    road = road_profile.fit_road_profile(d, MODEL)
     assert road is not None
     assert road.height_m == pytest.approx(1.6, rel=0.02)
     assert road.pitch_deg == pytest.approx(6.0, abs=0.2)
     # the wall's pixels reach 1.2 m (95th percentile: ~1.14 m); a patch of road (a marking) is flat
-    assert R.obstacle_height_p95(d, wall_box, wall_d, road) == pytest.approx(1.14, abs=0.06)
+    assert road_profile.obstacle_height_p95(d, wall_box, wall_d, road) == pytest.approx(1.14, abs=0.06)
     mark = (20, 300, 120, 330)
-    assert abs(R.obstacle_height_p95(d, mark, float(np.nanmedian(d[300:330, 20:120])), road)) < 0.05
-    assert R.fit_road_profile(np.full_like(d, np.nan), MODEL) is None
+    assert abs(road_profile.obstacle_height_p95(d, mark, float(np.nanmedian(d[300:330, 20:120])), road)) < 0.05
+    assert road_profile.fit_road_profile(np.full_like(d, np.nan), MODEL) is None
 
 
 def test_odometry_from_poses_is_base_frame_velocity_and_yaw_rate(tmp_path):
@@ -91,18 +92,18 @@ def test_odometry_from_poses_is_base_frame_velocity_and_yaw_rate(tmp_path):
     poses[:, 0] = 1.6e18 + t * 1e9
     poses[:, 4], poses[:, 5], poses[:, 9] = x, y, yaw
     poses[:, 8] = 2.07  # the unusable pitch column is not read
-    odo = R.odometry_from_poses(poses)
+    odo = recordings.odometry_from_poses(poses)
     for o in odo[1:-1]:
         assert o.linear_mps[0] == pytest.approx(speed, rel=0.01)
         assert abs(o.linear_mps[1]) < 0.2
         assert o.angular_radps == pytest.approx((0.0, 0.0, 0.1), abs=1e-6)
     f = tmp_path / "insdata.txt"
     np.savetxt(f, poses)
-    assert np.allclose(R.read_insdata(f), poses)
+    assert np.allclose(recordings.read_insdata(f), poses)
     poses[:, 9] += math.pi / 2  # yaw no longer the direction of travel: another convention
     np.savetxt(f, poses)
     with pytest.raises(BallbotError, match="direction of travel"):
-        R.read_insdata(f)
+        recordings.read_insdata(f)
 
 
 def test_figures_count_flat_obstacles_and_track_life():
@@ -199,7 +200,7 @@ def test_karlsruhe_eval_real_gives_figures_and_pictures(tmp_path, capsys):
 
 @needs_karlsruhe
 def test_karlsruhe_insdata_odometry_is_the_car_driving_forward():
-    rec = R.open_recording(KARLSRUHE)
+    rec = recordings.open_recording(KARLSRUHE)
     assert len(rec.odometry) == len(rec.pairs) == 40
     fwd = np.array([o.linear_mps[0] for o in rec.odometry])
     left = np.array([o.linear_mps[1] for o in rec.odometry])
@@ -218,7 +219,7 @@ def test_euroc_is_imported_rectified_and_evaluated(tmp_path, capsys):
     assert doc["odometry"] is False and doc["figures"]["frames"] == 2
     pictures = sorted(out.glob("*.png"))
     assert len(pictures) == 2 and cv2.imread(str(pictures[0])).shape == (480, 752, 3)
-    rec = R.open_recording(EUROC)
+    rec = recordings.open_recording(EUROC)
     assert 0.04 < rec.stamps_s[1] < 0.06  # 20 Hz from the image names
 
 
@@ -261,7 +262,7 @@ def test_karlsruhe_meets_the_real_scene_targets_with_the_default_segmenter():
     from cores.matching.config import MatcherConfig
     from cores.segmentation.settings import SegmenterSettings
 
-    rec = R.open_recording(KARLSRUHE)
+    rec = recordings.open_recording(KARLSRUHE)
     report = R.evaluate_recording(rec, SegmenterSettings(max_range_m=30.0), MatcherConfig(num_disparities=128))
     f = report.figures
     assert f["median_obstacles_per_frame"] <= 25, f
@@ -285,7 +286,7 @@ def test_euroc_tape_and_mat_on_the_floor_are_free_the_mattresses_and_chessboard_
     from cores.segmentation.mount import Mount
     from cores.segmentation.settings import SegmenterSettings
 
-    rec = R.open_recording(EUROC)
+    rec = recordings.open_recording(EUROC)
     settings = SegmenterSettings(max_range_m=30.0)
     for pf in R.process_recording(rec, settings, MatcherConfig(num_disparities=128), frames=3):
         lst = pf.result.obstacles
