@@ -20,6 +20,7 @@ import msgpack
 
 from bench.measure import free_port
 from common.errors import BallbotError
+from common.supervisor import stop_processes
 
 if TYPE_CHECKING:
     import zenoh
@@ -179,16 +180,7 @@ class Fleet:
                 self._session.close()
             except Exception:
                 pass
-        for p in self.procs.values():
-            if p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-        deadline = time.monotonic() + 10
-        for p in self.procs.values():
-            try:
-                p.wait(max(0.1, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait()
+        stop_processes(self.procs, 10.0)
         for ns in self.namespaces:
             subprocess.run(["ip", "netns", "del", ns], capture_output=True)
         self.namespaces.clear()

@@ -31,6 +31,27 @@ SERVICES = {
 PIPELINE = ["capture", "rectify", "disparity", "segmenter"]
 
 
+def stop_processes(procs: dict[str, subprocess.Popen], timeout_s: float) -> list[str]:
+    """SIGTERM to every running one at once, then one shared deadline for all (a loaded machine
+    stops them in parallel), then SIGKILL for the rest. -> the names that had to be killed."""
+    live = {n: p for n, p in procs.items() if p.poll() is None}
+    for p in live.values():
+        try:
+            p.send_signal(signal.SIGTERM)
+        except ProcessLookupError:
+            pass
+    deadline = time.monotonic() + timeout_s
+    killed = []
+    for name, p in live.items():
+        try:
+            p.wait(max(0.0, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            killed.append(name)
+            p.kill()
+            p.wait()
+    return killed
+
+
 def stage_nice(name: str) -> int:
     """Scheduling priority of a pipeline stage relative to `up --nice`: each stage runs ahead of
     the ones before it (capture +3 ... segmenter +0). When the CPU is short, a pair already in
@@ -187,21 +208,10 @@ class Supervisor:
         return next(c for c in self.children if c.name == name)
 
     def stop_all(self) -> None:
-        live = [(c.name, c.proc) for c in self.children if c.proc is not None and c.proc.poll() is None]
-        for _, proc in live:
-            try:
-                proc.send_signal(signal.SIGTERM)
-            except ProcessLookupError:
-                pass
+        live = {c.name: c.proc for c in self.children if c.proc is not None and c.proc.poll() is None}
         t0 = time.monotonic()
-        deadline = t0 + self.stop_timeout_s
-        for name, proc in live:
-            try:
-                proc.wait(max(0.0, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                log.warning("%s (pid %d) did not stop within %.0f s of SIGTERM; killing it", name, proc.pid,
-                            self.stop_timeout_s)
-                proc.kill()
-                proc.wait()
+        for name in stop_processes(live, self.stop_timeout_s):
+            log.warning("%s (pid %d) did not stop within %.0f s of SIGTERM; killing it", name, live[name].pid,
+                        self.stop_timeout_s)
         if live:
             log.info("all stopped in %.2f s", time.monotonic() - t0)

@@ -16,6 +16,7 @@ import pytest
 
 from bench.fleet_harness import netns_unavailable  # the one check whether this machine can make test hosts
 from common.errors import DecodeError
+from common.supervisor import stop_processes
 from services.disparity.envelope import make_attachment, parse_attachment
 from services.disparity.state import DispatchState
 
@@ -262,16 +263,7 @@ class Procs:
         return self.start(name, [PY, "-m", "ballbot_vision.cli", "run", *args], stdout=subprocess.DEVNULL, stderr=err)
 
     def stop_all(self) -> None:
-        for p in self.procs.values():
-            if p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-        deadline = time.monotonic() + 5
-        for p in self.procs.values():
-            try:
-                p.wait(max(0.1, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait()
+        stop_processes(self.procs, 5.0)
 
 
 class Collector:

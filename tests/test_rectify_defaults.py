@@ -5,7 +5,6 @@ real Zenoh."""
 from __future__ import annotations
 
 import os
-import signal
 import subprocess
 import time
 
@@ -18,6 +17,7 @@ from common.errors import CalibrationError
 from common.keys import topic
 from common.messages import CalibrationUpdate, ServiceStats, StereoFrame
 from common.signing import sign
+from common.supervisor import stop_processes
 from common.zenoh_session import ZenohOptions, open_session
 from cores.calibration.rectify import CalibrationHolder
 from services.rectify.main import RectifySettings, check_assumed_calibration
@@ -126,14 +126,7 @@ def test_rectify_service_refuses_real_frames_without_a_calibration_and_says_so()
             assert sent_until("images", lambda items: any(f.source == "images" for f in items))
             assert len(rect.items) > n_synthetic
     finally:
-        for p in reversed(procs):
-            if p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-            try:
-                p.wait(10)
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait()
+        stop_processes({str(k): p for k, p in enumerate(procs)}, 10.0)
 
 
 @pytest.mark.system
@@ -175,13 +168,7 @@ def test_calibration_publish_signs_with_the_robots_key_and_reports_what_rectify_
         taken = publish(tweak, "--key-file", str(key_file))
         refused = publish(half, "--key-file", str(key_file))
     finally:
-        for p in reversed(procs):
-            p.send_signal(signal.SIGTERM)
-            try:
-                p.wait(10)
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait()
+        stop_processes({str(k): p for k, p in enumerate(procs)}, 10.0)
     print(f"calibration publish: no key -> {no_key.returncode}; +2 % baseline -> {taken.returncode} "
           f"({taken.stdout.strip()}); half baseline -> {refused.returncode} ({refused.stdout.strip()[:90]})")
     assert no_key.returncode == 2 and "no calibration key" in no_key.stderr and "--key-file" in no_key.stderr

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import os
 import re
-import signal
 import subprocess
 import sys
 import threading
@@ -26,6 +25,7 @@ from common import codec
 from common.errors import ConnectError
 from common.keys import topic
 from common.messages import ObstacleList
+from common.supervisor import stop_processes
 from common.zenoh_session import ZenohOptions, open_session
 
 pytestmark = pytest.mark.system
@@ -105,15 +105,7 @@ def robot(tmp_path_factory):
         yield {"certs": certs, "internal": f"tcp/127.0.0.1:{internal}", "external": f"tls/127.0.0.1:{external}",
                "tmp": tmp, "procs": procs}
     finally:
-        for p in procs.values():
-            if p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-        for p in procs.values():
-            try:
-                p.wait(10)
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait()
+        stop_processes(procs, 10.0)
 
 
 def internal_session(robot):
