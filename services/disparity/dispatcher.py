@@ -48,40 +48,33 @@ One mechanism, push with checked answers:
   holds a frame (PoolDemand) and gives back when it has none.
 
 The pieces: state.py (DispatchState, the pure bookkeeping, unit-tested without Zenoh), envelope.py
-(what travels beside an item), results.py (the checks of an answer), computer.py (one frame, for
-workers and the fallback), demand.py (asking a pool for grants), this file (the dispatcher's Zenoh
+(what travels beside an item), results.py (the checks of an answer), answers.py (where the answers
+come in, are checked and republished), computer.py (one frame, for workers and the fallback),
+demand.py (asking a pool for grants), this file (the sending side of the dispatcher's Zenoh
 shell), worker.py (the worker's).
 """
 from __future__ import annotations
 
 import logging
-import queue
-import threading
 import time
 from typing import Any
 
 from common import codec
 from common.errors import BallbotError, DecodeError
 from common.keys import POOL_ROOT, topic
-from common.messages import DisparityMap, PoolGrant, StereoFrame, WorkDone
+from common.messages import PoolGrant, StereoFrame
 from common.node import Node, qos
 from common.signing import calibration_key
-from cores.matching.disparity import RecentValid
+from services.disparity.answers import Answers
 from services.disparity.computer import FrameComputer, reencode_frame
 from services.disparity.demand import GrantDemand, KeyPut
 from services.disparity.envelope import (
-    _attachment_bytes,
     make_attachment,
-    receipt_nonce,
 )
 from services.disparity.rates import Rates
 from services.disparity.results import (
-    MIN_MEASURED,
     Ticket,
     measure,
-    parse_header,
-    vet_header,
-    vet_map,
 )
 from services.disparity.state import DispatchState
 
@@ -111,14 +104,7 @@ class Dispatcher:
         self.rid = node.robot_id
         self._work = topic("work")
         self._subs: list[Any] = []
-        self.methods: dict[str, str] = {}  # worker -> the method its last map was made with
-        # Maps that passed the cheap checks, waiting for the full ones: at most one per item in
-        # flight (DispatchState.answer lets only the first answer to an item through).
-        self._results: queue.Queue = queue.Queue()
-        self.recent = RecentValid()  # valid fractions of the maps published lately (any source)
-        self.recent_by_worker: dict[str, RecentValid] = {}  # ... and of each worker's own
-        self._recent_lock = threading.Lock()
-        self.out: Any = None
+        self.answers = Answers(node, state, self.rates, self._name)  # what comes back: checked, then published
 
     def _count(self, key: str, n: float = 1) -> None:
         self.node.extra[key] = self.node.extra.get(key, 0) + n
@@ -149,145 +135,10 @@ class Dispatcher:
                          self.state.alive())
         else:
             lost = self.state.remove_worker(name)
-            self.methods.pop(name, None)
-            with self._recent_lock:
-                self.recent_by_worker.pop(name, None)
+            self.answers.forget(name)
             self.rates.forget(f"out_work_{name}")
             log.warning("worker %s left (%d alive, %d trusted); %d in-flight frame(s) lost", name, self.state.alive(),
                         self.state.trusted(), lost)
-
-    def _on_done(self, sample) -> None:
-        """A receipt: a worker says it dropped an item (too old, undecodable, failed). Taken only
-        with the item's nonce; one claiming success is a lie (the map is the answer)."""
-        payload = sample.payload.to_bytes()
-        self.rates.add("in_work_done", len(payload))
-        name, instance = self._name(sample.key_expr)
-        msg = self.node.decode_or_drop(payload, WorkDone, "receipt", "receipt")
-        if msg is None:
-            return
-        if msg.worker != instance:
-            self._count("receipts_misnamed")
-            self.node.warn("receipt-misnamed", f"dropped a receipt on {name}'s key naming worker {msg.worker}")
-            return
-        kind, ticket = self.state.answer(name, msg.seq, receipt_nonce(_attachment_bytes(sample)))
-        if kind not in ("outstanding", "late"):
-            self.node.warn(f"receipt-{kind}", f"dropped receipt from {name} for seq {msg.seq}: {kind}")
-            return
-        if msg.ok:
-            self._refuse(name, msg.seq, "a receipt claiming a map that never came on its result key "
-                                        "(a worker of an older version publishes maps elsewhere)")
-            return
-        if self.state.done(name, msg.seq, False) == "failed":
-            self.node.warn("receipt-failed", f"worker {name} dropped seq {msg.seq}: {msg.reason}")
-
-    def _on_result(self, sample) -> None:
-        """A worker's map: everything that can be checked without copying or decoding the payload
-        is checked here; what passes waits for the results thread."""
-        name, _ = self._name(sample.key_expr)
-        n = len(sample.payload)
-        self.rates.add("in_work_result", n)
-        try:
-            header = parse_header(_attachment_bytes(sample))
-        except DecodeError as e:
-            # anyone can put on a worker's key: costs the named worker nothing
-            self._count("results_unmatched")
-            self.node.warn("result-header", f"dropped a map on {name}'s result key: {e}")
-            return
-        kind, ticket = self.state.answer(name, header.seq, header.nonce)
-        if ticket is None:
-            self._count("results_unmatched")
-            self.node.warn(f"result-{kind}", f"dropped a map on {name}'s result key for seq {header.seq}: {kind} "
-                                             f"(no item in flight there with its nonce)")
-            return
-        why = vet_header(header, ticket, n)
-        if why:
-            self._refuse(name, header.seq, why)
-            return
-        if kind == "late":
-            self.state.done(name, header.seq, True)
-            self.node.warn("result-late", f"worker {name}: map for seq {header.seq} came after its timeout; "
-                                          f"not published")
-            return
-        self._results.put((name, header, ticket, sample.payload.to_bytes()))
-
-    def _refuse(self, name: str, seq: int, why: str) -> None:
-        self.state.reject(name, seq, why)
-        self._count("results_rejected")
-        self.node.warn("result-rejected", f"refused worker {name}'s answer for seq {seq}: {why}; worker quarantined")
-
-    # the results thread: full checks, then republish
-    def _results_loop(self) -> None:
-        while self.node.running:
-            try:
-                name, header, ticket, payload = self._results.get(timeout=0.2)
-            except queue.Empty:
-                continue
-            try:
-                checked = self._check(name, header, ticket, payload)
-            except Exception:  # never leave an item half-settled, never die on a worker's map
-                self.node.errors += 1
-                checked = None
-                self._refuse(name, header.seq, "its map could not be checked (see the dispatcher's log)")
-                if self.node._should_log("result-exception"):
-                    log.exception("dispatcher: checking worker %s's map for seq %s failed", name, header.seq)
-            if checked is not None:
-                with self.node.processing(checked[0]):
-                    self._settle(name, ticket, *checked)
-
-    def _check(self, name: str, header: Any, ticket: Any, payload: bytes) -> tuple[DisparityMap, float] | None:
-        """-> (the map, its valid fraction) when it may reach the robot; else None, the worker refused."""
-        try:
-            m = codec.decode(payload, DisparityMap)
-        except DecodeError as e:
-            self._refuse(name, ticket.seq, str(e))
-            return None
-        why, check = vet_map(m, header, ticket)  # (check: None exactly when why says what is wrong)
-        if check is not None and not why:
-            why = self._collapsed(name, check.valid_fraction)
-        if why or check is None:
-            self._refuse(name, ticket.seq, why)
-            return None
-        return m, check.valid_fraction
-
-    def _collapsed(self, name: str, vf: float) -> str:
-        """Why a worker's map that measured far less than expected is refused ("" if it is not):
-        nothing measured while the robot's maps of the last 2 s (any source) measured plenty, or
-        under half of what that worker's own maps of the last 2 s measured. A scene that really
-        goes blank shows in the fallback's maps too, and the worker's next probe is judged on them;
-        a worker whose method simply measures less than another's is judged on its own."""
-        now = time.monotonic()
-        with self._recent_lock:
-            robot = self.recent.median(now)
-            own = self.recent_by_worker.get(name)
-            own_median = own.median(now) if own is not None else None
-        last = f"of the last {self.recent.window_s:g} s"
-        if robot is not None and vf < MIN_MEASURED and robot >= 10 * MIN_MEASURED:
-            return f"it measured {vf:.1%} of the image, the robot's maps {last} {robot:.1%}"
-        if own_median is not None and vf < self.recent.factor * own_median:
-            return f"it measured {vf:.1%} of the image, its own maps {last} {own_median:.1%}"
-        return ""
-
-    def _settle(self, name: str, ticket: Any, m: DisparityMap, valid_fraction: float) -> None:
-        if self.state.done(name, ticket.seq, True) != "ok":
-            self._count("results_late")  # timed out while being checked
-            return
-        # The frame's own stamp, stages and camera: nothing the worker says moves the robot's clock.
-        out = m.model_copy(update={"robot_id": ticket.robot_id, "seq": ticket.seq, "stamp_ns": ticket.stamp_ns,
-                                   "stages": dict(ticket.stages), "camera": ticket.camera, "worker": name,
-                                   "method": m.method[:64]})
-        self._publish(out, valid_fraction, time.monotonic())
-        with self._recent_lock:
-            self.recent_by_worker.setdefault(name, RecentValid()).add(valid_fraction, time.monotonic())
-        key = f"maps_{out.method}"
-        if key not in self.node.extra and sum(k.startswith("maps_") for k in list(self.node.extra)) >= 16:
-            key = "maps_other"  # a worker naming every map differently must not grow the stats without bound
-        self.node.extra[key] = self.node.extra.get(key, 0) + 1
-        self.methods[name] = out.method
-
-    def _publish(self, m: DisparityMap, valid_fraction: float, now: float) -> None:
-        self.out.put(m)
-        with self._recent_lock:
-            self.recent.add(valid_fraction, now)
 
     def _on_grant(self, sample) -> None:
         """A pool worker lets us send it one frame; kept for the main loop (or given back at once
@@ -313,14 +164,15 @@ class Dispatcher:
 
     def start(self) -> None:
         s = self.node.session
-        self._subs.append(self.node.subscribe(topic("work_done").pattern(self.rid), self._on_done))
-        self._subs.append(self.node.subscribe(topic("work_result").pattern(self.rid), self._on_result))
+        self._subs.append(self.node.subscribe(topic("work_done").pattern(self.rid), self.answers.on_done))
+        self._subs.append(self.node.subscribe(topic("work_result").pattern(self.rid), self.answers.on_result))
         self._subs.append(self.node.watch_tokens(topic("worker").pattern(self.rid), self._on_token))
         self.node.uses("publishes", self._work.pattern(self.rid))  # put per item (_send)
         if self.pool:
             p = self.pool
-            self._subs.append(self.node.subscribe(topic("pool_done").pattern(self.rid, pool=p), self._on_done))
-            self._subs.append(self.node.subscribe(topic("pool_result").pattern(self.rid, pool=p), self._on_result))
+            self._subs.append(self.node.subscribe(topic("pool_done").pattern(self.rid, pool=p), self.answers.on_done))
+            self._subs.append(self.node.subscribe(topic("pool_result").pattern(self.rid, pool=p),
+                                                  self.answers.on_result))
             self._subs.append(self.node.subscribe(topic("pool_grant").pattern(self.rid, pool=p), self._on_grant))
             self._subs.append(self.node.watch_tokens(topic("pool_worker").pattern(pool=p), self._on_token))
             key = topic("pool_demand").key(self.rid, pool=p)
@@ -330,7 +182,7 @@ class Dispatcher:
             self.demand.pub = KeyPut(s, key, qos(topic("pool_demand")))
             self.node.uses("publishes", key)
             self.node.uses("publishes", topic("pool_work").pattern(self.rid, pool=p))
-        threading.Thread(target=self._results_loop, name="results", daemon=True).start()
+        self.answers.start()
 
     def _send(self, name: str, msg: StereoFrame, payload: bytes, nonce: bytes) -> None:
         import zenoh
@@ -347,7 +199,7 @@ class Dispatcher:
                               attachment=make_attachment(age_ms, self.max_age_ms, nonce, grant))
         self.rates.add(f"out_work_{name}", len(payload))
 
-    def _housekeeping(self, out) -> None:
+    def _housekeeping(self) -> None:
         self.demand.input_rate(time.monotonic())
         self.demand.give_back_refused()
         for name, seq in self.state.expire():
@@ -374,7 +226,7 @@ class Dispatcher:
                 ([f"on probation: {', '.join(probation)}"] if probation else [])
         note = f"; {'; '.join(notes)}" if notes else ""
         if trusted:
-            methods = sorted({m for w, m in list(self.methods.items())
+            methods = sorted({m for w, m in list(self.answers.methods.items())
                               if w in snap["workers"] and snap["workers"][w]["trust"] == "trusted"})
             in_pool = int(self.node.extra.get("pool_workers_trusted", 0))
             self.node.status = (f"ok: {trusted} worker{'s' if trusted > 1 else ''}"
@@ -400,7 +252,7 @@ class Dispatcher:
             m = fallback.compute(msg, node.instance)
             raw = codec.array_from_image(m.image, "disparity")
             vf = measure(raw, m.invalid_value, m.scale, m.min_disparity, m.num_disparities).valid_fraction
-            self._publish(m, vf, time.monotonic())
+            self.answers.publish(m, vf, time.monotonic())
             fallback.report(node)
             node.extra["fallback_frames"] = node.extra.get("fallback_frames", 0) + 1
 
@@ -417,7 +269,7 @@ class Dispatcher:
     def run(self) -> None:
         node = self.node
         inbox = self.demand.inbox = node.latest("frames_rect")
-        self.out = node.publisher("disparity", sign_key=self.sign_key)
+        self.answers.out = node.publisher("disparity", sign_key=self.sign_key)
         if self.sign_key is None:
             log.warning("dispatcher: no BALLBOT_CALIBRATION_KEY: the disparity maps are published unsigned, so the "
                         "segmenter cannot tell them from anyone else's (`up` and the compose files set one)")
@@ -427,7 +279,7 @@ class Dispatcher:
         while node.running:
             now = time.monotonic()
             if now >= next_house:
-                self._housekeeping(self.out)
+                self._housekeeping()
                 next_house = now + 0.1
             if self.state.available() == 0:
                 # No proven worker (or every one paused after a missed answer): the onboard fallback

@@ -8,7 +8,7 @@ outstanding, and republishes it on `disparity` with the frame's own stamp, stage
 (common/signed_payload.py): nothing a worker sends moves the segmenter's ordering reference or its
 freshness clock. The checks, cheapest first:
 
-1. before the payload is copied out of Zenoh (Dispatcher._on_result): its length against the bound
+1. before the payload is copied out of Zenoh (Answers.on_result, answers.py): its length against the bound
    for the frame's size; the header (a few hundred bytes) names the nonce, seq and stamp of an item
    outstanding at the worker the key names, the frame's width and height, an encoding the pool uses
    (raw int16 or png uint16) with the pool's fixed-point scale, that encoding's invalid value and a
@@ -17,7 +17,7 @@ freshness clock. The checks, cheapest first:
    its pixels are looked at (vet_map): values outside the stated range are invalid pixels, and a map
    with more than 1 % of them is refused; its valid fraction is measured, and a map that measured
    nothing while the robot's recent maps did, or under half of what the worker's own maps of the
-   last 2 s did, is refused (Dispatcher._collapsed, with common/disparity.py's RecentValid).
+   last 2 s did, is refused (Answers._collapsed, with common/disparity.py's RecentValid).
 
 A refused map costs the worker its place (quarantine, DispatchState.reject), never the robot its
 output: the onboard fallback or the other workers take the next frames.
