@@ -194,6 +194,38 @@ def test_a_person_walking_behind_a_table_is_not_joined_to_it_by_their_boxes():
     assert len(layers._merge_close([region(table, (220, 320)), region(person, (320, 380))], 0.12, 0.25)) == 1
 
 
+def test_things_joined_only_by_something_low_are_cut_apart_and_stay_apart():
+    """On the column-disparity grid, two tall things (cores) joined by a band of low cells (a kerb
+    or a snow bank along the street) are cut between them, each low cell to its nearest core; one
+    tall thing with a low thing beside it, or low things alone, are not cut; the pieces of a cut
+    are not joined again by _merge_close although they touch."""
+    from cores.segmentation.cells import group_cells
+
+    cells = np.zeros((20, 60), np.uint8)
+    cells[10, 5:55] = 1  # the kerb
+    tall = np.zeros_like(cells)
+    tall[8:11, 5:15] = tall[8:11, 40:50] = 1  # a car and a hedge on it
+    cells |= tall
+    labels, cut_from = group_cells(cells, tall)
+    car, hedge, kerb_near_car, kerb_near_hedge = labels[9, 10], labels[9, 45], labels[10, 20], labels[10, 36]
+    assert car != hedge and kerb_near_car == car and kerb_near_hedge == hedge
+    assert cut_from[int(car)] == cut_from[int(hedge)]
+    one_core = tall.copy()
+    one_core[8:11, 40:50] = 0
+    labels, cut_from = group_cells(cells, one_core)
+    assert len(np.unique(labels[cells > 0])) == 1 and not cut_from
+    labels, cut_from = group_cells(cells, None)  # no heights (no ground): touching cells are one
+    assert len(np.unique(labels[cells > 0])) == 1 and not cut_from
+
+    def region(pts, cuts):
+        return layers._Region(pts, pts.min(0), pts.max(0), (0, 0, 10, 10), 100, 100, FB / pts[:, 2], 0,
+                              frozenset(), frozenset(cuts))
+
+    a, b = _box_points(1.0, 2.0, 0.0, 1.0, 5.0, 6.0), _box_points(2.05, 3.0, 0.0, 1.0, 5.0, 6.0)
+    assert len(layers._merge_close([region(a, {3}), region(b, {3})], 0.12, 0.25)) == 2
+    assert len(layers._merge_close([region(a, {3}), region(b, {4})], 0.12, 0.25)) == 1
+
+
 def test_layers_keeps_an_object_cut_by_the_image_border():
     d = scene([(560, 700, 2.0, 200)])
     dets = layers.segment(d, MODEL, SegmenterSettings())

@@ -51,6 +51,7 @@ import numpy as np
 
 from common.messages import GroundEstimate
 from cores import camera
+from cores.segmentation.cells import LOW_M, group_cells
 from cores.segmentation.ground import GroundEstimator, grid
 from cores.segmentation.mount import FloorPlane, Mount
 from cores.segmentation.seed import Detection
@@ -68,6 +69,7 @@ class _Region:
     disparities: np.ndarray  # (n,) px
     filled: int = 0  # points added by _fill_to_floor (included in pts)
     groups: frozenset = frozenset()  # the split groups (_split_layers) it holds a depth layer of
+    cuts: frozenset = frozenset()  # the touching groups cut at a low bridge (cells.py) it holds a piece of
 
 
 def _fill_to_floor(mask: np.ndarray, d_box: np.ndarray, x0: int, y0: int, floor: FloorPlane, cfg: SegmenterSettings,
@@ -131,12 +133,15 @@ def _merge_close(regions: list[_Region], gap_m: float, depth_gap_m: float = 0.0)
     gap = np.maximum(lo[:, None, :] - hi[None, :, :], lo[None, :, :] - hi[:, None, :])  # (n, n, 3)
     close = np.all(gap <= np.array([gap_m, gap_m, max(gap_m, depth_gap_m)]), axis=2)
     held = [set(r.groups) for r in regions]  # per root: the split groups it holds a layer of
+    cut = [set(r.cuts) for r in regions]  # per root: the cut groups it holds a piece of
     for i, j in zip(*np.nonzero(np.triu(close, 1))):
         a, b = root(int(i)), root(int(j))
         # two depth layers of one group (a person behind another) are not joined again by the gap
         # along the view that joins a fence's stretches, only where they touch: their points, not
         # just their boxes (a person walking past a table's back corner)
-        if a == b or (held[a] & held[b] and (gap[i, j, 2] > gap_m or not _touch(regions[i], regions[j], gap_m))):
+        if a == b or cut[a] & cut[b]:
+            continue  # two pieces of a group cut between two things (cells.py) touch by construction
+        if (held[a] & held[b] and (gap[i, j, 2] > gap_m or not _touch(regions[i], regions[j], gap_m))):
             continue
         # boxes that share image columns are apart along the view only: one stands in front of the
         # other, and how close the boxes come says little of how close the things do (a table's
@@ -148,6 +153,7 @@ def _merge_close(regions: list[_Region], gap_m: float, depth_gap_m: float = 0.0)
             continue
         parent[a] = b
         held[b] |= held[a]
+        cut[b] |= cut[a]
     groups: dict[int, list[_Region]] = {}
     for i, r in enumerate(regions):
         groups.setdefault(root(i), []).append(r)
@@ -252,7 +258,7 @@ def _union(g: list[_Region]) -> _Region:
     return _Region(pts, lo, hi, (min(r.bbox[0] for r in g), min(r.bbox[1] for r in g), max(r.bbox[2] for r in g),
                                  max(r.bbox[3] for r in g)), sum(r.area for r in g), sum(r.valid for r in g),
                    np.concatenate([r.disparities for r in g]), sum(r.filled for r in g),
-                   frozenset().union(*(r.groups for r in g)))
+                   frozenset().union(*(r.groups for r in g)), frozenset().union(*(r.cuts for r in g)))
 
 
 MAX_FLOOR_SAMPLES = 1_000_000  # points of drivable floor per frame, at most
@@ -285,13 +291,14 @@ def _working_disparity(disparity: np.ndarray, cfg: SegmenterSettings, confidence
 
 
 def _group(dm: np.ndarray, stand: np.ndarray, cfg: SegmenterSettings, model: camera.RectifiedModel,
-           step: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+           step: int, above: np.ndarray | None = None
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[int, int]]:
     """Group standing pixels into objects on the column-disparity grid (u-disparity): a cell
     (column, disparity bin) is occupied when its standing pixels cover min_cell_height_m of height;
     occupied cells that touch (one cell of slack) are one object. In metres this is a polar grid
     on the ground whose depth resolution follows the matcher's (fine near, coarse far), so a car's
     parts and a wall seen obliquely stay whole while a person in front of a wall stays apart.
-    -> (ys, xs, d, label) of the grouped pixels, sorted by label (labels from 1)."""
+    -> (ys, xs, d, label) of the grouped pixels, sorted by label (labels from 1), and cells.group_cells' cut groups."""
     ys, xs = np.nonzero(stand)
     dv = dm[ys, xs]
     w = dm.shape[1]
@@ -300,12 +307,16 @@ def _group(dm: np.ndarray, stand: np.ndarray, cfg: SegmenterSettings, model: cam
     height = np.float32(step * model.baseline_m) / dv  # metres of height one working pixel covers
     occ = np.bincount(bins * w + xs, weights=height, minlength=nb * w).reshape(nb, w)
     cells = (occ >= cfg.min_cell_height_m).astype(np.uint8)
-    _, cc = cv2.connectedComponents(cv2.dilate(cells, _SQUARE), connectivity=8)
+    tall = None
+    if above is not None:  # only low things between two objects do not join them (cells.py)
+        high = np.bincount(bins * w + xs, weights=height * (above[ys, xs] > LOW_M), minlength=nb * w)
+        tall = ((high.reshape(nb, w) >= cfg.min_cell_height_m) & (cells > 0)).astype(np.uint8)
+    cc, cut_from = group_cells(cells, tall)
     lab = cc[bins, xs] * cells[bins, xs]
     order = np.argsort(lab, kind="stable")
     ys, xs, dv, lab = ys[order], xs[order], dv[order], lab[order]
     first = int(np.searchsorted(lab, 1))
-    return ys[first:], xs[first:], dv[first:], lab[first:]
+    return ys[first:], xs[first:], dv[first:], lab[first:], cut_from
 
 
 _LAYER_BIN_PX = 1.0 / 16.0  # disparity histogram bins of the layer split: the matchers' sub-pixel step
@@ -520,7 +531,7 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
     if not stand.any():
         return LayersFrame([], [], floor, estimate, floor_points)
 
-    ys, xs, dv, lab = _group(dm, stand, cfg, model, step)
+    ys, xs, dv, lab, cut_from = _group(dm, stand, cfg, model, step, above)
     lab, family = _split_layers(ys, xs, dv, lab, cfg, model, step, None if above is None else above[ys, xs])
     order = np.argsort(lab, kind="stable")
     ys, xs, dv, lab = ys[order], xs[order], dv[order], lab[order]
@@ -558,7 +569,10 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
                 y1 = max(y1, min(h, int(np.ceil((float(np.max(extra[:, 1] / extra[:, 2])) * f + model.cy) / step)) + 1))
         lo, hi = np.percentile(pts[::max(1, len(pts) // _STAT_SAMPLES)], [2, 98], axis=0)
         groups = frozenset({family[int(gl)]}) if int(gl) in family else frozenset()
-        regions.append(_Region(pts, lo, hi, (x0, y0, x1, y1), area, valid, gd.astype(np.float64), filled, groups))
+        origin = family.get(int(gl), int(gl))  # its label before the depth split
+        cuts = frozenset({cut_from[origin]}) if origin in cut_from else frozenset()
+        regions.append(_Region(pts, lo, hi, (x0, y0, x1, y1), area, valid, gd.astype(np.float64), filled, groups,
+                               cuts))
     regions = _absorb_contained(_merge_close(regions, cfg.merge_gap_m, cfg.merge_gap_depth_m), cfg.merge_gap_m,
                                 model, step)
     out: list[Detection] = []

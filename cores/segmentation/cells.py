@@ -1,0 +1,55 @@
+"""Objects on the column-disparity grid (u-disparity) of the standing points: which occupied cells
+are one object.
+
+Occupied cells that touch (one cell of slack) are one object, with one exception: where only low
+things join them. A kerb, a snow bank or a low wall runs along a street and touches every parked car,
+hedge and post beside it; joined through it, a street side is one obstacle 20 m long (on Karlsruhe
+with sgbm, whose dense maps measure the whole kerb). Things that join above knee height (a table's top
+on its legs, a car's body over its wheels, a person's arms) are one object. So within a touching group
+the cells with something standing above LOW_M are the cores; a group with two or more separate cores
+is cut between them: each low cell goes to the nearest core. A low thing that touches no more than
+one core stays with it, and one that touches none is an object of its own (a kerb is an obstacle).
+"""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+LOW_M = 0.5  # a cell with nothing standing above this height over the floor joins no two objects
+MIN_CORE_CELLS = 12  # tall cells a core needs
+_SQUARE = np.ones((3, 3), np.uint8)
+
+
+def group_cells(cells: np.ndarray, tall: np.ndarray | None) -> tuple[np.ndarray, dict[int, int]]:
+    """cells: (bins, columns) uint8, 1 = occupied; tall: the occupied cells with something standing
+    above LOW_M (None: heights unknown, every cell counts as tall). -> (int32 labels per cell, 0 =
+    none, labels need not be consecutive; {label: the touching group it was cut from} for the
+    labels of cut groups: the pieces of one cut touch, and must not be joined again by how close
+    they come)."""
+    _, cc = cv2.connectedComponents(cv2.dilate(cells, _SQUARE), connectivity=8)
+    if tall is None or not tall.any():
+        return cc, {}
+    n_core, core = cv2.connectedComponents(cv2.dilate(tall, _SQUARE), connectivity=8)
+    if n_core <= 2:
+        return cc, {}  # at most one core anywhere: nothing to cut
+    # a core is a thing standing up, not a cell or two of noise above LOW_M
+    small = np.bincount(core[tall > 0], minlength=n_core) < MIN_CORE_CELLS
+    small[0] = False
+    core[small[core]] = 0
+    if not core.any():
+        return cc, {}
+    # groups (of the touching cells) holding two or more cores
+    pairs = np.unique(np.stack([cc[core > 0], core[core > 0]]), axis=1)
+    groups, n_cores = np.unique(pairs[0], return_counts=True)
+    split = groups[n_cores > 1]
+    if split.size == 0:
+        return cc, {}
+    # each cell's nearest core cell (Euclidean on the grid): labelled by the zero pixels of src in raster order
+    src = (core == 0).astype(np.uint8)
+    _, nearest = cv2.distanceTransformWithLabels(src, cv2.DIST_L2, 3, labelType=cv2.DIST_LABEL_PIXEL)
+    core_of_zero = core.ravel()[np.flatnonzero(src.ravel() == 0)]
+    near_core = core_of_zero[nearest - 1]
+    # a cell of a split group takes its nearest core's label (shifted past the group labels)
+    in_split = np.isin(cc, split) & (cells > 0)
+    labels = np.where(in_split, near_core + cc.max() + 1, cc).astype(np.int32)
+    return labels, {int(k): int(g) for k, g in zip(labels[in_split], cc[in_split])}
