@@ -332,8 +332,10 @@ def score_method(data: ScenarioData, method: str, overrides: dict | None = None,
     m = data.mount
     off = {"height_m": 0.0, "pitch_deg": 0.0, "roll_deg": 0.0, **(mount_error or {})}
     cfg = dict(METHODS[method])
+    motion = data.scene.camera_motion
     mount = MountSettings(height_m=m.height_m + off["height_m"], pitch_deg=m.pitch_deg + off["pitch_deg"],
-                          yaw_deg=m.yaw_deg, roll_deg=m.roll_deg + off["roll_deg"], x_m=m.x_m, y_m=m.y_m)
+                          yaw_deg=m.yaw_deg, roll_deg=m.roll_deg + off["roll_deg"], x_m=m.x_m, y_m=m.y_m,
+                          pivot_height_m=None if motion is None else motion.pivot_height_m)
     if data.scene.range_m:
         cfg["max_range_m"] = data.scene.range_m
     cfg.update(overrides or {})

@@ -97,6 +97,6 @@ def test_eval_runs_every_shipped_scenario_by_default():
     names = S.list_builtin_scenarios()
     assert set(NEW) <= set(names)
     slow = [n for n in names if not S.Scene.builtin(n).default_eval]
-    assert slow == ["sway"]
+    assert slow == ["sway", "sway-pivot"]
     r = E.evaluate(None, ["layers"], frames=1)
     assert list(r["scenarios"]) == [n for n in names if n not in slow]

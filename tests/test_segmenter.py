@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from common.errors import DecodeError
-from common.messages import CameraModel, DisparityMap, Image
+from common.messages import CameraModel, DisparityMap, GroundEstimate, Image
 from common.settings import MountSettings
 from cores import camera
 from cores.segmentation import layers, seed
@@ -336,6 +336,34 @@ def test_settings_default_to_layers_and_seed_can_reproduce_the_thesis():
     assert Mount.of(MountSettings()) is None  # no silent mount: the ground is estimated
     assert (Mount.of(MountSettings(height_m=1.0, pitch_deg=15.0, roll_deg=2.0, x_m=0.1))
             == Mount(1.0, 15.0, 0.0, 2.0, 0.1, 0.0))
+
+
+def test_a_lean_about_the_configured_pivot_carries_the_camera_over_the_floor():
+    """A ballbot leans about its ball: with mount.pivot_height_m, the mount of a frame is where the
+    lean the ground shows (pitch and roll against the configured, upright ones) carries the camera,
+    as the simulator moves it (sim.CameraMotion, its own code); without, the camera turns on the spot."""
+    import sim as S
+    from cores.segmentation.ground import frame_mount
+    from evaluation.synthetic import mount_from_T
+
+    upright = MountSettings(height_m=0.9, pitch_deg=8.0, pivot_height_m=0.15)
+    motion = S.CameraMotion(pitch_deg=(S.Wave(6.0, 0.5, 90.0),), roll_deg=(S.Wave(-4.0, 0.5, 90.0),),
+                            pivot_height_m=0.15)
+    R, o = motion.camera_in_base(0.0, 0.9, 8.0)  # leaning 6 deg forward and 4 deg to the left
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, o
+    true = mount_from_T(T)
+    seen = GroundEstimate(height_m=true.height_m, pitch_deg=true.pitch_deg, roll_deg=true.roll_deg,
+                          source="fitted", inlier_fraction=1.0, confidence=1.0)
+    m, source = frame_mount(seen, upright)
+    assert source == "ground" and m.height_m == true.height_m
+    assert abs(m.x_m - true.x_m) < 1e-9 and abs(m.y_m - true.y_m) < 1e-9
+    assert true.x_m > 0.07 and true.y_m > 0.04  # forward by 0.75 sin(6 deg), left by about 0.75 sin(4 deg)
+    m0, _ = frame_mount(seen, upright.model_copy(update={"pivot_height_m": None}))
+    assert (m0.x_m, m0.y_m) == (0.0, 0.0)
+    upright_seen = GroundEstimate(height_m=0.9, pitch_deg=8.0, roll_deg=0.0, source="fitted", inlier_fraction=1.0,
+                                  confidence=1.0)
+    assert frame_mount(upright_seen, upright.model_copy(update={"x_m": 0.05}))[0].x_m == pytest.approx(0.05)
 
 
 def _message(d: np.ndarray, model=MODEL, width=None) -> DisparityMap:

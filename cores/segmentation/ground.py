@@ -116,10 +116,14 @@ def plane_from_mount(mount: Mount, model: camera.RectifiedModel) -> FloorPlane:
 
 def frame_mount(ground: GroundEstimate | None, configured: MountSettings) -> tuple[Mount | None, str]:
     """Where the camera sat on the robot for one frame, and whence: the height, pitch and roll of the
-    frame's ground estimate with the configured yaw and offsets (which the ground cannot tell):
-    "ground"; without an estimate, the configured mount: "configured" (None: unknown). The
-    segmenter's base frame comes from here and travels with its list (ObstacleList.mount)."""
+    frame's ground estimate with the configured yaw and offsets (which the ground cannot tell; with a
+    pivot_height_m, the offsets the lean about it carries the camera to): "ground"; without an
+    estimate, the configured mount: "configured" (None: unknown). The segmenter's base frame comes
+    from here and travels with its list (ObstacleList.mount)."""
     if ground is not None and ground.source != "none":
+        upright, pivot = Mount.of(configured), configured.pivot_height_m
+        if upright is not None and pivot is not None:  # a lean about the pivot moves the camera too
+            return upright.leaned(ground.height_m, ground.pitch_deg, ground.roll_deg, pivot), "ground"
         return Mount(ground.height_m, ground.pitch_deg, configured.yaw_deg, ground.roll_deg, configured.x_m,
                      configured.y_m), "ground"
     return Mount.of(configured), "configured"

@@ -84,6 +84,17 @@ class Mount:
         return CameraMount(height_m=self.height_m, pitch_deg=self.pitch_deg, roll_deg=self.roll_deg,
                            yaw_deg=self.yaw_deg, x_m=self.x_m, y_m=self.y_m, source=source)
 
+    def leaned(self, height_m: float, pitch_deg: float, roll_deg: float, pivot_height_m: float) -> Mount:
+        """This mount (the robot upright) with the camera at the height, pitch and roll a ground
+        estimate found, reached by the robot leaning about the point pivot_height_m up the base z axis
+        (a ballbot on its ball): the lean that turns the camera also carries it over the floor, which
+        the ground cannot show. The height is the one measured."""
+        now = Mount(height_m, pitch_deg, self.yaw_deg, roll_deg, self.x_m, self.y_m)
+        lean = now.R_base_camera @ self.R_base_camera.T
+        pivot = np.array([0.0, 0.0, pivot_height_m])
+        x, y, _ = pivot + lean @ (self.origin_base - pivot)
+        return Mount(height_m, pitch_deg, self.yaw_deg, roll_deg, float(x), float(y))
+
     @classmethod
     def of(cls, m: CameraMount | MountSettings | None) -> Mount | None:
         """The mount a list carries (ObstacleList.mount) or the one configured (`mount:`; None when its
