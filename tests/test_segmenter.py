@@ -226,6 +226,32 @@ def test_things_joined_only_by_something_low_are_cut_apart_and_stay_apart():
     assert len(layers._merge_close([region(a, {3}), region(b, {4})], 0.12, 0.25)) == 1
 
 
+def test_a_leg_whose_top_is_hidden_a_little_below_the_table_top_is_dropped_at_the_image_edge():
+    """A table reaching out of the image on the right, its back leg at that edge behind its top:
+    the leg's own top is hidden 8 working rows below the top's lower edge (the top seen from 0.9 m
+    up has depth), nothing of the table frames it on the right. The nearer table stands in the way:
+    the leg is no obstacle of its own (sway frame 25)."""
+    step = 2
+
+    def region(pts):
+        u = pts[:, 0] / pts[:, 2] * MODEL.focal_px + MODEL.cx
+        v = pts[:, 1] / pts[:, 2] * MODEL.focal_px + MODEL.cy
+        box = (int(u.min() / step), int(v.min() / step), int(u.max() / step) + 1, int(v.max() / step) + 1)
+        area = (box[2] - box[0]) * (box[3] - box[1])
+        return layers._Region(pts, np.percentile(pts, 2, 0), np.percentile(pts, 98, 0), box, area, area,
+                              FB / pts[:, 2], 0)
+
+    top = _box_points(0.5, 1.2, 0.1, 0.1, 2.5, 2.52, n=30)
+    front_leg = _box_points(0.5, 0.53, 0.1, 0.9, 2.5, 2.52, n=30)
+    table = region(np.concatenate([top, front_leg]))
+    back_leg = region(_box_points(1.05, 1.1, 0.2, 0.9, 3.0, 3.03, n=20))
+    assert table.bbox[2] >= MODEL.width // step - 1  # the table reaches the image's right edge
+    assert not layers._encloses(table, back_leg, MODEL, step)
+    assert back_leg.bbox[1] - 9 <= int(0.1 / 2.5 * MODEL.focal_px / step + MODEL.cy / step) <= back_leg.bbox[1] - 7
+    kept = layers._absorb_contained([table, back_leg], 0.12, MODEL, step)
+    assert len(kept) == 1 and kept[0] is table
+
+
 def test_layers_keeps_an_object_cut_by_the_image_border():
     d = scene([(560, 700, 2.0, 200)])
     dets = layers.segment(d, MODEL, SegmenterSettings())

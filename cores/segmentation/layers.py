@@ -240,10 +240,12 @@ def _encloses(c: _Region, r: _Region, model: camera.RectifiedModel, step: int) -
                 or ((cols & (v < y0)).any() and (cols & (v >= y1)).any()))
 
 
-def _capped(c: _Region, r: _Region, model: camera.RectifiedModel, step: int, rows: int = 3) -> bool:
+def _capped(c: _Region, r: _Region, model: camera.RectifiedModel, step: int, rows: int = 10) -> bool:
     """Whether c's points lie right above r's box (within `rows` working rows of its top) across
     most of its columns: r's top is hidden by c, r may reach on up behind it. (A few of c's points
-    there are the ragged edge of the frame beside r, not a cap over it.)"""
+    there are the ragged edge of the frame beside r, not a cap over it.) Ten rows, not three: a
+    table's top seen from above has depth, and its back leg's top hides up to ~20 px below the
+    top's lower edge in the image (sway, frame 25)."""
     u = c.pts[:, 0] / c.pts[:, 2] * model.focal_px + model.cx
     v = c.pts[:, 1] / c.pts[:, 2] * model.focal_px + model.cy
     x0, y0, x1, _ = r.bbox
