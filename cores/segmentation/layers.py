@@ -38,7 +38,7 @@ only what stands on it counts, and objects are grouped where they stand.
     (2nd percentile of range), bbox, area, median disparity, confidence (mean matcher confidence,
     else the fraction of its pixels with a valid raw disparity)
 12. the drivable floor: along each column, from the image's bottom edge to the farthest floor
-    point seen, stopped by anything standing (freespace.py turns it into the grid)
+    point seen, stopped by anything standing (freespace.py: drivable, and the grid)
 13. optional boundary refinement (edge_refine): each box side snapped to the strongest intensity
     edge of the left image within a few pixels (the thesis's hybrid idea)
 """
@@ -51,6 +51,7 @@ import numpy as np
 
 from common.messages import GroundEstimate
 from cores import camera
+from cores.segmentation import freespace, stats
 from cores.segmentation.ground import GroundEstimator, grid
 from cores.segmentation.mount import FloorPlane, Mount
 from cores.segmentation.seed import Detection
@@ -200,8 +201,8 @@ def _absorb_contained(regions: list[_Region], gap_m: float, model: camera.Rectif
             there = (u >= r.bbox[0] * step) & (u < r.bbox[2] * step)
             if not there.any():
                 continue
-            zc = np.percentile(c.pts[there, 2], [10, 90])
-            zr = float(np.median(r.pts[:, 2]))
+            zc = stats.percentile(c.pts[there, 2], [10, 90])
+            zr = float(stats.median(r.pts[:, 2]))
             tol = gap_m + 0.02 * zr
             capped = _capped(c, r, model, step)
             if r.groups & c.groups and not capped:
@@ -248,14 +249,13 @@ def _capped(c: _Region, r: _Region, model: camera.RectifiedModel, step: int, row
 
 def _union(g: list[_Region]) -> _Region:
     pts = np.concatenate([r.pts for r in g])
-    lo, hi = np.percentile(pts[::max(1, len(pts) // _STAT_SAMPLES)], [2, 98], axis=0)
+    lo, hi = stats.percentile(pts[::max(1, len(pts) // _STAT_SAMPLES)], [2, 98])
     return _Region(pts, lo, hi, (min(r.bbox[0] for r in g), min(r.bbox[1] for r in g), max(r.bbox[2] for r in g),
                                  max(r.bbox[3] for r in g)), sum(r.area for r in g), sum(r.valid for r in g),
                    np.concatenate([r.disparities for r in g]), sum(r.filled for r in g),
                    frozenset().union(*(r.groups for r in g)))
 
 
-MAX_FLOOR_SAMPLES = 1_000_000  # points of drivable floor per frame, at most
 _STAT_SAMPLES = 1500  # percentiles of a region are taken on at most ~2x this many of its points
 _SQUARE = np.ones((3, 3), np.uint8)
 _CROSS = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
@@ -276,8 +276,12 @@ def _working_disparity(disparity: np.ndarray, cfg: SegmenterSettings, confidence
                        step: int) -> tuple[np.ndarray, np.ndarray]:
     """(raw, median-filtered) working-resolution disparity, 0 = invalid; pixels whose confidence is
     below min_confidence are invalid."""
-    d0 = np.nan_to_num(np.asarray(disparity, dtype=np.float32)[::step, ::step], nan=0.0, posinf=0.0, neginf=0.0)
-    np.maximum(d0, 0, out=d0)
+    d0 = np.ascontiguousarray(np.asarray(disparity, dtype=np.float32)[::step, ::step])
+    if d0.base is disparity or d0 is disparity:
+        d0 = d0.copy()  # (step 1) the caller's map stays as it is
+    cv2.patchNaNs(d0, 0)  # NaN, negative and infinite -> 0, in place (OpenCV: several times numpy's speed)
+    cv2.threshold(d0, 0, 0, cv2.THRESH_TOZERO, dst=d0)
+    cv2.threshold(d0, float(np.finfo(np.float32).max), 0, cv2.THRESH_TOZERO_INV, dst=d0)
     if confidence is not None and cfg.min_confidence > 0:
         d0[np.asarray(confidence)[::step, ::step] < cfg.min_confidence] = 0
     dm = cv2.medianBlur(d0, cfg.median_ksize) if cfg.median_ksize > 1 else d0
@@ -292,16 +296,18 @@ def _group(dm: np.ndarray, stand: np.ndarray, cfg: SegmenterSettings, model: cam
     on the ground whose depth resolution follows the matcher's (fine near, coarse far), so a car's
     parts and a wall seen obliquely stay whole while a person in front of a wall stays apart.
     -> (ys, xs, d, label) of the grouped pixels, sorted by label (labels from 1)."""
-    ys, xs = np.nonzero(stand)
+    yx = cv2.findNonZero(stand.view(np.uint8))  # np.nonzero's pixels in its order, faster (int32)
+    xs, ys = (np.zeros(0, np.int32),) * 2 if yx is None else yx.reshape(-1, 2).T
     dv = dm[ys, xs]
     w = dm.shape[1]
     bins = (dv / np.float32(cfg.group_bin_px)).astype(np.int32)
     nb = int(bins.max()) + 2 if bins.size else 1
     height = np.float32(step * model.baseline_m) / dv  # metres of height one working pixel covers
-    occ = np.bincount(bins * w + xs, weights=height, minlength=nb * w).reshape(nb, w)
+    cell = bins * w + xs
+    occ = np.bincount(cell, weights=height, minlength=nb * w).reshape(nb, w)
     cells = (occ >= cfg.min_cell_height_m).astype(np.uint8)
     _, cc = cv2.connectedComponents(cv2.dilate(cells, _SQUARE), connectivity=8)
-    lab = cc[bins, xs] * cells[bins, xs]
+    lab = (cc * cells).ravel()[cell]
     order = np.argsort(lab, kind="stable")
     ys, xs, dv, lab = ys[order], xs[order], dv[order], lab[order]
     first = int(np.searchsorted(lab, 1))
@@ -507,7 +513,7 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
             above = np.float32(floor.height_m) * (1 - df / dk)  # height above the floor, m
         stand = keep & ~on_floor & (above <= cfg.robot_height_m)
         seen_floor = keep & on_floor & (above > -4 * cfg.floor_margin_m - 0.1)
-        floor_points = _drivable(floor, df, seen_floor, keep & ~on_floor, dk, model, cfg, step)
+        floor_points = freespace.drivable(floor, df, seen_floor, keep & ~on_floor, dk, model, cfg, step)
     else:
         above = None
         stand = keep
@@ -520,10 +526,11 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
 
     ys, xs, dv, lab = _group(dm, stand, cfg, model, step)
     lab, family = _split_layers(ys, xs, dv, lab, cfg, model, step, None if above is None else above[ys, xs])
-    order = np.argsort(lab, kind="stable")
-    ys, xs, dv, lab = ys[order], xs[order], dv[order], lab[order]
-    first = int(np.searchsorted(lab, 1))
-    ys, xs, dv, lab = ys[first:], xs[first:], dv[first:], lab[first:]
+    if family:  # labels changed (else they are _group's, sorted, from 1)
+        order = np.argsort(lab, kind="stable")
+        ys, xs, dv, lab = ys[order], xs[order], dv[order], lab[order]
+        first = int(np.searchsorted(lab, 1))
+        ys, xs, dv, lab = ys[first:], xs[first:], dv[first:], lab[first:]
     bounds = np.flatnonzero(np.diff(lab)) + 1
     regions: list[_Region] = []
     for gy, gx, gd, gl in zip(np.split(ys, bounds), np.split(xs, bounds), np.split(dv, bounds),
@@ -532,13 +539,13 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
         if area < cfg.min_pixels:
             continue
         x0, y0, x1, y1 = int(gx.min()), int(gy.min()), int(gx.max()) + 1, int(gy.max()) + 1
-        med = float(np.median(gd))
+        med = float(stats.median(gd))
         px_m = B / med * step  # metres per working pixel at the region's depth
         if max(x1 - x0, y1 - y0) * px_m < cfg.min_size_m and area * px_m * px_m < cfg.min_area_m2:
             continue
         if area * px_m * px_m < 0.25 * cfg.min_area_m2:
             continue
-        if floor is not None and above is not None and float(np.percentile(above[gy, gx], 98)) < \
+        if floor is not None and above is not None and float(stats.percentile(above[gy, gx], 98)) < \
                 cfg.min_height_m + _floor_doubt(floor, med, fB, doubt_deg):
             continue  # nothing of it stands up: a marking, a shadow, a mat
         pts = _points(gy, gx, gd, model, step)
@@ -554,7 +561,7 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
                 pts = np.concatenate([pts, extra])
                 filled = len(extra)
                 y1 = max(y1, min(h, int(np.ceil((float(np.max(extra[:, 1] / extra[:, 2])) * f + model.cy) / step)) + 1))
-        lo, hi = np.percentile(pts[::max(1, len(pts) // _STAT_SAMPLES)], [2, 98], axis=0)
+        lo, hi = stats.percentile(pts[::max(1, len(pts) // _STAT_SAMPLES)], [2, 98])
         groups = frozenset({family[int(gl)]}) if int(gl) in family else frozenset()
         regions.append(_Region(pts, lo, hi, (x0, y0, x1, y1), area, valid, gd.astype(np.float64), filled, groups))
     regions = _absorb_contained(_merge_close(regions, cfg.merge_gap_m, cfg.merge_gap_depth_m), cfg.merge_gap_m,
@@ -574,10 +581,10 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
         rng = np.sqrt((sub * sub).sum(1))
         x0, y0, x1, y1 = r.bbox
         out.append(Detection(position_m=r.pts.mean(0), size_m=np.maximum(size, 0.0),
-                             distance_m=float(np.percentile(rng, 2)),
+                             distance_m=float(stats.percentile(rng, 2)),
                              bbox_px=(x0 * step, y0 * step, min(model.width, x1 * step), min(model.height, y1 * step)),
                              area_px=int((r.area + r.filled) * step * step),
-                             disparity_px=float(np.median(r.disparities)),
+                             disparity_px=float(stats.median(r.disparities)),
                              confidence=float(min(1.0, r.valid / max(1, r.area))),
                              # cut at the sides or by the range: its footprint is partial (a cut at the
                              # top or bottom changes its height, not where it stands)
@@ -595,7 +602,7 @@ def merge_detections(dets: list[Detection], points: list[np.ndarray], model: cam
     their camera-frame points (n_i, 3) m. -> (the detection, its points)."""
     pts = np.concatenate(points)
     sub = pts[::max(1, len(pts) // _STAT_SAMPLES)]
-    lo, hi = np.percentile(sub, [2, 98], axis=0)
+    lo, hi = stats.percentile(sub, [2, 98])
     area = sum(d.area_px for d in dets)
     return Detection(position_m=pts.mean(0), size_m=np.maximum(hi - lo, 0.0),
                      distance_m=min(float(d.distance_m) for d in dets),
@@ -636,44 +643,10 @@ def _floor_like(pts: np.ndarray, max_tilt_deg: float = 45.0) -> bool:
     return bool(thin and abs(V[1, 0]) > np.cos(np.radians(max_tilt_deg)))
 
 
-def _drivable(floor: FloorPlane, df: np.ndarray, seen_floor: np.ndarray, standing: np.ndarray, dk: np.ndarray,
-              model: camera.RectifiedModel, cfg: SegmenterSettings, step: int) -> np.ndarray:
-    """Points of the floor plane the robot may drive on, camera frame: along each image column (a
-    ray on the ground), the floor from the image's bottom edge out to the farthest floor point seen
-    in that column, but not beyond anything standing in it (any pixel above the floor margin,
-    obstacle or not) nor beyond the vision range. Block matching sees little of a smooth road, so
-    the floor between seen points counts as seen; an obstacle that left no pixel is not known."""
-    fB = model.focal_px * model.baseline_m
-    with np.errstate(divide="ignore"):
-        zf = np.where(df > 0, fB / np.maximum(df, 1e-6), np.inf).astype(np.float32)  # floor depth per pixel
-        zd = np.where(dk > 0, fB / np.maximum(dk, 1e-6), np.inf).astype(np.float32)
-    far = np.where(seen_floor, zf, 0).max(0)
-    near_standing = np.where(standing, zd, np.inf).min(0)
-    limit = np.minimum(np.minimum(far, near_standing), cfg.range_for(model))
-    near = zf[-1]  # the floor at the image's bottom edge
-    cols = np.nonzero(np.isfinite(near) & (limit > near))[0]
-    if not cols.size:
-        return np.zeros((0, 3))
-    # march along each column's ray on the floor in steps of half a free-space cell (coarser when a
-    # wide image and a long range would make more than MAX_FLOOR_SAMPLES points)
-    longest = float((limit[cols] - near[cols]).max())
-    spacing = max(0.5 * cfg.freespace_resolution_m, longest * cols.size / MAX_FLOOR_SAMPLES)
-    n = int(np.ceil(longest / spacing)) + 1
-    z = near[cols][:, None] + spacing * np.arange(n)[None, :]
-    z = np.where(z <= limit[cols][:, None], z, np.nan).ravel()
-    u = np.repeat(cols.astype(np.float64) * step, n)
-    ok = np.isfinite(z)
-    z, u = z[ok], u[ok]
-    f = model.focal_px
-    # the floor's pixel row at depth z in column u: a u + b v + c = f B / z
-    v = (fB / z - floor.a * u - floor.c) / floor.b
-    return np.stack([(u - model.cx) * z / f, (v - model.cy) * z / f, z], 1)
-
-
 def _edges(points: np.ndarray, model: camera.RectifiedModel) -> np.ndarray:
     """(2, 3): the mean of an object's points in its leftmost and its rightmost 5 % of image columns."""
     u = points[:, 0] / points[:, 2]
-    lo, hi = np.percentile(u, [5, 95])
+    lo, hi = stats.percentile(u, [5, 95])
     return np.stack([points[u <= lo].mean(0), points[u >= hi].mean(0)])
 
 
