@@ -76,7 +76,8 @@ def _fill_to_floor(mask: np.ndarray, d_box: np.ndarray, x0: int, y0: int, floor:
     """The strip of an object that floor removal cut off: where a column of the region ends less
     than floor_margin_m (+4 cm) above the floor, the object is taken to stand on it, and points
     are added straight down (along the floor normal: a vertical face) to the floor, one per
-    working-grid row they cover. -> (k, 3) camera-frame points, or None."""
+    working-grid row they cover. d_box: the working disparity over mask's box (read where mask is
+    set). -> (k, 3) camera-frame points, or None."""
     has = mask.any(0)
     if not has.any():
         return None
@@ -525,16 +526,18 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
         return LayersFrame([], [], floor, estimate, floor_points)
 
     ys, xs, dv, lab = _group(dm, stand, cfg, model, step)
-    lab, family = _split_layers(ys, xs, dv, lab, cfg, model, step, None if above is None else above[ys, xs])
+    hv = above[ys, xs] if above is not None else np.zeros(ys.size, np.float32)  # heights above the floor
+    lab, family = _split_layers(ys, xs, dv, lab, cfg, model, step, None if above is None else hv)
     if family:  # labels changed (else they are _group's, sorted, from 1)
         order = np.argsort(lab, kind="stable")
-        ys, xs, dv, lab = ys[order], xs[order], dv[order], lab[order]
+        ys, xs, dv, lab, hv = ys[order], xs[order], dv[order], lab[order], hv[order]
         first = int(np.searchsorted(lab, 1))
-        ys, xs, dv, lab = ys[first:], xs[first:], dv[first:], lab[first:]
+        ys, xs, dv, lab, hv = ys[first:], xs[first:], dv[first:], lab[first:], hv[first:]
     bounds = np.flatnonzero(np.diff(lab)) + 1
     regions: list[_Region] = []
-    for gy, gx, gd, gl in zip(np.split(ys, bounds), np.split(xs, bounds), np.split(dv, bounds),
-                              lab[np.concatenate([[0], bounds]).astype(np.int64)] if lab.size else []):
+    for gy, gx, gd, gh, gl in zip(np.split(ys, bounds), np.split(xs, bounds), np.split(dv, bounds),
+                                  np.split(hv, bounds),
+                                  lab[np.concatenate([[0], bounds]).astype(np.int64)] if lab.size else []):
         area = gy.size
         if area < cfg.min_pixels:
             continue
@@ -545,7 +548,7 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
             continue
         if area * px_m * px_m < 0.25 * cfg.min_area_m2:
             continue
-        if floor is not None and above is not None and float(stats.percentile(above[gy, gx], 98)) < \
+        if floor is not None and above is not None and float(stats.percentile(gh, 98)) < \
                 cfg.min_height_m + _floor_doubt(floor, med, fB, doubt_deg):
             continue  # nothing of it stands up: a marking, a shadow, a mat
         pts = _points(gy, gx, gd, model, step)
@@ -555,7 +558,7 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
         if floor is not None and cfg.fill_to_floor:
             mask = np.zeros((y1 - y0, x1 - x0), bool)
             mask[gy - y0, gx - x0] = True
-            extra = _fill_to_floor(mask, np.where(mask, dm[y0:y1, x0:x1], np.float32(0)), x0, y0, floor, cfg,
+            extra = _fill_to_floor(mask, dm[y0:y1, x0:x1], x0, y0, floor, cfg,
                                    model, step, doubt_deg)
             if extra is not None:
                 pts = np.concatenate([pts, extra])
