@@ -9,31 +9,35 @@ in the array's own dtype. tests/test_segmenter_stats.py holds them to numpy's re
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 
 def percentile(a: np.ndarray, q: float | list[float]):
-    """np.percentile(a, q, axis=0) for a NaN-free a of at least one row (q: one number or a list)."""
+    """np.percentile(a, q, axis=0) for a NaN-free a of at least one row (q: a Python number or a list)."""
     n = a.shape[0]
-    weak = type(q) in (int, float)
-    qs = np.true_divide(q, 100, out=...)
-    virtual = (n - 1) * qs  # float64, as numpy's
-    prev = np.floor(virtual)
-    top = virtual >= n - 1
-    prev_i = np.where(top, n - 1, prev).astype(np.intp)
-    next_i = np.where(top, n - 1, prev + 1).astype(np.intp)
-    part = np.partition(a, np.unique(np.concatenate((prev_i.ravel(), next_i.ravel()))), axis=0)
-    lo, hi = part[prev_i], part[next_i]
-    # numpy's gamma: against the index -1 where the position is the last one (its lerp then gives hi)
-    t = virtual - np.where(top, -1.0, prev)
-    if weak:
-        t = float(t)
-    elif a.ndim > 1:
-        t = t.reshape(t.shape + (1,) * (a.ndim - 1))
-    diff = hi - lo
-    out = lo + diff * t
-    return np.where(np.asarray(t) >= 0.5, hi - diff * (1 - t), out)[()] if not weak else \
-        (hi - diff * (1 - t) if t >= 0.5 else out)
+    weak = type(q) in (int, float)  # numpy's rule (a numpy scalar is no Python number)
+    qs: list[float] = [q] if isinstance(q, (int, float)) else q
+    at = []  # per percentile: (the index below, above, and numpy's gamma) as numpy computes them
+    for x in qs:
+        virtual = (n - 1) * (x / 100)  # the float64 operations of numpy's
+        if virtual >= n - 1:
+            at.append((n - 1, n - 1, virtual + 1))  # numpy's gamma against the index -1: lerp gives hi
+        else:
+            k = math.floor(virtual)
+            at.append((k, k + 1, virtual - k))
+    kth = sorted({i for lo_hi in at for i in lo_hi[:2]})
+    # the columns of an (n, k) array partitioned as rows of its contiguous transpose: the same order
+    # statistics, several times faster than along a strided axis 0
+    part = np.partition(a, kth) if a.ndim == 1 else np.partition(np.ascontiguousarray(a.T), kth, axis=1).T
+    out = []
+    for k0, k1, gamma in at:
+        lo, hi = part[k0], part[k1]
+        t = gamma if weak else np.float64(gamma)  # one Python number interpolates in a's dtype
+        diff = hi - lo
+        out.append(hi - diff * (1 - t) if gamma >= 0.5 else lo + diff * t)
+    return out[0] if weak else np.array(out)
 
 
 def median(a: np.ndarray):
