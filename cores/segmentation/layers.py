@@ -290,16 +290,18 @@ def _working_disparity(disparity: np.ndarray, cfg: SegmenterSettings, confidence
 
 
 def _group(dm: np.ndarray, stand: np.ndarray, cfg: SegmenterSettings, model: camera.RectifiedModel,
-           step: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+           step: int, extras: tuple[np.ndarray, ...] = ()
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[np.ndarray]]:
     """Group standing pixels into objects on the column-disparity grid (u-disparity): a cell
     (column, disparity bin) is occupied when its standing pixels cover min_cell_height_m of height;
     occupied cells that touch (one cell of slack) are one object. In metres this is a polar grid
     on the ground whose depth resolution follows the matcher's (fine near, coarse far), so a car's
     parts and a wall seen obliquely stay whole while a person in front of a wall stays apart.
-    -> (ys, xs, d, label) of the grouped pixels, sorted by label (labels from 1)."""
+    -> (ys, xs, d, label, [each of extras (maps like dm) there]) of the grouped pixels, sorted by
+    label (labels from 1)."""
     yx = cv2.findNonZero(stand.view(np.uint8))  # np.nonzero's pixels in its order, faster (int32)
     xs, ys = (np.zeros(0, np.int32),) * 2 if yx is None else yx.reshape(-1, 2).T
-    dv = dm[ys, xs]
+    dv = dm[stand]  # in the same (row-major) order, without a 2-D gather
     w = dm.shape[1]
     bins = (dv / np.float32(cfg.group_bin_px)).astype(np.int32)
     nb = int(bins.max()) + 2 if bins.size else 1
@@ -309,10 +311,8 @@ def _group(dm: np.ndarray, stand: np.ndarray, cfg: SegmenterSettings, model: cam
     cells = (occ >= cfg.min_cell_height_m).astype(np.uint8)
     _, cc = cv2.connectedComponents(cv2.dilate(cells, _SQUARE), connectivity=8)
     lab = (cc * cells).ravel()[cell]
-    order = np.argsort(lab, kind="stable")
-    ys, xs, dv, lab = ys[order], xs[order], dv[order], lab[order]
-    first = int(np.searchsorted(lab, 1))
-    return ys[first:], xs[first:], dv[first:], lab[first:]
+    order = np.argsort(lab, kind="stable")[np.count_nonzero(lab == 0):]  # label 0 (ungrouped) sorts first
+    return ys[order], xs[order], dv[order], lab[order], [e[stand][order] for e in extras]
 
 
 _LAYER_BIN_PX = 1.0 / 16.0  # disparity histogram bins of the layer split: the matchers' sub-pixel step
@@ -525,19 +525,17 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
     if not stand.any():
         return LayersFrame([], [], floor, estimate, floor_points)
 
-    ys, xs, dv, lab = _group(dm, stand, cfg, model, step)
-    hv = above[ys, xs] if above is not None else np.zeros(ys.size, np.float32)  # heights above the floor
+    ys, xs, dv, lab, ex = _group(dm, stand, cfg, model, step, (d0,) if above is None else (d0, above))
+    dv0, hv = ex[0], ex[1] if above is not None else np.zeros(ys.size, np.float32)  # raw, height above the floor
     lab, family = _split_layers(ys, xs, dv, lab, cfg, model, step, None if above is None else hv)
     if family:  # labels changed (else they are _group's, sorted, from 1)
-        order = np.argsort(lab, kind="stable")
-        ys, xs, dv, lab, hv = ys[order], xs[order], dv[order], lab[order], hv[order]
-        first = int(np.searchsorted(lab, 1))
-        ys, xs, dv, lab, hv = ys[first:], xs[first:], dv[first:], lab[first:], hv[first:]
+        order = np.argsort(lab, kind="stable")[np.count_nonzero(lab == 0):]  # 0: dropped, sorts first
+        ys, xs, dv, lab, hv, dv0 = ys[order], xs[order], dv[order], lab[order], hv[order], dv0[order]
     bounds = np.flatnonzero(np.diff(lab)) + 1
     regions: list[_Region] = []
-    for gy, gx, gd, gh, gl in zip(np.split(ys, bounds), np.split(xs, bounds), np.split(dv, bounds),
-                                  np.split(hv, bounds),
-                                  lab[np.concatenate([[0], bounds]).astype(np.int64)] if lab.size else []):
+    for gy, gx, gd, gh, g0, gl in zip(np.split(ys, bounds), np.split(xs, bounds), np.split(dv, bounds),
+                                      np.split(hv, bounds), np.split(dv0, bounds),
+                                      lab[np.concatenate([[0], bounds]).astype(np.int64)] if lab.size else []):
         area = gy.size
         if area < cfg.min_pixels:
             continue
@@ -552,7 +550,7 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
                 cfg.min_height_m + _floor_doubt(floor, med, fB, doubt_deg):
             continue  # nothing of it stands up: a marking, a shadow, a mat
         pts = _points(gy, gx, gd, model, step)
-        valid = (int(np.count_nonzero(d0[gy, gx])) if confidence is None
+        valid = (int(np.count_nonzero(g0)) if confidence is None
                  else float(confidence[gy * step, gx * step].astype(np.float32).sum() / 255.0))
         filled = 0
         if floor is not None and cfg.fill_to_floor:
