@@ -63,8 +63,8 @@ def occupancy(floor_points: np.ndarray, obstacle_points: list[np.ndarray], mount
         return row[ok]  # one selection of the flat index, not one of each coordinate
 
     cells[index(floor_points)] = 0
-    if obstacle_points:
-        cells[index(np.concatenate(obstacle_points))] = 100
+    for points in obstacle_points:  # each apart: no copy of them all
+        cells[index(points)] = 100
     return Grid(res, width, height, origin, cells.reshape(height, width))
 
 
