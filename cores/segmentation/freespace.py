@@ -96,8 +96,8 @@ def drivable(floor: FloorPlane, df: np.ndarray, seen_floor: np.ndarray, standing
     z = near[cols][:, None] + spacing * np.arange(n)[None, :]
     z = np.where(z <= limit[cols][:, None], z, np.nan).ravel()
     u = np.repeat(cols.astype(np.float64) * step, n)
-    ok = np.isfinite(z)
-    z, u = z[ok], u[ok]
+    ok = np.flatnonzero(np.isfinite(z))  # by index: faster than two masks
+    z, u = z.take(ok), u.take(ok)
     f = model.focal_px
     # the floor's pixel row at depth z in column u: a u + b v + c = f B / z
     v = (fB / z - floor.a * u - floor.c) / floor.b

@@ -301,8 +301,9 @@ def _group(dm: np.ndarray, stand: np.ndarray, cfg: SegmenterSettings, model: cam
     label (labels from 1)."""
     yx = cv2.findNonZero(stand.view(np.uint8))  # np.nonzero's pixels in its order, faster (int32)
     xs, ys = (np.zeros(0, np.int32),) * 2 if yx is None else yx.reshape(-1, 2).T
-    dv = dm[stand]  # in the same (row-major) order, without a 2-D gather
     w = dm.shape[1]
+    flat = ys * w + xs  # the maps' values there by index (several times faster than by a mask)
+    dv = dm.ravel().take(flat)
     bins = (dv / np.float32(cfg.group_bin_px)).astype(np.int32)
     nb = int(bins.max()) + 2 if bins.size else 1
     height = np.float32(step * model.baseline_m) / dv  # metres of height one working pixel covers
@@ -312,7 +313,7 @@ def _group(dm: np.ndarray, stand: np.ndarray, cfg: SegmenterSettings, model: cam
     _, cc = cv2.connectedComponents(cv2.dilate(cells, _SQUARE), connectivity=8)
     lab = (cc * cells).ravel()[cell]
     order = np.argsort(lab, kind="stable")[np.count_nonzero(lab == 0):]  # label 0 (ungrouped) sorts first
-    return ys[order], xs[order], dv[order], lab[order], [e[stand][order] for e in extras]
+    return ys[order], xs[order], dv[order], lab[order], [e.ravel().take(flat.take(order)) for e in extras]
 
 
 _LAYER_BIN_PX = 1.0 / 16.0  # disparity histogram bins of the layer split: the matchers' sub-pixel step
