@@ -295,7 +295,8 @@ def vdisparity_planes(u: np.ndarray, v: np.ndarray, d: np.ndarray, model: camera
     mid = (u > 0.25 * w) & (u < 0.75 * w) & (d > 0.5)
     if np.count_nonzero(mid) < 50:
         return []
-    vv, dd = v[mid], np.round(d[mid]).astype(np.int64)
+    i = np.flatnonzero(mid)
+    vv, dd = v.take(i), np.round(d.take(i)).astype(np.int64)
     nd = int(dd.max()) + 1
     rows = vv.astype(np.int64)
     cells, cnt = np.unique(rows * nd + dd, return_counts=True)

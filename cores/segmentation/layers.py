@@ -289,6 +289,13 @@ def _working_disparity(disparity: np.ndarray, cfg: SegmenterSettings, confidence
     return d0, dm
 
 
+def _masked(a: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """np.where(mask, a, 0) of a 2-D map and a uint8 mask, by OpenCV (several times faster)."""
+    out = np.zeros_like(a)
+    cv2.copyTo(a, mask, out)
+    return out
+
+
 def _group(dm: np.ndarray, stand: np.ndarray, cfg: SegmenterSettings, model: camera.RectifiedModel,
            step: int, extras: tuple[np.ndarray, ...] = ()
            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[np.ndarray]]:
@@ -490,8 +497,9 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
     f, B = model.focal_px, model.baseline_m
     fB = f * B
     range_m = cfg.range_for(model)
-    keep = cv2.inRange(dm, fB / range_m, fB / cfg.min_range_m) > 0
-    dk = np.where(keep, dm, np.float32(0))
+    keep8 = cv2.inRange(dm, fB / range_m, fB / cfg.min_range_m)
+    keep = keep8 > 0
+    dk = _masked(dm, keep8)
     floor, estimate = None, None
     doubt_deg = 0.0
     if cfg.floor_removal:
@@ -521,7 +529,7 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
         stand = keep
     # A pixel with a 4-neighbour nearer by more than the similarity tolerance sits on a depth step,
     # where block matching blends the two depths into a phantom between them: it is not grouped.
-    ds = np.where(stand, dm, np.float32(0))
+    ds = _masked(dm, stand.view(np.uint8))
     stand &= ~(cv2.dilate(ds, _CROSS) > ds * np.float32(1.0 + cfg.step_rel) + np.float32(cfg.step_px))
     if not stand.any():
         return LayersFrame([], [], floor, estimate, floor_points)
