@@ -28,3 +28,14 @@ def test_percentile_and_median_match_numpy(dtype):
         stats.median(a)
         stats.percentile(a, [2, 98])
         assert np.array_equal(a, before)  # the input is left as it was
+
+
+def test_label_order_is_numpys_stable_argsort():
+    from cores.segmentation.layers import _label_order
+
+    rng = np.random.default_rng(2)
+    for top in [1, 7, 300, 1 << 16, 1 << 20]:  # 16-bit keys and wider ones
+        lab = rng.integers(0, top, 5000).astype(np.int32)
+        lab[100:900] = lab[100]  # long runs of one label, as objects give
+        assert np.array_equal(_label_order(lab), np.argsort(lab, kind="stable")), top
+    assert _label_order(np.zeros(0, np.int32)).size == 0

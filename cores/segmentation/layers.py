@@ -296,6 +296,12 @@ def _masked(a: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return out
 
 
+def _label_order(lab: np.ndarray) -> np.ndarray:
+    """np.argsort(lab, kind="stable") of labels >= 0: as 16-bit keys where they fit (numpy sorts
+    those by radix: ~5x faster than its merge sort of 32-bit ones; the same order)."""
+    return np.argsort(lab.astype(np.uint16) if lab.size and int(lab.max()) < 1 << 16 else lab, kind="stable")
+
+
 def _group(dm: np.ndarray, stand: np.ndarray, cfg: SegmenterSettings, model: camera.RectifiedModel,
            step: int, extras: tuple[np.ndarray, ...] = ()
            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[np.ndarray]]:
@@ -319,7 +325,7 @@ def _group(dm: np.ndarray, stand: np.ndarray, cfg: SegmenterSettings, model: cam
     cells = (occ >= cfg.min_cell_height_m).astype(np.uint8)
     _, cc = cv2.connectedComponents(cv2.dilate(cells, _SQUARE), connectivity=8)
     lab = (cc * cells).ravel()[cell]
-    order = np.argsort(lab, kind="stable")[np.count_nonzero(lab == 0):]  # label 0 (ungrouped) sorts first
+    order = _label_order(lab)[np.count_nonzero(lab == 0):]  # label 0 (ungrouped) sorts first
     return ys[order], xs[order], dv[order], lab[order], [e.ravel().take(flat.take(order)) for e in extras]
 
 
@@ -538,7 +544,7 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
     dv0, hv = ex[0], ex[1] if above is not None else np.zeros(ys.size, np.float32)  # raw, height above the floor
     lab, family = _split_layers(ys, xs, dv, lab, cfg, model, step, None if above is None else hv)
     if family:  # labels changed (else they are _group's, sorted, from 1)
-        order = np.argsort(lab, kind="stable")[np.count_nonzero(lab == 0):]  # 0: dropped, sorts first
+        order = _label_order(lab)[np.count_nonzero(lab == 0):]  # 0: dropped, sorts first
         ys, xs, dv, lab, hv, dv0 = ys[order], xs[order], dv[order], lab[order], hv[order], dv0[order]
     bounds = np.flatnonzero(np.diff(lab)) + 1
     regions: list[_Region] = []
@@ -564,7 +570,7 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
         filled = 0
         if floor is not None and cfg.fill_to_floor:
             mask = np.zeros((y1 - y0, x1 - x0), bool)
-            mask[gy - y0, gx - x0] = True
+            mask.ravel()[(gy - y0) * (x1 - x0) + (gx - x0)] = True  # by flat index: no 2-D scatter
             extra = _fill_to_floor(mask, dm[y0:y1, x0:x1], x0, y0, floor, cfg,
                                    model, step, doubt_deg)
             if extra is not None:
