@@ -1,18 +1,20 @@
-"""Does a change to the segmenter keep its output? Record the disparity maps a command feeds the
+"""Does a change to the segmenter keep its output? Record the disparity maps an evaluation feeds the
 segmenter once, replay them through the code as it is now, compare the outputs exactly.
 
-    python -m bench.segmenter_replay capture DIR/NAME -- eval --method layers
-    python -m bench.segmenter_replay capture DIR/NAME -- eval --real ../shared/data/real/karlsruhe-0023
-    python -m bench.segmenter_replay replay DIR/NAME DIR/NAME.before     (on the old code)
-    python -m bench.segmenter_replay replay DIR/NAME DIR/NAME.after      (on the new code)
-    python -m bench.segmenter_replay compare DIR/NAME.before DIR/NAME.after
+    python -m bench.segmenter_replay capture DIR/syn synthetic              (what `eval` runs)
+    python -m bench.segmenter_replay capture DIR/sway synthetic sway        (`eval sway`)
+    python -m bench.segmenter_replay capture DIR/kit real ../shared/data/real/karlsruhe-0023  (`eval --real`)
+    python -m bench.segmenter_replay replay DIR/kit DIR/kit.before     (on the old code)
+    python -m bench.segmenter_replay replay DIR/kit DIR/kit.after      (on the new code)
+    python -m bench.segmenter_replay compare DIR/kit.before DIR/kit.after
 
-capture runs a `ballbot-vision` command and pickles every layers ObstacleBuilder's settings, mount
-and process() inputs (the map, the model, the call's keywords but the image) to NAME.pkl; replay
-feeds each recorded stream to a fresh builder and pickles, per frame, the obstacle list (without
-its publish time), the ground, the mount, the degraded flags, the free-space grid and the floor
-plane; compare says which frames differ and how (exit 1 if any). Floats are compared by repr: to
-the last bit. The files are large (the maps: ~150 MB for `eval`) and are pickles: replay only
+capture runs the evaluation (the layers method; a recording with `eval --real`'s defaults: range
+30 m, num_disparities auto) and pickles every ObstacleBuilder's settings, mount and process()
+inputs (the map, the model, the call's keywords but the image) to NAME.pkl; replay feeds each
+recorded stream to a fresh builder and pickles, per frame, the obstacle list (without its publish
+time), the ground, the mount, the degraded flags, the free-space grid and the floor plane; compare
+says which frames differ and how (exit 1 if any). Floats are compared by repr: to the last bit.
+The files are large (the maps: ~150 MB for all synthetic scenarios) and are pickles: replay only
 files you made.
 """
 from __future__ import annotations
@@ -25,8 +27,7 @@ from pathlib import Path
 import numpy as np
 
 
-def capture(name: str, argv: list[str]) -> int:
-    from ballbot_vision.cli import main
+def capture(name: str, kind: str, args: list[str]) -> int:
     from cores.segmentation import builder as B
 
     streams: list[dict] = []
@@ -45,14 +46,30 @@ def capture(name: str, argv: list[str]) -> int:
     B.ObstacleBuilder.__init__ = recording_init  # type: ignore[method-assign]
     B.ObstacleBuilder.process = recording_process  # type: ignore[method-assign]
     try:
-        rc = main(argv)
+        _evaluate(kind, args)
     finally:
         B.ObstacleBuilder.__init__, B.ObstacleBuilder.process = init, process  # type: ignore[method-assign]
     kept = [s for s in streams if s["calls"] and s["settings"]["method"] == "layers"]
     with open(f"{name}.pkl", "wb") as f:
         pickle.dump(kept, f)
     print(f"{name}.pkl: {len(kept)} stream(s), {sum(len(s['calls']) for s in kept)} frame(s)")
-    return rc or 0
+    return 0
+
+
+def _evaluate(kind: str, args: list[str]) -> None:
+    if kind == "synthetic":
+        from evaluation.synthetic import evaluate
+
+        evaluate(args or None, ["layers"])
+    elif kind == "real" and len(args) == 1:
+        from cores.matching.config import MatcherConfig
+        from cores.segmentation.settings import SegmenterSettings
+        from evaluation import real
+
+        real.evaluate_recording(real.open_recording(args[0]), SegmenterSettings(max_range_m=real.REAL_MAX_RANGE_M),
+                                MatcherConfig(num_disparities="auto"))
+    else:
+        raise SystemExit(f"capture: synthetic [SCENARIO ...] or real DIR, not {kind} {' '.join(args)}")
 
 
 def _output(res) -> tuple:  # type: ignore[no-untyped-def]
@@ -103,8 +120,8 @@ def compare(a: str, b: str) -> int:
 
 
 def main(argv: list[str]) -> int:
-    if len(argv) >= 3 and argv[0] == "capture" and argv[2] == "--":
-        return capture(argv[1], argv[3:])
+    if len(argv) >= 3 and argv[0] == "capture":
+        return capture(argv[1], argv[2], argv[3:])
     if len(argv) == 3 and argv[0] in ("replay", "compare"):
         return (replay if argv[0] == "replay" else compare)(argv[1], argv[2])
     print(__doc__)
