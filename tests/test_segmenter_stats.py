@@ -39,3 +39,13 @@ def test_label_order_is_numpys_stable_argsort():
         lab[100:900] = lab[100]  # long runs of one label, as objects give
         assert np.array_equal(_label_order(lab), np.argsort(lab, kind="stable")), top
     assert _label_order(np.zeros(0, np.int32)).size == 0
+
+
+def test_mean0_is_numpys_mean_down_axis_0():
+    rng = np.random.default_rng(3)
+    for n in [1, 2, 3, 17, 256, 1000, 4097, 30000]:
+        for k in [2, 3]:
+            a = rng.standard_normal((n, k)) * 10 ** rng.uniform(-3, 3) + rng.uniform(-50, 50)
+            assert _same(stats.mean0(a), a.mean(0)), (n, k)
+            b = a[::2]  # a strided view, as a subsample is
+            assert _same(stats.mean0(b), b.mean(0)), (n, k)

@@ -596,7 +596,7 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
         sub = r.pts[::max(1, len(r.pts) // _STAT_SAMPLES)]
         rng = np.sqrt((sub * sub).sum(1))
         x0, y0, x1, y1 = r.bbox
-        out.append(Detection(position_m=r.pts.mean(0), size_m=np.maximum(size, 0.0),
+        out.append(Detection(position_m=stats.mean0(r.pts), size_m=np.maximum(size, 0.0),
                              distance_m=float(stats.percentile(rng, 2)),
                              bbox_px=(x0 * step, y0 * step, min(model.width, x1 * step), min(model.height, y1 * step)),
                              area_px=int((r.area + r.filled) * step * step),
@@ -620,7 +620,7 @@ def merge_detections(dets: list[Detection], points: list[np.ndarray], model: cam
     sub = pts[::max(1, len(pts) // _STAT_SAMPLES)]
     lo, hi = stats.percentile(sub, [2, 98])
     area = sum(d.area_px for d in dets)
-    return Detection(position_m=pts.mean(0), size_m=np.maximum(hi - lo, 0.0),
+    return Detection(position_m=stats.mean0(pts), size_m=np.maximum(hi - lo, 0.0),
                      distance_m=min(float(d.distance_m) for d in dets),
                      bbox_px=(min(d.bbox_px[0] for d in dets), min(d.bbox_px[1] for d in dets),
                               max(d.bbox_px[2] for d in dets), max(d.bbox_px[3] for d in dets)),
@@ -663,7 +663,7 @@ def _edges(points: np.ndarray, model: camera.RectifiedModel) -> np.ndarray:
     """(2, 3): the mean of an object's points in its leftmost and its rightmost 5 % of image columns."""
     u = points[:, 0] / points[:, 2]
     lo, hi = stats.percentile(u, [5, 95])
-    return np.stack([points[u <= lo].mean(0), points[u >= hi].mean(0)])
+    return np.stack([stats.mean0(points[u <= lo]), stats.mean0(points[u >= hi])])
 
 
 def _points(ys: np.ndarray, xs: np.ndarray, d: np.ndarray, model: camera.RectifiedModel, step: int) -> np.ndarray:

@@ -48,3 +48,9 @@ def median(a: np.ndarray):
         return np.partition(a, h)[h] / 1
     part = np.partition(a, (h - 1, h))
     return (part[h - 1] + part[h]) / 2
+
+
+def mean0(a: np.ndarray) -> np.ndarray:
+    """a.mean(0) of an (n, k) float64 array: numpy sums down axis 0 row by row, and so does einsum,
+    several times faster for a few columns (tests/test_segmenter_stats.py holds the two equal)."""
+    return np.einsum("ij->j", a) / a.shape[0]
