@@ -17,7 +17,7 @@ from common.messages import DisparityMap, FreeSpace, GroundEstimate, Obstacle, O
 from common.settings import MountSettings
 from cores import camera
 from cores.matching.disparity import RecentValid, searched_range, to_float
-from cores.segmentation import freespace, layers, seed
+from cores.segmentation import freespace, layers, seed, stats
 from cores.segmentation.ground import TRUSTED, GroundEstimator, frame_mount, plane_from_mount
 from cores.segmentation.mount import FloorPlane, Mount
 from cores.segmentation.seed import Detection
@@ -309,7 +309,7 @@ class ObstacleBuilder:
 def _footprint(mount: Mount, points_camera: np.ndarray) -> np.ndarray:
     """(2, 2) lo, hi of an obstacle's points on the ground (base x, y; 2nd-98th percentile)."""
     p = mount.to_base(points_camera[::max(1, len(points_camera) // 1000)])
-    return np.percentile(p[:, :2], [2, 98], axis=0)
+    return stats.percentile(p[:, :2], [2, 98])
 
 
 def _vec(v) -> tuple[float, float, float]:

@@ -15,9 +15,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from cores import camera
-from cores.segmentation.mount import Mount
+from cores.segmentation.mount import FloorPlane, Mount
+from cores.segmentation.settings import SegmenterSettings
 
 MAX_CELLS = 4096  # per side (FreeSpace's bound); a coarser cell is used rather than a larger grid
+MAX_FLOOR_SAMPLES = 1_000_000  # points of drivable floor per frame, at most
 
 
 @dataclass
@@ -58,9 +60,45 @@ def occupancy(floor_points: np.ndarray, obstacle_points: list[np.ndarray], mount
         ok = (col >= 0) & (col < width) & (row >= 0) & (row < height)
         row *= width
         row += col
-        return row[ok]  # one selection of the flat index, not one of each coordinate
+        return row.take(np.flatnonzero(ok))  # one selection of the flat index, by index (faster than a mask)
 
     cells[index(floor_points)] = 0
-    if obstacle_points:
-        cells[index(np.concatenate(obstacle_points))] = 100
+    for points in obstacle_points:  # each apart: no copy of them all
+        cells[index(points)] = 100
     return Grid(res, width, height, origin, cells.reshape(height, width))
+
+
+def drivable(floor: FloorPlane, df: np.ndarray, seen_floor: np.ndarray, standing: np.ndarray, dk: np.ndarray,
+              model: camera.RectifiedModel, cfg: SegmenterSettings, step: int) -> np.ndarray:
+    """Points of the floor plane the robot may drive on, camera frame: along each image column (a
+    ray on the ground), the floor from the image's bottom edge out to the farthest floor point seen
+    in that column, but not beyond anything standing in it (any pixel above the floor margin,
+    obstacle or not) nor beyond the vision range. Block matching sees little of a smooth road, so
+    the floor between seen points counts as seen; an obstacle that left no pixel is not known."""
+    fB = model.focal_px * model.baseline_m
+
+    def depth(d: np.ndarray) -> np.ndarray:  # float32 f B / d (inf where d <= 0): the same of a column's
+        with np.errstate(divide="ignore"):  # extreme disparity as the extreme of the column's depths
+            return np.where(d > 0, fB / np.maximum(d, 1e-6), np.inf)
+    # the farthest floor seen (0: none), the nearest thing standing (all standing pixels have a disparity)
+    far = depth(np.minimum.reduce(df, axis=0, where=seen_floor, initial=np.inf))
+    near_standing = depth(np.maximum.reduce(dk, axis=0, where=standing, initial=0))
+    limit = np.minimum(np.minimum(far, near_standing), cfg.range_for(model))
+    near = depth(df[-1])  # the floor at the image's bottom edge
+    cols = np.nonzero(np.isfinite(near) & (limit > near))[0]
+    if not cols.size:
+        return np.zeros((0, 3))
+    # march along each column's ray on the floor in steps of half a free-space cell (coarser when a
+    # wide image and a long range would make more than MAX_FLOOR_SAMPLES points)
+    longest = float((limit[cols] - near[cols]).max())
+    spacing = max(0.5 * cfg.freespace_resolution_m, longest * cols.size / MAX_FLOOR_SAMPLES)
+    n = int(np.ceil(longest / spacing)) + 1
+    z = near[cols][:, None] + spacing * np.arange(n)[None, :]
+    z = np.where(z <= limit[cols][:, None], z, np.nan).ravel()
+    u = np.repeat(cols.astype(np.float64) * step, n)
+    ok = np.flatnonzero(np.isfinite(z))  # by index: faster than two masks
+    z, u = z.take(ok), u.take(ok)
+    f = model.focal_px
+    # the floor's pixel row at depth z in column u: a u + b v + c = f B / z
+    v = (fB / z - floor.a * u - floor.c) / floor.b
+    return np.stack([(u - model.cx) * z / f, (v - model.cy) * z / f, z], 1)

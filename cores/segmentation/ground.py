@@ -184,8 +184,10 @@ class _Pixels:
         return inl
 
     def fit(self, m: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
-        """lstsq_plane on the pixels of mask m (weights w: one per pixel of m)."""
-        return _lstsq(self.u64[m], self.v64[m], self.d64[m], None if w is None else w.astype(np.float64))
+        """lstsq_plane on the pixels of mask m, or of indices m (weights w: one per pixel of m)."""
+        i = np.flatnonzero(m) if m.dtype == bool else m  # by index: several times faster than 3 masks
+        w64 = None if w is None else w.astype(np.float64)
+        return _lstsq(self.u64.take(i), self.v64.take(i), self.d64.take(i), w64)
 
     def left(self, cx: float) -> np.ndarray:
         """The pixels left of column cx."""
@@ -297,7 +299,8 @@ def vdisparity_planes(u: np.ndarray, v: np.ndarray, d: np.ndarray, model: camera
     mid = (u > 0.25 * w) & (u < 0.75 * w) & (d > 0.5)
     if np.count_nonzero(mid) < 50:
         return []
-    vv, dd = v[mid], np.round(d[mid]).astype(np.int64)
+    i = np.flatnonzero(mid)
+    vv, dd = v.take(i), np.round(d.take(i)).astype(np.int64)
     nd = int(dd.max()) + 1
     rows = vv.astype(np.int64)
     cells, cnt = np.unique(rows * nd + dd, return_counts=True)
@@ -379,10 +382,11 @@ def _polish(p: np.ndarray, px: _Pixels, iterations: int = 2) -> np.ndarray:
         r /= sigma
         m = np.abs(r) < 3
         m &= pred > 0
-        if np.count_nonzero(m) < MIN_INLIERS:
+        i = np.flatnonzero(m)
+        if i.size < MIN_INLIERS:
             break
-        rm = r[m]
-        p = px.fit(m, 1.0 / (1.0 + rm * rm))
+        rm = r.take(i)
+        p = px.fit(i, 1.0 / (1.0 + rm * rm))
     return p
 
 
@@ -422,8 +426,8 @@ def _points(dm: np.ndarray, step: int) -> tuple[np.ndarray, np.ndarray, np.ndarr
     sub = dm[::s, ::s]
     h, w = sub.shape
     uu, vv = _full_grid(h, w, step * s)
-    valid = sub > 0
-    return uu[valid], vv[valid], sub[valid]
+    i = np.flatnonzero(sub > 0)  # (by index: faster than three masks)
+    return uu.take(i), vv.take(i), sub.take(i)
 
 
 def fit_candidates(dm: np.ndarray, model: camera.RectifiedModel, step: int, guesses: dict[str, FloorPlane],
