@@ -12,7 +12,7 @@ from common.errors import DecodeError
 from common.messages import CameraModel, DisparityMap, GroundEstimate, Image
 from common.settings import MountSettings
 from cores import camera
-from cores.segmentation import layers, seed
+from cores.segmentation import depth_split, layers, regions, seed
 from cores.segmentation.builder import ObstacleBuilder
 from cores.segmentation.mount import FloorPlane, Mount
 from cores.segmentation.settings import SegmenterSettings
@@ -95,7 +95,7 @@ def _grouped(*parts):
 
 
 def _layers_of(ys, xs, dv, lab):
-    out = layers._split_layers(ys, xs, dv, lab, SegmenterSettings(max_range_m=10.0), MODEL, 2)[0]
+    out = depth_split.split_layers(ys, xs, dv, lab, SegmenterSettings(max_range_m=10.0), MODEL, 2)[0]
     return {int(k): (float(np.median(dv[out == k])), int((out == k).sum())) for k in np.unique(out) if k > 0}
 
 
@@ -143,7 +143,7 @@ def test_the_depth_layer_split_keeps_a_surface_resting_on_the_far_side_s_top_who
     def parts(valley, height_of):
         ys, xs, dv, lab = _grouped(near, *valley, leg)
         heights = None if height_of is None else height_of(ys, xs)
-        out = layers._split_layers(ys, xs, dv, lab, cfg, MODEL, 2, heights)[0]
+        out = depth_split.split_layers(ys, xs, dv, lab, cfg, MODEL, 2, heights)[0]
         return np.unique(out[out > 0]).size
 
     floor_up = lambda ys, xs: (200 - ys) * 0.01  # noqa: E731 - the leg's top (row 120) is 0.8 m high
@@ -161,15 +161,15 @@ def test_depth_layers_of_one_group_are_not_joined_again_but_a_fence_s_stretches_
     def region(z0, z1, groups=frozenset(), cols=(0, 10)):
         x, y, z = np.meshgrid(np.linspace(-1.0, -0.8, 5), np.linspace(-0.5, 0.5, 11), np.linspace(z0, z1, 11))
         pts = np.stack([x.ravel(), y.ravel(), z.ravel()], 1)
-        return layers._Region(pts, pts.min(0), pts.max(0), (cols[0], 0, cols[1], 10), 100, 100,
+        return regions.Region(pts, pts.min(0), pts.max(0), (cols[0], 0, cols[1], 10), 100, 100,
                               np.full(len(pts), FB / z0), 0, groups)
 
     # a fence's stretches recede side by side in the image
-    fence = layers._merge_close([region(5.0, 5.5, cols=(0, 10)), region(5.7, 6.2, cols=(10, 16))], 0.12, 0.25)
+    fence = regions.merge_close([region(5.0, 5.5, cols=(0, 10)), region(5.7, 6.2, cols=(10, 16))], 0.12, 0.25)
     assert len(fence) == 1
-    people = layers._merge_close([region(5.0, 5.5, frozenset({7})), region(5.7, 6.2, frozenset({7}))], 0.12, 0.25)
+    people = regions.merge_close([region(5.0, 5.5, frozenset({7})), region(5.7, 6.2, frozenset({7}))], 0.12, 0.25)
     assert len(people) == 2
-    touching = layers._merge_close([region(5.0, 5.5, frozenset({7})), region(5.55, 6.2, frozenset({7}))], 0.12, 0.25)
+    touching = regions.merge_close([region(5.0, 5.5, frozenset({7})), region(5.55, 6.2, frozenset({7}))], 0.12, 0.25)
     assert len(touching) == 1
 
 
@@ -185,20 +185,20 @@ def test_a_person_walking_behind_a_table_is_not_joined_to_it_by_their_boxes():
     and what it hides are two; the same boxes side by side in the image (a fence's stretches)
     are one."""
     def region(pts, cols):
-        return layers._Region(pts, pts.min(0), pts.max(0), (cols[0], 0, cols[1], 10), 100, 100,
+        return regions.Region(pts, pts.min(0), pts.max(0), (cols[0], 0, cols[1], 10), 100, 100,
                               FB / pts[:, 2], 0, frozenset())
 
     table = np.concatenate([_box_points(0.5, 0.92, 0.0, 0.02, 1.9, 2.3), _box_points(0.5, 0.53, 0.0, 0.7, 2.5, 2.56)])
     person = _box_points(0.75, 1.06, -0.96, 0.7, 2.65, 2.9)
-    assert len(layers._merge_close([region(table, (220, 320)), region(person, (240, 300))], 0.12, 0.25)) == 2
-    assert len(layers._merge_close([region(table, (220, 320)), region(person, (320, 380))], 0.12, 0.25)) == 1
+    assert len(regions.merge_close([region(table, (220, 320)), region(person, (240, 300))], 0.12, 0.25)) == 2
+    assert len(regions.merge_close([region(table, (220, 320)), region(person, (320, 380))], 0.12, 0.25)) == 1
 
 
 def test_things_joined_only_by_something_low_are_cut_apart_and_stay_apart():
     """On the column-disparity grid, two tall things (cores) joined by a band of low cells (a kerb
     or a snow bank along the street) are cut between them, each low cell to its nearest core; one
     tall thing with a low thing beside it, or low things alone, are not cut; the pieces of a cut
-    are not joined again by _merge_close although they touch."""
+    are not joined again by merge_close although they touch."""
     from cores.segmentation.cells import group_cells
 
     cells = np.zeros((20, 60), np.uint8)
@@ -218,12 +218,12 @@ def test_things_joined_only_by_something_low_are_cut_apart_and_stay_apart():
     assert len(np.unique(labels[cells > 0])) == 1 and not cut_from
 
     def region(pts, cuts):
-        return layers._Region(pts, pts.min(0), pts.max(0), (0, 0, 10, 10), 100, 100, FB / pts[:, 2], 0,
+        return regions.Region(pts, pts.min(0), pts.max(0), (0, 0, 10, 10), 100, 100, FB / pts[:, 2], 0,
                               frozenset(), frozenset(cuts))
 
     a, b = _box_points(1.0, 2.0, 0.0, 1.0, 5.0, 6.0), _box_points(2.05, 3.0, 0.0, 1.0, 5.0, 6.0)
-    assert len(layers._merge_close([region(a, {3}), region(b, {3})], 0.12, 0.25)) == 2
-    assert len(layers._merge_close([region(a, {3}), region(b, {4})], 0.12, 0.25)) == 1
+    assert len(regions.merge_close([region(a, {3}), region(b, {3})], 0.12, 0.25)) == 2
+    assert len(regions.merge_close([region(a, {3}), region(b, {4})], 0.12, 0.25)) == 1
 
 
 def test_a_leg_whose_top_is_hidden_a_little_below_the_table_top_is_dropped_at_the_image_edge():
@@ -238,7 +238,7 @@ def test_a_leg_whose_top_is_hidden_a_little_below_the_table_top_is_dropped_at_th
         v = pts[:, 1] / pts[:, 2] * MODEL.focal_px + MODEL.cy
         box = (int(u.min() / step), int(v.min() / step), int(u.max() / step) + 1, int(v.max() / step) + 1)
         area = (box[2] - box[0]) * (box[3] - box[1])
-        return layers._Region(pts, np.percentile(pts, 2, 0), np.percentile(pts, 98, 0), box, area, area,
+        return regions.Region(pts, np.percentile(pts, 2, 0), np.percentile(pts, 98, 0), box, area, area,
                               FB / pts[:, 2], 0)
 
     top = _box_points(0.5, 1.2, 0.1, 0.1, 2.5, 2.52, n=30)
@@ -246,9 +246,9 @@ def test_a_leg_whose_top_is_hidden_a_little_below_the_table_top_is_dropped_at_th
     table = region(np.concatenate([top, front_leg]))
     back_leg = region(_box_points(1.05, 1.1, 0.2, 0.9, 3.0, 3.03, n=20))
     assert table.bbox[2] >= MODEL.width // step - 1  # the table reaches the image's right edge
-    assert not layers._encloses(table, back_leg, MODEL, step)
+    assert not regions.encloses(table, back_leg, MODEL, step)
     assert back_leg.bbox[1] - 9 <= int(0.1 / 2.5 * MODEL.focal_px / step + MODEL.cy / step) <= back_leg.bbox[1] - 7
-    kept = layers._absorb_contained([table, back_leg], 0.12, MODEL, step)
+    kept = regions.absorb_contained([table, back_leg], 0.12, MODEL, step)
     assert len(kept) == 1 and kept[0] is table
 
 
@@ -727,23 +727,23 @@ def test_what_stands_behind_is_dropped_only_when_seen_through_the_nearer_object(
         lo, hi = np.percentile(pts, [2, 98], axis=0)
         x0, y0 = pix.min(0).astype(int)
         x1, y1 = pix.max(0).astype(int) + 1
-        return layers._Region(pts, lo, hi, (x0, y0, x1, y1), len(pix), len(pix), np.full(len(pix), FB / z))
+        return regions.Region(pts, lo, hi, (x0, y0, x1, y1), len(pix), len(pix), np.full(len(pix), FB / z))
 
     ys, xs = np.mgrid[100:300, 200:400]
     body = (ys >= 200) | (ys < 120) | (xs < 220) | (xs >= 380)  # a car: a window in its upper half
     car = region(np.stack([xs[body], ys[body]], 1), 3.0)
     ys, xs = np.mgrid[130:190, 240:360]
     behind = region(np.stack([xs.ravel(), ys.ravel()], 1), 8.0)
-    assert layers._encloses(car, behind, MODEL, 1)
-    assert len(layers._absorb_contained([car, behind], 0.12, MODEL, 1)) == 1
+    assert regions.encloses(car, behind, MODEL, 1)
+    assert len(regions.absorb_contained([car, behind], 0.12, MODEL, 1)) == 1
     ys, xs = np.mgrid[20:400, 100:400]
     # legs out at both sides, a seat across, its back reaching up on the right
     chair = ((ys > 200) & ((xs < 110) | (xs >= 390))) | ((ys > 200) & (ys < 220)) | (xs >= 300)
     chair = region(np.stack([xs[chair], ys[chair]], 1), 2.0)
     ys, xs = np.mgrid[20:180, 110:200]
     person = region(np.stack([xs.ravel(), ys.ravel()], 1), 3.2)
-    assert not layers._encloses(chair, person, MODEL, 1)
-    assert len(layers._absorb_contained([chair, person], 0.12, MODEL, 1)) == 2
+    assert not regions.encloses(chair, person, MODEL, 1)
+    assert len(regions.absorb_contained([chair, person], 0.12, MODEL, 1)) == 2
     # seen between a person's legs, standing on the floor seen there (filled to it), its top seen: a
     # crate of its own; a table's back leg under its top, the top hiding its upper end: dropped
     ys, xs = np.mgrid[20:400, 200:400]
@@ -751,17 +751,17 @@ def test_what_stands_behind_is_dropped_only_when_seen_through_the_nearer_object(
     walker = region(np.stack([xs[walker], ys[walker]], 1), 2.6)
     ys, xs = np.mgrid[300:390, 270:330]
     crate = region(np.stack([xs.ravel(), ys.ravel()], 1), 3.4)
-    assert layers._encloses(walker, crate, MODEL, 1)
-    assert len(layers._absorb_contained([walker, crate], 0.12, MODEL, 1)) == 1  # no foot on the floor seen
+    assert regions.encloses(walker, crate, MODEL, 1)
+    assert len(regions.absorb_contained([walker, crate], 0.12, MODEL, 1)) == 1  # no foot on the floor seen
     crate.filled = 40
-    assert len(layers._absorb_contained([walker, crate], 0.12, MODEL, 1)) == 2
+    assert len(regions.absorb_contained([walker, crate], 0.12, MODEL, 1)) == 2
     ys, xs = np.mgrid[100:300, 100:500]
     table = (ys < 130) | (xs < 120) | (xs >= 480)
     table = region(np.stack([xs[table], ys[table]], 1), 2.0)
     ys, xs = np.mgrid[130:280, 300:310]
     leg = region(np.stack([xs.ravel(), ys.ravel()], 1), 2.5)
     leg.filled = 20
-    assert len(layers._absorb_contained([table, leg], 0.12, MODEL, 1)) == 1
+    assert len(regions.absorb_contained([table, leg], 0.12, MODEL, 1)) == 1
     # a back leg beside the front leg at the table's end, under its top (not framed by the table:
     # nothing of it to the leg's right), is under it all the same, also when the layer split cut it
     # from the table's group
@@ -770,10 +770,10 @@ def test_what_stands_behind_is_dropped_only_when_seen_through_the_nearer_object(
     ys, xs = np.mgrid[130:280, 460:472]
     leg = region(np.stack([xs.ravel(), ys.ravel()], 1), 2.5)
     leg.filled = 20
-    assert not layers._encloses(table, leg, MODEL, 1)
-    assert len(layers._absorb_contained([table, leg], 0.12, MODEL, 1)) == 1
+    assert not regions.encloses(table, leg, MODEL, 1)
+    assert len(regions.absorb_contained([table, leg], 0.12, MODEL, 1)) == 1
     table.groups = leg.groups = frozenset({7})
-    assert len(layers._absorb_contained([table, leg], 0.12, MODEL, 1)) == 1
+    assert len(regions.absorb_contained([table, leg], 0.12, MODEL, 1)) == 1
 
 
 def test_a_small_thing_beyond_an_empty_stretch_of_depth_is_split_from_the_group_a_hand_is_not():
@@ -788,7 +788,7 @@ def test_a_small_thing_beyond_an_empty_stretch_of_depth_is_split_from_the_group_
     def split(d):
         d = d.astype(np.float32)
         ys, xs = np.arange(d.size) // 40, np.arange(d.size) % 40
-        lab, family = layers._split_layers(ys, xs, d, np.ones(d.size, np.int32), cfg, MODEL, 2)
+        lab, family = depth_split.split_layers(ys, xs, d, np.ones(d.size, np.int32), cfg, MODEL, 2)
         return np.unique(lab[lab > 0]).size
 
     assert split(np.concatenate([person, leg])) == 2

@@ -51,26 +51,12 @@ import numpy as np
 
 from common.messages import GroundEstimate
 from cores import camera
-from cores.segmentation import freespace, stats
+from cores.segmentation import depth_split, freespace, regions, stats
 from cores.segmentation.cells import LOW_M, group_cells
 from cores.segmentation.ground import GroundEstimator, grid
 from cores.segmentation.mount import FloorPlane, Mount
 from cores.segmentation.seed import Detection
 from cores.segmentation.settings import SegmenterSettings
-
-
-@dataclass
-class _Region:
-    pts: np.ndarray  # (n, 3) camera-frame points (m) of the region's inlier pixels
-    lo: np.ndarray  # (3,) 2nd percentile of the points
-    hi: np.ndarray  # (3,) 98th percentile
-    bbox: tuple[int, int, int, int]  # working-resolution x0, y0, x1, y1 (exclusive)
-    area: int  # working-resolution pixels
-    valid: float  # of which with a valid raw disparity (with a confidence map: its sum / 255)
-    disparities: np.ndarray  # (n,) px
-    filled: int = 0  # points added by _fill_to_floor (included in pts)
-    groups: frozenset = frozenset()  # the split groups (_split_layers) it holds a depth layer of
-    cuts: frozenset = frozenset()  # the touching groups cut at a low bridge (cells.py) it holds a piece of
 
 
 def _fill_to_floor(mask: np.ndarray, d_box: np.ndarray, x0: int, y0: int, floor: FloorPlane, cfg: SegmenterSettings,
@@ -115,157 +101,6 @@ def _fill_to_floor(mask: np.ndarray, d_box: np.ndarray, x0: int, y0: int, floor:
     return P[idx] + t[:, None] * n_down
 
 
-def _merge_close(regions: list[_Region], gap_m: float, depth_gap_m: float = 0.0) -> list[_Region]:
-    """Merge regions whose 3D extents come within gap_m of each other across the view (x, y) and
-    within max(gap_m, depth_gap_m) along it (z): the parts of one object that the image shows
-    apart (a chair's back leg seen between its front legs; a fence or a wall along the road seen
-    obliquely, whose texture-poor stretches the matcher leaves out)."""
-    if len(regions) < 2 or gap_m <= 0:
-        return regions
-    parent = list(range(len(regions)))
-
-    def root(i: int) -> int:
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    lo = np.array([r.lo for r in regions])
-    hi = np.array([r.hi for r in regions])
-    gap = np.maximum(lo[:, None, :] - hi[None, :, :], lo[None, :, :] - hi[:, None, :])  # (n, n, 3)
-    close = np.all(gap <= np.array([gap_m, gap_m, max(gap_m, depth_gap_m)]), axis=2)
-    held = [set(r.groups) for r in regions]  # per root: the split groups it holds a layer of
-    cut = [set(r.cuts) for r in regions]  # per root: the cut groups it holds a piece of
-    for i, j in zip(*np.nonzero(np.triu(close, 1))):
-        a, b = root(int(i)), root(int(j))
-        # two depth layers of one group (a person behind another) are not joined again by the gap
-        # along the view that joins a fence's stretches, only where they touch: their points, not
-        # just their boxes (a person walking past a table's back corner)
-        if a == b or cut[a] & cut[b]:
-            continue  # two pieces of a group cut between two things (cells.py) touch by construction
-        if (held[a] & held[b] and (gap[i, j, 2] > gap_m or not _touch(regions[i], regions[j], gap_m))):
-            continue
-        # boxes that share image columns are apart along the view only: one stands in front of the
-        # other, and how close the boxes come says little of how close the things do (a table's
-        # top reaches back over the floor where a person walks behind it). The slack along the view
-        # is for one surface receding from the camera (a fence, a wall seen obliquely), whose
-        # stretches lie side by side in the image: these two are joined only where their points touch
-        if _share_columns(regions[i], regions[j]) and \
-                (gap[i, j, 2] > gap_m or not _touch(regions[i], regions[j], gap_m)):
-            continue
-        parent[a] = b
-        held[b] |= held[a]
-        cut[b] |= cut[a]
-    groups: dict[int, list[_Region]] = {}
-    for i, r in enumerate(regions):
-        groups.setdefault(root(i), []).append(r)
-    out = []
-    for g in groups.values():
-        if len(g) == 1:
-            out.append(g[0])
-            continue
-        out.append(_union(g))
-    return out
-
-
-def _share_columns(p: _Region, q: _Region, share: float = 0.25) -> bool:
-    """Whether p's and q's image boxes overlap in columns by at least `share` of the narrower one's width."""
-    overlap = min(p.bbox[2], q.bbox[2]) - max(p.bbox[0], q.bbox[0])
-    return overlap >= share * min(p.bbox[2] - p.bbox[0], q.bbox[2] - q.bbox[0])
-
-
-def _touch(p: _Region, q: _Region, gap_m: float, samples: int = 400) -> bool:
-    """Whether some point of p comes within gap_m of some point of q (on up to `samples` of each)."""
-    a = p.pts[::max(1, len(p.pts) // samples)]
-    b = q.pts[::max(1, len(q.pts) // samples)]
-    return bool((((a[:, None, :] - b[None, :, :]) ** 2).sum(2) <= gap_m * gap_m).any())
-
-
-def _absorb_contained(regions: list[_Region], gap_m: float, model: camera.RectifiedModel, step: int,
-                      inside: float = 0.8) -> list[_Region]:
-    """A region whose image box lies mostly (inside) within a larger region's box is, compared
-    with the larger one's depth in the same image columns: part of it (the depths meet: merged),
-    seen through it (farther: a car's windows, a shelter's glass; dropped, the nearer object is
-    what stands in the way), or in front of it (kept: a chessboard on its stand before a wall)."""
-    if len(regions) < 2:
-        return regions
-    order = sorted(range(len(regions)), key=lambda i: -regions[i].area)
-    alive = [True] * len(regions)
-    for ci in order:
-        if not alive[ci]:
-            continue
-        c = regions[ci]
-        for ri in order:
-            r = regions[ri]
-            if ri == ci or not alive[ri] or r.area >= c.area:
-                continue
-            ix = max(0, min(r.bbox[2], c.bbox[2]) - max(r.bbox[0], c.bbox[0]))
-            iy = max(0, min(r.bbox[3], c.bbox[3]) - max(r.bbox[1], c.bbox[1]))
-            own = (r.bbox[2] - r.bbox[0]) * (r.bbox[3] - r.bbox[1])
-            if ix * iy < inside * own:
-                continue
-            u = c.pts[:, 0] / c.pts[:, 2] * model.focal_px + model.cx  # full-resolution columns
-            there = (u >= r.bbox[0] * step) & (u < r.bbox[2] * step)
-            if not there.any():
-                continue
-            zc = stats.percentile(c.pts[there, 2], [10, 90])
-            zr = float(stats.median(r.pts[:, 2]))
-            tol = gap_m + 0.02 * zr
-            capped = _capped(c, r, model, step)
-            if r.groups & c.groups and not capped:
-                continue  # two depth layers of one group: one stands behind the other, both are there
-            if zr > zc[1] + tol:
-                # behind it and seen under it (its top hidden by it: a table's back leg under the top,
-                # beside or between the front legs) or seen through it (framed by it: a car's windows)
-                # it is dropped: the nearer object stands in the way. Unless it is whole in a gap: it
-                # stands on the floor seen there and its own top is seen (a box between a person's
-                # legs); what is seen through a car's windows ends at their lower edge
-                if capped or (_encloses(c, r, model, step) and not r.filled):
-                    alive[ri] = False
-            elif zr >= zc[0] - tol:
-                alive[ri] = False
-                c = regions[ci] = _union([c, r])
-    return [r for r, a in zip(regions, alive) if a]
-
-
-def _encloses(c: _Region, r: _Region, model: camera.RectifiedModel, step: int) -> bool:
-    """Whether c's points surround r's box in the image: on both sides of it within its rows, or
-    above and below it within its columns. What is seen through an object (a car's windows, a
-    gap between a person's legs) is framed by it; a person standing behind a chair, seen above and
-    beside its back, is not, though the chair's box (its back reaching up, its legs out) holds
-    theirs."""
-    u = c.pts[:, 0] / c.pts[:, 2] * model.focal_px + model.cx
-    v = c.pts[:, 1] / c.pts[:, 2] * model.focal_px + model.cy
-    x0, y0, x1, y1 = (k * step for k in r.bbox)
-    rows, cols = (v >= y0) & (v < y1), (u >= x0) & (u < x1)
-    return bool(((rows & (u < x0)).any() and (rows & (u >= x1)).any())
-                or ((cols & (v < y0)).any() and (cols & (v >= y1)).any()))
-
-
-def _capped(c: _Region, r: _Region, model: camera.RectifiedModel, step: int, rows: int = 10) -> bool:
-    """Whether c's points lie right above r's box (within `rows` working rows of its top) across
-    most of its columns: r's top is hidden by c, r may reach on up behind it. (A few of c's points
-    there are the ragged edge of the frame beside r, not a cap over it.) Ten rows, not three: a
-    table's top seen from above has depth, and its back leg's top hides up to ~20 px below the
-    top's lower edge in the image (sway, frame 25)."""
-    u = c.pts[:, 0] / c.pts[:, 2] * model.focal_px + model.cx
-    v = c.pts[:, 1] / c.pts[:, 2] * model.focal_px + model.cy
-    x0, y0, x1, _ = r.bbox
-    over = (u >= x0 * step) & (u < x1 * step) & (v >= (y0 - rows) * step) & (v < (y0 + 1) * step)
-    cols = np.unique((u[over] / step).astype(np.int64))
-    return cols.size >= 0.5 * (x1 - x0)
-
-
-def _union(g: list[_Region]) -> _Region:
-    pts = np.concatenate([r.pts for r in g])
-    lo, hi = stats.percentile(pts[::max(1, len(pts) // _STAT_SAMPLES)], [2, 98])
-    return _Region(pts, lo, hi, (min(r.bbox[0] for r in g), min(r.bbox[1] for r in g), max(r.bbox[2] for r in g),
-                                 max(r.bbox[3] for r in g)), sum(r.area for r in g), sum(r.valid for r in g),
-                   np.concatenate([r.disparities for r in g]), sum(r.filled for r in g),
-                   frozenset().union(*(r.groups for r in g)), frozenset().union(*(r.cuts for r in g)))
-
-
-_STAT_SAMPLES = 1500  # percentiles of a region are taken on at most ~2x this many of its points
 _SQUARE = np.ones((3, 3), np.uint8)
 _CROSS = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
 
@@ -344,162 +179,6 @@ def _group(dm: np.ndarray, stand: np.ndarray, cfg: SegmenterSettings, model: cam
     return ys[order], xs[order], dv[order], lab[order], gathered, cut_from
 
 
-_LAYER_BIN_PX = 1.0 / 16.0  # disparity histogram bins of the layer split: the matchers' sub-pixel step
-_LAYER_SMOOTH_BINS = 1.0  # Gaussian smoothing of that histogram, bins (sub-pixel matching noise)
-_LAYER_BAND = 0.35  # the valley band: bins below this share of the smaller peak's density
-_LAYER_MAX_SPLITS = 3  # each side of a split is split again, this many levels deep at most
-_LAYER_ON_TOP_M = 0.25  # a valley at most this far above the farther side's top rests on it
-
-
-def _split_layers(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, lab: np.ndarray, cfg: SegmenterSettings,
-                  model: camera.RectifiedModel, step: int, heights: np.ndarray | None = None
-                  ) -> tuple[np.ndarray, dict[int, int]]:
-    """Split grouped objects that are two things one behind the other: (new labels for the grouped
-    pixels, sorted by label as _group gives them, 0 = dropped; {label: the group it was split
-    from} for every label of a split group, whose layers later steps do not join again by depth).
-
-    The column-disparity grid joins cells up to a few pixels of disparity apart (one object's
-    surfaces at slightly different depths; a wall seen obliquely), which far away is metres: a
-    person 0.3 m behind another, a person behind a table, are one cell group. They show as two
-    peaks of the group's disparity histogram (area-weighted: m^2 of surface per bin) with a valley
-    between them that holds only the ramp block matching draws across the occlusion's contour, a
-    band a few pixels wide. A valley splits the group when
-    - its density is at most layer_valley_ratio of the smaller peak's;
-    - each side holds layer_min_area_m2 of surface and a tenth of the other side's (specks of
-      phantom depth beside a car or a facade stay with it), or the valley is empty over
-      layer_gap_m of depth and each side holds min_area_m2 (a table's back leg, grouped with the
-      person beside it, is no speck of theirs);
-    - the peaks stand layer_gap_m apart in depth (a torso before the legs is one person);
-    - the valley's pixels are a thin band, at most layer_bridge_px wide along most image rows
-      they are in (the median row): a table top or a chair seat also fills the valley between
-      front and back legs, but across the object's whole width in all its rows, and keeps it
-      whole; a rail reaching back in a few rows beside a ramp along a person's whole side does not;
-    - the far side is within layer_split_range_m (a far street's facades and shelters would fall
-      apart into panels).
-    The valley's pixels (the ramp: phantom depths) are dropped; each side may be split again."""
-    family: dict[int, int] = {}
-    if cfg.layer_valley_ratio <= 0 or lab.size == 0:
-        return lab, family
-    out = lab.copy()
-    next_label = int(lab.max()) + 1
-    fB = model.focal_px * model.baseline_m
-    bridge = cfg.layer_bridge_px / step
-    k = np.arange(-4, 5, dtype=np.float64)
-    kernel = np.exp(-0.5 * (k / _LAYER_SMOOTH_BINS) ** 2)
-    kernel /= kernel.sum()
-    bounds = np.flatnonzero(np.diff(lab)) + 1
-    starts, ends = np.concatenate([[0], bounds]), np.concatenate([bounds, [lab.size]])
-    d_lo, d_hi = np.minimum.reduceat(dv, starts), np.maximum.reduceat(dv, starts)
-    # a group spanning less depth than layer_gap_m, or all beyond layer_split_range_m, has nothing to split
-    deep = (fB / np.maximum(d_lo, 1e-6) - fB / np.maximum(d_hi, 1e-6) >= cfg.layer_gap_m) & \
-        (fB / np.maximum(d_hi, 1e-6) <= cfg.layer_split_range_m) & (ends - starts >= 2 * cfg.min_pixels)
-    for a, b in zip(starts[deep], ends[deep]):
-        todo = [(np.arange(a, b), 0)]
-        while todo:
-            idx, level = todo.pop()
-            if level >= _LAYER_MAX_SPLITS or idx.size < 2 * cfg.min_pixels:
-                continue
-            d = dv[idx].astype(np.float64)
-            bins = np.floor(d / _LAYER_BIN_PX).astype(np.int64)
-            b0 = int(bins.min())
-            rel = bins - b0
-            area = (step * model.baseline_m / d) ** 2  # m^2 of surface a working pixel covers at its depth
-            raw = np.bincount(rel, weights=area)
-            hist = np.convolve(np.pad(raw, kernel.size // 2), kernel, mode="valid")
-            if hist.size < 3:
-                continue
-            mass_left = np.cumsum(hist)
-            mass_right = mass_left[-1] - mass_left + hist
-            least = np.maximum(cfg.layer_min_area_m2, 0.1 * np.maximum(mass_left, mass_right))
-            ok = (mass_left >= least) & (mass_right >= least)
-            # a stretch of depth with no pixel at all, layer_gap_m long, is no ramp nor a hand held
-            # out: what lies beyond it is a thing of its own however small (a table's back leg seen
-            # past a person's side), as long as it is an obstacle's size
-            # and seen with _LAYER_EMPTY_MIN_PIXELS on each side: a small thing far away is a
-            # handful of pixels, split off one frame and not the next
-            gap = _empty_runs(raw == 0, b0, fB) >= cfg.layer_gap_m
-            n_left = np.cumsum(np.bincount(rel, minlength=hist.size))
-            n_right = n_left[-1] - n_left + np.bincount(rel, minlength=hist.size)
-            ok |= gap & (mass_left >= cfg.min_area_m2) & (mass_right >= cfg.min_area_m2) & \
-                (np.minimum(n_left, n_right) >= _LAYER_EMPTY_MIN_PIXELS)
-            ok[0] = ok[-1] = False
-            if not ok.any():
-                continue
-            lower = np.minimum(np.maximum.accumulate(hist), np.maximum.accumulate(hist[::-1])[::-1])
-            ratio = np.where(ok, hist / np.maximum(lower, 1e-12), np.inf)
-            i = int(np.argmin(ratio))
-            if ratio[i] > cfg.layer_valley_ratio:
-                continue
-            band = hist <= _LAYER_BAND * lower[i]
-            lo = hi = i
-            while lo > 0 and band[lo - 1]:
-                lo -= 1
-            while hi < hist.size - 1 and band[hi + 1]:
-                hi += 1
-            z_far = fB / ((b0 + int(np.argmax(hist[:lo])) + 0.5) * _LAYER_BIN_PX)
-            z_near = fB / ((b0 + hi + 1 + int(np.argmax(hist[hi + 1:])) + 0.5) * _LAYER_BIN_PX)
-            if z_far > cfg.layer_split_range_m or z_far - z_near < cfg.layer_gap_m:
-                continue
-            in_band = (rel >= lo) & (rel <= hi)
-            # how wide the valley's pixels are along the image rows they are in: a ramp along an
-            # occlusion's contour is a few pixels wide whatever the contour's shape. The median row,
-            # not the mean: a surface reaching across the valley in a few rows (a table's rail seen
-            # end-on, beside a person walking behind it) must not outweigh the contour's many rows
-            # (an empty valley bridges nothing: two things with clear space between them in depth)
-            rows = np.unique(ys[idx[in_band]], return_counts=True)[1]
-            if rows.size and np.median(rows) > bridge:
-                continue
-            far, near = idx[rel < lo], idx[rel > hi]
-            # the ramp across an occlusion runs down the nearer thing's side where the farther one is
-            # seen beside it: at heights up to the farther one's top. A valley mostly just above that
-            # top (within _LAYER_ON_TOP_M) is a surface resting on the farther side (a table's top and
-            # side apron seen end-on, on its back leg): one object
-            if heights is not None and _rests_on(ys, xs, heights, idx[in_band], far):
-                continue
-            out[idx[in_band]] = 0
-            out[far] = next_label
-            family[next_label] = family[int(lab[a])] = int(lab[a])
-            next_label += 1
-            todo += [(far, level + 1), (near, level + 1)]
-    return out, family
-
-
-def _rests_on(ys: np.ndarray, xs: np.ndarray, heights: np.ndarray, band: np.ndarray, far: np.ndarray) -> bool:
-    """Whether most of a valley's pixels (indices `band`) lie right on top of the farther side: in
-    an image column where the farther side is seen, above its topmost pixel there, and at most
-    _LAYER_ON_TOP_M higher than its top in that column (a table's side rail seen end-on, on its
-    back leg). The ramp across an occlusion runs down beside the farther thing, at its heights."""
-    if band.size == 0 or far.size == 0:
-        return False
-    cols = int(max(xs[band].max(), xs[far].max())) + 1
-    top_row = np.full(cols, np.iinfo(np.int64).max)
-    np.minimum.at(top_row, xs[far], ys[far].astype(np.int64))
-    top_h = np.full(cols, -np.inf)
-    np.maximum.at(top_h, xs[far], heights[far])
-    xb = xs[band]
-    hb = heights[band]
-    on = (ys[band] < top_row[xb]) & (hb > top_h[xb]) & (hb <= top_h[xb] + _LAYER_ON_TOP_M)
-    return bool(np.mean(on) > 0.5)
-
-
-_LAYER_EMPTY_PX = 2.0  # an empty valley spans at least this much disparity: far beyond matching noise
-_LAYER_EMPTY_MIN_PIXELS = 100  # working pixels on each side of an empty valley split
-
-
-def _empty_runs(empty: np.ndarray, b0: int, fB: float) -> np.ndarray:
-    """Per histogram bin (of _LAYER_BIN_PX, the first at bin b0): the depth (m) spanned by the run
-    of empty bins it lies in (0 for a bin that is not empty, or in a run narrower than
-    _LAYER_EMPTY_PX of disparity: far away, a few empty bins are the matcher's noise)."""
-    out = np.zeros(empty.size)
-    edges = np.flatnonzero(np.diff(np.concatenate([[0], empty.astype(np.int8), [0]])))
-    for a, b in zip(edges[::2], edges[1::2]):
-        if (b - a) * _LAYER_BIN_PX < _LAYER_EMPTY_PX:
-            continue
-        d_lo, d_hi = (b0 + a) * _LAYER_BIN_PX, (b0 + b) * _LAYER_BIN_PX
-        out[a:b] = fB / max(d_lo, 1e-6) - fB / d_hi
-    return out
-
-
 def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: SegmenterSettings | None = None,
                   ground: GroundEstimator | None = None, confidence: np.ndarray | None = None,
                   image: np.ndarray | None = None) -> LayersFrame:
@@ -559,12 +238,12 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
 
     ys, xs, dv, lab, ex, cut_from = _group(dm, stand, cfg, model, step, (d0,), above)
     dv0, hv = ex[0], ex[1] if above is not None else np.zeros(ys.size, np.float32)  # raw, height above the floor
-    lab, family = _split_layers(ys, xs, dv, lab, cfg, model, step, None if above is None else hv)
+    lab, family = depth_split.split_layers(ys, xs, dv, lab, cfg, model, step, None if above is None else hv)
     if family:  # labels changed (else they are _group's, sorted, from 1)
         order = _label_order(lab)[np.count_nonzero(lab == 0):]  # 0: dropped, sorts first
         ys, xs, dv, lab, hv, dv0 = ys[order], xs[order], dv[order], lab[order], hv[order], dv0[order]
     bounds = np.flatnonzero(np.diff(lab)) + 1
-    regions: list[_Region] = []
+    found: list[regions.Region] = []
     for gy, gx, gd, gh, g0, gl in zip(np.split(ys, bounds), np.split(xs, bounds), np.split(dv, bounds),
                                       np.split(hv, bounds), np.split(dv0, bounds),
                                       lab[np.concatenate([[0], bounds]).astype(np.int64)] if lab.size else []):
@@ -594,26 +273,26 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
                 pts = np.concatenate([pts, extra])
                 filled = len(extra)
                 y1 = max(y1, min(h, int(np.ceil((float(np.max(extra[:, 1] / extra[:, 2])) * f + model.cy) / step)) + 1))
-        lo, hi = stats.percentile(pts[::max(1, len(pts) // _STAT_SAMPLES)], [2, 98])
+        lo, hi = stats.percentile(pts[::max(1, len(pts) // regions.STAT_SAMPLES)], [2, 98])
         groups = frozenset({family[int(gl)]}) if int(gl) in family else frozenset()
         origin = family.get(int(gl), int(gl))  # its label before the depth split
         cuts = frozenset({cut_from[origin]}) if origin in cut_from else frozenset()
-        regions.append(_Region(pts, lo, hi, (x0, y0, x1, y1), area, valid, gd.astype(np.float64), filled, groups,
-                               cuts))
-    regions = _absorb_contained(_merge_close(regions, cfg.merge_gap_m, cfg.merge_gap_depth_m), cfg.merge_gap_m,
-                                model, step)
+        found.append(regions.Region(pts, lo, hi, (x0, y0, x1, y1), area, valid, gd.astype(np.float64), filled,
+                                    groups, cuts))
+    found = regions.absorb_contained(regions.merge_close(found, cfg.merge_gap_m, cfg.merge_gap_depth_m),
+                                     cfg.merge_gap_m, model, step)
     out: list[Detection] = []
     points: list[np.ndarray] = []
     measured = np.flatnonzero(d0.any(0))  # columns the matcher measured (not its blind left band)
     left_edge, right_edge = (int(measured[0]), int(measured[-1])) if measured.size else (0, w - 1)
-    for r in regions:
+    for r in found:
         if floor is None and cfg.floor_removal and _floor_like(r.pts):
             continue  # no ground to tell it by: a patch of floor is still no obstacle (the list says no-ground)
         size = r.hi - r.lo
         px_m = float(np.mean(r.pts[:, 2])) / f * step
         if max(size[0], size[1]) < cfg.min_size_m or r.area * px_m * px_m < cfg.min_area_m2:
             continue
-        sub = r.pts[::max(1, len(r.pts) // _STAT_SAMPLES)]
+        sub = r.pts[::max(1, len(r.pts) // regions.STAT_SAMPLES)]
         rng = np.sqrt((sub * sub).sum(1))
         x0, y0, x1, y1 = r.bbox
         out.append(Detection(position_m=stats.mean0(r.pts), size_m=np.maximum(size, 0.0),
@@ -637,7 +316,7 @@ def merge_detections(dets: list[Detection], points: list[np.ndarray], model: cam
     """Several detections of one object as one: the statistics of segment_frame over the union of
     their camera-frame points (n_i, 3) m. -> (the detection, its points)."""
     pts = np.concatenate(points)
-    sub = pts[::max(1, len(pts) // _STAT_SAMPLES)]
+    sub = pts[::max(1, len(pts) // regions.STAT_SAMPLES)]
     lo, hi = stats.percentile(sub, [2, 98])
     area = sum(d.area_px for d in dets)
     return Detection(position_m=stats.mean0(pts), size_m=np.maximum(hi - lo, 0.0),
@@ -670,7 +349,7 @@ def _floor_doubt(floor: FloorPlane, d: float, fB: float, doubt_deg: float) -> fl
 def _floor_like(pts: np.ndarray, max_tilt_deg: float = 45.0) -> bool:
     """A region whose points lie on one plane (within 5 cm + 1 % of their depth) facing the camera's
     y axis (within max_tilt_deg): a patch of floor or road, told apart without a ground estimate."""
-    sub = pts[::max(1, len(pts) // _STAT_SAMPLES)]
+    sub = pts[::max(1, len(pts) // regions.STAT_SAMPLES)]
     if len(sub) < 10:
         return False
     c = sub - sub.mean(0)
