@@ -16,7 +16,9 @@ import cv2
 import numpy as np
 
 LOW_M = 0.5  # a cell with nothing standing above this height over the floor joins no two objects
-MIN_CORE_CELLS = 12  # tall cells a core needs
+# tall cells a core needs: fewer, and a few noisy cells of a snow bank or a kerb become cores that cut
+# pieces of it loose as obstacles of their own (sgbm at 20 m on Karlsruhe: 6.8 % flat with 3 cells, 3.3 % with 12)
+MIN_CORE_CELLS = 12
 _SQUARE = np.ones((3, 3), np.uint8)
 
 
