@@ -474,6 +474,12 @@ class Node:
             decode_errors=self.decode_errors, errors=self.errors, status=status, health=health, extra=extra,
             subscribes=sorted(self._subscribes), publishes=sorted(self._publishes))
 
+    def count(self, key: str, n: float = 1.0) -> None:
+        """Add n to the counter `key` in extra (shown by `status`). Callbacks run on several Zenoh
+        threads: the lock keeps a read-modify-write from losing counts."""
+        with self._lock:
+            self.extra[key] = self.extra.get(key, 0.0) + n
+
     def _rate(self, extra: dict[str, float], name: str, total: float, window: float) -> None:
         """Byte total and per-second rate of one link: '<name>_bytes', 'rate_<name>_Bps'."""
         extra[f"{name}_bytes"] = float(total)

@@ -114,6 +114,25 @@ def test_a_quarantined_worker_that_answers_a_probe_is_trusted_again():
     assert st.done("w", 4) == "ok" and st.trusted() == 1
 
 
+def test_a_receipt_or_grant_naming_another_worker_is_counted_and_dropped():
+    """One worker must not answer for another: what comes on b's key must name b."""
+    from common import codec
+    from common.messages import PoolGrant, WorkDone
+    from common.node import Node
+    from common.zenoh_session import ZenohOptions
+    from services.disparity.answers import decode_from_worker
+
+    node = Node("disparity", ZenohOptions(), "r", install_signal_handlers=False)
+    done = codec.encode(WorkDone(robot_id="r", seq=3, stamp_ns=1, worker="host-b", ok=False, reason="too_old"))
+    assert decode_from_worker(node, done, WorkDone, "receipt", "b", "host-b").seq == 3
+    assert decode_from_worker(node, done, WorkDone, "receipt", "a", "host-a") is None
+    assert node.extra["receipts_misnamed"] == 1 and node.decode_errors == 0
+    grant = codec.encode(PoolGrant(robot_id="r", seq=1, stamp_ns=1, worker="host-b", grant="ab" * 8, ttl_ms=500))
+    assert decode_from_worker(node, grant, PoolGrant, "grant", "a", "host-a") is None
+    assert decode_from_worker(node, done[:-3], WorkDone, "receipt", "b", "host-b") is None  # truncated
+    assert node.extra["grants_misnamed"] == 1 and node.decode_errors == 1
+
+
 def test_failed_receipts_quarantine_a_worker_that_fails_every_frame():
     st = DispatchState(max_in_flight=1, clock=FakeClock(), strikes_to_quarantine=3)
     st.add_worker("w")

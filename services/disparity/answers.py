@@ -11,11 +11,11 @@ import queue
 import threading
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import Any, TypeVar
 
 from common import codec
 from common.errors import DecodeError
-from common.messages import DisparityMap, WorkDone
+from common.messages import DisparityMap, PoolGrant, WorkDone
 from common.node import Node
 from cores.matching.disparity import RecentValid
 from services.disparity.envelope import _attachment_bytes, receipt_nonce
@@ -24,6 +24,22 @@ from services.disparity.results import MIN_MEASURED, parse_header, vet_header, v
 from services.disparity.state import DispatchState
 
 log = logging.getLogger("ballbot.pool")
+M = TypeVar("M", WorkDone, PoolGrant)  # the messages a worker signs with its name
+
+
+def decode_from_worker(node: Node, payload: bytes, model: type[M], what: str, name: str, instance: str) -> M | None:
+    """A `what` (receipt, grant) that came on the key of worker `instance` (called `name` here), or
+    None. One naming another worker is forged or misrouted: believing it would let one worker
+    answer for another, so it is counted (`<what>s_misnamed`) and dropped like one that does not
+    decode."""
+    msg = node.decode_or_drop(payload, model, what, what)
+    if msg is None:
+        return None
+    if msg.worker != instance:
+        node.count(f"{what}s_misnamed")
+        node.warn(f"{what}-misnamed", f"dropped a {what} on {name}'s key naming worker {msg.worker}")
+        return None
+    return msg
 
 
 class Answers:
@@ -42,9 +58,6 @@ class Answers:
         self.recent_by_worker: dict[str, RecentValid] = {}  # ... and of each worker's own
         self._recent_lock = threading.Lock()
 
-    def _count(self, key: str, n: float = 1) -> None:
-        self.node.extra[key] = self.node.extra.get(key, 0) + n
-
     def start(self) -> None:
         threading.Thread(target=self.run, name="results", daemon=True).start()
 
@@ -61,12 +74,8 @@ class Answers:
         payload = sample.payload.to_bytes()
         self.rates.add("in_work_done", len(payload))
         name, instance = self.name_of(sample.key_expr)
-        msg = self.node.decode_or_drop(payload, WorkDone, "receipt", "receipt")
+        msg = decode_from_worker(self.node, payload, WorkDone, "receipt", name, instance)
         if msg is None:
-            return
-        if msg.worker != instance:
-            self._count("receipts_misnamed")
-            self.node.warn("receipt-misnamed", f"dropped a receipt on {name}'s key naming worker {msg.worker}")
             return
         kind, ticket = self.state.answer(name, msg.seq, receipt_nonce(_attachment_bytes(sample)))
         if kind not in ("outstanding", "late"):
@@ -89,12 +98,12 @@ class Answers:
             header = parse_header(_attachment_bytes(sample))
         except DecodeError as e:
             # anyone can put on a worker's key: costs the named worker nothing
-            self._count("results_unmatched")
+            self.node.count("results_unmatched")
             self.node.warn("result-header", f"dropped a map on {name}'s result key: {e}")
             return
         kind, ticket = self.state.answer(name, header.seq, header.nonce)
         if ticket is None:
-            self._count("results_unmatched")
+            self.node.count("results_unmatched")
             self.node.warn(f"result-{kind}", f"dropped a map on {name}'s result key for seq {header.seq}: {kind} "
                                              f"(no item in flight there with its nonce)")
             return
@@ -111,7 +120,7 @@ class Answers:
 
     def _refuse(self, name: str, seq: int, why: str) -> None:
         self.state.reject(name, seq, why)
-        self._count("results_rejected")
+        self.node.count("results_rejected")
         self.node.warn("result-rejected", f"refused worker {name}'s answer for seq {seq}: {why}; worker quarantined")
 
     # the results thread: full checks, then republish
@@ -168,7 +177,7 @@ class Answers:
 
     def _settle(self, name: str, ticket: Any, m: DisparityMap, valid_fraction: float) -> None:
         if self.state.done(name, ticket.seq, True) != "ok":
-            self._count("results_late")  # timed out while being checked
+            self.node.count("results_late")  # timed out while being checked
             return
         # The frame's own stamp, stages and camera: nothing the worker says moves the robot's clock.
         out = m.model_copy(update={"robot_id": ticket.robot_id, "seq": ticket.seq, "stamp_ns": ticket.stamp_ns,
@@ -180,7 +189,7 @@ class Answers:
         key = f"maps_{out.method}"
         if key not in self.node.extra and sum(k.startswith("maps_") for k in list(self.node.extra)) >= 16:
             key = "maps_other"  # a worker naming every map differently must not grow the stats without bound
-        self.node.extra[key] = self.node.extra.get(key, 0) + 1
+        self.node.count(key)
         self.methods[name] = out.method
 
     def publish(self, m: DisparityMap, valid_fraction: float, now: float) -> None:

@@ -65,7 +65,7 @@ from common.keys import POOL_ROOT, topic
 from common.messages import PoolGrant, StereoFrame
 from common.node import Node, qos
 from common.signing import calibration_key
-from services.disparity.answers import Answers
+from services.disparity.answers import Answers, decode_from_worker
 from services.disparity.computer import FrameComputer, reencode_frame
 from services.disparity.demand import GrantDemand, KeyPut
 from services.disparity.envelope import (
@@ -93,7 +93,7 @@ class Dispatcher:
             raise BallbotError(f"transport: raw, png or jpeg, got {transport!r}")
         # a fleet pool (fleet.py): its workers are named <instance>@<pool> here and work against grants
         self.pool, self.pool_patience_s = pool, pool_patience_s
-        self.demand = GrantDemand(node.robot_id, state, self._count)  # asking the pool for grants
+        self.demand = GrantDemand(node.robot_id, state, node.count)  # asking the pool for grants
         self.pool_load: dict[str, tuple[int, float, int]] = {}  # pool worker -> (robots, our share, queued)
         self.node, self.state = node, state
         self.max_age_ms = max_age_ms
@@ -105,9 +105,6 @@ class Dispatcher:
         self._work = topic("work")
         self._subs: list[Any] = []
         self.answers = Answers(node, state, self.rates, self._name)  # what comes back: checked, then published
-
-    def _count(self, key: str, n: float = 1) -> None:
-        self.node.extra[key] = self.node.extra.get(key, 0) + n
 
     def _name(self, key_expr: Any) -> tuple[str, str]:
         """-> (the worker's name here, its instance) from a key it answers on: a robot's own worker
@@ -145,14 +142,10 @@ class Dispatcher:
         when it is none of ours or holds enough)."""
         name, instance = self._name(sample.key_expr)
         if len(sample.payload) > topic("pool_grant").max_bytes:
-            self._count("grants_oversized")
+            self.node.count("grants_oversized")
             return
-        msg = self.node.decode_or_drop(sample.payload.to_bytes(), PoolGrant, "grant", "grant")
+        msg = decode_from_worker(self.node, sample.payload.to_bytes(), PoolGrant, "grant", name, instance)
         if msg is None:
-            return
-        if msg.worker != instance:
-            self._count("grants_misnamed")
-            self.node.warn("grant-misnamed", f"dropped a grant on {instance}'s key naming worker {msg.worker}")
             return
         self.pool_load[name] = (msg.robots, msg.share, msg.queued)
         # a little under the worker's ttl: a frame sent at the last moment must still find its grant
@@ -242,7 +235,7 @@ class Dispatcher:
 
     def _too_old(self, msg: StereoFrame) -> bool:
         if self.node.age_s(msg) * 1e3 > self.max_age_ms:
-            self.node.extra["too_old"] = self.node.extra.get("too_old", 0) + 1
+            self.node.count("too_old")
             return True
         return False
 
@@ -254,7 +247,7 @@ class Dispatcher:
             vf = measure(raw, m.invalid_value, m.scale, m.min_disparity, m.num_disparities).valid_fraction
             self.answers.publish(m, vf, time.monotonic())
             fallback.report(node)
-            node.extra["fallback_frames"] = node.extra.get("fallback_frames", 0) + 1
+            node.count("fallback_frames")
 
     def _claim(self, msg: StereoFrame) -> tuple[str | None, bytes]:
         """-> (worker the frame goes to, or None; the item's nonce)."""
@@ -325,7 +318,7 @@ class Dispatcher:
                 since = self.demand.want_since  # (set by want)
                 if self.fallback is not None and since is not None and now - since > self.pool_patience_s:
                     # the pool is there but grants us nothing (a full fleet): the robot is not left blind
-                    self._count("pool_starved")
+                    self.node.count("pool_starved")
                     self._compute_onboard(self.fallback, pending[0])
                     pending, self.demand.want_since = None, None
                     continue
@@ -336,7 +329,7 @@ class Dispatcher:
             got = self._take(inbox, 0.0 if pending or self.pool else 0.1)
             if got is not None:
                 if pending is not None:
-                    node.extra["replaced_pending"] = node.extra.get("replaced_pending", 0) + 1
+                    node.count("replaced_pending")
                 pending = got
             if pending is None:
                 if self.pool:

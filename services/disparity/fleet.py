@@ -114,7 +114,7 @@ def run_pool_worker(node: Node, settings: Any) -> None:
     def on_demand(sample) -> None:
         robot = _chunk(sample.key_expr, -1)
         if len(sample.payload) > topic("pool_demand").max_bytes:
-            node.extra["demand_oversized"] = node.extra.get("demand_oversized", 0) + 1
+            node.count("demand_oversized")
             return
         try:
             d = codec.decode(sample.payload.to_bytes(), PoolDemand)
@@ -134,7 +134,7 @@ def run_pool_worker(node: Node, settings: Any) -> None:
         n = len(sample.payload)
         robot = _chunk(sample.key_expr, -1)
         if n > topic("pool_work").max_bytes:
-            node.extra["in_work_oversized"] = node.extra.get("in_work_oversized", 0) + 1
+            node.count("in_work_oversized")
             return
         att = sample.attachment.to_bytes() if sample.attachment is not None else None
         grant = attachment_grant(att)
@@ -148,7 +148,7 @@ def run_pool_worker(node: Node, settings: Any) -> None:
         node.count_input()
         n = len(sample.payload)
         if n > topic("work").max_bytes:
-            node.extra["in_work_oversized"] = node.extra.get("in_work_oversized", 0) + 1
+            node.count("in_work_oversized")
             return
         att = sample.attachment.to_bytes() if sample.attachment is not None else None
         rates.add("in_work", n)
@@ -207,7 +207,7 @@ def run_pool_worker(node: Node, settings: Any) -> None:
                 continue
             age_now = age_ms + (time.monotonic() - item.received) * 1e3
             if age_now > max_age_ms:
-                node.extra["too_old"] = node.extra.get("too_old", 0) + 1
+                node.count("too_old")
                 receipt(item, msg, f"too old: {age_now:.0f} ms > {max_age_ms:.0f} ms")
                 sched.finished(item, None)
                 continue

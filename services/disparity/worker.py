@@ -65,7 +65,7 @@ def run_worker(node: Node, settings: Any) -> None:
         att = sample.attachment
         node.count_input()
         if len(sample.payload) > topic("work").max_bytes:
-            node.extra["in_work_oversized"] = node.extra.get("in_work_oversized", 0) + 1
+            node.count("in_work_oversized")
             return
         payload = sample.payload.to_bytes()
         rates.add("in_work", len(payload))
@@ -103,7 +103,7 @@ def run_worker(node: Node, settings: Any) -> None:
                 continue
             age_now = age_ms + (time.monotonic() - received) * 1e3
             if age_now > max_age_ms:
-                node.extra["too_old"] = node.extra.get("too_old", 0) + 1
+                node.count("too_old")
                 dropped(msg, nonce, f"too old: {age_now:.0f} ms > {max_age_ms:.0f} ms")
                 continue
             ok = False

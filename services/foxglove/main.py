@@ -242,7 +242,7 @@ async def serve(node: Node, settings: FoxgloveSettings, bridge: Bridge, sdk_port
     async def websocket(request: web.Request):
         origin = request.headers.get("Origin")
         if not origin_allowed(origin, settings.allowed_origins):
-            node.extra["refused_origins"] = node.extra.get("refused_origins", 0.0) + 1
+            node.count("refused_origins")
             node.warn("origin", f"refused a WebSocket from origin {origin!r} (allow it with --allowed-origins "
                                 f"'[\"{origin}\"]' or the foxglove section's allowed_origins)")
             return web.Response(status=403, text=f"origin {origin} is not allowed (see allowed_origins)\n")

@@ -166,7 +166,7 @@ def run(node: Node, settings: RectifySettings) -> None:
         holder.refused += 1
         node.extra["calibration_refused"] = float(holder.refused)
         if unsigned:
-            node.extra["calibration_unsigned_refused"] += 1.0
+            node.count("calibration_unsigned_refused")
         node.warn("calibration", f"refused a calibration published on the calibration key: {why}")
 
     def on_calibration(sample) -> None:  # Zenoh's thread: decode, vet and hand over, nothing heavy

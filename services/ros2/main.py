@@ -172,7 +172,7 @@ def run(node: Node, settings: Ros2Settings) -> None:
         for msg in node.receive(inbox):
             with node.processing(msg):
                 if msg.stale and not s.publish_stale:
-                    node.extra["ros2_stale_skipped"] = node.extra.get("ros2_stale_skipped", 0.0) + 1
+                    node.count("ros2_stale_skipped")
                     continue
                 pubs["detections"].publish(convert.detections(types, msg, s.camera_frame))
                 pubs["markers"].publish(convert.markers(types, msg, s.camera_frame, s.marker_lifetime_s))
@@ -184,7 +184,7 @@ def run(node: Node, settings: Ros2Settings) -> None:
                         pts, ids = convert.obstacle_points(disp, msg, s.points_margin_m, s.points_max)
                         pubs["points"].publish(convert.point_cloud(types, pts, ids, msg.stamp_ns, s.camera_frame))
                     else:
-                        node.extra["ros2_points_missing"] = node.extra.get("ros2_points_missing", 0.0) + 1
+                        node.count("ros2_points_missing")
                 node._published(time.time_ns() - msg.stamp_ns)
 
     def image_loop() -> None:

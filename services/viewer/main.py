@@ -287,7 +287,7 @@ class Gate:
     def refuse(self, kind: str, why: str):
         from aiohttp import web
 
-        self.node.extra[f"refused_{kind}"] += 1
+        self.node.count(f"refused_{kind}")
         self.node.warn(f"refused-{kind}", f"refused a request: {why}")
         return web.Response(status=403 if kind != "token" else 401, text=f"ballbot-vision viewer: {why}\n")
 
