@@ -181,8 +181,6 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from common.settings import flags_given
     from cores.segmentation.settings import SegmenterSettings
 
-    if args.draw:
-        raise BallbotError("eval: --draw goes with --real DIR (a recording)")
     given = flags_given(SegmenterSettings, args)
     if given:
         raise BallbotError(f"eval: {', '.join(SegmenterSettings.flag(k) for k in given)}: the segmenter's settings go "
@@ -200,7 +198,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     error = {"pitch_deg": args.mount_pitch_error, "roll_deg": args.mount_roll_error,
              "height_m": args.mount_height_error}
     result = E.evaluate(scenarios, methods, frames=args.frames, fps=args.fps, seed=args.seed, matcher=matcher,
-                        mount_error=error, true_ground=args.true_ground)
+                        mount_error=error, true_ground=args.true_ground, draw_dir=args.draw)
     if args.json:
         _out(json.dumps(E.result_to_json(result), indent=2))
     else:
@@ -415,8 +413,11 @@ def register(sub: argparse._SubParsersAction, common) -> None:
                    "instead of its estimate: segmentation and tracking apart from ground estimation")
     r = e.add_argument_group("real recordings")
     r.add_argument("--real", default=None, metavar="DIR", help="a recording folder instead of the scenarios")
-    r.add_argument("--draw", default=None, metavar="OUT", help="--real: one picture per pair into OUT")
     r.add_argument("--alpha", type=float, default=0.0, help="--real: rectification alpha for a raw rig (default: 0)")
+    e.add_argument("--draw", default=None, metavar="OUT",
+                   help="one picture per frame into OUT: a scenario's as <scenario>-<method>-<frame>.png, with "
+                        "the truths it is scored on (dashed cyan: matched; orange: missed); --real: one per pair, "
+                        "named after the left image")
     e.add_argument("--config", default=None, metavar="FILE", help="YAML with 'segmenter' and 'disparity' sections")
     _matcher_args(e)
     add_settings_arguments(e, SegmenterSettings, exclude=("method",),

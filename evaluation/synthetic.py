@@ -45,10 +45,12 @@ import math
 import time
 from collections.abc import Iterable
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 
 import numpy as np
 
 import sim as S
+from common.errors import BallbotError, path_error
 from common.messages import GroundEstimate, Odometry
 from common.settings import MountSettings
 from cores import camera
@@ -322,11 +324,14 @@ class _TrueGround:
 
 def score_method(data: ScenarioData, method: str, overrides: dict | None = None, min_visible_px: int = 400,
                  eval_range_m: float | None = None, gate_m: float = 0.3, gate_rel: float = 0.15,
-                 vel_warmup: int = 4, mount_error: dict | None = None, true_ground: bool = False) -> Score:
+                 vel_warmup: int = 4, mount_error: dict | None = None, true_ground: bool = False,
+                 draw_dir: Path | None = None) -> Score:
     """mount_error: added to the true mount the segmenter is told, e.g. {"pitch_deg": 5,
     "height_m": 0.1} (a balancing robot leans; the floor fit should absorb it). eval_range_m: truths
     nearer than this count (None: the scenario's range_m, which the segmenter then runs with too,
-    else 4.5 m). true_ground: the floor each frame is the true one (see _TrueGround)."""
+    else 4.5 m). true_ground: the floor each frame is the true one (see _TrueGround). draw_dir: one
+    picture per frame there, <scenario>-<method>-<frame>.png: the segmenter's output (draw.draw_frame)
+    and the truths it was scored on (draw.draw_truths: matched or missed)."""
     if eval_range_m is None:
         eval_range_m = data.scene.range_m or 4.5
     m = data.mount
@@ -427,6 +432,10 @@ def score_method(data: ScenarioData, method: str, overrides: dict | None = None,
                 rec["ids"].append(o.id)
             if k - first_seen[o.id] >= vel_warmup:
                 sc._vel.append(float(np.linalg.norm(np.array(o.velocity_mps) - np.asarray(t.velocity_mps, float))))
+        if draw_dir is not None:
+            _draw(draw_dir / f"{data.name}-{method}-{k:03d}.png", fr, res, data.model,
+                  [(t.name, t.bbox_px, ti in {p[1] for p in pairs}) for ti, t in enumerate(truths)
+                   if t.bbox_px is not None])
         for oi, o in enumerate(obs):
             if oi in matched_obs:
                 continue
@@ -446,6 +455,16 @@ def score_method(data: ScenarioData, method: str, overrides: dict | None = None,
     return sc.finish()
 
 
+def _draw(path: Path, fr, res, model: camera.RectifiedModel, truths: list) -> None:
+    import cv2
+
+    from cores.segmentation.draw import draw_frame, draw_truths
+
+    pic = draw_truths(draw_frame(fr.left, res.obstacles, model, res.freespace), truths)
+    if not cv2.imwrite(str(path), pic):
+        raise BallbotError(f"{path}: cannot write")
+
+
 def default_scenarios() -> list[str]:
     """The shipped scenarios `eval` runs when given none: all but those marked default_eval: false
     (too slow to render for every run; they run by name)."""
@@ -459,21 +478,30 @@ def _vec3(v) -> tuple[float, float, float]:
 def evaluate(scenarios: list[str] | None = None, methods: list[str] | None = None, frames: int | None = None,
              fps: float | None = None, seed: int = 0, matcher: MatcherConfig | None = None,
              overrides: dict | None = None, data: dict[str, ScenarioData] | None = None,
-             mount_error: dict | None = None, true_ground: bool = False) -> dict:
+             mount_error: dict | None = None, true_ground: bool = False, draw_dir: str | Path | None = None) -> dict:
     """-> {"scenarios": {name: {method: Score}}, "overall": {method: Score}, "render_s": {name: s}}.
-    `data` may hold already-rendered scenarios (reused, e.g. by tests)."""
+    `data` may hold already-rendered scenarios (reused, e.g. by tests). draw_dir: pictures of every
+    frame (score_method), the folder made if missing."""
     scenarios = scenarios or default_scenarios()
     methods = methods or DEFAULT_METHODS
     for m in methods:
         if m not in METHODS:
             raise ValueError(f"unknown method {m!r} (known: {', '.join(METHODS)})")
+    out = None
+    if draw_dir is not None:
+        out = Path(draw_dir)
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise BallbotError(f"--draw {out}: {path_error(e)}") from None
     result: dict = {"scenarios": {}, "overall": {}, "render_s": {}}
     for name in scenarios:
         d = (data or {}).get(name) or render_scenario(name, frames, fps, seed, matcher=matcher)
         if data is not None:
             data[name] = d
         result["render_s"][name] = d.render_s
-        result["scenarios"][name] = {m: score_method(d, m, overrides, mount_error=mount_error, true_ground=true_ground)
+        result["scenarios"][name] = {m: score_method(d, m, overrides, mount_error=mount_error, true_ground=true_ground,
+                                                         draw_dir=out)
                                      for m in methods}
     for m in methods:
         result["overall"][m] = Score.pooled([result["scenarios"][n][m] for n in scenarios])

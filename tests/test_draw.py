@@ -156,3 +156,35 @@ def test_obstacles_command_draws_one_picture_per_pair_and_prints_ground_and_free
         doc = json.loads(line)
         doc.pop("left"), doc.pop("right")
         assert len(ObstacleList.model_validate(doc).obstacles) == 2
+
+
+def test_truths_matched_dashed_cyan_missed_solid_orange():
+    pic = np.full((240, 320, 3), GREY, np.uint8)
+    D.draw_truths(pic, [("a", (20, 40, 60, 100), True), ("b", (150, 50, 200, 120), False)])
+    assert _is(pic[40, 20], D.TRUTH) and _is(pic[70, 20], D.TRUTH)       # corner, and on the left side
+    assert not _is(pic[40, 24], D.TRUTH)                                  # a dash's gap: matched is dashed
+    assert all(_is(pic[50, x], D.MISSED) for x in range(150, 201))        # missed: a solid top side
+    assert all(_is(pic[y, 200], D.MISSED) for y in range(50, 121))
+    assert _is(pic[70, 40], (GREY,) * 3) and _is(pic[80, 175], (GREY,) * 3)  # insides untouched
+
+
+def test_eval_draw_writes_each_scenario_frame_with_its_truths(tmp_path, capsys):
+    import cv2
+
+    from ballbot_vision.cli import main
+
+    out = tmp_path / "pictures"
+    assert main(["eval", "touching", "--method", "layers", "--frames", "2", "--draw", str(out), "--json"]) == 0
+    capsys.readouterr()
+    assert sorted(p.name for p in out.glob("*.png")) == ["touching-layers-000.png", "touching-layers-001.png"]
+    pic = cv2.imread(str(out / "touching-layers-001.png"))
+    assert pic.shape == (480, 640, 3)
+    obstacles = (np.all(pic == D.CONFIRMED, axis=-1) | np.all(pic == D.UNCONFIRMED, axis=-1)).sum()
+    assert obstacles > 100 and np.all(pic == D.TRUTH, axis=-1).sum() > 100  # both boxes found: drawn, with truths
+    assert np.all(pic == D.MISSED, axis=-1).sum() == 0
+    blocked = tmp_path / "file"
+    blocked.write_text("")
+    # a folder that cannot be made: a clear error naming it, before any rendering
+    assert main(["eval", "touching", "--method", "layers", "--frames", "1", "--draw", str(blocked / "sub")]) != 0
+    err = capsys.readouterr().err
+    assert f"--draw {blocked / 'sub'}" in err and "Traceback" not in err

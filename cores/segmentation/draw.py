@@ -14,6 +14,10 @@ What is drawn:
 - a caption along the top edge: seq, number of obstacles (confirmed), and the ground estimate
   (height, pitch, roll, source).
 The picture has the image's size; nothing here reads files or keeps state.
+
+    draw_truths(picture, truths) draws, for a scenario with known answers (eval --draw), each true
+obstacle's box: TRUTH (thin, dashed) when some obstacle was matched to it, MISSED (solid, labelled
+"missed") when none was.
 """
 from __future__ import annotations
 
@@ -31,6 +35,8 @@ FREE = (0, 200, 0)
 OCCUPIED = (0, 0, 255)
 FREE_ALPHA = 0.35
 OCCUPIED_ALPHA = 0.45
+TRUTH = (255, 255, 0)  # cyan
+MISSED = (0, 140, 255)  # orange
 CAPTION_PX = 18  # height of the caption band
 _FONT = cv2.FONT_HERSHEY_SIMPLEX
 
@@ -144,3 +150,19 @@ def draw_frame(image: np.ndarray, obstacles: ObstacleList, model: camera.Rectifi
     img[:band] //= 3
     cv2.putText(img, caption(obstacles), (4, band - 5), _FONT, 0.45, (255, 255, 255), 1, cv2.LINE_AA)
     return img
+
+
+def draw_truths(picture: np.ndarray, truths: list[tuple[str, tuple[int, int, int, int], bool]]) -> np.ndarray:
+    """picture: draw_frame's output (changed in place and returned). truths: (name, bbox_px (x0, y0,
+    x1, y1, inclusive), matched) of each true obstacle the frame is scored on."""
+    h, w = picture.shape[:2]
+    for name, (x0, y0, x1, y1), matched in truths:
+        x0, x1 = int(np.clip(x0, 0, w - 1)), int(np.clip(x1, 0, w - 1))
+        y0, y1 = int(np.clip(y0, 0, h - 1)), int(np.clip(y1, 0, h - 1))
+        if matched:
+            _dashed_rect(picture, x0, y0, x1, y1, TRUTH, dash=3)
+            _label(picture, name, x0, y1 + 12, TRUTH, scale=0.35)
+        else:
+            cv2.rectangle(picture, (x0, y0), (x1, y1), MISSED, 1)
+            _label(picture, f"missed {name}", x0, y1 + 12, MISSED, scale=0.35)
+    return picture
