@@ -61,6 +61,18 @@ def check_readable(path: str | Path, what: str = "") -> Path:
     return p
 
 
+def output_folder(path: str | Path, what: str = "") -> Path:
+    """The folder `path`, made with its parents if missing, else a FileError naming it and why."""
+    from common.errors import path_error
+
+    p = Path(os.path.expanduser(str(path)))
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise FileError(f"{what + ' ' if what else ''}{path}: {path_error(e)}") from None
+    return p
+
+
 def read_bytes(path: str | Path, what: str = "") -> bytes:
     p = check_readable(path, what)
     label = f"{what} {path}" if what else str(path)

@@ -141,16 +141,10 @@ def evaluate_recording(rec: Recording, seg_settings, matcher_cfg, frames: int | 
     frame's obstacles; with draw_dir, one picture per pair (draw.draw_frame) named after the left image."""
     import cv2
 
-    from common.errors import path_error
+    from common.files import output_folder
     from cores.segmentation.draw import draw_frame
 
-    out = None
-    if draw_dir is not None:
-        out = Path(draw_dir)
-        try:
-            out.mkdir(parents=True, exist_ok=True)
-        except OSError as e:
-            raise BallbotError(f"--draw {out}: {path_error(e)}") from None
+    out = None if draw_dir is None else output_folder(draw_dir, "--draw")
     report = RealReport(rec.name, rec.calibration_source, rec.stamps_from, rec.odometry is not None, [],
                         pictures=str(out) if out else None)
     report.settings = {"segmenter": seg_settings.model_dump(), "disparity": None, "range_m": seg_settings.range_m,

@@ -50,7 +50,8 @@ from pathlib import Path
 import numpy as np
 
 import sim as S
-from common.errors import BallbotError, path_error
+from common.errors import BallbotError
+from common.files import output_folder
 from common.messages import GroundEstimate, Odometry
 from common.settings import MountSettings
 from cores import camera
@@ -487,13 +488,7 @@ def evaluate(scenarios: list[str] | None = None, methods: list[str] | None = Non
     for m in methods:
         if m not in METHODS:
             raise ValueError(f"unknown method {m!r} (known: {', '.join(METHODS)})")
-    out = None
-    if draw_dir is not None:
-        out = Path(draw_dir)
-        try:
-            out.mkdir(parents=True, exist_ok=True)
-        except OSError as e:
-            raise BallbotError(f"--draw {out}: {path_error(e)}") from None
+    out = None if draw_dir is None else output_folder(draw_dir, "--draw")
     result: dict = {"scenarios": {}, "overall": {}, "render_s": {}}
     for name in scenarios:
         d = (data or {}).get(name) or render_scenario(name, frames, fps, seed, matcher=matcher)
