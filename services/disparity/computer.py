@@ -2,6 +2,9 @@
 its DisparityMap through the matching stage every composition runs (cores/matching/stage.py)."""
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Any
+
 import numpy as np
 
 from common import codec
@@ -10,6 +13,8 @@ from common.messages import DisparityMap, StereoFrame
 from common.node import Node
 from cores.matching.matchers import SCALE, MatcherConfig
 from cores.matching.stage import MatchStage
+from services.disparity.rates import Rates
+from services.disparity.results import result_header
 
 
 class FrameComputer:
@@ -59,6 +64,23 @@ class FrameComputer:
                             image=image, scale=SCALE, invalid_value=invalid, min_disparity=out.min_disparity,
                             num_disparities=out.num_disparities, camera=msg.camera, method=self.method,
                             worker=worker, confidence=confidence)
+
+    def answer(self, node: Node, msg: StereoFrame, worker: str, nonce: bytes, put: Callable[..., Any],
+               rates: Rates) -> bool:
+        """A worker's answer to one work item: its map, put with the header that names the item
+        (its nonce) so the dispatcher takes it as that item's answer; timed and counted as the
+        node's processing. False when computing failed (logged and counted by node.processing):
+        the caller sends a receipt saying so, so the dispatcher frees the item at once."""
+        with node.processing(msg):
+            result = self.compute(msg, worker)
+            result.stages[node.service] = node.clock.wall_ns()
+            data = codec.encode(result)
+            put(data, attachment=result_header(result, nonce))
+            node._published(node.age_ns(msg))
+            rates.add("out_work_result", len(data))
+            self.report(node)
+            return True
+        return False
 
     def report(self, node: Node) -> None:
         """The last frame's search-range saturation into node's stats, and a (rate-limited) warning

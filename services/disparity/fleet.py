@@ -72,7 +72,6 @@ def run_pool_worker(node: Node, settings: Any) -> None:
     from services.disparity.computer import FrameComputer
     from services.disparity.envelope import parse_attachment, receipt_attachment
     from services.disparity.rates import Rates
-    from services.disparity.results import result_header
 
     pool, me, home = settings.pool, node.instance, node.robot_id
     computer = FrameComputer(settings, 1.0, settings.result_encoding)
@@ -211,17 +210,11 @@ def run_pool_worker(node: Node, settings: Any) -> None:
                 receipt(item, msg, f"too old: {age_now:.0f} ms > {max_age_ms:.0f} ms")
                 sched.finished(item, None)
                 continue
-            ok = False
-            with node.processing(msg):
-                result = computer.compute(msg, me)
-                result.stages[node.service] = node.clock.wall_ns()
-                data = codec.encode(result)
-                name = "pool_result" if item.grant else "work_result"
-                publisher(name, item.robot).put(data, attachment=result_header(result, nonce))
-                node._published(node.age_ns(msg))
-                rates.add("out_work_result", len(data))
-                computer.report(node)
-                ok = True
+            name = "pool_result" if item.grant else "work_result"
+            # the publisher is looked up inside answer's processing: a failure there costs this item only
+            # (the lambda runs before the loop moves on, so its loop variables are this item's)
+            ok = computer.answer(node, msg, me, nonce,
+                                 lambda data, **kw: publisher(name, item.robot).put(data, **kw), rates)  # noqa: B023
             sched.finished(item, time.perf_counter() - t0 if ok else None)
             if not ok:
                 receipt(item, msg, "failed (see worker log)", (time.perf_counter() - t0) * 1e3)

@@ -16,7 +16,6 @@ from common.node import Node, qos
 from services.disparity.computer import FrameComputer
 from services.disparity.envelope import parse_attachment, receipt_attachment
 from services.disparity.rates import Rates
-from services.disparity.results import result_header
 
 log = logging.getLogger("ballbot.pool")
 
@@ -106,18 +105,9 @@ def run_worker(node: Node, settings: Any) -> None:
                 node.count("too_old")
                 dropped(msg, nonce, f"too old: {age_now:.0f} ms > {max_age_ms:.0f} ms")
                 continue
-            ok = False
-            with node.processing(msg):
-                result = computer.compute(msg, me)
-                result.stages[node.service] = node.clock.wall_ns()
-                data = codec.encode(result)
-                results.put(data, attachment=result_header(result, nonce))
-                node._published(node.age_ns(msg))
-                rates.add("out_work_result", len(data))
-                computer.report(node)
-                ok = True
+            if computer.answer(node, msg, me, nonce, results.put, rates):
                 node.status = f"ok: {computer.method}"
-            if not ok:
+            else:
                 dropped(msg, nonce, "failed (see worker log)", (time.monotonic() - received) * 1e3)
     finally:
         try:
