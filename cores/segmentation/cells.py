@@ -40,10 +40,12 @@ def group_cells(cells: np.ndarray, tall: np.ndarray | None) -> tuple[np.ndarray,
     core[small[core]] = 0
     if not core.any():
         return cc, {}
-    # groups (of the touching cells) holding two or more cores
-    pairs = np.unique(np.stack([cc[core > 0], core[core > 0]]), axis=1)
-    groups, n_cores = np.unique(pairs[0], return_counts=True)
-    split = groups[n_cores > 1]
+    # groups (of the touching cells) holding two or more cores: which (group, core) pairs occur, by
+    # counting them (np.unique over the pairs sorts every core cell: most of this function's time)
+    on = core > 0
+    n_cc = int(cc.max()) + 1
+    seen = np.bincount(cc[on].astype(np.int64) * n_core + core[on], minlength=n_cc * n_core) > 0
+    split = np.flatnonzero(seen.reshape(n_cc, n_core).sum(1) > 1)
     if split.size == 0:
         return cc, {}
     # each cell's nearest core cell (Euclidean on the grid): labelled by the zero pixels of src in raster order
@@ -52,6 +54,11 @@ def group_cells(cells: np.ndarray, tall: np.ndarray | None) -> tuple[np.ndarray,
     core_of_zero = core.ravel()[np.flatnonzero(src.ravel() == 0)]
     near_core = core_of_zero[nearest - 1]
     # a cell of a split group takes its nearest core's label (shifted past the group labels)
-    in_split = np.isin(cc, split) & (cells > 0)
-    labels = np.where(in_split, near_core + cc.max() + 1, cc).astype(np.int32)
-    return labels, {int(k): int(g) for k, g in zip(labels[in_split], cc[in_split])}
+    is_split = np.zeros(n_cc, bool)
+    is_split[split] = True
+    in_split = is_split[cc] & (cells > 0)
+    labels = np.where(in_split, near_core + n_cc, cc).astype(np.int32)
+    # {piece: its group}; a piece whose cells lie in two groups keeps the last one in raster order
+    k, g = labels[in_split][::-1], cc[in_split][::-1]
+    first = np.unique(k, return_index=True)[1]
+    return labels, dict(zip(k[first].tolist(), g[first].tolist()))
