@@ -441,7 +441,7 @@ class Node:
         self._window_start = now
         with self._lock:
             published, self._published_in_window = self._published_in_window, 0
-        extra = dict(self.extra)
+            extra = dict(self.extra)  # count() adds keys from the callback threads
         inputs = self.inputs
         refused: dict[str, int] = {}
         for inbox in self._inboxes:
