@@ -255,8 +255,7 @@ def cmd_check(args: argparse.Namespace) -> int:
 # --- rectify (offline) -------------------------------------------------------------------------
 
 def cmd_rectify(args: argparse.Namespace) -> int:
-    import cv2
-
+    from common.files import write_image
     from cores import camera
     from cores.calibration.rectify import Rectifier
 
@@ -274,8 +273,7 @@ def cmd_rectify(args: argparse.Namespace) -> int:
         rl, rr = r.rectify(_read(lp, r), _read(rp, r))
         for src, img, side in ((lp, rl, "left"), (rp, rr, "right")):
             dst = (out / side / f"{src.stem}.png") if split else (out / f"{src.stem}.png")
-            if not cv2.imwrite(str(dst), img):
-                raise BallbotError(f"{dst}: cannot write the image")
+            write_image(dst, img)
         _out(f"{lp} {rp} -> {out}")
     m = r.model
     _out(f"rectified {len(pairs)} pair(s): f = {m.focal_px:.3f} px, baseline = {m.baseline_m * 1000:.3f} mm, "

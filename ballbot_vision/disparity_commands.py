@@ -54,7 +54,7 @@ def colour(d: np.ndarray, max_disparity: float) -> np.ndarray:
 def cmd_disparity(args: argparse.Namespace) -> int:
     import cv2
 
-    from common.files import check_pair, read_image
+    from common.files import check_pair, read_image, write_image
     from common.settings import load_settings
     from cores import camera
     from cores.matching.matchers import MatcherConfig, gate_for_range
@@ -98,12 +98,10 @@ def cmd_disparity(args: argparse.Namespace) -> int:
     elif suffix == ".pfm":
         write_pfm(str(out), d)
     else:
-        if not cv2.imwrite(str(out), colour(d, cfg.min_disparity + cfg.fixed_num_disparities)):
-            raise BallbotError(f"{out}: cannot write")
+        write_image(out, colour(d, cfg.min_disparity + cfg.fixed_num_disparities))
     if args.confidence and result.confidence is not None:  # (None refused above)
         Path(args.confidence).parent.mkdir(parents=True, exist_ok=True)
-        if not cv2.imwrite(args.confidence, result.confidence):
-            raise BallbotError(f"{args.confidence}: cannot write")
+        write_image(args.confidence, result.confidence)
     valid = np.isfinite(d)
     rng = f"{np.nanmin(d):.1f}..{np.nanmax(d):.1f} px" if valid.any() else "none"
     print(f"{out}: {d.shape[1]}x{d.shape[0]} {cfg.method}{' +LR' if cfg.lr_check else ''}, "

@@ -130,8 +130,7 @@ def cmd_from_images(args: argparse.Namespace) -> int:
 
 
 def cmd_to_images(args: argparse.Namespace) -> int:
-    import cv2
-
+    from common.files import write_image
     from cores.recording_reader import RecordingReader
 
     _need_mcap()
@@ -144,8 +143,7 @@ def cmd_to_images(args: argparse.Namespace) -> int:
     for pair in reader.pairs(args.frames):
         name = f"{pair.stamp_ns}.{args.ext}" if args.names == "stamp" else f"{n:06d}.{args.ext}"
         for d, img in ((left_dir, pair.left), (right_dir, pair.right)):
-            if not cv2.imwrite(str(d / name), img):
-                raise BallbotError(f"{d / name}: cannot write the image")
+            write_image(d / name, img)
         calibration = pair.calibration_yaml or calibration
         n += 1
     if calibration:

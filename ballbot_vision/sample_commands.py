@@ -18,8 +18,7 @@ from common.errors import BallbotError
 
 
 def cmd_sample_pair(args: argparse.Namespace) -> int:
-    import cv2
-
+    from common.files import write_image
     from cores import camera
     from services.capture.main import truth_message
     from services.capture.sources import SyntheticSource
@@ -42,8 +41,7 @@ def cmd_sample_pair(args: argparse.Namespace) -> int:
         paths = ((out / "left" / f"left{stem}.png", out / "right" / f"right{stem}.png") if sequence
                  else (out / "left.png", out / "right.png"))
         for path, img in zip(paths, (pair.left, pair.right)):
-            if not cv2.imwrite(str(path), img):
-                raise BallbotError(f"{path}: cannot write the image")
+            write_image(path, img)
         msg = truth_message("sample", k, int(pair.t_s * 1e9), args.scenario, pair.truth or [])
         truths.append(json.loads(msg.model_dump_json()))
     camera.save_calibration(src.rig, out / "calibration.yaml")

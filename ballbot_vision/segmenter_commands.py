@@ -113,16 +113,10 @@ def _warn_recording_reach(rec, seg, disp, alpha: float) -> None:
 
 
 def _write_picture(path: Path, picture) -> None:
-    import cv2
+    from common.files import output_folder, write_image
 
-    from common.errors import path_error
-
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise BallbotError(f"--draw {path.parent}: {path_error(e)}") from None
-    if not cv2.imwrite(str(path), picture):
-        raise BallbotError(f"--draw {path}: cannot write the picture")
+    output_folder(path.parent, "--draw")
+    write_image(path, picture, "--draw")
 
 
 def cmd_obstacles(args: argparse.Namespace) -> int:

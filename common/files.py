@@ -73,6 +73,14 @@ def output_folder(path: str | Path, what: str = "") -> Path:
     return p
 
 
+def write_image(path: str | Path, image: np.ndarray, what: str = "") -> None:
+    """cv2.imwrite, or a FileError naming the path (its folder missing or read-only, the disk full)."""
+    import cv2
+
+    if not cv2.imwrite(str(path), image):
+        raise FileError(f"{what + ' ' if what else ''}{path}: cannot write the image")
+
+
 def read_bytes(path: str | Path, what: str = "") -> bytes:
     p = check_readable(path, what)
     label = f"{what} {path}" if what else str(path)

@@ -139,9 +139,8 @@ def evaluate_recording(rec: Recording, seg_settings, matcher_cfg, frames: int | 
                        mount: MountSettings | None = None) -> RealReport:
     """Run the first `frames` pairs (None: all) of the recording (process_recording) and judge each
     frame's obstacles; with draw_dir, one picture per pair (draw.draw_frame) named after the left image."""
-    import cv2
 
-    from common.files import output_folder
+    from common.files import output_folder, write_image
     from cores.segmentation.draw import draw_frame
 
     out = None if draw_dir is None else output_folder(draw_dir, "--draw")
@@ -193,9 +192,7 @@ def evaluate_recording(rec: Recording, seg_settings, matcher_cfg, frames: int | 
         report.frames.append(fr)
         if out is not None:
             pic = draw_frame(pf.left, result.obstacles, pf.model, result.freespace)  # the list's own mount
-            path = out / f"{pf.left_path.stem}.png"
-            if not cv2.imwrite(str(path), pic):
-                raise BallbotError(f"{path}: cannot write")
+            write_image(out / f"{pf.left_path.stem}.png", pic, "--draw")
         if on_frame is not None:
             on_frame(fr)
     report.figures = figures(report.frames)

@@ -50,8 +50,7 @@ from pathlib import Path
 import numpy as np
 
 import sim as S
-from common.errors import BallbotError
-from common.files import output_folder
+from common.files import output_folder, write_image
 from common.messages import GroundEstimate, Odometry
 from common.settings import MountSettings
 from cores import camera
@@ -434,9 +433,9 @@ def score_method(data: ScenarioData, method: str, overrides: dict | None = None,
             if k - first_seen[o.id] >= vel_warmup:
                 sc._vel.append(float(np.linalg.norm(np.array(o.velocity_mps) - np.asarray(t.velocity_mps, float))))
         if draw_dir is not None:
+            found = {ti for _, ti in pairs}
             _draw(draw_dir / f"{data.name}-{method}-{k:03d}.png", fr, res, data.model,
-                  [(t.name, t.bbox_px, ti in {p[1] for p in pairs}) for ti, t in enumerate(truths)
-                   if t.bbox_px is not None])
+                  [(t.name, t.bbox_px, ti in found) for ti, t in enumerate(truths) if t.bbox_px is not None])
         for oi, o in enumerate(obs):
             if oi in matched_obs:
                 continue
@@ -457,13 +456,9 @@ def score_method(data: ScenarioData, method: str, overrides: dict | None = None,
 
 
 def _draw(path: Path, fr, res, model: camera.RectifiedModel, truths: list) -> None:
-    import cv2
-
     from cores.segmentation.draw import draw_frame, draw_truths
 
-    pic = draw_truths(draw_frame(fr.left, res.obstacles, model, res.freespace), truths)
-    if not cv2.imwrite(str(path), pic):
-        raise BallbotError(f"{path}: cannot write")
+    write_image(path, draw_truths(draw_frame(fr.left, res.obstacles, model, res.freespace), truths), "--draw")
 
 
 def default_scenarios() -> list[str]:

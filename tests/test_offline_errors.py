@@ -267,8 +267,11 @@ def test_an_output_path_that_cannot_be_written_is_a_one_line_error(tmp_path, cap
     cv2.imwrite(str(tmp_path / "r.png"), right)
     (tmp_path / "a-file").write_text("x")
     (tmp_path / "a-folder").mkdir()
+    (tmp_path / "taken.png").mkdir()  # an image's name held by a folder: OpenCV's imwrite only says False
     l, r, f = str(tmp_path / "l.png"), str(tmp_path / "r.png"), tmp_path / "a-file"
     for argv, where, why in [
+        (["disparity", l, r, "--num-disparities", "64", "-o", str(tmp_path / "taken.png")], tmp_path / "taken.png",
+         "cannot write the image"),
         (["disparity", l, r, "--num-disparities", "64", "-o", f"{f}/d.npy"], f, "is a file, not a folder"),
         (["rectify", l, r, "--calibration", "lifecam-studio", "-o", str(f)], f, "is a file, not a folder"),
         (["calibration", "show", "lifecam-studio"], None, None),
