@@ -3,14 +3,26 @@ from __future__ import annotations
 
 import os
 import socket
+import threading
 
 import numpy as np
 
+_HANDED_OUT: set[int] = set()
+_HANDED_OUT_LOCK = threading.Lock()
+
 
 def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    """A loopback TCP port free now, and never one this process handed out before. The kernel may
+    give a port it just released to the very next bind(0): two ports picked back to back (a
+    service's and the router's) were then one, and the service met its own router on it."""
+    with _HANDED_OUT_LOCK:
+        while True:
+            with socket.socket() as s:
+                s.bind(("127.0.0.1", 0))
+                port = s.getsockname()[1]
+            if port not in _HANDED_OUT:
+                _HANDED_OUT.add(port)
+                return port
 
 
 def percentiles(values: list[float]) -> dict[str, float]:

@@ -12,16 +12,11 @@ import threading
 import time
 from pathlib import Path
 
+from bench.measure import free_port  # noqa: F401 (the one port picker; tests import it from here)
 from common import codec
 from common.zenoh_session import ZenohOptions, open_session
 
 REPO = Path(__file__).resolve().parent.parent
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def cli(*args: str) -> list[str]:

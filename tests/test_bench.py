@@ -383,3 +383,33 @@ def test_transport_copies_names_every_step_of_the_frame_path():
     r = copies(rounds=1, n=2)
     assert all(any(step in k for k in r) for step in ("to_bytes", "unpackb", "array_from_image"))
     assert all(v >= 0 for v in r.values())
+
+
+def test_free_port_never_hands_out_a_port_twice_even_when_the_kernel_repeats_itself(monkeypatch):
+    """The kernel gave a just-released port to the next bind(0): a test's foxglove port and its
+    router's were one, and the service met the router there. free_port skips what it gave before."""
+    import socket
+
+    from bench import measure
+
+    given = iter([41001, 41001, 41001, 41002])
+
+    class Repeating:
+        def __init__(self, *a):
+            self.port = next(given)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+        def bind(self, addr):
+            pass
+
+        def getsockname(self):
+            return ("127.0.0.1", self.port)
+
+    monkeypatch.setattr(measure, "_HANDED_OUT", set())
+    monkeypatch.setattr(socket, "socket", Repeating)
+    assert [measure.free_port(), measure.free_port()] == [41001, 41002]

@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -15,6 +14,7 @@ import uuid
 import pytest
 
 from bench.fleet_harness import netns_unavailable  # the one check whether this machine can make test hosts
+from bench.measure import free_port
 from common.errors import DecodeError
 from common.supervisor import stop_processes
 from services.disparity.envelope import make_attachment, parse_attachment
@@ -254,12 +254,6 @@ with open_session(ZenohOptions(mode="peer", connect=[endpoint], listen=[])) as s
           codec.encode(WorkDone(robot_id=rid, seq=1, stamp_ns=0, worker="ghost", ok=True)))
     time.sleep(0.5)
 """
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 class Procs:
