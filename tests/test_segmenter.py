@@ -520,6 +520,56 @@ def test_without_a_floor_in_view_the_last_ground_stands_in_then_none():
     assert _frame(wall, cfg).ground.source == "none"  # no history, no mount: said so
 
 
+CAR = camera.RectifiedModel(640, 480, 665.0, 320.0, 240.0, 0.5)  # a car's wide rig: it measures out to ~20 m
+
+
+def _road(mount: Mount, seed_: int, range_m: float | None = None) -> np.ndarray:
+    """CAR's disparity of a road seen from `mount`, with low lumps of snow along it (0.13 m) and
+    matching noise; range_m: the map gated there, as a matcher with a vision-range gate gives it."""
+    rng = np.random.default_rng(seed_)
+    fb = CAR.focal_px * CAR.baseline_m
+    v, u = np.mgrid[0:CAR.height, 0:CAR.width].astype(np.float32)
+    fp = FloorPlane.from_normal(mount.down_camera, mount.height_m, CAR.focal_px, CAR.cx, CAR.cy, CAR.baseline_m)
+    d = fp.disparity(u, v).astype(np.float32)
+    d[d < fb / 60] = np.nan  # the sky
+    for u0 in range(80, 260, 40):
+        dd = fp.disparity(np.float32(u0 + 10), np.arange(CAR.height, dtype=np.float32))
+        r = int(np.nonzero((dd > fb / 3.9) & (dd < fb / 3.4))[0].max())
+        d[r - 25:r, u0:u0 + 25] = dd[r]
+    d += rng.normal(0, 0.3, d.shape).astype(np.float32)
+    d[:, :64] = np.nan
+    return d if range_m is None else np.where(d >= fb / range_m, d, np.nan)
+
+
+def test_a_range_that_shows_a_strip_of_road_takes_the_ground_from_the_road_beyond():
+    """A car's camera (1.6 m, 6 deg down) sees the road from 3.3 m: with a 3.8 m range, a strip
+    whose plane pivots between pitch and height. The map goes on (the matcher has no range gate):
+    the road beyond the range, as far as the rig measures, gives the ground as a full view does."""
+    from cores.segmentation.ground import TRUSTED
+
+    truth = Mount(1.6, 6.0)
+    builder = ObstacleBuilder(SegmenterSettings(max_range_m=3.8), MountSettings())
+    for k in range(3):
+        lst = builder.process(_road(truth, k), CAR, t_s=0.1 * k, seq=k, stamp_ns=k).obstacles
+        g = lst.ground
+        assert g.source == "fitted" and g.confidence >= TRUSTED and not lst.degraded, (k, g, lst.degraded)
+        assert abs(g.height_m - truth.height_m) < 0.01 and abs(g.pitch_deg - truth.pitch_deg) < 0.1, (k, g)
+        assert abs(g.roll_deg) < 0.1, (k, g)
+
+
+def test_a_strip_of_road_alone_is_a_ground_not_to_be_trusted():
+    """The same strip with nothing beyond it (a map gated to the range): whatever plane fits it, the
+    list says its ground is uncertain."""
+    builder = ObstacleBuilder(SegmenterSettings(max_range_m=3.8), MountSettings())
+    for k in range(3):
+        lst = builder.process(_road(Mount(1.6, 6.0), k, range_m=3.8), CAR, t_s=0.1 * k, seq=k, stamp_ns=k).obstacles
+        assert lst.ground.source == "fitted" and "ground-uncertain" in lst.degraded, (k, lst.ground)
+    # a strip of road twice as deep in view is a ground to trust
+    builder = ObstacleBuilder(SegmenterSettings(max_range_m=8.0), MountSettings())
+    lst = builder.process(_road(Mount(1.6, 6.0), 0, range_m=8.0), CAR, t_s=0.0, seq=0, stamp_ns=0).obstacles
+    assert not lst.degraded and abs(lst.ground.pitch_deg - 6.0) < 0.3, lst.ground
+
+
 def test_markings_are_floor_canopy_is_above_the_robot_and_only_standing_things_are_obstacles():
     mount = Mount(1.0, 0.0)  # level: the top rows see 1.8 m above the camera at 5 m
     d = scene([(400, 520, 2.5, 150)], mount=mount, wall_m=9.0)

@@ -31,6 +31,7 @@ frames ("tracked", its confidence halving each frame), then the configured mount
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -38,6 +39,7 @@ import numpy as np
 from common.messages import GroundEstimate
 from common.settings import MountSettings
 from cores import camera
+from cores.segmentation import stats
 from cores.segmentation.ground_planes import (
     MAX_HEIGHT_M,
     MAX_ROLL_DEG,
@@ -76,6 +78,9 @@ RATE_DECAY = 0.5
 # ... when it turned by more than this a frame: less is within the scatter of fits on a real road
 # (MAX_TILT_DOUBT_DEG), a car's camera hardly turns, and its ground is the last frames', smoothed
 TURN_MIN_DEG = 1.0
+# The floor a fit stands on spans at least this ratio of distances (its 95th to 5th percentile of
+# disparity), or its pitch and height trade off against each other along the strip it is seen on.
+MIN_FLOOR_SPAN = 1.5
 
 
 def grid(h: int, w: int, step: int) -> tuple[np.ndarray, np.ndarray]:
@@ -268,6 +273,16 @@ def _close(n: np.ndarray, h: float, n0: np.ndarray, h0: float, tilt_deg: float, 
     return bool(tilt <= tilt_deg and abs(h - h0) <= rel_h * h0)
 
 
+def floor_span(fit: Fit, px: Pixels) -> float:
+    """How many times farther the far end of the fit's floor is than its near end (95th and 5th
+    percentile of its pixels' disparity)."""
+    d = px.d[px.band(px.disparity(np.array([fit.plane.a, fit.plane.b, fit.plane.c])), 0.04)]
+    if d.size == 0:
+        return 1.0
+    lo, hi = stats.percentile(d, [5, 95])
+    return float(hi) / max(float(lo), 1e-6)
+
+
 def fit_confidence(fit: Fit, consistent: bool) -> float:
     """How far one frame's fitted ground can be trusted, 0..1: its support (a third of the valid
     pixels on it is plenty), the pixels seen through it (15 % make it worthless), its size in pixels
@@ -345,8 +360,11 @@ class GroundEstimator:
     def _none(self) -> GroundEstimate:
         return self._estimate(np.array([0.0, 1.0, 0.0]), 0.0, "none")
 
-    def update(self, dm: np.ndarray, model: camera.RectifiedModel,
-               step: int) -> tuple[FloorPlane | None, GroundEstimate]:
+    def update(self, dm: np.ndarray, model: camera.RectifiedModel, step: int,
+               wider: Callable[[], np.ndarray] | None = None) -> tuple[FloorPlane | None, GroundEstimate]:
+        """dm: the working-resolution disparity inside the vision range (0 = invalid); wider: makes the
+        same out to where the rig still measures (None: dm is all there is), for a floor seen too
+        briefly inside the range (MIN_FLOOR_SPAN)."""
         cfg = self.cfg
         prior = self.prior
         if not cfg.fit_floor:
@@ -360,7 +378,6 @@ class GroundEstimator:
         expected = self.predicted() if self.smooth_n is not None else None
         if expected is not None:
             guesses["tracked"] = self._plane(*expected, model)
-        consistent = None
         ref_roll = pitch_roll(self.smooth_n)[1] if self.smooth_n is not None else 0.0
 
         def agrees(f: Fit) -> bool:
@@ -379,36 +396,53 @@ class GroundEstimator:
         def rank(f: Fit) -> float:
             roll = abs(f.pitch_roll[1] - ref_roll)
             return f.score - ROLL_COST * max(0.0, roll - ROLL_FREE_DEG) + TRACK_BONUS * closeness(f)
+
+        def choose(px: Pixels, quick: bool) -> tuple[Fit | None, bool | None]:
+            """The frame's ground among the candidates on px (and whether it agrees with the last
+            frames'); quick: from the expected ground alone, if that stays a trusted floor."""
+            fits: list[Fit] = []
+            if quick:
+                fits = _candidates(px, model, guesses, self.rng, search=False)
+                if not (fits and closeness(fits[0]) > 0 and fits[0].inlier_fraction >= MIN_SUPPORT
+                        and fit_confidence(fits[0], True) >= TRUSTED):
+                    fits = []
+            if not fits:
+                self.since_search = 0
+                if self.prior is not None:
+                    guesses["prior"] = plane_from_mount(self.prior, model)
+                fits = _candidates(px, model, guesses, self.rng)
+            fits.sort(key=lambda f: -rank(f))
+            consistent = agrees(fits[0]) if fits and self.smooth_n is not None else None
+            fit = fits[0] if fits and fits[0].inlier_fraction >= MIN_SUPPORT else None
+            if fit is not None:
+                polished = _judge(_polish(np.array([fit.plane.a, fit.plane.b, fit.plane.c]), px), px, model,
+                                  fit.origin)
+                if polished is not None:
+                    fit = polished
+            if fit is not None and expected is not None and self.missed < self.cfg.ground_reinit_frames:
+                # little floor in view (the robot close to a table): a fit that is not the ground the last
+                # frames expect (a plane on the furniture, on a strip of floor and the furniture's foot)
+                # does not replace that ground while that is trusted more (its trust halving with each
+                # frame it stands in: a fit that is right wins within a frame or two)
+                if closeness(fit) <= 0 and fit_confidence(fit, False) < self.confidence * 0.5 ** (self.missed + 1):
+                    fit = None
+            return fit, consistent
+
         # Between full searches the last frames' ground, refined on this frame, is enough while it
         # stays a trusted floor close to them; every SEARCH_EVERY frames (and whenever it is not)
         # every candidate competes, so a wrong lock lasts a few frames at most.
         self.since_search += 1
-        fits: list[Fit] = []
-        if guesses and self.since_search < SEARCH_EVERY:
-            fits = _candidates(px, model, guesses, self.rng, search=False)
-            if not (fits and closeness(fits[0]) > 0 and fits[0].inlier_fraction >= MIN_SUPPORT
-                    and fit_confidence(fits[0], True) >= TRUSTED):
-                fits = []
-        if not fits:
-            self.since_search = 0
-            if self.prior is not None:
-                guesses["prior"] = plane_from_mount(self.prior, model)
-            fits = _candidates(px, model, guesses, self.rng)
-        fits.sort(key=lambda f: -rank(f))
-        if fits and self.smooth_n is not None:
-            consistent = agrees(fits[0])
-        fit = fits[0] if fits and fits[0].inlier_fraction >= MIN_SUPPORT else None
-        if fit is not None:
-            polished = _judge(_polish(np.array([fit.plane.a, fit.plane.b, fit.plane.c]), px), px, model, fit.origin)
-            if polished is not None:
-                fit = polished
-        if fit is not None and expected is not None and self.missed < self.cfg.ground_reinit_frames:
-            # little floor in view (the robot close to a table): a fit that is not the ground the last
-            # frames expect (a plane on the furniture, on a strip of floor and the furniture's foot)
-            # does not replace that ground while that is trusted more (its trust halving with each
-            # frame it stands in: a fit that is right wins within a frame or two)
-            if closeness(fit) <= 0 and fit_confidence(fit, False) < self.confidence * 0.5 ** (self.missed + 1):
-                fit = None
+        fit, consistent = choose(px, bool(guesses) and self.since_search < SEARCH_EVERY)
+        span = floor_span(fit, px) if fit is not None else 0.0
+        if wider is not None and span < MIN_FLOOR_SPAN:
+            # The floor inside the vision range is seen over too short a stretch to tell the camera's
+            # pitch from its height (a car's camera with a 5 m range sees the road from 4.3 to 5 m:
+            # a plane pivoting on that strip fits as well 1 m higher and 20 deg steeper, and snow at the
+            # kerb decides): the floor beyond the range, as far as the rig measures it, decides instead.
+            wide = Pixels(*_points(wider(), step))
+            wide_fit, wide_consistent = choose(wide, False)
+            if wide_fit is not None:
+                fit, consistent, span = wide_fit, wide_consistent, floor_span(wide_fit, wide)
         if fit is not None:
             self._remember(fit.normal, fit.plane.height_m, self.missed == 0 and consistent is True)
             self.missed = 0
@@ -422,7 +456,9 @@ class GroundEstimator:
                 n = (1 - a) * self.smooth_n + a * fit.normal
                 self.smooth_n = n / np.linalg.norm(n)
                 self.smooth_h = (1 - a) * self.smooth_h + a * fit.plane.height_m
-            conf = fit_confidence(fit, consistent is not False)
+            # a floor seen over too short a stretch (and nothing beyond it) may be tilted far off: trusted
+            # less the shorter it is
+            conf = fit_confidence(fit, consistent is not False) * min(1.0, (span - 1.0) / (MIN_FLOOR_SPAN - 1.0))
             self.confidence = conf
             agrees_prior = None
             if prior is not None:

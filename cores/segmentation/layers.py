@@ -56,7 +56,7 @@ from cores.segmentation.cells import LOW_M, group_cells
 from cores.segmentation.ground import GroundEstimator, grid
 from cores.segmentation.mount import FloorPlane, Mount
 from cores.segmentation.seed import Detection
-from cores.segmentation.settings import SegmenterSettings
+from cores.segmentation.settings import FAR_DISPARITY_PX, SegmenterSettings
 
 
 def _fill_to_floor(mask: np.ndarray, d_box: np.ndarray, x0: int, y0: int, floor: FloorPlane, cfg: SegmenterSettings,
@@ -206,7 +206,12 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
     doubt_deg = 0.0
     if cfg.floor_removal:
         ground = ground or GroundEstimator(cfg)
-        floor, estimate = ground.update(dk, model, step)
+        # the floor beyond the vision range, where the rig still measures it, for a range too short to show
+        # enough of it (ground.MIN_FLOOR_SPAN)
+        ground_range = max(range_m, fB / FAR_DISPARITY_PX)
+        wider = (None if ground_range <= range_m
+                 else lambda: _masked(dm, cv2.inRange(dm, fB / ground_range, fB / cfg.min_range_m)))
+        floor, estimate = ground.update(dk, model, step, wider)
         if floor is not None and ground.tilt_doubt_deg >= MIN_DOUBT_DEG:
             doubt_deg = ground.tilt_doubt_deg
     floor_points = np.zeros((0, 3))
