@@ -313,7 +313,7 @@ class _TrueGround:
     def __init__(self) -> None:
         self.mount: Mount | None = None
 
-    def update(self, dm: np.ndarray, model: camera.RectifiedModel, step: int):
+    def update(self, dm: np.ndarray, model: camera.RectifiedModel, step: int, wider=None):
         m = self.mount
         if m is None:
             raise RuntimeError("_TrueGround.update before the frame's true mount was set")

@@ -11,6 +11,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import yaml
 
 from ballbot_vision.cli import main
 from common.errors import BallbotError, ConfigError
@@ -238,13 +239,20 @@ def test_mount_estimate_writes_a_config_that_load_settings_reads(tmp_path, capsy
 
 @needs_karlsruhe
 def test_mount_estimate_without_a_fitted_ground_fails_clearly(tmp_path, capsys):
-    # LEFT RIGHT --calibration form; a vision range of 2 m sees no road (it starts ~5 m ahead of the car)
-    rc = main(["mount", "estimate", str(KARLSRUHE / "left" / "I1_00000[01].png"),
-               str(KARLSRUHE / "right" / "I2_00000[01].png"), "--calibration", str(KARLSRUHE / "calibration.yaml"),
-               "--max-range-m", "2", "--write", str(tmp_path / "x.yaml")])
+    # LEFT RIGHT --calibration form; the left images given as both sides: no depth, no ground
+    left = str(KARLSRUHE / "left" / "I1_00000[01].png")
+    rc = main(["mount", "estimate", left, left, "--calibration", str(KARLSRUHE / "calibration.yaml"),
+               "--write", str(tmp_path / "x.yaml")])
     assert rc == 2
     assert "none of the 2 frame(s) gave a fitted ground plane" in capsys.readouterr().err
     assert not (tmp_path / "x.yaml").exists()
+    # a vision range of 2 m sees no road (it starts ~4.3 m ahead of the car): the ground comes from
+    # the road beyond it, as far as the rig measures
+    rc = main(["mount", "estimate", left, str(KARLSRUHE / "right" / "I2_00000[01].png"), "--calibration",
+               str(KARLSRUHE / "calibration.yaml"), "--max-range-m", "2", "--write", str(tmp_path / "x.yaml")])
+    assert rc == 0, capsys.readouterr().err
+    mount = yaml.safe_load((tmp_path / "x.yaml").read_text())["mount"]
+    assert abs(mount["height_m"] - 1.64) < 0.08 and abs(mount["pitch_deg"] - 6.0) < 1.0, mount
 
 
 # --- the acceptance figures on the real recordings (label-free) ---------------------------
