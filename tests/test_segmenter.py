@@ -557,6 +557,19 @@ def test_a_range_that_shows_a_strip_of_road_takes_the_ground_from_the_road_beyon
         assert abs(g.roll_deg) < 0.1, (k, g)
 
 
+def test_a_range_nearer_than_the_floor_in_view_says_so():
+    """With a 3 m range the car's camera sees none of the road inside it (it starts at 3.3 m): the
+    ground comes from the road beyond, and every list says low things in the range are out of view;
+    with 3.8 m the near strip is in view and nothing is flagged."""
+    for range_m, flagged in ((3.0, True), (3.8, False)):
+        builder = ObstacleBuilder(SegmenterSettings(max_range_m=range_m), MountSettings())
+        for k in range(2):
+            lst = builder.process(_road(Mount(1.6, 6.0), k), CAR, t_s=0.1 * k, seq=k, stamp_ns=k).obstacles
+            assert lst.ground.source == "fitted" and abs(lst.ground.pitch_deg - 6.0) < 0.1, (range_m, lst.ground)
+            assert ("floor-out-of-view" in lst.degraded) == flagged and len(lst.degraded) == flagged, \
+                (range_m, lst.degraded)
+
+
 def test_a_strip_of_road_alone_is_a_ground_not_to_be_trusted():
     """The same strip with nothing beyond it (a map gated to the range): whatever plane fits it, the
     list says its ground is uncertain."""

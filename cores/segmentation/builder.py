@@ -64,6 +64,16 @@ def search_reach(model: camera.RectifiedModel, min_disparity: int, num_dispariti
 
 
 
+def floor_in_view(floor: FloorPlane, model: camera.RectifiedModel, range_m: float) -> bool:
+    """Whether the camera sees any of the floor within range_m: the nearest floor in view lies at the
+    image's bottom edge (at a corner: the floor's disparity is linear along the row). A car's camera
+    1.6 m up, pitched 6 deg down, sees the road from 4.3 m: with a 3 m range, nothing low in the range
+    can be in view, and an empty list would say so only by accident."""
+    bottom = floor.b * (model.height - 1.0) + floor.c
+    nearest = bottom + max(0.0, floor.a * (model.width - 1.0))
+    return bool(nearest >= model.focal_px * abs(model.baseline_m) / range_m)
+
+
 def model_from_message(msg: DisparityMap) -> camera.RectifiedModel:
     c = msg.camera
     return camera.RectifiedModel(c.width, c.height, c.focal_px, c.cx, c.cy, c.baseline_m)
@@ -221,7 +231,8 @@ class ObstacleBuilder:
         ("no-valid-disparity": under 1 % measured; "valid-collapse": under half of what the
         frames of the last 2 s measured; "range-unreachable": the map's search, `search` = its
         (min_disparity, num_disparities), cannot measure the vision range; "no-ground" /
-        "ground-uncertain": nothing or too little told the floor from what stands on it)."""
+        "ground-uncertain": nothing or too little told the floor from what stands on it;
+        "floor-out-of-view": the floor within the vision range is below the camera's view)."""
         cfg = self.settings
         reach = self.check_search(model, *search) if search is not None else Reach(False, "")
         if disparity.dtype.kind == "f":
@@ -282,6 +293,8 @@ class ObstacleBuilder:
                 degraded.append("no-ground")  # nothing told floor from obstacle: what stands low is not known
             elif g.confidence < TRUSTED:
                 degraded.append("ground-uncertain")
+            if frame.floor is not None and not floor_in_view(frame.floor, model, cfg.range_for(model)):
+                degraded.append("floor-out-of-view")
         out = ObstacleList(robot_id=robot_id, seq=seq, stamp_ns=stamp_ns, stages=dict(stages or {}), publish_ns=now,
                            stale=stale, degraded=degraded, valid_fraction=valid_fraction, method=cfg.method,
                            obstacles=obstacles, ground=frame.ground,
