@@ -45,6 +45,7 @@ from cores.segmentation.ground_planes import (
     MAX_ROLL_DEG,
     MIN_HEIGHT_M,
     Pixels,
+    in_band,
     ransac_planes,
     similar_disparities,
     vdisparity_planes,
@@ -276,11 +277,8 @@ def _close(n: np.ndarray, h: float, n0: np.ndarray, h0: float, tilt_deg: float, 
 def floor_span(fit: Fit, px: Pixels) -> float:
     """How many times farther the far end of the fit's floor is than its near end (95th and 5th
     percentile of its pixels' disparity; every 4th pixel tells them)."""
-    a, b, c = np.float32(fit.plane.a), np.float32(fit.plane.b), np.float32(fit.plane.c)
-    u, v, d = px.u[::4], px.v[::4], px.d[::4]
-    pred = a * u + b * v + c
-    tol = np.maximum(np.float32(0.6), np.float32(0.04) * pred)
-    d = d[(np.abs(d - pred) <= tol) & (pred > 0)]
+    d = px.d[::4]
+    d = d[in_band(d, fit.plane.disparity(px.u[::4], px.v[::4]), 0.04)]
     if d.size == 0:
         return 1.0
     lo, hi = stats.percentile(d, [5, 95])

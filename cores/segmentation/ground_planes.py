@@ -46,6 +46,18 @@ def lstsq(u: np.ndarray, v: np.ndarray, d: np.ndarray, w: np.ndarray | None) -> 
     return np.array([a, b, md - a * mu - b * mv])
 
 
+def in_band(d: np.ndarray, pred: np.ndarray, rel: float) -> np.ndarray:
+    """Where the disparities d lie within max(0.6, rel pred) of a plane's disparities pred, in front
+    of the camera (pred > 0)."""
+    tol = np.multiply(np.float32(rel), pred)
+    np.maximum(np.float32(0.6), tol, out=tol)
+    off = np.subtract(d, pred)
+    np.abs(off, out=off)
+    inl = off <= tol
+    inl &= pred > 0
+    return inl
+
+
 class Pixels:
     """A frame's valid working pixels: float32 u, v, d, where the bands are drawn, and float64
     copies for the least squares, made once a frame instead of at every fit."""
@@ -64,13 +76,7 @@ class Pixels:
 
     def band(self, pred: np.ndarray, rel: float) -> np.ndarray:
         """The pixels within max(0.6, rel pred) of the plane's disparity pred, in front of the camera."""
-        tol = np.multiply(np.float32(rel), pred)
-        np.maximum(np.float32(0.6), tol, out=tol)
-        off = np.subtract(self.d, pred)
-        np.abs(off, out=off)
-        inl = off <= tol
-        inl &= pred > 0
-        return inl
+        return in_band(self.d, pred, rel)
 
     def fit(self, m: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
         """lstsq_plane on the pixels of mask m, or of indices m (weights w: one per pixel of m)."""
