@@ -330,6 +330,12 @@ class Inbox:
                 elif meta.stamp_ns <= self._taken_stamp or (waiting is not None and meta.stamp_ns < waiting):
                     self.late += 1
                     return
+            elif waiting is not None:
+                # Without an attachment nothing can be vetted before decoding, so such a payload never
+                # takes the place of a stamped one that waits: a flood of garbage costs itself, not
+                # every good payload it would otherwise overwrite.
+                self.late += 1
+                return
             if self._waiting is not None:
                 self.overwritten += 1
             self._waiting = Delivery(payload, meta, self.clock.wall_ns(), self.clock.mono_ns())

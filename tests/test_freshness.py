@@ -77,6 +77,24 @@ def test_garbage_with_a_plausible_stamp_never_becomes_the_reference():
     assert deliver(box, cam.meta())
 
 
+def test_a_flood_without_attachments_never_takes_the_slot_of_a_stamped_payload():
+    # The CI failure it answers: garbage put on the obstacle key 200 times a second, without an
+    # attachment, overwrote nearly every good list before a consumer could take it.
+    clock = StepClock()
+    box, cam = inbox(clock), Stream(clock, 1)
+    for _ in range(20):
+        clock.advance(0.033)
+        box.offer(b"good", cam.meta())
+        for _ in range(7):
+            box.offer(b"\x00not msgpack\xff", None)
+        d = box.take_delivery(0)
+        assert d is not None and d.payload == b"good"
+        box.commit(d.meta.stamp_ns)
+        box.offer(b"\x00not msgpack\xff", None)  # nothing stamped waits: it may (it is decoded, then dropped)
+        assert box.take_delivery(0).payload != b"good"
+    assert box.late == 20 * 7
+
+
 def test_old_results_never_displace_newer_ones_and_replays_are_refused():
     clock = StepClock()
     box = inbox(clock)

@@ -7,7 +7,9 @@ camera, with the messages and schemas of Foxglove's own SDK (the server is the S
 
 It can never slow the robot:
 - Zenoh callbacks only keep the newest payload of each stream (an older one not yet converted is
-  overwritten and counted as skipped); nothing is decoded there;
+  overwritten and counted as skipped); only the small streams (obstacles, free space) are decoded
+  there, as the viewer does, so that a flood of malformed lists cannot take the slot of the good
+  ones: it costs its own messages, the lists go on; the images are decoded by the converter;
 - the image streams are subscribed to only while a Foxglove client subscribes to their channels;
 - one converter thread turns at most `max_fps` sets of messages a second into Foxglove messages,
   only for channels some client subscribed to;
@@ -145,21 +147,22 @@ def convert(kind: str, msg, jpeg_quality: int, wanted: Callable[[str], bool]) ->
 
 @dataclass
 class Slots:
-    """The newest undelivered payload of each stream (newest wins)."""
+    """The newest undelivered payload (or, for a small stream, decoded message) of each stream
+    (newest wins)."""
 
-    payloads: dict[str, bytes] = field(default_factory=dict)
+    payloads: dict[str, Any] = field(default_factory=dict)
     skipped: int = 0
     lock: threading.Lock = field(default_factory=threading.Lock)
     new: threading.Event = field(default_factory=threading.Event)
 
-    def put(self, kind: str, payload: bytes) -> None:
+    def put(self, kind: str, payload: Any) -> None:
         with self.lock:
             if kind in self.payloads:
                 self.skipped += 1
             self.payloads[kind] = payload
         self.new.set()
 
-    def take_all(self) -> dict[str, bytes]:
+    def take_all(self) -> dict[str, Any]:
         with self.lock:
             taken, self.payloads = self.payloads, {}
             self.new.clear()
@@ -185,10 +188,17 @@ class Bridge:
             self.slots.put(kind, sample.payload.to_bytes())
         return on_sample
 
+    def _keep_decoded(self, kind: str):
+        def on_sample(sample) -> None:  # Zenoh's thread: a small message, decoded; a malformed one dropped here
+            msg = self.node.decode_or_drop(sample.payload.to_bytes(), MODELS[kind], f"{kind} message")
+            if msg is not None:
+                self.slots.put(kind, msg)
+        return on_sample
+
     def subscribe_small(self) -> None:
         rid = self.node.robot_id
         for kind in ("obstacles", "freespace"):
-            self.node.subscribe(topic(kind).key(rid), self._keep(kind))
+            self.node.subscribe(topic(kind).key(rid), self._keep_decoded(kind))
 
     def manage_image_subscriptions(self) -> None:
         now = time.monotonic()
@@ -216,10 +226,11 @@ class Bridge:
             if delay > 0:  # at most max_fps rounds; what arrives meanwhile overwrites its slot
                 self.node.stop_event.wait(delay)
             next_t = max(next_t + period, time.monotonic())
-            for kind, payload in self.slots.take_all().items():
+            for kind, item in self.slots.take_all().items():
                 if not any(self.watched(t) for t in FEEDS[kind]):
                     continue  # nobody watches its channels: not even decoded
-                msg = self.node.decode_or_drop(payload, MODELS[kind], f"{kind} message")
+                msg = item if isinstance(item, Message) else self.node.decode_or_drop(item, MODELS[kind],
+                                                                                       f"{kind} message")
                 if msg is None:
                     continue
                 with self.node.processing(msg):
