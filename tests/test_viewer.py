@@ -9,6 +9,7 @@ import os
 import shutil
 import statistics
 import subprocess
+import threading
 import time
 from pathlib import Path
 
@@ -19,7 +20,16 @@ from helpers import REPO, Collector, Up, cli, free_port, wait_port
 
 from common import codec
 from common.keys import topic
-from common.messages import CameraModel, DisparityMap, FreeSpace, Obstacle, ObstacleList, ReplayControl, StereoFrame
+from common.messages import (
+    CameraModel,
+    DisparityMap,
+    FreeSpace,
+    Obstacle,
+    ObstacleList,
+    ReplayControl,
+    ServiceStats,
+    StereoFrame,
+)
 from services.viewer import core
 
 CAMERA = CameraModel(width=64, height=48, focal_px=60.0, cx=32.0, cy=24.0, baseline_m=0.1, Q=[0.0] * 16)
@@ -85,6 +95,10 @@ def test_compose_pairs_the_obstacles_with_their_own_picture():
     inputs.frames.popleft()
     doc, _ = core.unpack(core.Composer("r").compose(inputs))
     assert doc["image"]["seq"] == 3 and not doc["image"]["matched"]
+    # a payload without a stamp (garbage from a foreign publisher) neither breaks nor wins the pick
+    inputs.frames.append((None, b"\x00not msgpack\xff"))
+    doc, _ = core.unpack(core.Composer("r").compose(inputs))
+    assert doc["image"]["seq"] == 3 and not doc["image"]["matched"]
 
 
 # --- the service ----------------------------------------------------------------------------------
@@ -148,7 +162,26 @@ def test_the_server_sends_latest_frames_only_and_survives_bad_clients():
         controls = Collector(ReplayControl)
         with up.session() as s:
             s.declare_subscriber(topic("replay_control").key(up.robot_id), controls)
-            result = asyncio.run(_clients(port, 12.0))
+            stats = Collector(ServiceStats)
+            s.declare_subscriber(topic("stats").key(up.robot_id, service="viewer", instance="*"), stats)
+            # meanwhile a foreign publisher floods the image stream with unstamped garbage: it costs
+            # itself, never the pictures (it once could push every good frame out of the ring)
+            stop = threading.Event()
+
+            def garbage() -> None:
+                pub = s.declare_publisher(topic("frames_rect").key(up.robot_id))
+                while not stop.wait(0.005):
+                    pub.put(b"\x00not msgpack\xff")
+
+            flood = threading.Thread(target=garbage, daemon=True)
+            flood.start()
+            try:
+                result = asyncio.run(_clients(port, 12.0))
+            finally:
+                stop.set()
+                flood.join(10)
+            assert stats.wait_for(lambda items: items[-1].extra.get("in_frames_unstamped", 0) >= 1, 30), \
+                "the viewer did not count the unstamped payloads it dropped"
             assert controls.wait_for(lambda items: any(c.action == "step" and c.frames == 2 for c in items), 30)
         updates = result["acking"]
         with_pictures = [d for d, blobs in updates if {"left", "disparity"} <= blobs]

@@ -117,8 +117,9 @@ class ViewInputs:
 
     @staticmethod
     def pick(ring: deque, stamp_ns: int | None) -> tuple[Any, bool]:
-        """The payload with this capture stamp (matched) or else the newest (not matched)."""
-        items = list(ring)
+        """The payload with this capture stamp (matched) or else the newest (not matched). Only
+        stamped payloads count (the service keeps no other: an unstamped one cannot be ordered)."""
+        items = [sp for sp in ring if sp[0] is not None]
         if not items:
             return None, False
         if stamp_ns is not None:

@@ -130,6 +130,10 @@ class Viewer:
 
         def on_sample(sample) -> None:
             stamp = stamp_of(sample.attachment)
+            if stamp is None:  # every publisher of ours stamps it; without, it could only push good ones out
+                self.node.count(f"in_{ring_name}_unstamped")
+                self.node.warn("unstamped", f"dropped a payload on the {ring_name} stream without its stamp attachment")
+                return
             with self._lock:
                 ring.append((stamp, sample.payload.to_bytes()))
             if ring_name == "frames" and self.inputs.obstacles is None:
