@@ -9,7 +9,8 @@ It can never slow the robot:
 - Zenoh callbacks only keep the newest payload of each stream (an older one not yet converted is
   overwritten and counted as skipped); only the small streams (obstacles, free space) are decoded
   there, as the viewer does, so that a flood of malformed lists cannot take the slot of the good
-  ones: it costs its own messages, the lists go on; the images are decoded by the converter;
+  ones: it costs its own messages, the lists go on; the images are decoded by the converter, and
+  an image payload without its stamp attachment (every publisher of ours stamps) is dropped;
 - the image streams are subscribed to only while a Foxglove client subscribes to their channels;
 - one converter thread turns at most `max_fps` sets of messages a second into Foxglove messages,
   only for channels some client subscribed to;
@@ -36,6 +37,7 @@ from typing import Any
 from pydantic import Field
 
 from common.errors import BallbotError
+from common.inbox import stamp_of
 from common.keys import topic
 from common.messages import DisparityMap, FreeSpace, GroundTruth, Message, ObstacleList, StereoFrame
 from common.node import Node
@@ -185,6 +187,10 @@ class Bridge:
 
     def _keep(self, kind: str):
         def on_sample(sample) -> None:  # Zenoh's thread: keep the bytes, nothing else
+            if stamp_of(sample.attachment) is None:  # ours are stamped; garbage must not take the slot
+                self.node.count(f"in_{kind}_unstamped")
+                self.node.warn("unstamped", f"dropped a payload on {kind} without its stamp attachment")
+                return
             self.slots.put(kind, sample.payload.to_bytes())
         return on_sample
 
