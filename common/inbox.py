@@ -277,6 +277,7 @@ class Inbox:
         self.overwritten = 0
         self.late = 0  # every refusal (future, old, late; without a gate: late only)
         self.oversized = 0
+        self.unstamped = 0  # without an attachment, dropped because a stamped payload waited
         self.bytes = 0
         self.shm = 0  # payloads that came through shared memory (a peer on this host)
 
@@ -334,7 +335,7 @@ class Inbox:
                 # Without an attachment nothing can be vetted before decoding, so such a payload never
                 # takes the place of a stamped one that waits: a flood of garbage costs itself, not
                 # every good payload it would otherwise overwrite.
-                self.late += 1
+                self.unstamped += 1
                 return
             if self._waiting is not None:
                 self.overwritten += 1

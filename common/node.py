@@ -447,10 +447,12 @@ class Node:
         for inbox in self._inboxes:
             # repeats of what was already handed on (a heartbeat's stale copy) are not new input,
             # nor is anyone's payload without the robot's signature
-            inputs += inbox.received - inbox.refusals().get("late", 0) - sum(inbox.unauthenticated.values())
+            inputs += (inbox.received - inbox.refusals().get("late", 0) - sum(inbox.unauthenticated.values())
+                       - inbox.unstamped)
             name = inbox.topic.name
             self._rate(extra, f"in_{name}", inbox.bytes, window)
             extra[f"in_{name}_oversized"] = float(inbox.oversized)
+            extra[f"in_{name}_unstamped"] = float(inbox.unstamped)
             extra[f"in_{name}_shm"] = float(inbox.shm)
             for k, v in inbox.refusals().items():
                 extra[f"in_{name}_{k}"] = float(v)
@@ -470,7 +472,7 @@ class Node:
             pid=os.getpid(), stamp_ns=self.clock.wall_ns(), uptime_s=now - self._started,
             rate_hz=published / window, proc_ms_p50=self._proc.median_and_clear(),
             age_ms_p50=self._age.median_and_clear(), processed=self.processed, published=self.published,
-            drops=sum(i.overwritten + i.late + i.oversized for i in self._inboxes),
+            drops=sum(i.overwritten + i.late + i.oversized + i.unstamped for i in self._inboxes),
             decode_errors=self.decode_errors, errors=self.errors, status=status, health=health, extra=extra,
             subscribes=sorted(self._subscribes), publishes=sorted(self._publishes))
 
