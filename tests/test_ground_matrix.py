@@ -1,8 +1,9 @@
 """The ground from any start, on the real recordings in ../shared/data/real (issue 20, item 6):
 {karlsruhe street, euroc room} x {bm, sgbm, dense} x {range 5, 10, 20, 30, 40 m} x {no mount, pitch +-8 deg
-off, height +-30 % off, and item 1's limits: roll 15 deg off, pitch 15 deg and height 50 % off at once}. In every cell, from the 5th frame on, the segmenter's ground agrees with an
-independent estimate within 0.1 m and 2 deg, at most 5 % of the obstacles are flat on the road, and
-in the room no obstacle box reaches down onto the floor with the tape strips and the mat.
+off, height +-30 % off, and item 1's limits: roll 15 deg off, pitch 15 deg and height 50 % off at
+once}. In every cell, from the 5th frame on, the segmenter's ground agrees with an independent
+estimate within 0.1 m and 2 deg, at most 5 % of the obstacles are flat on the road, and in the room
+no obstacle box reaches down onto the floor with the tape strips and the mat.
 
 The independent estimate is real_eval's RoadProfile: a robust line in the v-disparity histogram of
 the lower half of the image, no plane fit, no roll, no temporal state, no prior.
