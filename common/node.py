@@ -30,7 +30,7 @@ from pydantic import BaseModel
 
 from common import codec, signed_payload
 from common.errors import BallbotError, DecodeError
-from common.inbox import _META, REJECTIONS, Clock, FreshnessGate, FreshnessLimits, Inbox, Meta, clock_from_env
+from common.inbox import _META, REJECTIONS, Clock, FreshnessGate, FreshnessLimits, Inbox, Meta, clock_from_env, stamp_of
 from common.keys import WORKER_SEGMENT, Topic, topic, topics_of
 from common.memory import release_memory_eagerly, trim_memory
 from common.messages import Message, ServiceStats
@@ -385,6 +385,16 @@ class Node:
             self.decode_errors += 1
             self.warn(kind, f"dropped {what}: {e}")
             return None
+
+    def stamp_or_drop(self, sample: Any, stream: str) -> int | None:
+        """The capture stamp of a sample's attachment, or None after counting (in_<stream>_unstamped)
+        and logging (rate-limited) that it came without one: every publisher of ours stamps, and in
+        a newest-wins slot an unstamped payload could only push the good ones out."""
+        stamp = stamp_of(sample.attachment)
+        if stamp is None:
+            self.count(f"in_{stream}_unstamped")
+            self.warn("unstamped", f"dropped a payload on {stream} without its stamp attachment")
+        return stamp
 
     @contextmanager
     def processing(self, msg: BaseModel | None = None) -> Iterator[None]:

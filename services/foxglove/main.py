@@ -37,7 +37,6 @@ from typing import Any
 from pydantic import Field
 
 from common.errors import BallbotError
-from common.inbox import stamp_of
 from common.keys import topic
 from common.messages import DisparityMap, FreeSpace, GroundTruth, Message, ObstacleList, StereoFrame
 from common.node import Node
@@ -187,9 +186,7 @@ class Bridge:
 
     def _keep(self, kind: str):
         def on_sample(sample) -> None:  # Zenoh's thread: keep the bytes, nothing else
-            if stamp_of(sample.attachment) is None:  # ours are stamped; garbage must not take the slot
-                self.node.count(f"in_{kind}_unstamped")
-                self.node.warn("unstamped", f"dropped a payload on {kind} without its stamp attachment")
+            if self.node.stamp_or_drop(sample, kind) is None:
                 return
             self.slots.put(kind, sample.payload.to_bytes())
         return on_sample

@@ -26,7 +26,6 @@ from pydantic import Field
 
 from common import codec
 from common.errors import BallbotError
-from common.inbox import stamp_of
 from common.keys import topic
 from common.messages import FreeSpace, ObstacleList, ReplayControl, ServiceStats
 from common.node import Node
@@ -129,10 +128,8 @@ class Viewer:
         ring = getattr(self.inputs, ring_name)
 
         def on_sample(sample) -> None:
-            stamp = stamp_of(sample.attachment)
-            if stamp is None:  # every publisher of ours stamps it; without, it could only push good ones out
-                self.node.count(f"in_{ring_name}_unstamped")
-                self.node.warn("unstamped", f"dropped a payload on the {ring_name} stream without its stamp attachment")
+            stamp = self.node.stamp_or_drop(sample, ring_name)
+            if stamp is None:
                 return
             with self._lock:
                 ring.append((stamp, sample.payload.to_bytes()))
