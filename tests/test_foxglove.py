@@ -138,7 +138,10 @@ def test_a_foxglove_client_subscribes_and_decodes_the_live_pipeline():
 
             topics = ["/frames/rectified/left", "/frames/rectified/camera_info", "/disparity/color",
                       "/obstacles/scene", "/obstacles/boxes", "/freespace/grid", "/tf", "/ground", "/obstacles"]
-            client, got = asyncio.run(_watch(port, topics, lambda g: all(len(v) >= 2 for v in g.values()), 180))
+            # (watched until the service's stats, once a second, have shown its image subscriptions too:
+            # a fast client may otherwise be gone before the next stats)
+            client, got = asyncio.run(_watch(port, topics, lambda g: all(len(v) >= 2 for v in g.values()) and any(
+                st.extra.get("image_streams", 0) >= 2 for st in stats.items), 180))
             assert client.server_info["name"] == "ballbot-vision fox"
             for t in topics[:-1]:  # the SDK's own schemas, protobuf
                 ch = client.channels[t]
