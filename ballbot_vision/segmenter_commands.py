@@ -94,7 +94,8 @@ def _obstacles_matcher_settings(args: argparse.Namespace):
 
 def _warn_reach(pipe) -> None:
     """Say at the start, on stderr, when the disparity search cannot measure (all or the near part
-    of) the segmenter's vision range: the lists then carry "range-unreachable"."""
+    of) the segmenter's vision range: the lists then carry "range-unreachable" (or
+    "near-unmeasured")."""
     cfg = pipe.matching.config.resolved(pipe.model.focal_px, pipe.model.baseline_m, pipe.model.width)
     reach = pipe.builder.check_search(pipe.model, cfg.min_disparity, cfg.num_disparities, quiet=True)
     if reach.message:

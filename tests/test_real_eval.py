@@ -339,3 +339,10 @@ def test_obstacles_with_only_a_calibration_sees_the_street_and_an_unreachable_ra
     assert "do not overlap" in out.err and "5.85 m" in out.err  # f*B / 63 px
     for lst in map(json.loads, out.out.splitlines()):
         assert "range-unreachable" in lst["degraded"]
+    # the same 64 px with a 10 m range: measured from 5.85 m, the road nearer than that (in view from
+    # 4.3 m) aliases to false depths, on which the ground was fitted 0.5 m and 5 deg off, unflagged
+    assert main(["obstacles", *pairs, *cal, "--json", "--disparity-num-disparities", "64", "--max-range-m", "10"]) == 0
+    out = capsys.readouterr()
+    assert "nothing nearer than 5.85 m" in out.err and "near-unmeasured" in out.err
+    for lst in map(json.loads, out.out.splitlines()):
+        assert "near-unmeasured" in lst["degraded"] and "range-unreachable" not in lst["degraded"]

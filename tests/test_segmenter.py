@@ -755,6 +755,20 @@ def test_lists_say_when_the_search_cannot_reach_the_range_or_there_is_no_ground(
     b = ObstacleBuilder(SegmenterSettings(max_range_m=3.0))
     lst = b.process(d, MODEL, t_s=0.0, seq=0, stamp_ns=0, search=(0, 16)).obstacles
     assert "range-unreachable" in lst.degraded and b.reach.unreachable and "do not overlap" in b.reach.message
+    # 32 px reach no nearer than f*B/31 = 2.1 m: the default range starts at 1 m, and an obstacle at 1.5 m
+    # would not be measured (block matching aliases it farther): the box at 3 m is found, and every list
+    # says the near part was not looked at
+    far = scene([(250, 390, 3.0, 80)])
+    far[far > 31] = np.nan  # what a 0..31 px search gives (decode() makes the rest invalid)
+    b = ObstacleBuilder(SegmenterSettings())
+    for k in range(2):
+        lst = b.process(far, MODEL, t_s=k / 15, seq=k, stamp_ns=0, search=(0, 32)).obstacles
+        assert lst.degraded == ["near-unmeasured"] and not b.reach.unreachable, lst.degraded
+        assert _depths([type("D", (), {"position_m": o.position_m})() for o in lst.obstacles]) == [3.0]
+    assert f"nothing nearer than {FB / 31:.2f} m" in b.reach.message and "near-unmeasured" in b.reach.message
+    # the nearest depth a few cm beyond min_range_m (the thesis's 64 px on its rig for 1 m) is no news
+    assert ObstacleBuilder(SegmenterSettings()).process(d, MODEL, t_s=0.0, seq=0, stamp_ns=0,
+                                                        search=(0, int(FB / 1.2) + 1)).obstacles.degraded == []
     wall = np.full((MODEL.height, MODEL.width), FB / 2.0, np.float32)  # no floor in view, no history, no mount
     lst = ObstacleBuilder(SegmenterSettings()).process(wall, MODEL, t_s=0.0, seq=0, stamp_ns=0).obstacles
     assert lst.ground.source == "none" and lst.ground.confidence == 0.0 and "no-ground" in lst.degraded

@@ -37,11 +37,20 @@ COLLAPSE_FACTOR, COLLAPSE_WINDOW_S, COLLAPSE_WARMUP_FRAMES = 0.5, 2.0, 5
 class Reach:
     """Whether a disparity search (min_disparity, num_disparities px) can measure the segmenter's
     vision range (min_range_m..range_m) with this camera: `unreachable` when the two do not overlap
-    at all (every list from such a map says "range-unreachable"), `message` also when the search
-    misses the near part of the range (a warning: things that near are not measured)."""
+    at all (every list from such a map says "range-unreachable"); `near_unmeasured` when the search
+    misses the near part of the range (every list says "near-unmeasured": what stands that near is
+    not measured, and block matching aliases it to a farther false depth); `message` says which."""
 
     unreachable: bool
     message: str
+    near_unmeasured: bool = False
+
+
+# How far beyond min_range_m the nearest depth the search measures may lie before the lists say
+# "near-unmeasured": a few centimetres short is no news (the Karlsruhe car's `auto` search, capped at a
+# quarter of the image width, measures from 1.15 m for a 1 m range); 1 m short of a 1 m range is a
+# blind spot where a robot meets its obstacles.
+NEAR_SLACK = 1.25
 
 
 def search_reach(model: camera.RectifiedModel, min_disparity: int, num_disparities: int,
@@ -57,9 +66,11 @@ def search_reach(model: camera.RectifiedModel, min_disparity: int, num_dispariti
         return Reach(True, f"{search}, the segmenter's vision range is {lo:g}..{hi:g} m: they do not overlap, "
                            "nothing in view can be measured; raise num_disparities (auto: from the calibration "
                            "and min_range_m) or change the range")
-    if near_m > 2.0 * lo:  # a few cm short of min_range_m is no news; half the near range is
+    if near_m > NEAR_SLACK * lo:
         return Reach(False, f"{search}: nothing nearer than {near_m:.2f} m is measured, though the vision range "
-                            f"starts at {lo:g} m (raise num_disparities, or num_disparities auto)")
+                            f"starts at {lo:g} m, so every list says near-unmeasured (raise num_disparities, or "
+                            f"num_disparities auto; or min_range_m to {near_m:.2f} m if nothing nearer matters)",
+                     near_unmeasured=True)
     return Reach(False, "")
 
 
@@ -230,7 +241,8 @@ class ObstacleBuilder:
         measurement; degraded names why an empty list would not mean "nothing there"
         ("no-valid-disparity": under 1 % measured; "valid-collapse": under half of what the
         frames of the last 2 s measured; "range-unreachable": the map's search, `search` = its
-        (min_disparity, num_disparities), cannot measure the vision range; "no-ground" /
+        (min_disparity, num_disparities), cannot measure the vision range; "near-unmeasured": it
+        cannot measure the near part of it (search_reach); "no-ground" /
         "ground-uncertain": nothing or too little told the floor from what stands on it;
         "floor-out-of-view": the floor within the vision range is below the camera's view)."""
         cfg = self.settings
@@ -287,6 +299,8 @@ class ObstacleBuilder:
         self.recent_valid.add(valid_fraction, t_s)
         if reach.unreachable:
             degraded.append("range-unreachable")
+        elif reach.near_unmeasured:
+            degraded.append("near-unmeasured")
         if cfg.method == "layers" and cfg.floor_removal:
             g = frame.ground
             if g is None or g.source == "none":

@@ -105,9 +105,11 @@ def run(node: Node, settings: SegmenterSettings) -> None:
                 node.status = "stale: input too old"
             elif reach.unreachable:
                 node.status = f"range-unreachable: {reach.message}"
+            elif reach.near_unmeasured:
+                node.status = f"near-unmeasured: {reach.message}"
             elif "floor-out-of-view" in result.obstacles.degraded:
                 node.status = ("floor-out-of-view: the floor within the vision range is below the camera's view; "
                                "nothing low there can be seen (lengthen the range, or pitch the camera down)")
             else:
-                node.status = f"ok; warning: {reach.message}" if reach.message else "ok"
+                node.status = "ok"
             node.status += unsigned_note
