@@ -31,7 +31,6 @@ frames ("tracked", its confidence halving each frame), then the configured mount
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -362,11 +361,10 @@ class GroundEstimator:
     def _none(self) -> GroundEstimate:
         return self._estimate(np.array([0.0, 1.0, 0.0]), 0.0, "none")
 
-    def update(self, dm: np.ndarray, model: camera.RectifiedModel, step: int,
-               wider: Callable[[], np.ndarray] | None = None) -> tuple[FloorPlane | None, GroundEstimate]:
-        """dm: the working-resolution disparity inside the vision range (0 = invalid); wider: makes the
-        same out to where the rig still measures (None: dm is all there is), for a floor seen too
-        briefly inside the range (MIN_FLOOR_SPAN)."""
+    def update(self, dm: np.ndarray, model: camera.RectifiedModel,
+               step: int) -> tuple[FloorPlane | None, GroundEstimate]:
+        """dm: the working-resolution disparity where the floor is looked for (0 = invalid): the
+        vision range, or out to where the rig still measures when that is farther (layers.py)."""
         cfg = self.cfg
         prior = self.prior
         if not cfg.fit_floor:
@@ -436,15 +434,6 @@ class GroundEstimator:
         self.since_search += 1
         fit, consistent = choose(px, bool(guesses) and self.since_search < SEARCH_EVERY)
         span = floor_span(fit, px) if fit is not None else 0.0
-        if wider is not None and span < MIN_FLOOR_SPAN:
-            # The floor inside the vision range is seen over too short a stretch to tell the camera's
-            # pitch from its height (a car's camera with a 5 m range sees the road from 4.3 to 5 m:
-            # a plane pivoting on that strip fits as well 1 m higher and 20 deg steeper, and snow at the
-            # kerb decides): the floor beyond the range, as far as the rig measures it, decides instead.
-            wide = Pixels(*_points(wider(), step))
-            wide_fit, wide_consistent = choose(wide, False)
-            if wide_fit is not None:
-                fit, consistent, span = wide_fit, wide_consistent, floor_span(wide_fit, wide)
         if fit is not None:
             self._remember(fit.normal, fit.plane.height_m, self.missed == 0 and consistent is True)
             self.missed = 0

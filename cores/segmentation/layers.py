@@ -207,12 +207,16 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
     doubt_deg = 0.0
     if cfg.floor_removal:
         ground = ground or GroundEstimator(cfg)
-        # the floor beyond the vision range, where the rig still measures it, for a range too short to show
-        # enough of it (ground.MIN_FLOOR_SPAN)
+        # The ground is the world's, not the range's: it is fitted on the floor out to where the rig still
+        # measures (FAR_DISPARITY_PX), however short the vision range. Inside a short range the floor is
+        # seen over too short a stretch to tell pitch from height (a car's camera with a 5 m range sees
+        # the road from 4.3 to 5 m: a plane pivoting on that strip fits as well 1 m higher and 20 deg
+        # steeper); inside 10 m, block matching with a larger block than the default sees a snow bank and
+        # the parking stripes but little of the smooth road, and the ground was 0.2-0.8 m and 2-7 deg
+        # off the road, trusted.
         ground_range = max(range_m, fB / FAR_DISPARITY_PX)
-        wider = (None if ground_range <= range_m
-                 else lambda: _masked(dm, cv2.inRange(dm, fB / ground_range, fB / cfg.min_range_m)))
-        floor, estimate = ground.update(dk, model, step, wider)
+        dg = dk if ground_range <= range_m else _masked(dm, cv2.inRange(dm, fB / ground_range, fB / cfg.min_range_m))
+        floor, estimate = ground.update(dg, model, step)
         if floor is not None and ground.tilt_doubt_deg >= MIN_DOUBT_DEG:
             doubt_deg = ground.tilt_doubt_deg
     floor_points = np.zeros((0, 3))
