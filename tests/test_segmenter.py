@@ -637,6 +637,14 @@ def test_builder_publishes_ground_free_space_and_confirms_tracks():
     assert last.obstacles.obstacles[0].position_base_m is not None
     seed_out = ObstacleBuilder(SegmenterSettings(method="seed")).process(d, MODEL, t_s=0, seq=0, stamp_ns=0)
     assert seed_out.freespace is None and seed_out.obstacles.ground is None  # no mount, no ground: said so
+    assert seed_out.obstacles.degraded == ["no-ground"]
+    # the thesis's method with the mount it removes the floor by: trusted as far as that mount is
+    mounted = ObstacleBuilder(SegmenterSettings(method="seed"), MountSettings(height_m=SCENE_MOUNT.height_m,
+                                                                             pitch_deg=SCENE_MOUNT.pitch_deg))
+    lst = mounted.process(d, MODEL, t_s=0, seq=0, stamp_ns=0).obstacles
+    assert lst.degraded == [] and lst.ground.source == "prior" and lst.ground.confidence >= 0.3
+    thesis = ObstacleBuilder(SegmenterSettings(method="seed", floor_removal=False), MountSettings(height_m=1.0))
+    assert thesis.process(d, MODEL, t_s=0, seq=0, stamp_ns=0).obstacles.degraded == ["no-ground"]
 
 
 def test_a_tracked_object_seen_in_pieces_stays_one_obstacle_and_a_newcomer_beside_it_does_not_join():

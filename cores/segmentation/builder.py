@@ -163,8 +163,9 @@ class ObstacleBuilder:
             dets = seed.segment(disparity, model, cfg, self.mount)
             floor = plane_from_mount(self.mount, model) if self.mount is not None and cfg.floor_removal else None
             g = self.mount
+            # the configured mount, trusted as far as a mount measured once can be (layers' fit_floor false)
             estimate = (GroundEstimate(height_m=g.height_m, pitch_deg=g.pitch_deg, roll_deg=g.roll_deg,
-                                       source="prior") if g is not None else None)
+                                       source="prior", confidence=0.5) if g is not None else None)
             return layers.LayersFrame(dets, [], floor, estimate, np.zeros((0, 3)))
         return layers.segment_frame(disparity, model, cfg, ground=self.ground, confidence=confidence, image=image)
 
@@ -301,7 +302,11 @@ class ObstacleBuilder:
             degraded.append("range-unreachable")
         elif reach.near_unmeasured:
             degraded.append("near-unmeasured")
-        if cfg.method == "layers" and cfg.floor_removal:
+        if cfg.method == "seed" and frame.floor is None:
+            # the thesis's method with no floor removed (no mount, or floor_removal off): a textured floor in
+            # range is one region with what stands on it, and clearing the border drops both
+            degraded.append("no-ground")
+        elif cfg.floor_removal:
             g = frame.ground
             if g is None or g.source == "none":
                 degraded.append("no-ground")  # nothing told floor from obstacle: what stands low is not known
