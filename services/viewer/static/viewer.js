@@ -207,10 +207,12 @@ function drawInfo(doc) {
 }
 
 async function render(doc, blobs) {
+  // window.viewer changes only at the end, all at once: a reader between the awaits below (a test,
+  // the console) never sees this update's boxes beside the last update's document, or none
+  let drawn = null;
   if (blobs.left) {
     const ctx = await drawPicture($("image"), blobs.left);
-    state.drawn = drawBoxes(ctx, doc);
-    state.imageUpdates += 1;
+    drawn = drawBoxes(ctx, doc);
   }
   if (blobs.disparity) await drawPicture($("disparity"), blobs.disparity);
   let fs = null;
@@ -227,6 +229,10 @@ async function render(doc, blobs) {
   updateTimes.push(now);
   updateTimes = updateTimes.filter((t) => now - t < 2000);
   $("fps").textContent = fmt(updateTimes.length / 2, 1);
+  if (drawn) {
+    state.drawn = drawn;
+    state.imageUpdates += 1;
+  }
   state.doc = doc;
   state.updates += 1;
 }
