@@ -328,6 +328,23 @@ def _browser():
     return sync_api
 
 
+# Each picture decodes 100 ms late; every animation frame counts the times window.viewer holds drawn
+# boxes and no document.
+TEAR_WATCH = """
+const decode = window.createImageBitmap.bind(window);
+window.createImageBitmap = async (...args) => { await new Promise((r) => setTimeout(r, 100)); return decode(...args); };
+window.__torn = 0;
+window.__frames = 0;
+const watch = () => {
+  const v = window.viewer;
+  window.__frames += 1;
+  if (v && v.drawn && !v.doc) window.__torn += 1;
+  requestAnimationFrame(watch);
+};
+requestAnimationFrame(watch);
+"""
+
+
 @pytest.mark.system
 def test_the_page_shows_the_pictures_and_draws_the_boxes_of_the_obstacle_list(tmp_path):
     sync_api = _browser()
@@ -397,6 +414,14 @@ def test_the_page_shows_the_pictures_and_draws_the_boxes_of_the_obstacle_list(tm
             assert page.locator("#obstacles tbody tr").count() == 2
             shot = tmp_path / "viewer.png"
             page.screenshot(path=str(shot), full_page=True)
+            # window.viewer changes at the end of an update, all at once: with the pictures' decoding
+            # slowed (the window a loaded machine opens between the awaits), a reader never finds boxes
+            # drawn and no document beside them (CI's first wait above once read that and failed)
+            slow = browser.new_page(viewport={"width": 1400, "height": 1050})
+            slow.add_init_script(TEAR_WATCH)
+            slow.goto(f"http://127.0.0.1:{port}/")
+            slow.wait_for_function("window.viewer.updates >= 4 && window.__frames > 20", timeout=120_000)
+            assert slow.evaluate("window.__torn") == 0
             browser.close()
         screen = [a for a, _ in ages]
         extra = [a - p for a, p in ages]
