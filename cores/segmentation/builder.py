@@ -18,7 +18,7 @@ from common.settings import MountSettings
 from cores import camera
 from cores.matching.disparity import RecentValid, searched_range, to_float
 from cores.segmentation import freespace, layers, seed, stats
-from cores.segmentation.ground import TRUSTED, GroundEstimator, frame_mount, plane_from_mount
+from cores.segmentation.ground import MOUNT_CONFIDENCE, TRUSTED, GroundEstimator, frame_mount, plane_from_mount
 from cores.segmentation.mount import FloorPlane, Mount
 from cores.segmentation.seed import Detection
 from cores.segmentation.settings import SegmenterSettings
@@ -163,9 +163,9 @@ class ObstacleBuilder:
             dets = seed.segment(disparity, model, cfg, self.mount)
             floor = plane_from_mount(self.mount, model) if self.mount is not None and cfg.floor_removal else None
             g = self.mount
-            # the configured mount, trusted as far as a mount measured once can be (layers' fit_floor false)
+            # the configured mount, trusted as far as a mount measured once can be (as layers' fit_floor false)
             estimate = (GroundEstimate(height_m=g.height_m, pitch_deg=g.pitch_deg, roll_deg=g.roll_deg,
-                                       source="prior", confidence=0.5) if g is not None else None)
+                                       source="prior", confidence=MOUNT_CONFIDENCE) if g is not None else None)
             return layers.LayersFrame(dets, [], floor, estimate, np.zeros((0, 3)))
         return layers.segment_frame(disparity, model, cfg, ground=self.ground, confidence=confidence, image=image)
 

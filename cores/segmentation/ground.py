@@ -67,6 +67,7 @@ TRACK_BONUS = 0.05  # score bonus of a candidate agreeing with the last frames
 ROLL_COST = 0.02  # per degree beyond ROLL_FREE_DEG
 ROLL_FREE_DEG = 2.0
 TRUSTED = 0.3  # below this confidence a list says "ground-uncertain"
+MOUNT_CONFIDENCE = 0.5  # of the configured mount where the user chose it over fitting (fit_floor false, seed)
 TILT_RATE = 0.2  # weight of a new fit in the running tilt doubt
 MAX_TILT_DOUBT_DEG = 1.0
 SEARCH_EVERY = 4  # frames: a full search at least this often (in between, the last frames' ground refined)
@@ -372,7 +373,7 @@ class GroundEstimator:
                 return None, self._none()
             # the user chose the configured mount over fitting: trusted as far as a mount measured once can be
             return plane_from_mount(prior, model), self._estimate(prior.down_camera, prior.height_m, "prior",
-                                                                  confidence=0.5)
+                                                                  confidence=MOUNT_CONFIDENCE)
         px = Pixels(*_points(dm, step))
         guesses = {}
         expected = self.predicted() if self.smooth_n is not None else None
