@@ -9,6 +9,7 @@ from cores import camera
 from cores.calibration.rectify import Rectifier
 from cores.matching.disparity import to_float
 from cores.matching.matchers import MatcherConfig, StereoMatcher
+from cores.segmentation.ground import plane_from_mount
 from cores.segmentation.mount import Mount
 from cores.segmentation.seed import segment
 from cores.segmentation.settings import SegmenterSettings
@@ -54,7 +55,8 @@ def test_block_matching_agrees_with_true_depth(chain):
 
 def test_seed_segmentation_finds_both_boxes_within_5_percent(chain):
     pair, rect, _, _, disparity = chain
-    dets = segment(disparity, rect.model, SegmenterSettings(method="seed"), Mount(1.0, 15.0))
+    floor = plane_from_mount(Mount(1.0, 15.0), rect.model)
+    dets = segment(disparity, rect.model, SegmenterSettings(method="seed"), floor)
     assert len(dets) == len(pair.truth) == 2
     for t in pair.truth:
         c = np.asarray(t.visible_centroid_m)
@@ -68,7 +70,7 @@ def test_without_floor_removal_the_floor_swallows_the_boxes(chain):
     """The thesis's pipeline alone: the textured floor in range joins both boxes into one region.
     This is why the camera mount is a setting."""
     pair, rect, _, _, disparity = chain
-    dets = segment(disparity, rect.model, SegmenterSettings(method="seed"), mount=None)
+    dets = segment(disparity, rect.model, SegmenterSettings(method="seed"), floor=None)
     assert len(dets) < len(pair.truth)
 
 

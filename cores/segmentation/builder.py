@@ -13,12 +13,12 @@ import numpy as np
 
 from common import codec
 from common.errors import DecodeError
-from common.messages import DisparityMap, FreeSpace, GroundEstimate, Obstacle, ObstacleList, Odometry
+from common.messages import DisparityMap, FreeSpace, Obstacle, ObstacleList, Odometry
 from common.settings import MountSettings
 from cores import camera
 from cores.matching.disparity import RecentValid, searched_range, to_float
 from cores.segmentation import freespace, layers, seed, stats
-from cores.segmentation.ground import MOUNT_CONFIDENCE, TRUSTED, GroundEstimator, frame_mount, plane_from_mount
+from cores.segmentation.ground import TRUSTED, GroundEstimator, frame_mount
 from cores.segmentation.mount import FloorPlane, Mount
 from cores.segmentation.seed import Detection
 from cores.segmentation.settings import SegmenterSettings
@@ -160,13 +160,12 @@ class ObstacleBuilder:
         if disparity.size == 0:
             return layers.LayersFrame([], [], None, None, np.zeros((0, 3)))
         if cfg.method == "seed":
-            dets = seed.segment(disparity, model, cfg, self.mount)
-            floor = plane_from_mount(self.mount, model) if self.mount is not None and cfg.floor_removal else None
-            g = self.mount
-            # the configured mount, trusted as far as a mount measured once can be (as layers' fit_floor false)
-            estimate = (GroundEstimate(height_m=g.height_m, pitch_deg=g.pitch_deg, roll_deg=g.roll_deg,
-                                       source="prior", confidence=MOUNT_CONFIDENCE) if g is not None else None)
-            return layers.LayersFrame(dets, [], floor, estimate, np.zeros((0, 3)))
+            # the floor seed removes is the ground estimator's, as layers': a configured mount is its prior,
+            # never a cage (a mount 8 deg off had turned the floor into obstacles, or eaten what stood on it)
+            floor, estimate = (layers.estimate_ground(disparity, model, cfg, self.ground, confidence)
+                               if cfg.floor_removal else (None, None))
+            dets, unlisted = seed.segment_frame(disparity, model, cfg, floor)
+            return layers.LayersFrame(dets, [], floor, estimate, np.zeros((0, 3)), unlisted)
         return layers.segment_frame(disparity, model, cfg, ground=self.ground, confidence=confidence, image=image)
 
     def _ego_motion(self, odometry: Odometry | None, t_s: float) -> bool:
@@ -245,7 +244,9 @@ class ObstacleBuilder:
         (min_disparity, num_disparities), cannot measure the vision range; "near-unmeasured": it
         cannot measure the near part of it (search_reach); "no-ground" /
         "ground-uncertain": nothing or too little told the floor from what stands on it;
-        "floor-out-of-view": the floor within the vision range is below the camera's view)."""
+        "floor-out-of-view": the floor within the vision range is below the camera's view;
+        "standing-not-listed": something standing in range, as large as the method reports, is in no
+        obstacle: seed's border clearing or Otsu threshold dropped it)."""
         cfg = self.settings
         reach = self.check_search(model, *search) if search is not None else Reach(False, "")
         if disparity.dtype.kind == "f":
@@ -307,6 +308,8 @@ class ObstacleBuilder:
             # range is one region with what stands on it, and clearing the border drops both
             degraded.append("no-ground")
         elif cfg.floor_removal:
+            if frame.unlisted:
+                degraded.append("standing-not-listed")
             g = frame.ground
             if g is None or g.source == "none":
                 degraded.append("no-ground")  # nothing told floor from obstacle: what stands low is not known

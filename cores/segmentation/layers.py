@@ -115,6 +115,9 @@ class LayersFrame:
     floor: FloorPlane | None  # the disparity-space floor plane used (None: no floor removed)
     ground: GroundEstimate | None  # what the ground estimator said (None: floor removal off)
     floor_points: np.ndarray  # (k, 3) camera-frame points of the floor the robot may drive on (see _drivable)
+    # something standing in the vision range, as large as the method reports, is in no detection (seed:
+    # touching the image border, or on the far side of its Otsu threshold): the list is not a full view
+    unlisted: bool = False
 
 
 def _working_disparity(disparity: np.ndarray, cfg: SegmenterSettings, confidence: np.ndarray | None,
@@ -138,6 +141,36 @@ def _masked(a: np.ndarray, mask: np.ndarray) -> np.ndarray:
     out = np.zeros_like(a)
     cv2.copyTo(a, mask, out)
     return out
+
+
+def _fit_ground(dm: np.ndarray, dk: np.ndarray | None, model: camera.RectifiedModel, cfg: SegmenterSettings,
+                ground: GroundEstimator, step: int) -> tuple[FloorPlane | None, GroundEstimate]:
+    """This frame's floor from the working disparity dm (dk: dm gated to the vision range, if at hand).
+    The ground is the world's, not the range's: it is fitted on the floor out to where the rig still
+    measures (FAR_DISPARITY_PX), however short the vision range. Inside a short range the floor is
+    seen over too short a stretch to tell pitch from height (a car's camera with a 5 m range sees
+    the road from 4.3 to 5 m: a plane pivoting on that strip fits as well 1 m higher and 20 deg
+    steeper); inside 10 m, block matching with a larger block than the default sees a snow bank and
+    the parking stripes but little of the smooth road, and the ground was 0.2-0.8 m and 2-7 deg
+    off the road, trusted."""
+    fB = model.focal_px * model.baseline_m
+    range_m = cfg.range_for(model)
+    ground_range = max(range_m, fB / FAR_DISPARITY_PX)
+    if dk is not None and ground_range <= range_m:
+        dg = dk
+    else:
+        dg = _masked(dm, cv2.inRange(dm, fB / ground_range, fB / cfg.min_range_m))
+    return ground.update(dg, model, step)
+
+
+def estimate_ground(disparity: np.ndarray, model: camera.RectifiedModel, cfg: SegmenterSettings,
+                    ground: GroundEstimator, confidence: np.ndarray | None = None
+                    ) -> tuple[FloorPlane | None, GroundEstimate]:
+    """The floor plane and ground estimate of one full-resolution map, as segment_frame finds them
+    (for the seed method, which removes the floor by it)."""
+    step = max(1, int(cfg.downsample))
+    _, dm = _working_disparity(disparity, cfg, confidence, step)
+    return _fit_ground(dm, None, model, cfg, ground, step)
 
 
 def _label_order(lab: np.ndarray) -> np.ndarray:
@@ -207,16 +240,7 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
     doubt_deg = 0.0
     if cfg.floor_removal:
         ground = ground or GroundEstimator(cfg)
-        # The ground is the world's, not the range's: it is fitted on the floor out to where the rig still
-        # measures (FAR_DISPARITY_PX), however short the vision range. Inside a short range the floor is
-        # seen over too short a stretch to tell pitch from height (a car's camera with a 5 m range sees
-        # the road from 4.3 to 5 m: a plane pivoting on that strip fits as well 1 m higher and 20 deg
-        # steeper); inside 10 m, block matching with a larger block than the default sees a snow bank and
-        # the parking stripes but little of the smooth road, and the ground was 0.2-0.8 m and 2-7 deg
-        # off the road, trusted.
-        ground_range = max(range_m, fB / FAR_DISPARITY_PX)
-        dg = dk if ground_range <= range_m else _masked(dm, cv2.inRange(dm, fB / ground_range, fB / cfg.min_range_m))
-        floor, estimate = ground.update(dg, model, step)
+        floor, estimate = _fit_ground(dm, dk, model, cfg, ground, step)
         if floor is not None and ground.tilt_doubt_deg >= MIN_DOUBT_DEG:
             doubt_deg = ground.tilt_doubt_deg
     floor_points = np.zeros((0, 3))

@@ -1,11 +1,13 @@
-"""The thesis's segmentation (chapter 4), step by step, plus an optional floor removal from the
-camera mount so that a textured floor in range does not swallow the objects standing on it.
+"""The thesis's segmentation (chapter 4), step by step, plus an optional floor removal (the ground
+found in the map, as for layers) so that a textured floor in range does not swallow the objects
+standing on it.
 
 disparity (H, W) float32 px, NaN = invalid  ->  list of Detection (camera frame, metres)
 
  1. vision-range gate: pixels with d < f*B / max_range_m are removed (3 m -> d >= ~20 px)
- 2. floor removal (if floor_removal and the mount is known): pixels whose 3D point lies within floor_margin_m of
-    the floor plane are removed
+ 2. floor removal (if floor_removal): pixels whose 3D point lies within floor_margin_m of the floor plane
+    are removed; the plane is the ground estimator's (ground.py, as for layers: fitted to the map every frame,
+    the configured mount its prior; with fit_floor false, the mount)
  3. 2-D median filter
  4. normalise to grey (0..255)
  5. Otsu threshold
@@ -22,7 +24,7 @@ import cv2
 import numpy as np
 
 from cores import camera
-from cores.segmentation.mount import Mount
+from cores.segmentation.mount import FloorPlane
 from cores.segmentation.settings import SegmenterSettings
 
 MODE_BIN_PX = 0.25  # histogram bin of the region's disparity mode
@@ -47,21 +49,17 @@ class Detection:
         return any(self.cut)
 
 
-def floor_mask(disparity: np.ndarray, model: camera.RectifiedModel, height_m: float, pitch_deg: float,
-               margin_m: float) -> np.ndarray:
+def floor_mask(disparity: np.ndarray, floor: FloorPlane, margin_m: float) -> np.ndarray:
     """True where the pixel's 3D point is within margin_m of (or below) the floor plane.
 
-    The camera sits height_m above the floor, pitched down by pitch_deg, no roll. In the camera
-    frame (y down) a point's drop below the camera is y cos(pitch) + z sin(pitch)."""
-    # drop = z * (cos(p) (v - cy) / f + sin(p)) with z = f B / d, so the test
-    # height - drop < margin becomes a per-row threshold on d: d * (height - margin) < f B k(v).
-    h = disparity.shape[0]
-    p = np.deg2rad(pitch_deg)
-    v = np.arange(h, dtype=np.float32)
-    k = (np.cos(p) * (v - model.cy) / model.focal_px + np.sin(p)).astype(np.float32)[:, None]
-    fB = np.float32(model.focal_px * model.baseline_m)
+    A pixel's point lies h (1 - d_floor / d) above the floor (FloorPlane), so the test
+    height < margin is, for d > 0, d (h - margin) < h d_floor: linear in the map."""
+    h, w = disparity.shape
+    u = np.arange(w, dtype=np.float32)[None, :]
+    v = np.arange(h, dtype=np.float32)[:, None]
+    d_floor = np.float32(floor.a) * u + (np.float32(floor.b) * v + np.float32(floor.c))
     with np.errstate(invalid="ignore"):
-        return disparity * np.float32(height_m - margin_m) < fB * k
+        return disparity * np.float32(floor.height_m - margin_m) < np.float32(floor.height_m) * d_floor
 
 
 def fill_holes(mask: np.ndarray) -> np.ndarray:
@@ -83,11 +81,22 @@ def _mode(values: np.ndarray, bin_px: float) -> float:
 
 
 def segment(disparity: np.ndarray, model: camera.RectifiedModel,
-            cfg: SegmenterSettings | None = None, mount: Mount | None = None) -> list[Detection]:
+            cfg: SegmenterSettings | None = None, floor: FloorPlane | None = None) -> list[Detection]:
+    """The detections of segment_frame (the thesis's steps; see there)."""
+    return segment_frame(disparity, model, cfg, floor)[0]
+
+
+def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: SegmenterSettings | None = None,
+                  floor: FloorPlane | None = None) -> tuple[list[Detection], bool]:
     """disparity: (H, W) float32 px, NaN = invalid, rectified left camera `model` -> detections,
     camera frame. Reads range_m, median_ksize (at least 3), floor_removal, floor_margin_m,
-    min_area_fraction, close_radius_px and clear_border; the floor is removed with `mount`'s height
-    and pitch (the configured mount; None: no floor removed, as in the thesis)."""
+    min_area_fraction, close_radius_px and clear_border; the floor plane is removed (None: no floor
+    removed, as in the thesis; ObstacleBuilder passes the ground estimator's, as for layers).
+    -> (detections, unlisted): unlisted when, with a floor removed, what stands in the vision range
+    leaves a region outside every detection whose frontal area is that of the smallest obstacle the
+    default method reports (min_area_m2): the thesis drops what touches the image border, what lies on
+    the far side of its Otsu threshold and what is smaller than its area opening (3 % of the image:
+    at 10 m a parked car covers less of a street camera's), so such a list is not a full view of the range."""
     cfg = cfg or SegmenterSettings(method="seed")
     if disparity.shape != (model.height, model.width):
         raise ValueError(f"disparity is {disparity.shape[1]}x{disparity.shape[0]}, camera model is "
@@ -97,15 +106,15 @@ def segment(disparity: np.ndarray, model: camera.RectifiedModel,
     d = np.asarray(disparity, dtype=np.float32)
     with np.errstate(invalid="ignore"):
         keep = np.isfinite(d) & (d >= d_min)
-    if cfg.floor_removal and mount is not None:
-        keep &= ~floor_mask(d, model, mount.height_m, mount.pitch_deg, cfg.floor_margin_m)
+    if cfg.floor_removal and floor is not None:
+        keep &= ~floor_mask(d, floor, cfg.floor_margin_m)
     if not keep.any():
-        return []
+        return [], False
     gated = np.where(keep, d, 0.0).astype(np.float32)
     filtered = cv2.medianBlur(gated, max(3, cfg.median_ksize))
     top = float(filtered.max())
     if top <= 0:
-        return []
+        return [], False
     grey = np.clip(filtered * (255.0 / top), 0, 255).astype(np.uint8)
     _, binary = cv2.threshold(grey, 0, 1, cv2.THRESH_BINARY | cv2.THRESH_OTSU)
 
@@ -123,6 +132,7 @@ def segment(disparity: np.ndarray, model: camera.RectifiedModel,
     n, labels, stats, centroids = cv2.connectedComponentsWithStats(mask, connectivity=8)
     fB = model.focal_px * model.baseline_m
     out: list[Detection] = []
+    listed = np.zeros(n, bool)
     for i in range(1, n):
         x0, y0, bw, bh, area = (int(v) for v in stats[i])
         if cfg.clear_border and (x0 == 0 or y0 == 0 or x0 + bw >= w or y0 + bh >= h):
@@ -147,4 +157,13 @@ def segment(disparity: np.ndarray, model: camera.RectifiedModel,
             position_m=np.array([x, y, z]), size_m=size, distance_m=distance,
             bbox_px=(x0, y0, x0 + bw, y0 + bh), area_px=area, disparity_px=disp,
             confidence=float(valid.size / max(area, 1))))
-    return out
+        listed[i] = True
+    unlisted = False
+    if floor is not None:
+        rest = (filtered > 0) & ~listed[labels]
+        n_rest, rest_labels = cv2.connectedComponents(rest.view(np.uint8), connectivity=8)
+        if n_rest > 1:  # each region's frontal area: a pixel at disparity d covers (B / d)^2 m^2
+            frontal = np.bincount(rest_labels[rest], weights=(model.baseline_m / filtered[rest]) ** 2,
+                                  minlength=n_rest)
+            unlisted = bool(frontal[1:].max() >= cfg.min_area_m2)
+    return out, unlisted
