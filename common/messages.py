@@ -208,7 +208,7 @@ class ObstacleList(Message):
     degraded: list[str] = Field(default_factory=list, max_length=32, description="short reasons this list cannot be "
                                 "trusted as a full view (empty: trustworthy; e.g. 'no-valid-disparity', "
                                 "'valid-collapse', 'no-ground', 'ground-uncertain', 'range-unreachable', "
-                                "'near-unmeasured', 'floor-out-of-view')")
+                                "'near-unmeasured', 'floor-out-of-view', 'standing-not-listed')")
     valid_fraction: float = Field(0.0, ge=0, le=1, description="share of the image the disparity map measured "
                                   "(valid pixels within the vision range gate's search) for this list")
     frame_id: Literal["camera"] = "camera"

@@ -200,6 +200,10 @@ class Score:
     wall_fp: int = 0
     split_fp: int = 0
     id_switches: int = 0
+    # truths missed in a list that named no reason it could not be trusted (degraded empty): the misses a
+    # planner takes for a clear way; a miss in a flagged list was at least said
+    silent_misses: int = 0
+    flagged_frames: int = 0  # lists with a reason in degraded
     vel_err_mps: float = float("nan")
     seg_ms: float = float("nan")
     base_err_med_m: float = float("nan")  # base frame, against the truth's measurable centroid
@@ -280,7 +284,7 @@ class Score:
         out = cls(scenario, scores[0].method if scores else "")
         for s in scores:
             for k in ("frames", "truths", "detections", "matched", "floor_fp", "wall_fp", "split_fp", "id_switches",
-                      "border_truths", "border_flagged"):
+                      "border_truths", "border_flagged", "silent_misses", "flagged_frames"):
                 setattr(out, k, getattr(out, k) + getattr(s, k))
             for k in ("_pos", "_pct", "_depth", "_center", "_visible", "_vel", "_ms", "_base", "_wobble", "ground",
                       "_near", "_edge"):
@@ -384,6 +388,10 @@ def score_method(data: ScenarioData, method: str, overrides: dict | None = None,
         sc.truths += len(truths)
         sc.detections += len(obs) - len(ignored)
         sc.matched += len(pairs)
+        if res.obstacles.degraded:
+            sc.flagged_frames += 1
+        else:
+            sc.silent_misses += len(truths) - len(pairs)
         for i, t in enumerate(fr.truth):
             rec = sc.per_truth.setdefault(t.name, {"seen": 0, "matched": 0, "ids": [], "hidden": 0, "gaps": 0})
             if i in keep:
@@ -503,7 +511,8 @@ COLUMNS = [("recall", "recall", "{:.0%}"), ("precision", "prec", "{:.0%}"), ("po
            ("pos_err_p95_pct", "err p95 %", "{:.1f}"), ("depth_err_med_pct", "depth med %", "{:.1f}"),
            ("center_err_med_m", "vs centre m", "{:.3f}"), ("visible_err_med_m", "vs visib. m", "{:.3f}"),
            ("floor_fp", "floor FP", "{}"), ("wall_fp", "wall FP", "{}"),
-           ("split_fp", "split FP", "{}"), ("id_switches", "id sw", "{}"), ("vel_err_mps", "vel err m/s", "{:.2f}"),
+           ("split_fp", "split FP", "{}"), ("id_switches", "id sw", "{}"), ("silent_misses", "silent miss", "{}"),
+           ("flagged_frames", "flagged", "{}"), ("vel_err_mps", "vel err m/s", "{:.2f}"),
            ("seg_ms", "seg ms", "{:.1f}")]
 
 

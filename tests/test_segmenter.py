@@ -260,6 +260,24 @@ def test_layers_keeps_an_object_cut_by_the_image_border():
     assert seed.segment(d, MODEL, SegmenterSettings(method="seed")) == []  # the thesis clears the border
 
 
+def test_seed_says_when_what_stands_in_range_is_not_in_its_list():
+    """The thesis drops what touches the image border, what is under its area opening and what lies
+    beyond its Otsu threshold: such a list names standing-not-listed, never a list that reads "nothing
+    else there"."""
+    def listed(boxes):
+        lst = ObstacleBuilder(SegmenterSettings(method="seed")).process(scene(boxes), MODEL, t_s=0, seq=0,
+                                                                         stamp_ns=0).obstacles
+        return _depths(lst.obstacles), lst.degraded
+
+    assert listed([(250, 390, 2.0, 150)]) == ([2.0], [])
+    assert listed([(560, 700, 2.0, 200)]) == ([], ["standing-not-listed"])  # cut by the border, cleared
+    assert listed([(560, 700, 2.0, 200), (250, 390, 2.0, 150)]) == ([2.0], ["standing-not-listed"])
+    # a small box behind a near one (under 3 % of the image, and on the far side of Otsu's threshold) is
+    # dropped; as large and it is kept
+    assert listed([(150, 300, 2.0, 100), (400, 520, 2.9, 80)]) == ([2.0], ["standing-not-listed"])
+    assert listed([(200, 300, 2.0, 150), (400, 560, 2.9, 150)]) == ([2.0, 2.9], [])
+
+
 @pytest.mark.parametrize("prior", [Mount(1.0, 15.0), Mount(1.12, 12.0, roll_deg=2.0), None],
                          ids=["exact-mount", "wrong-mount", "no-mount"])
 def test_layers_removes_the_floor_with_or_without_a_good_mount(prior):
@@ -635,14 +653,22 @@ def test_builder_publishes_ground_free_space_and_confirms_tracks():
     cells = np.frombuffer(fs.cells, np.int8)
     assert fs.frame_id == "base" and cells.size == fs.width * fs.height and (cells == 0).any() and (cells == 100).any()
     assert last.obstacles.obstacles[0].position_base_m is not None
-    seed_out = ObstacleBuilder(SegmenterSettings(method="seed")).process(d, MODEL, t_s=0, seq=0, stamp_ns=0)
-    assert seed_out.freespace is None and seed_out.obstacles.ground is None  # no mount, no ground: said so
-    assert seed_out.obstacles.degraded == ["no-ground"]
-    # the thesis's method with the mount it removes the floor by: trusted as far as that mount is
-    mounted = ObstacleBuilder(SegmenterSettings(method="seed"), MountSettings(height_m=SCENE_MOUNT.height_m,
-                                                                             pitch_deg=SCENE_MOUNT.pitch_deg))
+    # the thesis's method removes the floor the ground estimator finds, as layers does: with no mount, or
+    # with one 8 deg and 30 % off (its prior), the same ground and the same box; no free space (seed has none)
+    for mount in (None, MountSettings(height_m=SCENE_MOUNT.height_m * 1.3, pitch_deg=SCENE_MOUNT.pitch_deg + 8)):
+        lst = ObstacleBuilder(SegmenterSettings(method="seed"), mount).process(d, MODEL, t_s=0, seq=0, stamp_ns=0)
+        g = lst.obstacles.ground
+        assert lst.freespace is None and lst.obstacles.degraded == [] and g.source == "fitted", lst.obstacles
+        assert abs(g.height_m - SCENE_MOUNT.height_m) < 0.05 and abs(g.pitch_deg - SCENE_MOUNT.pitch_deg) < 1.0
+        (o,) = lst.obstacles.obstacles
+        assert o.distance_m == pytest.approx(2.0, abs=0.1)
+    # fit_floor false: the configured mount, trusted as far as a mount measured once can be
+    mounted = ObstacleBuilder(SegmenterSettings(method="seed", fit_floor=False),
+                              MountSettings(height_m=SCENE_MOUNT.height_m, pitch_deg=SCENE_MOUNT.pitch_deg))
     lst = mounted.process(d, MODEL, t_s=0, seq=0, stamp_ns=0).obstacles
     assert lst.degraded == [] and lst.ground.source == "prior" and lst.ground.confidence >= 0.3
+    assert ObstacleBuilder(SegmenterSettings(method="seed", fit_floor=False)).process(
+        d, MODEL, t_s=0, seq=0, stamp_ns=0).obstacles.degraded == ["no-ground"]  # and no mount: said so
     thesis = ObstacleBuilder(SegmenterSettings(method="seed", floor_removal=False), MountSettings(height_m=1.0))
     assert thesis.process(d, MODEL, t_s=0, seq=0, stamp_ns=0).obstacles.degraded == ["no-ground"]
 

@@ -110,6 +110,10 @@ def run(node: Node, settings: SegmenterSettings) -> None:
             elif "floor-out-of-view" in result.obstacles.degraded:
                 node.status = ("floor-out-of-view: the floor within the vision range is below the camera's view; "
                                "nothing low there can be seen (lengthen the range, or pitch the camera down)")
+            elif "standing-not-listed" in result.obstacles.degraded:
+                node.status = ("standing-not-listed: something standing in the vision range is in no obstacle "
+                               "(seed drops what touches the image border, is under its area opening or beyond its "
+                               "Otsu threshold; method layers keeps them)")
             else:
                 node.status = "ok"
             node.status += unsigned_note
