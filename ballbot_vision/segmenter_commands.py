@@ -127,6 +127,7 @@ def cmd_obstacles(args: argparse.Namespace) -> int:
     from cores.segmentation.draw import draw_frame
 
     settings = _segmenter_settings(args)
+    skipped: list[BallbotError] = []  # the folders' unreadable pairs
     if args.left.lower().endswith(".mcap"):  # a recording: its pairs, times and (by default) calibration
         from cores.recording_reader import offline_pairs
 
@@ -139,14 +140,25 @@ def cmd_obstacles(args: argparse.Namespace) -> int:
 
         def read_pairs():
             for k, (lp, rp) in enumerate(file_pairs):
-                left, right = _read(lp, pipe.rectifier), _read(rp, pipe.rectifier)
-                check_pair(left, right, str(lp), str(rp))
+                try:
+                    left, right = _read(lp, pipe.rectifier), _read(rp, pipe.rectifier)
+                    check_pair(left, right, str(lp), str(rp))
+                except BallbotError as e:
+                    # one unreadable pair costs that pair, as in a recording: the folder goes on (its time
+                    # stays the file's place, so the tracks see the gap); nothing read at all is the error
+                    if len(file_pairs) == 1:
+                        raise
+                    skipped.append(e)
+                    print(f"ballbot-vision: warning: {e}; pair skipped", file=sys.stderr, flush=True)
+                    continue
                 yield lp, rp, left, right, k / args.fps
         pairs = read_pairs()
     pipe = Pipeline(cal, _obstacles_matcher_settings(args), settings, alpha=args.alpha, mount=_mount_settings(args))
     _warn_reach(pipe)
     draw_dir = Path(args.draw) if args.draw else None
+    done = 0
     for k, (lp, rp, left, right, stamp_s) in enumerate(pairs):
+        done += 1
         # a recording's pairs are named by file and seq
         frame = pipe.process(left, right, t_s=stamp_s, seq=k, stamp_ns=int(stamp_s * 1e9), names=(str(lp), str(rp)))
         result, msg = frame.result, frame.result.obstacles
@@ -165,6 +177,11 @@ def cmd_obstacles(args: argparse.Namespace) -> int:
             _out(format_freespace(result.freespace))
             if msg.degraded:
                 _out(f"  degraded: {', '.join(msg.degraded)}")
+    if skipped:
+        if done == 0:
+            raise BallbotError(f"obstacles: none of the {len(skipped)} pairs could be read (named above)")
+        print(f"ballbot-vision: warning: {len(skipped)} of {len(skipped) + done} pair(s) could not be read and "
+              f"were skipped (named above)", file=sys.stderr, flush=True)
     return 0
 
 

@@ -308,6 +308,33 @@ def test_a_bad_image_in_the_middle_of_a_conversion_keeps_the_pairs_before_it(tmp
     assert len(list(RecordingReader(out).pairs())) == 3
 
 
+def test_a_bad_pair_in_a_folder_costs_that_pair_and_obstacles_go_on(tmp_path, capfd):
+    """A truncated image in the middle of a folder: `obstacles` names it, skips its pair and goes on with
+    the rest (it used to stop there, and the pairs after it were never looked at), as it does in a
+    recording; a folder with nothing readable is the one-line error."""
+    left, right = (cv2.resize(i, (640, 480)) for i in _scene())  # the calibration's size
+    (tmp_path / "L").mkdir(), (tmp_path / "R").mkdir()
+    for i in (1, 2, 3):
+        cv2.imwrite(str(tmp_path / "L" / f"left{i}.png"), left)
+        cv2.imwrite(str(tmp_path / "R" / f"right{i}.png"), right)
+    (tmp_path / "L" / "left2.png").write_bytes(BAD_IMAGES["truncated-png"][1])
+    argv = ["obstacles", str(tmp_path / "L"), str(tmp_path / "R"), "--calibration", "lifecam-studio", "--json"]
+    capfd.readouterr()
+    assert main(argv) == 0
+    out, err = capfd.readouterr()
+    assert [Path(json.loads(line)["left"]).name for line in out.splitlines()] == ["left1.png", "left3.png"]
+    (said,) = [line for line in err.splitlines() if "pair skipped" in line]
+    assert said.startswith(f"ballbot-vision: warning: {tmp_path / 'L' / 'left2.png'}: truncated or corrupt PNG"), err
+    assert "1 of 3 pair(s) could not be read" in err and "Traceback" not in err
+    for i in (1, 3):
+        (tmp_path / "L" / f"left{i}.png").write_bytes(BAD_IMAGES["truncated-png"][1])
+    assert main(argv) == 2
+    out, err = capfd.readouterr()
+    assert out == "" and err.count("pair skipped") == 3, err
+    assert err.strip().splitlines()[-1] == "ballbot-vision: error: obstacles: none of the 3 pairs could be read " \
+                                           "(named above)", err
+
+
 def test_a_grey_and_a_colour_image_are_not_a_pair(tmp_path, capfd):
     left, right = _scene()
     cv2.imwrite(str(tmp_path / "l.png"), left)
