@@ -245,8 +245,8 @@ class ObstacleBuilder:
         cannot measure the near part of it (search_reach); "no-ground" /
         "ground-uncertain": nothing or too little told the floor from what stands on it;
         "floor-out-of-view": the floor within the vision range is below the camera's view;
-        "standing-not-listed": something standing in range, as large as the method reports, is in no
-        obstacle: seed's border clearing or Otsu threshold dropped it)."""
+        "standing-not-listed": something standing in range, of min_area_m2 frontal area, is in no
+        obstacle: seed's border clearing, area opening or Otsu threshold dropped it)."""
         cfg = self.settings
         reach = self.check_search(model, *search) if search is not None else Reach(False, "")
         if disparity.dtype.kind == "f":

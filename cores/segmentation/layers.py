@@ -115,8 +115,8 @@ class LayersFrame:
     floor: FloorPlane | None  # the disparity-space floor plane used (None: no floor removed)
     ground: GroundEstimate | None  # what the ground estimator said (None: floor removal off)
     floor_points: np.ndarray  # (k, 3) camera-frame points of the floor the robot may drive on (see _drivable)
-    # something standing in the vision range, as large as the method reports, is in no detection (seed:
-    # touching the image border, or on the far side of its Otsu threshold): the list is not a full view
+    # something standing in the vision range, of min_area_m2 frontal area, is in no detection (seed: it
+    # touches the image border, is under the area opening or beyond the Otsu threshold): not a full view
     unlisted: bool = False
 
 
