@@ -41,6 +41,7 @@ true mount in that frame.
 """
 from __future__ import annotations
 
+import logging
 import math
 import time
 from collections.abc import Iterable
@@ -82,6 +83,11 @@ class EvalFrame:
     nearest: list = field(default_factory=list)  # per truth: nearest distance (m) of that surface, NaN if none
     T_base_rect: np.ndarray = field(default_factory=lambda: np.eye(4))  # the camera's true pose on the robot
     odometry: tuple[np.ndarray, np.ndarray] | None = None  # (linear, angular) base frame; a moving camera only
+    # what else the disparity stage hands the segmenter with the map (as the disparity message carries it):
+    # the matcher's confidence ((H, W) uint8, None if it gives none) and the search (min_disparity,
+    # num_disparities) the segmenter checks the vision range against
+    confidence: np.ndarray | None = None
+    search: tuple[int, int] | None = None
 
     @property
     def mount(self) -> Mount:
@@ -170,12 +176,13 @@ def render_scenario(name: str, frames: int | None = None, fps: float | None = No
     for k in range(frames):
         t = k / fps
         left, right = pipe.rectify(*world.render(t))
-        d = pipe.match(left, right).disparity_px()
+        stage = pipe.match(left, right)
         kind, seen = static if static is not None else _truth_maps(world, t, x_valid)
         n = len(scene.boxes)
-        out.append(EvalFrame(t, left, d, world.truth(t), kind, [seen[i][:2] for i in range(n)],
+        out.append(EvalFrame(t, left, stage.disparity_px(), world.truth(t), kind, [seen[i][:2] for i in range(n)],
                              [seen[i][2] for i in range(n)], world.T_base_rect(t),
-                             world.odometry(t) if scene.camera_moves() else None))
+                             world.odometry(t) if scene.camera_moves() else None, stage.match.confidence,
+                             (stage.min_disparity, stage.num_disparities)))
     return ScenarioData(scene.name, scene, pipe.model, mount_from_world(world), out, time.perf_counter() - t0)
 
 
@@ -365,7 +372,7 @@ def score_method(data: ScenarioData, method: str, overrides: dict | None = None,
                            angular_radps=_vec3(fr.odometry[1]), source="synthetic")
         t0 = time.perf_counter()
         res = builder.process(fr.disparity, data.model, t_s=fr.t_s, seq=k, stamp_ns=int(fr.t_s * 1e9), image=fr.left,
-                              odometry=odo)
+                              odometry=odo, confidence=fr.confidence, search=fr.search)
         sc._ms.append((time.perf_counter() - t0) * 1e3)
         obs = res.obstacles.obstacles
         g = res.obstacles.ground
@@ -493,17 +500,39 @@ def evaluate(scenarios: list[str] | None = None, methods: list[str] | None = Non
             raise ValueError(f"unknown method {m!r} (known: {', '.join(METHODS)})")
     out = None if draw_dir is None else output_folder(draw_dir, "--draw")
     result: dict = {"scenarios": {}, "overall": {}, "render_s": {}}
-    for name in scenarios:
-        d = (data or {}).get(name) or render_scenario(name, frames, fps, seed, matcher=matcher)
-        if data is not None:
-            data[name] = d
-        result["render_s"][name] = d.render_s
-        result["scenarios"][name] = {m: score_method(d, m, overrides, mount_error=mount_error, true_ground=true_ground,
-                                                         draw_dir=out)
-                                     for m in methods}
+    # every scenario and method has a segmenter of its own, and each says its warnings (a search that
+    # cannot reach the range): once each is enough
+    once, log = _Once(), logging.getLogger("ballbot")
+    log.addFilter(once)
+    try:
+        for name in scenarios:
+            d = (data or {}).get(name) or render_scenario(name, frames, fps, seed, matcher=matcher)
+            if data is not None:
+                data[name] = d
+            result["render_s"][name] = d.render_s
+            result["scenarios"][name] = {m: score_method(d, m, overrides, mount_error=mount_error,
+                                                         true_ground=true_ground, draw_dir=out)
+                                         for m in methods}
+    finally:
+        log.removeFilter(once)
     for m in methods:
         result["overall"][m] = Score.pooled([result["scenarios"][n][m] for n in scenarios])
     return result
+
+
+class _Once(logging.Filter):
+    """Lets each message through once."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.seen: set[str] = set()
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        msg = record.getMessage()
+        if msg in self.seen:
+            return False
+        self.seen.add(msg)
+        return True
 
 
 COLUMNS = [("recall", "recall", "{:.0%}"), ("precision", "prec", "{:.0%}"), ("pos_err_med_m", "err med m", "{:.3f}"),
