@@ -226,7 +226,9 @@ class FreeSpace(Message):
     """What the robot may drive on: a 2D occupancy grid on the ground plane in the robot base frame
     (REP 103: x forward, y left), laid out like ROS nav_msgs/OccupancyGrid. Cell (row, col) covers
     x in [origin_m[0] + col*res, +res), y in [origin_m[1] + row*res, +res); `cells[row*width + col]`
-    is an int8: -1 unknown (not seen), 0 free (seen ground), 100 occupied (an obstacle stands there)."""
+    is an int8: -1 unknown (not seen), 0 free (seen ground), 100 occupied (an obstacle stands there).
+    The grid of a list that is stale or degraded (ObstacleList, same seq) has no free cell: it cannot
+    vouch for a clear way."""
 
     model_config = ConfigDict(extra="forbid", ser_json_bytes="base64", val_json_bytes="base64")
 

@@ -808,6 +808,23 @@ def test_lists_say_when_the_search_cannot_reach_the_range_or_there_is_no_ground(
     assert lst.ground.source == "none" and lst.ground.confidence == 0.0 and "no-ground" in lst.degraded
 
 
+def test_free_space_claims_no_clear_way_beside_a_list_that_cannot_vouch_for_its_view():
+    """The grid marked free the floor from the image's bottom edge out, measured or not: beside a list
+    saying near-unmeasured it told a planner the near floor was clear. Now a degraded (or stale) list's
+    grid keeps what stands occupied and claims nothing free."""
+    d = scene([(250, 390, 3.0, 80)])
+
+    def cells(search, stale=False):
+        fs = ObstacleBuilder(SegmenterSettings()).process(d, MODEL, t_s=0.0, seq=0, stamp_ns=0, search=search,
+                                                          stale=stale).freespace
+        return np.frombuffer(fs.cells, np.int8)
+
+    trusted = cells((0, 144))
+    assert (trusted == 0).sum() > 100 and (trusted == 100).any()
+    for c in (cells((0, 32)), cells((0, 144), stale=True)):  # near-unmeasured; late input
+        assert not (c == 0).any() and np.array_equal(c == 100, trusted == 100)
+
+
 def test_walls_beside_the_way_filling_most_of_the_view_never_become_the_ground():
     """A corridor: walls 0.8 m to either side, parallel to the heading, cover more pixels than the
     floor between them; the ground is still the floor, from no mount and from a mount 50 % too high."""

@@ -326,6 +326,11 @@ class ObstacleBuilder:
         if cfg.freespace and mount is not None and frame.floor is not None and cfg.method == "layers":
             grid = freespace.occupancy(frame.floor_points, frame.points, mount, model, cfg.range_for(model),
                                        cfg.freespace_resolution_m)
+            if degraded or stale:
+                # a list that cannot vouch for its view cannot vouch for a clear way either (the floor near
+                # the robot unmeasured, the floor plane a guess, late input): what stands stays occupied,
+                # nothing is claimed free; FreeSpace has no flag of its own, and a costmap clears free cells
+                grid.cells[grid.cells == freespace.FREE] = freespace.UNKNOWN
             free = FreeSpace(robot_id=robot_id, seq=seq, stamp_ns=stamp_ns, stages=dict(stages or {}), publish_ns=now,
                              resolution_m=grid.resolution_m, width=grid.width, height=grid.height,
                              origin_m=(float(grid.origin_m[0]), float(grid.origin_m[1])), cells=grid.cells.tobytes(),

@@ -18,6 +18,7 @@ from cores import camera
 from cores.segmentation.mount import FloorPlane, Mount
 from cores.segmentation.settings import SegmenterSettings
 
+UNKNOWN, FREE, OCCUPIED = -1, 0, 100  # cell values (nav_msgs/OccupancyGrid's)
 MAX_CELLS = 4096  # per side (FreeSpace's bound); a coarser cell is used rather than a larger grid
 MAX_FLOOR_SAMPLES = 1_000_000  # points of drivable floor per frame, at most
 
@@ -49,7 +50,7 @@ def occupancy(floor_points: np.ndarray, obstacle_points: list[np.ndarray], mount
     """floor_points: (k, 3) camera-frame points seen on the floor; obstacle_points: per obstacle,
     its (n, 3) camera-frame points. -> the grid."""
     res, width, height, origin = layout(model, mount, range_m, resolution_m)
-    cells = np.full(height * width, -1, np.int8)
+    cells = np.full(height * width, UNKNOWN, np.int8)
 
     def index(points_camera: np.ndarray) -> np.ndarray:
         if not len(points_camera):
@@ -62,9 +63,9 @@ def occupancy(floor_points: np.ndarray, obstacle_points: list[np.ndarray], mount
         row += col
         return row.take(np.flatnonzero(ok))  # one selection of the flat index, by index (faster than a mask)
 
-    cells[index(floor_points)] = 0
+    cells[index(floor_points)] = FREE
     for points in obstacle_points:  # each apart: no copy of them all
-        cells[index(points)] = 100
+        cells[index(points)] = OCCUPIED
     return Grid(res, width, height, origin, cells.reshape(height, width))
 
 
