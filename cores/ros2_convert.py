@@ -68,6 +68,33 @@ def detections(t: RosTypes, msg: ObstacleList, frame_id: str) -> Any:
     return t.new("vision_msgs/msg/Detection3DArray", header=hdr, detections=out)
 
 
+# diagnostic_msgs/DiagnosticStatus levels
+DIAG_OK, DIAG_WARN, DIAG_STALE = 0, 1, 3
+
+
+def trust(t: RosTypes, msg: ObstacleList, name: str) -> Any:
+    """diagnostic_msgs/DiagnosticArray (for /diagnostics) saying how far an obstacle list can be
+    trusted, which a Detection3DArray cannot: OK (an empty list means "looked and saw nothing"),
+    WARN with the reasons in `degraded` (never take an empty list as a clear way), STALE (the input
+    stopped or fell behind). name: the status's name (the node's); hardware_id: the robot."""
+    if msg.stale:
+        level, text = DIAG_STALE, "stale: the input stopped or fell behind; slow down or stop"
+    elif msg.degraded:
+        level, text = DIAG_WARN, (f"degraded: {', '.join(msg.degraded)}; an empty list is not a clear way")
+    else:
+        level, text = DIAG_OK, "trusted: an empty list means looked and saw nothing"
+    g = msg.ground
+    pairs = [("seq", str(msg.seq)), ("stamp_ns", str(msg.stamp_ns)), ("obstacles", str(len(msg.obstacles))),
+             ("degraded", ",".join(msg.degraded)), ("stale", str(msg.stale).lower()),
+             ("valid_fraction", f"{msg.valid_fraction:.3f}"),
+             ("ground_source", g.source if g is not None else "none"),
+             ("ground_confidence", f"{g.confidence:.2f}" if g is not None else "0.00")]
+    status = t.new("diagnostic_msgs/msg/DiagnosticStatus", level=level, name=name, message=text,
+                   hardware_id=msg.robot_id,
+                   values=[t.new("diagnostic_msgs/msg/KeyValue", key=k, value=v) for k, v in pairs])
+    return t.new("diagnostic_msgs/msg/DiagnosticArray", header=header(t, msg.stamp_ns, ""), status=[status])
+
+
 def _color(t: RosTypes, o: Obstacle) -> Any:
     r, g, b, a = (0.95, 0.25, 0.1, 0.6) if o.confirmed else (0.95, 0.8, 0.1, 0.35)
     return t.new("std_msgs/msg/ColorRGBA", r=r, g=g, b=b, a=a)

@@ -129,6 +129,7 @@ EXPECTED = {
     "camera/left/camera_info": "sensor_msgs/msg/CameraInfo",
     "freespace": "nav_msgs/msg/OccupancyGrid",
     "tf_static": "tf2_msgs/msg/TFMessage",
+    "diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
 }
 
 
@@ -242,6 +243,7 @@ def test_bridge_topics_read_by_raw_zenoh_rosbags_and_zenoh_ros2_sdk(tmp_path):
     lists_by_stamp = {m.stamp_ns: m for m in lists.items}
     grids_by_stamp = {m.stamp_ns: m for m in grids.items}
     grids_checked = 0
+    trust_checked = 0
     tf_heights: list[float] = []
     checked = 0
     for name, (_key, items) in by_topic.items():
@@ -273,6 +275,14 @@ def test_bridge_topics_read_by_raw_zenoh_rosbags_and_zenoh_ros2_sdk(tmp_path):
                     assert msg.info.origin.position.x == pytest.approx(fs.origin_m[0])
                     assert (np.frombuffer(fs.cells, np.int8) == 0).any()  # the synthetic floor is seen free
                     grids_checked += 1
+            if name == "diagnostics" and stamp_ns in lists_by_stamp:
+                # the synthetic scene's lists are trusted: OK, and the list's own figures
+                (st,) = msg.status
+                kv = {x.key: x.value for x in st.values}
+                ol = lists_by_stamp[stamp_ns]
+                assert (st.level, st.name, st.hardware_id) == (0, "/ballbot_vision: obstacles", "rb"), st
+                assert kv["seq"] == str(ol.seq) and kv["obstacles"] == str(len(ol.obstacles)) and kv["degraded"] == ""
+                trust_checked += 1
             if name == "tf_static":
                 tf = msg.transforms[0]
                 assert (tf.header.frame_id, tf.child_frame_id) == ("base_link", "stereo_camera_optical_frame")
@@ -285,6 +295,7 @@ def test_bridge_topics_read_by_raw_zenoh_rosbags_and_zenoh_ros2_sdk(tmp_path):
         assert seqs == list(range(seqs[0], seqs[0] + len(seqs))), f"{name}: sequence numbers {seqs}"
     assert checked >= 2, "no Detection3DArray matched an obstacle list by stamp"
     assert grids_checked >= 1, "no OccupancyGrid matched a FreeSpace by stamp"
+    assert trust_checked >= 2, "no DiagnosticArray matched an obstacle list by stamp"
     assert tf_heights and all(z == pytest.approx(0.9) or z == pytest.approx(1.0, abs=0.05) for z in tf_heights)
     assert tf_heights[-1] == pytest.approx(1.0, abs=0.05), tf_heights
     assert store.deserialize_cdr(late[0], "tf2_msgs/msg/TFMessage").transforms[0].child_frame_id
@@ -415,6 +426,9 @@ def test_humble_domain_namespace_and_stale_lists(tmp_path):
             s.declare_subscriber("5/robot1/obstacles/detections/**",
                                  lambda smp: got.append((str(smp.key_expr), smp.payload.to_bytes(),
                                                          smp.attachment.to_bytes())))
+            said: list = []
+            s.declare_subscriber("5/diagnostics/**", lambda smp: said.append((str(smp.key_expr),
+                                                                             smp.payload.to_bytes())))
             s.liveliness().declare_subscriber("@ros2_lv/5/**", lambda smp: tokens.add(str(smp.key_expr)), history=True)
             wait_until(lambda: any("/MP/" in t for t in tokens), 60, "the bridge's publisher tokens")
             key = topic("obstacles").key("rh")
@@ -432,8 +446,9 @@ def test_humble_domain_namespace_and_stale_lists(tmp_path):
             stale_stamps: set[int] = set()
 
             def put(stale: bool, seq: int) -> None:
+                # every fresh list but the first says the near range was not measured
                 ol = ObstacleList(robot_id="rh", seq=seq, stamp_ns=time.time_ns(), publish_ns=time.time_ns(),
-                                  stale=stale, obstacles=[])
+                                  stale=stale, obstacles=[], degraded=[] if seq == 2 else ["near-unmeasured"])
                 if stale:
                     stale_stamps.add(ol.stamp_ns)
                 s.put(key, codec.encode(ol))
@@ -465,3 +480,15 @@ def test_humble_domain_namespace_and_stale_lists(tmp_path):
     stamps = {(lambda m: m.header.stamp.sec * 10**9 + m.header.stamp.nanosec)(
         store.deserialize_cdr(p, "vision_msgs/msg/Detection3DArray")) for _, p, _ in got}
     assert stale_stamps and not stamps & stale_stamps, "a stale obstacle list was republished"
+    # ... but each list, stale or degraded, is said for what it is on /diagnostics (absolute: not under /robot1)
+    assert said and all(k == "5/diagnostics/diagnostic_msgs::msg::dds_::DiagnosticArray_/TypeHashNotSupported"
+                        for k, _ in said), said[0][0]
+    levels = {}
+    for _, p in said:
+        (st,) = store.deserialize_cdr(p, "diagnostic_msgs/msg/DiagnosticArray").status
+        kv = {x.key: x.value for x in st.values}
+        levels[int(kv["seq"])] = st.level
+        assert st.name == "/robot1/ballbot_vision: obstacles" and st.hardware_id == "rh"
+    assert {1, 3} <= set(levels.values()), levels  # (the inbox keeps the newest: not every list is said)
+    assert all(level == 3 for seq, level in levels.items() if seq % 2)  # stale
+    assert all(level == (0 if seq == 2 else 1) for seq, level in levels.items() if not seq % 2), levels

@@ -84,6 +84,7 @@ def test_compose_pairs_the_obstacles_with_their_own_picture():
                             bbox_px=(3, 4, 20, 30), area_px=10, disparity_px=3, confidence=1)])
     doc, blobs = core.unpack(core.Composer("r").compose(inputs))
     assert doc["image"]["seq"] == 2 and doc["image"]["matched"] and doc["disparity"]["seq"] == 2
+    assert doc["obstacles"]["degraded"] == [] and doc["obstacles"]["stale"] is False
     left = cv2.imdecode(np.frombuffer(blobs["left"], np.uint8), cv2.IMREAD_UNCHANGED)
     assert abs(int(left.mean()) - 120) <= 2  # the picture of seq 2, not the newest
     assert doc["obstacles"]["list"][0]["bbox_px"] == [3, 4, 20, 30]
@@ -410,6 +411,18 @@ def test_the_page_shows_the_pictures_and_draws_the_boxes_of_the_obstacle_list(tm
                              if row[k] > 200 and 100 < row[k + 1] < 180 and row[k + 2] < 60)
                 assert orange >= (0.9 if b["confirmed"] else 0.4) * (len(row) // 4), (b, orange, len(row) // 4)
             assert page.evaluate("window.viewer.errors") == []
+            # the synthetic scene's lists are trusted: no banner; one that is not says so, with its reasons,
+            # where STALE is said (the page's own drawInfo, given the document with degraded set)
+            assert page.locator("#degraded").is_hidden() and page.locator("#stale").is_hidden()
+            # (read in the same evaluation: the next real update hides it again)
+            banner = page.evaluate("""() => {
+                drawInfo({...window.viewer.doc, obstacles: {...window.viewer.doc.obstacles,
+                                                           degraded: ['near-unmeasured', 'ground-uncertain']}});
+                const e = document.getElementById('degraded');
+                return {hidden: e.hidden, shown: e.getClientRects().length > 0, text: e.textContent.trim()};
+            }""")
+            assert banner == {"hidden": False, "shown": True,
+                              "text": "NOT A FULL VIEW: near-unmeasured, ground-uncertain"}, banner
             assert page.locator("#services tbody tr").count() >= 5
             assert page.locator("#obstacles tbody tr").count() == 2
             shot = tmp_path / "viewer.png"

@@ -10,6 +10,7 @@ and publishes, as the ROS node `<namespace>/<node_name>` of ROS domain `domain_i
   <ns>/camera/left/camera_info sensor_msgs/CameraInfo        its rectified pinhole model
   <ns>/freespace              nav_msgs/OccupancyGrid         base_frame, when free space is published
   /tf_static                  tf2_msgs/TFMessage             base_frame -> camera_frame, transient local
+  /diagnostics                diagnostic_msgs/DiagnosticArray per obstacle list: how far it can be trusted
 
 The camera->base transform is the mount each obstacle list carries (ObstacleList.mount: where the
 segmenter placed the camera for that list, from its fitted ground and the configured yaw and
@@ -18,7 +19,9 @@ than tf_update_m / tf_update_deg. Obstacle lists flagged stale are not republish
 publish_stale (ROS messages have no stale flag); even then the segmenter's heartbeat repeats of its
 last list (same capture stamp, sent while its input has stopped) never are: the node inbox refuses a
 stamp it has already handed on, and a ROS consumer tells a stopped stream from the header stamps'
-age.
+age. A Detection3DArray cannot say whether its list may be trusted: every list, stale ones too, is
+also a DiagnosticArray on /diagnostics (OK; WARN naming the `degraded` reasons: an empty array is no
+clear way; STALE), stamped like the detections, and the OccupancyGrid of such a list has no free cell.
 """
 from __future__ import annotations
 
@@ -47,6 +50,7 @@ TOPICS = {
     "camera_info": ("camera/left/camera_info", "sensor_msgs/msg/CameraInfo"),
     "freespace": ("freespace", "nav_msgs/msg/OccupancyGrid"),
     "tf_static": ("/tf_static", "tf2_msgs/msg/TFMessage"),
+    "diagnostics": ("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray"),
 }
 
 
@@ -154,6 +158,7 @@ def run(node: Node, settings: Ros2Settings) -> None:
         pubs[name] = graph.publisher(tname, typename, q)
     node.extra["ros2_publishers"] = float(len(pubs))
     state: dict[str, Mount | None] = {"mount": None}  # the mount last sent on /tf_static
+    status_name = f"{graph.namespace.rstrip('/')}/{graph.name}: obstacles"  # the node's fully qualified name
     lock = threading.Lock()
 
     def publish_tf(msg: ObstacleList | None, stamp: int) -> None:
@@ -171,6 +176,8 @@ def run(node: Node, settings: Ros2Settings) -> None:
         inbox = node.latest("obstacles")
         for msg in node.receive(inbox):
             with node.processing(msg):
+                # said first, stale or not: an empty Detection3DArray cannot tell "saw nothing" from "could not look"
+                pubs["diagnostics"].publish(convert.trust(types, msg, status_name))
                 if msg.stale and not s.publish_stale:
                     node.count("ros2_stale_skipped")
                     continue

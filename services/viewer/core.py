@@ -164,7 +164,8 @@ class Composer:
         if obstacles is not None:
             doc["obstacles"] = {"seq": obstacles.seq, "stamp_ns": obstacles.stamp_ns,
                                 "publish_ns": obstacles.publish_ns, "stale": obstacles.stale,
-                                "method": obstacles.method, "list": [obstacle_doc(o) for o in obstacles.obstacles],
+                                "degraded": list(obstacles.degraded), "method": obstacles.method,
+                                "list": [obstacle_doc(o) for o in obstacles.obstacles],
                                 "latency": latency_doc(obstacles),
                                 "ground": None if obstacles.ground is None else obstacles.ground.model_dump()}
         truth_payload, truth_matched = inputs.pick(inputs.truths, stamp)

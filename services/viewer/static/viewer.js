@@ -173,6 +173,10 @@ function drawInfo(doc) {
   const obs = doc.obstacles;
   $("seq").textContent = obs ? obs.seq : (doc.image ? doc.image.seq : "-");
   $("stale").hidden = !(obs && obs.stale);
+  // an empty list of a degraded one is no clear way: say so where the eye is, with the reasons
+  const reasons = (obs && obs.degraded) || [];
+  $("degraded").hidden = reasons.length === 0;
+  $("degraded-reasons").textContent = reasons.join(", ");
   if (obs) {
     $("obstacle-count").textContent = `(${obs.list.length}, nearest first${obs.list.length > MAX_LABELS ? `; the ${MAX_LABELS} nearest labelled on the pictures` : ""})`;
     $("latency").textContent = fmt(obs.latency.capture_to_obstacles_ms, 1);
