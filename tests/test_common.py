@@ -179,3 +179,7 @@ def test_watch_table_says_where_the_ground_is_and_which_tracks_to_trust():
     assert "camera 1.00 m above it, pitch +15.0 deg, roll +0.5 deg (fitted)" in text
     assert "velocities over the ground" in text and "2 frames, unconfirmed, cut by the view" in text
     assert "ground: unknown" in format_table(msg.model_copy(update={"ground": None}))
+    assert "STALE" not in text and "NOT A FULL VIEW" not in text
+    head = format_table(msg.model_copy(update={"degraded": ["near-unmeasured", "ground-uncertain"],
+                                                "stale": True})).splitlines()[0]
+    assert head.endswith("1 obstacle(s)  STALE  NOT A FULL VIEW: near-unmeasured, ground-uncertain"), head
