@@ -19,6 +19,7 @@ from common.messages import CameraModel, CameraMount, FreeSpace, GroundTruth, Ob
 
 OBSTACLE_RGBA = (1.0, 0.55, 0.0, 1.0)  # orange boxes: detections
 TRUTH_RGBA = (0.2, 0.9, 0.3, 1.0)  # green boxes: the synthetic scene's truth
+WARNING_RGBA = (1.0, 0.42, 0.35, 1.0)  # red: a list that cannot vouch for its view (the viewer's colour)
 
 # the SDK message classes by schema name (what a recording's channel names)
 TYPES: dict[str, Any] = {f"foxglove.{name}": getattr(fm, name) for name in (
@@ -61,12 +62,17 @@ def _label(stamp: fm.Timestamp, x: float, y: float, text: str, rgba) -> fm.TextA
 
 
 def obstacle_annotations(msg: ObstacleList) -> fm.ImageAnnotations:
-    """Each obstacle's box, `#id d.dd m` label, on the rectified left image."""
+    """Each obstacle's box, `#id d.dd m` label, on the rectified left image; over a list that is stale
+    or degraded, a red line at the top saying so (an image with no box would read as a clear way)."""
     stamp = timestamp(msg.stamp_ns)
-    return fm.ImageAnnotations(
-        timestamp=stamp, points=[_box(stamp, o.bbox_px, OBSTACLE_RGBA) for o in msg.obstacles],
-        texts=[_label(stamp, o.bbox_px[0], o.bbox_px[1] - 3, f"#{o.id} {o.distance_m:.2f} m", OBSTACLE_RGBA)
-               for o in msg.obstacles])
+    texts = [_label(stamp, o.bbox_px[0], o.bbox_px[1] - 3, f"#{o.id} {o.distance_m:.2f} m", OBSTACLE_RGBA)
+             for o in msg.obstacles]
+    warning = " ".join((["STALE"] if msg.stale else []) +
+                       ([f"NOT A FULL VIEW: {', '.join(msg.degraded)}"] if msg.degraded else []))
+    if warning:
+        texts.append(_label(stamp, 4.0, 18.0, warning, WARNING_RGBA))
+    return fm.ImageAnnotations(timestamp=stamp, points=[_box(stamp, o.bbox_px, OBSTACLE_RGBA) for o in msg.obstacles],
+                               texts=texts)
 
 
 def truth_annotations(msg: GroundTruth) -> fm.ImageAnnotations:

@@ -122,6 +122,24 @@ async def _refused(port: int, origin: str) -> int:
 
 
 @pytest.mark.system
+def test_image_annotations_say_when_a_list_cannot_vouch_for_its_view():
+    from common.messages import Obstacle, ObstacleList
+    from cores import foxglove as F
+
+    def texts(msg: ObstacleList) -> list[str]:  # read back as a Foxglove client would, by the schema sent
+        a = F.obstacle_annotations(msg)
+        schema = a.get_schema()
+        return [t.text for t in F.ProtobufDecoder().decode(schema.name, schema.data, a.encode()).texts]
+
+    o = Obstacle(id=3, position_m=(0.1, 0.2, 2.0), size_m=(0.5, 0.6, 0.3), distance_m=1.9, bbox_px=(10, 20, 30, 40),
+                 area_px=10, disparity_px=30.0, confidence=0.9)
+    lst = ObstacleList(robot_id="r", seq=1, stamp_ns=5, publish_ns=5, stale=False, obstacles=[o])
+    assert texts(lst) == ["#3 1.90 m"]
+    assert texts(lst.model_copy(update={"obstacles": [], "degraded": ["near-unmeasured"]})) == \
+        ["NOT A FULL VIEW: near-unmeasured"]
+    assert texts(lst.model_copy(update={"stale": True})) == ["#3 1.90 m", "STALE"]
+
+
 def test_a_foxglove_client_subscribes_and_decodes_the_live_pipeline():
     port = free_port()
     up = Up(robot_id="fox", extra_args=["--foxglove"],
