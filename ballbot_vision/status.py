@@ -85,7 +85,7 @@ def verdict(rows: list[dict], warnings: list[str]) -> tuple[str, str]:
     parts = []
     if seg:
         s = seg[0]
-        if s["status"].startswith("stale"):
+        if not s["status"].startswith("ok"):  # stale, or its lists say they cannot vouch for their view
             level = "degraded" if level == "ok" else level
             parts.append(f"obstacles {s['status']}")
         else:

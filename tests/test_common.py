@@ -183,3 +183,20 @@ def test_watch_table_says_where_the_ground_is_and_which_tracks_to_trust():
     head = format_table(msg.model_copy(update={"degraded": ["near-unmeasured", "ground-uncertain"],
                                                 "stale": True})).splitlines()[0]
     assert head.endswith("1 obstacle(s)  STALE  NOT A FULL VIEW: near-unmeasured, ground-uncertain"), head
+
+
+def test_status_verdict_is_degraded_while_the_segmenters_lists_are():
+    """`status` exits 3 (degraded) while the obstacle lists say they cannot vouch for their view, not only
+    while they are stale: a search that misses the near range had been "healthy", exit 0."""
+    from ballbot_vision.status import verdict
+
+    def seg(status: str) -> dict:
+        return {"service": "segmenter", "name": "segmenter", "status": status, "health": "ok", "rate_hz": 15.0,
+                "age_ms_p50": 40.0}
+
+    assert verdict([seg("ok")], []) == ("ok", "obstacles at 15.0 Hz, 40 ms after capture")
+    assert verdict([seg("ok (disparity maps unauthenticated: no KEY)")], [])[0] == "ok"
+    for status in ("stale: input too old", "near-unmeasured: the disparity search ...",
+                   "degraded lists: ground-uncertain"):
+        level, text = verdict([seg(status)], [])
+        assert level == "degraded" and text == f"obstacles {status}", (status, text)

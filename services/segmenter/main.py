@@ -114,6 +114,8 @@ def run(node: Node, settings: SegmenterSettings) -> None:
                 node.status = ("standing-not-listed: something standing in the vision range is in no obstacle "
                                "(seed drops what touches the image border, is under its area opening or beyond its "
                                "Otsu threshold; method layers keeps them)")
+            elif result.obstacles.degraded:  # no-ground, ground-uncertain, valid-collapse, ...: the last list's
+                node.status = f"degraded lists: {', '.join(result.obstacles.degraded)}"
             else:
                 node.status = "ok"
             node.status += unsigned_note
