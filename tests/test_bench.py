@@ -373,7 +373,7 @@ def test_segmenter_profile_breaks_the_service_path_into_steps():
     assert set(r["steps"]) == {"one", "process", "segment_frame"}
     assert r["steps"]["one"][0]["function"] == "process_message"  # the builder is the frame's heaviest step
     names = {s["function"] for s in r["steps"]["segment_frame"]}
-    assert {"_group", "update"} <= names, names  # grouping and the ground fit are among the layers' steps
+    assert {"_group", "_fit_ground"} <= names, names  # grouping and the ground fit are among the layers' steps
     assert "steps of layers.segment_frame" in format_profile(r)
 
 
