@@ -57,7 +57,7 @@ def floor_mask(disparity: np.ndarray, floor: FloorPlane, margin_m: float) -> np.
     h, w = disparity.shape
     u = np.arange(w, dtype=np.float32)[None, :]
     v = np.arange(h, dtype=np.float32)[:, None]
-    d_floor = np.float32(floor.a) * u + (np.float32(floor.b) * v + np.float32(floor.c))
+    d_floor = floor.disparity(u, v)  # float32: numpy keeps a Python float's product with float32 in float32
     with np.errstate(invalid="ignore"):
         return disparity * np.float32(floor.height_m - margin_m) < np.float32(floor.height_m) * d_floor
 
