@@ -15,9 +15,7 @@ from common.zenoh_session import DEFAULT_ROUTER, ZenohOptions, open_session
 def format_table(msg: ObstacleList) -> str:
     age_ms = (time.time_ns() - msg.stamp_ns) / 1e6
     head = (f"robot {msg.robot_id}  seq {msg.seq}  age {age_ms:6.1f} ms  {len(msg.obstacles)} obstacle(s)"
-            f"{'  STALE' if msg.stale else ''}"
-            # an empty degraded list is no clear way: said on the first line, as STALE is
-            f"{'  NOT A FULL VIEW: ' + ', '.join(msg.degraded) if msg.degraded else ''}")
+            + "".join(f"  {w}" for w in msg.warnings()))
     g = msg.ground
     ground = ("ground: unknown (no floor removed)" if g is None or g.source == "none" else
               f"ground: camera {g.height_m:.2f} m above it, pitch {g.pitch_deg:+.1f} deg, roll {g.roll_deg:+.1f} deg "

@@ -221,6 +221,12 @@ class ObstacleList(Message):
         "camera", description="camera: velocities relative to the moving camera; ground: over the ground "
                               "(the robot's own motion from odometry removed)")
 
+    def warnings(self) -> list[str]:
+        """What a person watching must read before taking an empty list as a clear way (none when the
+        list is trustworthy): STALE, and NOT A FULL VIEW with the degraded reasons."""
+        return (["STALE"] if self.stale else []) + \
+            ([f"NOT A FULL VIEW: {', '.join(self.degraded)}"] if self.degraded else [])
+
 
 class FreeSpace(Message):
     """What the robot may drive on: a 2D occupancy grid on the ground plane in the robot base frame

@@ -67,10 +67,8 @@ def obstacle_annotations(msg: ObstacleList) -> fm.ImageAnnotations:
     stamp = timestamp(msg.stamp_ns)
     texts = [_label(stamp, o.bbox_px[0], o.bbox_px[1] - 3, f"#{o.id} {o.distance_m:.2f} m", OBSTACLE_RGBA)
              for o in msg.obstacles]
-    warning = " ".join((["STALE"] if msg.stale else []) +
-                       ([f"NOT A FULL VIEW: {', '.join(msg.degraded)}"] if msg.degraded else []))
-    if warning:
-        texts.append(_label(stamp, 4.0, 18.0, warning, WARNING_RGBA))
+    if msg.warnings():
+        texts.append(_label(stamp, 4.0, 18.0, " ".join(msg.warnings()), WARNING_RGBA))
     return fm.ImageAnnotations(timestamp=stamp, points=[_box(stamp, o.bbox_px, OBSTACLE_RGBA) for o in msg.obstacles],
                                texts=texts)
 
