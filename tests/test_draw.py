@@ -72,6 +72,9 @@ def test_caption_band_and_colour_input():
     text = D.caption(lst)
     for part in ("seq 7", "1 obstacle", "h 1.00 m", "pitch +20.0", "fitted"):
         assert part in text, (part, text)
+    assert "STALE" not in text and "NOT A FULL VIEW" not in text
+    flagged = D.caption(lst.model_copy(update={"stale": True, "degraded": ["standing-not-listed"]}))
+    assert flagged.endswith("  STALE  NOT A FULL VIEW: standing-not-listed"), flagged
     assert _is(out[200, 10], (0, 0, 200))  # elsewhere the colour image as it was
 
 

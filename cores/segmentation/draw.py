@@ -115,8 +115,9 @@ def caption(obstacles: ObstacleList) -> str:
     ground = ("ground: unknown" if g is None else
               f"ground: h {g.height_m:.2f} m  pitch {g.pitch_deg:+.1f} deg  roll {g.roll_deg:+.1f} deg  {g.source}"
               + (f" ({g.inlier_fraction:.0%} inliers)" if g.inlier_fraction else ""))
-    stale = "  STALE" if obstacles.stale else ""
-    return f"seq {obstacles.seq}  {n} obstacle(s), {confirmed} confirmed  {ground}{stale}"
+    # a picture of a degraded list with no box must not read as a clear way either
+    return f"seq {obstacles.seq}  {n} obstacle(s), {confirmed} confirmed  {ground}" + \
+        "".join(f"  {w}" for w in obstacles.warnings())
 
 
 def draw_frame(image: np.ndarray, obstacles: ObstacleList, model: camera.RectifiedModel,
