@@ -174,7 +174,9 @@ class GroundEstimate(BaseModel):
     prior_pitch_deg: float | None = Field(None, description="the configured mount's pitch, deg")
     prior_roll_deg: float | None = Field(None, description="the configured mount's roll, deg")
     prior_agrees: bool | None = Field(None, description="the fitted ground agrees with the configured mount (within "
-                                      "max_tilt_deg and 30 % of the height); None: no mount, or nothing fitted")
+                                      "max_tilt_deg and 30 % of the height; with fit_floor false, where the mount "
+                                      "is the floor: within 0.1 m over the floor in the vision range); None: no "
+                                      "mount, or nothing fitted to check it by")
 
 
 class CameraMount(BaseModel):
@@ -208,7 +210,7 @@ class ObstacleList(Message):
     degraded: list[str] = Field(default_factory=list, max_length=32, description="short reasons this list cannot be "
                                 "trusted as a full view (empty: trustworthy; e.g. 'no-valid-disparity', "
                                 "'valid-collapse', 'no-ground', 'ground-uncertain', 'range-unreachable', "
-                                "'near-unmeasured', 'floor-out-of-view', 'standing-not-listed')")
+                                "'near-unmeasured', 'floor-out-of-view', 'standing-not-listed', 'mount-disagrees')")
     valid_fraction: float = Field(0.0, ge=0, le=1, description="share of the image the disparity map measured "
                                   "(valid pixels within the vision range gate's search) for this list")
     frame_id: Literal["camera"] = "camera"

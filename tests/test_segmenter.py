@@ -781,6 +781,31 @@ def test_a_wrong_mount_is_a_prior_not_a_cage(told, caplog):
     assert sum("disagrees with the configured mount" in r.message for r in caplog.records) == 1  # once
 
 
+@pytest.mark.parametrize("method", ["layers", "seed"])
+def test_a_mount_chosen_over_fitting_is_checked_against_the_floor_in_the_data(method, caplog):
+    """fit_floor false: the configured mount is the floor, as the user chose. Measured right, the
+    lists are trusted; 3 deg steeper than the camera really is, the mount's floor lies over the real
+    one (0.13 m at 2.5 m: what stands lower than that is lost): every list says mount-disagrees, and
+    not one looks fresh and clear; logged once."""
+    truth = Mount(1.0, 15.0)
+    box = [(150, 470, 2.5, 80)]  # 0.3 m high at 2.5 m, 8 % of the image (seed's area opening)
+    for told, low_box in ((dict(height_m=1.0, pitch_deg=15.0), True), (dict(height_m=1.0, pitch_deg=18.0), False)):
+        caplog.clear()
+        b = ObstacleBuilder(SegmenterSettings(method=method, fit_floor=False, min_height_m=0.1, max_range_m=4.0),
+                            MountSettings(**told))
+        for k in range(4):
+            out = b.process_message(_message(scene(box, mount=truth, seed_=k))).obstacles
+            g = out.ground
+            assert g.source == "prior" and g.pitch_deg == pytest.approx(told["pitch_deg"], abs=1e-6)
+            if low_box:
+                assert out.degraded == [] and g.prior_agrees is True and g.confidence >= 0.3, (k, out.degraded)
+                assert [round(o.distance_m, 1) for o in out.obstacles] == [2.5]
+            else:
+                assert "mount-disagrees" in out.degraded and g.prior_agrees is False and g.confidence < 0.3, k
+        said = sum("every such list says mount-disagrees" in r.message for r in caplog.records)
+        assert said == (0 if low_box else 1)
+
+
 def test_lists_say_when_the_search_cannot_reach_the_range_or_there_is_no_ground():
     d = scene([(250, 390, 2.0, 120)])
     ok = ObstacleBuilder(SegmenterSettings()).process(d, MODEL, t_s=0.0, seq=0, stamp_ns=0, search=(0, 144))

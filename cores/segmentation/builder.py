@@ -244,6 +244,8 @@ class ObstacleBuilder:
         (min_disparity, num_disparities), cannot measure the vision range; "near-unmeasured": it
         cannot measure the near part of it (search_reach); "no-ground" /
         "ground-uncertain": nothing or too little told the floor from what stands on it;
+        "mount-disagrees": fit_floor is false and the configured mount's floor is off the floor the
+        data show;
         "floor-out-of-view": the floor within the vision range is below the camera's view;
         "standing-not-listed": something standing in range, of min_area_m2 frontal area, is in no
         obstacle: seed's border clearing, area opening or Otsu threshold dropped it)."""
@@ -313,6 +315,8 @@ class ObstacleBuilder:
             g = frame.ground
             if g is None or g.source == "none":
                 degraded.append("no-ground")  # nothing told floor from obstacle: what stands low is not known
+            elif g.source == "prior" and g.prior_agrees is False:
+                degraded.append("mount-disagrees")  # fit_floor false, and the data's floor is elsewhere
             elif g.confidence < TRUSTED:
                 degraded.append("ground-uncertain")
             if frame.floor is not None and not floor_in_view(frame.floor, model, cfg.range_for(model)):

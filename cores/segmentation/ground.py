@@ -27,6 +27,10 @@ or a lost track costs at most a frame:
 Without an acceptable candidate the expected ground stands in for up to `ground_reinit_frames`
 frames ("tracked", its confidence halving each frame), then the configured mount ("prior"), then nothing
 ("none"). GroundEstimate.confidence says how far each frame's ground can be trusted.
+
+With fit_floor false the configured mount is the floor, as the user chose; the ground is still fitted
+to check it by, and a mount whose floor lies more than MOUNT_TOLERANCE_M off a trusted fit within the
+vision range says so (prior_agrees false, low confidence: the list is degraded "mount-disagrees").
 """
 from __future__ import annotations
 
@@ -68,6 +72,10 @@ ROLL_COST = 0.02  # per degree beyond ROLL_FREE_DEG
 ROLL_FREE_DEG = 2.0
 TRUSTED = 0.3  # below this confidence a list says "ground-uncertain"
 MOUNT_CONFIDENCE = 0.5  # of the configured mount where the user chose it over fitting (fit_floor false, seed)
+# ... as long as its floor lies within this of the ground the data show (90th percentile over the floor
+# in the vision range): more, and things standing that much above the real floor fall under the mount's
+# floor margin (or the road a mount puts too low stands up as obstacles)
+MOUNT_TOLERANCE_M = 0.1
 TILT_RATE = 0.2  # weight of a new fit in the running tilt doubt
 MAX_TILT_DOUBT_DEG = 1.0
 SEARCH_EVERY = 4  # frames: a full search at least this often (in between, the last frames' ground refined)
@@ -313,6 +321,7 @@ class GroundEstimator:
         self.rate_n = np.zeros(3)  # ... and its change a frame (from the frame before it; 0 without one)
         self.rate_h = 0.0
         self.prior_disagreement_logged = False
+        self.mount_disagreed = False  # fit_floor false: the last check of the mount found it off
         self.rng = np.random.default_rng(0)
 
     @property
@@ -320,6 +329,8 @@ class GroundEstimator:
         """How far this frame's fitted tilt may be off: the rms of the fits' tilts from the last
         frames' ground (a fit on a real road moves by a few tenths of a degree; an exact plane by
         hardly any), at most MAX_TILT_DOUBT_DEG. The segmenter widens its floor band by it at a distance."""
+        if not self.cfg.fit_floor:
+            return 0.0  # the floor is the configured mount's, which does not wobble
         return float(min(MAX_TILT_DOUBT_DEG, np.sqrt(self.tilt_var)))
 
     def predicted(self) -> tuple[np.ndarray, float] | None:
@@ -366,15 +377,55 @@ class GroundEstimator:
                step: int) -> tuple[FloorPlane | None, GroundEstimate]:
         """dm: the working-resolution disparity where the floor is looked for (0 = invalid): the
         vision range, or out to where the rig still measures when that is farther (layers.py)."""
+        prior = self.prior
+        if self.cfg.fit_floor:
+            return self._fit(Pixels(*_points(dm, step)), model)
+        if prior is None:
+            return None, self._none()
+        # The user chose the configured mount over fitting: it is the floor, as configured. The ground
+        # is still fitted, only to check the mount by: a mount a few degrees off hides what stands low
+        # (or turns the road into obstacles) at a distance, and a list must not look trustworthy then.
+        px = Pixels(*_points(dm, step))
+        self._fit(px, model)
+        plane = plane_from_mount(prior, model)
+        off = self._mount_offset(plane, px, model)
+        # once off, back only well within the tolerance: a mount right at its edge does not flicker
+        agrees = None if off is None else off <= MOUNT_TOLERANCE_M * (0.75 if self.mount_disagreed else 1.0)
+        if agrees is not None:
+            self.mount_disagreed = not agrees
+        if agrees is False and not self.prior_disagreement_logged:
+            self.prior_disagreement_logged = True
+            pitch, roll = pitch_roll(self.smooth_n)
+            log.warning("segmenter: the configured mount (camera %.2f m high, pitch %+.1f deg, roll %+.1f deg) puts "
+                        "the floor %.2f m off the floor in the disparity (camera %.2f m above it, pitch %+.1f deg, "
+                        "roll %+.1f deg) within the vision range; fit_floor is false, so the mount is used and "
+                        "every such list says mount-disagrees (measure the mount again, or set fit_floor true)",
+                        prior.height_m, prior.pitch_deg, prior.roll_deg, off, self.smooth_h, pitch, roll)
+        return plane, self._estimate(prior.down_camera, prior.height_m, "prior",
+                                     confidence=MOUNT_CONFIDENCE if agrees is not False else 0.1, agrees=agrees)
+
+    def _mount_offset(self, plane: FloorPlane, px: Pixels, model: camera.RectifiedModel) -> float | None:
+        """How far the configured mount's floor `plane` lies from the trusted ground of the last
+        frames, m: the 90th percentile, over this frame's pixels on that ground within the vision
+        range, of the height of the ground there above (or below) the mount's floor. None when there
+        is no trusted ground to tell (the mount then stands unchecked)."""
+        if self.smooth_n is None or self.missed > 0 or self.confidence < TRUSTED:
+            return None
+        fitted = self._plane(self.smooth_n, self.smooth_h, model)
+        d_fit = fitted.disparity(px.u, px.v)
+        on = px.band(d_fit, 0.04)
+        on &= d_fit >= np.float32(model.focal_px * model.baseline_m / self.cfg.range_for(model))
+        i = np.flatnonzero(on)
+        if i.size < MIN_INLIERS:
+            return None
+        d_mount = plane.disparity(px.u.take(i), px.v.take(i))
+        above = plane.height_m * (1.0 - d_mount / d_fit.take(i))
+        return float(stats.percentile(np.abs(above), 90))
+
+    def _fit(self, px: Pixels, model: camera.RectifiedModel) -> tuple[FloorPlane | None, GroundEstimate]:
+        """This frame's ground fitted to the pixels px (module doc)."""
         cfg = self.cfg
         prior = self.prior
-        if not cfg.fit_floor:
-            if prior is None:
-                return None, self._none()
-            # the user chose the configured mount over fitting: trusted as far as a mount measured once can be
-            return plane_from_mount(prior, model), self._estimate(prior.down_camera, prior.height_m, "prior",
-                                                                  confidence=MOUNT_CONFIDENCE)
-        px = Pixels(*_points(dm, step))
         guesses = {}
         expected = self.predicted() if self.smooth_n is not None else None
         if expected is not None:
@@ -453,7 +504,7 @@ class GroundEstimator:
             conf = fit_confidence(fit, consistent is not False) * min(1.0, (span - 1.0) / (MIN_FLOOR_SPAN - 1.0))
             self.confidence = conf
             agrees_prior = None
-            if prior is not None:
+            if prior is not None and cfg.fit_floor:
                 agrees_prior = _close(fit.normal, fit.plane.height_m, prior.down_camera, prior.height_m,
                                       cfg.max_tilt_deg)
                 if not agrees_prior and not self.prior_disagreement_logged and conf >= TRUSTED:
