@@ -671,6 +671,9 @@ def test_builder_publishes_ground_free_space_and_confirms_tracks():
         d, MODEL, t_s=0, seq=0, stamp_ns=0).obstacles.degraded == ["no-ground"]  # and no mount: said so
     thesis = ObstacleBuilder(SegmenterSettings(method="seed", floor_removal=False), MountSettings(height_m=1.0))
     assert thesis.process(d, MODEL, t_s=0, seq=0, stamp_ns=0).obstacles.degraded == ["no-ground"]
+    # layers without floor removal: the floor stands up with the box on it, one obstacle at neither's place
+    unfloored = ObstacleBuilder(SegmenterSettings(floor_removal=False), MountSettings(height_m=1.0, pitch_deg=15.0))
+    assert unfloored.process(d, MODEL, t_s=0, seq=0, stamp_ns=0).obstacles.degraded == ["no-ground"]
 
 
 def test_a_tracked_object_seen_in_pieces_stays_one_obstacle_and_a_newcomer_beside_it_does_not_join():

@@ -305,9 +305,10 @@ class ObstacleBuilder:
             degraded.append("range-unreachable")
         elif reach.near_unmeasured:
             degraded.append("near-unmeasured")
-        if cfg.method == "seed" and frame.floor is None:
-            # the thesis's method with no floor removed (no mount, or floor_removal off): a textured floor in
-            # range is one region with what stands on it, and clearing the border drops both
+        if not cfg.floor_removal or (cfg.method == "seed" and frame.floor is None):
+            # no floor removed: a textured floor in range is one region with what stands on it (the thesis's
+            # method then clears both at the border; layers reports road and car as one obstacle, at neither's
+            # place)
             degraded.append("no-ground")
         elif cfg.floor_removal:
             if frame.unlisted:
