@@ -151,16 +151,16 @@ def cmd_obstacles(args: argparse.Namespace) -> int:
                     skipped.append(e)
                     print(f"ballbot-vision: warning: {e}; pair skipped", file=sys.stderr, flush=True)
                     continue
-                yield lp, rp, left, right, k / args.fps
+                yield lp, rp, left, right, k / args.fps, k  # seq: the pair's place in the folders
         pairs = read_pairs()
     pipe = Pipeline(cal, _obstacles_matcher_settings(args), settings, alpha=args.alpha, mount=_mount_settings(args))
     _warn_reach(pipe)
     draw_dir = Path(args.draw) if args.draw else None
     done = 0
-    for k, (lp, rp, left, right, stamp_s) in enumerate(pairs):
+    for lp, rp, left, right, stamp_s, seq in pairs:
         done += 1
-        # a recording's pairs are named by file and seq
-        frame = pipe.process(left, right, t_s=stamp_s, seq=k, stamp_ns=int(stamp_s * 1e9), names=(str(lp), str(rp)))
+        # a list's seq is its pair's (a skipped pair leaves its number out): a recording's seq, a folder's place
+        frame = pipe.process(left, right, t_s=stamp_s, seq=seq, stamp_ns=int(stamp_s * 1e9), names=(str(lp), str(rp)))
         result, msg = frame.result, frame.result.obstacles
         if draw_dir is not None:
             name = lp.stem if isinstance(lp, Path) else f"{Path(args.left).stem}_{msg.seq:06d}"  # a recording's pair

@@ -294,9 +294,9 @@ class RecordingReader:
 
 def offline_pairs(path: str | Path, calibration: str | None = None):
     """A recording for the offline commands (`obstacles rec.mcap`): (pairs, calibration), where
-    pairs yields (left label, right label, left, right, t_s) in capture order, t_s from the
-    recording's stamps, and calibration is `calibration` (a file or profile) or else the
-    recording's own, as a Calibration."""
+    pairs yields (left label, right label, left, right, t_s, seq) in capture order, t_s from the
+    recording's stamps and seq its (as the labels name it), and calibration is `calibration` (a
+    file or profile) or else the recording's own, as a Calibration."""
     from common.files import parse_yaml
     from cores import camera
 
@@ -319,5 +319,5 @@ def offline_pairs(path: str | Path, calibration: str | None = None):
     def labelled():
         for p in itertools.chain([first], pairs):
             yield (f"{path}#{p.seq}:left", f"{path}#{p.seq}:right", p.left, p.right,
-                   (p.stamp_ns - first.stamp_ns) / 1e9)
+                   (p.stamp_ns - first.stamp_ns) / 1e9, p.seq)
     return labelled(), cal

@@ -322,7 +322,9 @@ def test_a_bad_pair_in_a_folder_costs_that_pair_and_obstacles_go_on(tmp_path, ca
     capfd.readouterr()
     assert main(argv) == 0
     out, err = capfd.readouterr()
-    assert [Path(json.loads(line)["left"]).name for line in out.splitlines()] == ["left1.png", "left3.png"]
+    lists = [json.loads(line) for line in out.splitlines()]
+    assert [Path(doc["left"]).name for doc in lists] == ["left1.png", "left3.png"]
+    assert [doc["seq"] for doc in lists] == [0, 2]  # each list's seq is its pair's place: the skipped one's left out
     (said,) = [line for line in err.splitlines() if "pair skipped" in line]
     assert said.startswith(f"ballbot-vision: warning: {tmp_path / 'L' / 'left2.png'}: truncated or corrupt PNG"), err
     assert "1 of 3 pair(s) could not be read" in err and "Traceback" not in err
@@ -447,7 +449,9 @@ def test_a_damaged_jpeg_inside_a_recording_is_skipped_with_its_reason(tmp_path, 
 
     assert main(["obstacles", str(rec), "--json", "--disparity-num-disparities", "32"]) == 0
     out, err = capfd.readouterr()
-    assert [json.loads(line)["left"] for line in out.splitlines()] == [f"{rec}#0:left", f"{rec}#2:left"]
+    lists = [json.loads(line) for line in out.splitlines()]
+    assert [doc["left"] for doc in lists] == [f"{rec}#0:left", f"{rec}#2:left"]
+    assert [doc["seq"] for doc in lists] == [0, 2]
     said = err + caplog.text  # the warning is logged (pytest's handler holds it in-process)
     assert "pair seq 1 left: truncated or corrupt JPEG" in said and "pair skipped" in said
     assert not any(line.startswith("Corrupt JPEG") for line in err.splitlines()), err
