@@ -14,7 +14,8 @@ from common.zenoh_session import DEFAULT_ROUTER, ZenohOptions, open_session
 
 def format_table(msg: ObstacleList) -> str:
     age_ms = (time.time_ns() - msg.stamp_ns) / 1e6
-    head = (f"robot {msg.robot_id}  seq {msg.seq}  age {age_ms:6.1f} ms  {len(msg.obstacles)} obstacle(s)"
+    looked = "" if msg.range_m is None else f" at {msg.range_m[0]:g}-{msg.range_m[1]:.1f} m"
+    head = (f"robot {msg.robot_id}  seq {msg.seq}  age {age_ms:6.1f} ms  {len(msg.obstacles)} obstacle(s){looked}"
             + "".join(f"  {w}" for w in msg.warnings()))
     g = msg.ground
     ground = ("ground: unknown (no floor removed)" if g is None or g.source == "none" else

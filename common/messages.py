@@ -17,9 +17,11 @@ from pydantic import BaseModel, ConfigDict, Field
 #    FreeSpace; Odometry; an optional confidence image beside a disparity map.
 # 3: ObstacleList.degraded and valid_fraction (can this list be trusted); GroundEstimate.confidence and the
 #    configured mount beside the fitted ground (prior_*).
-SCHEMA_VERSION = 3
+# 4: ObstacleList.range_m (the distances a list looked at: what "looked and saw nothing" covers).
+SCHEMA_VERSION = 4
 
 Vec3 = tuple[float, float, float]
+Metres = Annotated[float, Field(allow_inf_nan=False, ge=0.0, le=1000.0)]
 # A robot's own motion: finite and physical, so one forged message cannot turn every track into NaN
 Speed = Annotated[float, Field(allow_inf_nan=False, ge=-100.0, le=100.0)]  # m/s
 TurnRate = Annotated[float, Field(allow_inf_nan=False, ge=-50.0, le=50.0)]  # rad/s
@@ -201,9 +203,9 @@ class ObstacleList(Message):
     """What stands in the robot's way for one captured pair.
 
     The rule for planners: a list with `stale` false and `degraded` empty is trustworthy, and then
-    an empty `obstacles` means "looked and saw nothing". Anything else (stale, or any reason in
-    `degraded`) means the view could not be checked as it should: slow down or stop, do not take
-    an empty list as a clear way."""
+    an empty `obstacles` means "looked and saw nothing" at the distances in `range_m`. Anything else
+    (stale, or any reason in `degraded`) means the view could not be checked as it should: slow down
+    or stop, do not take an empty list as a clear way."""
 
     publish_ns: int = Field(ge=0)
     stale: bool = Field(description="true when the input stream stopped or fell behind")
@@ -213,6 +215,10 @@ class ObstacleList(Message):
                                 "'near-unmeasured', 'floor-out-of-view', 'standing-not-listed', 'mount-disagrees')")
     valid_fraction: float = Field(0.0, ge=0, le=1, description="share of the image the disparity map measured "
                                   "(valid pixels within the vision range gate's search) for this list")
+    range_m: tuple[Metres, Metres] | None = Field(None, description="the distances this list looked at, m: "
+                                                  "[nearest, farthest] of the vision range. What is nearer or "
+                                                  "farther is not in the list, however clear it looks (None: not "
+                                                  "said)")
     frame_id: Literal["camera"] = "camera"
     method: str = ""
     obstacles: list[Obstacle] = Field(default_factory=list)

@@ -87,6 +87,7 @@ def trust(t: RosTypes, msg: ObstacleList, name: str) -> Any:
     pairs = [("seq", str(msg.seq)), ("stamp_ns", str(msg.stamp_ns)), ("obstacles", str(len(msg.obstacles))),
              ("degraded", ",".join(msg.degraded)), ("stale", str(msg.stale).lower()),
              ("valid_fraction", f"{msg.valid_fraction:.3f}"),
+             ("range_m", "" if msg.range_m is None else f"{msg.range_m[0]:.2f}-{msg.range_m[1]:.2f}"),
              ("ground_source", g.source if g is not None else "none"),
              ("ground_confidence", f"{g.confidence:.2f}" if g is not None else "0.00")]
     status = t.new("diagnostic_msgs/msg/DiagnosticStatus", level=level, name=name, message=text,

@@ -207,8 +207,9 @@ class Score:
     wall_fp: int = 0
     split_fp: int = 0
     id_switches: int = 0
-    # truths missed in a list that named no reason it could not be trusted (degraded empty): the misses a
-    # planner takes for a clear way; a miss in a flagged list was at least said
+    # truths missed in a list that named no reason it could not be trusted (degraded empty), at the distances
+    # it says it looked at (range_m): the misses a planner takes for a clear way; a miss in a flagged list, or
+    # beyond the list's range, was at least said
     silent_misses: int = 0
     flagged_frames: int = 0  # lists with a reason in degraded
     vel_err_mps: float = float("nan")
@@ -397,8 +398,10 @@ def score_method(data: ScenarioData, method: str, overrides: dict | None = None,
         sc.matched += len(pairs)
         if res.obstacles.degraded:
             sc.flagged_frames += 1
-        else:
-            sc.silent_misses += len(truths) - len(pairs)
+        else:  # only what lies at the distances the list says it looked at (a method's range may end nearer)
+            lo, hi = res.obstacles.range_m or (0.0, math.inf)
+            found = {ti for _, ti in pairs}
+            sc.silent_misses += sum(1 for ti, c in enumerate(centroids) if ti not in found and lo <= c[2] <= hi)
         for i, t in enumerate(fr.truth):
             rec = sc.per_truth.setdefault(t.name, {"seen": 0, "matched": 0, "ids": [], "hidden": 0, "gaps": 0})
             if i in keep:

@@ -200,3 +200,13 @@ def test_status_verdict_is_degraded_while_the_segmenters_lists_are():
                    "degraded lists: ground-uncertain"):
         level, text = verdict([seg(status)], [])
         assert level == "degraded" and text == f"obstacles {status}", (status, text)
+
+
+def test_a_list_says_the_distances_it_looked_at_and_a_forged_range_is_a_decode_error():
+    lst = ObstacleList(robot_id="r", seq=1, stamp_ns=1, publish_ns=1, stale=False, range_m=(1.0, 4.5))
+    assert codec.decode(codec.encode(lst), ObstacleList).range_m == (1.0, 4.5)
+    for bad in ([float("nan"), 4.5], [1.0, float("inf")], [-1.0, 4.5], [1.0]):
+        doc = lst.model_dump()
+        doc["range_m"] = bad
+        with pytest.raises(DecodeError, match="ObstacleList.range_m"):
+            codec.decode(msgpack.packb(doc), ObstacleList)

@@ -324,6 +324,7 @@ class ObstacleBuilder:
                 degraded.append("floor-out-of-view")
         out = ObstacleList(robot_id=robot_id, seq=seq, stamp_ns=stamp_ns, stages=dict(stages or {}), publish_ns=now,
                            stale=stale, degraded=degraded, valid_fraction=valid_fraction, method=cfg.method,
+                           range_m=(cfg.min_range_m, cfg.range_for(model)),
                            obstacles=obstacles, ground=frame.ground,
                            mount=None if mount is None else mount.message(mount_source),
                            velocity_reference="ground" if over_ground else "camera")

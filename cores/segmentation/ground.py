@@ -393,7 +393,7 @@ class GroundEstimator:
         agrees = None if off is None else off <= MOUNT_TOLERANCE_M * (0.75 if self.mount_disagreed else 1.0)
         if agrees is not None:
             self.mount_disagreed = not agrees
-        if agrees is False and not self.prior_disagreement_logged:
+        if agrees is False and not self.prior_disagreement_logged and self.smooth_n is not None:
             self.prior_disagreement_logged = True
             pitch, roll = pitch_roll(self.smooth_n)
             log.warning("segmenter: the configured mount (camera %.2f m high, pitch %+.1f deg, roll %+.1f deg) puts "
