@@ -85,6 +85,7 @@ def test_compose_pairs_the_obstacles_with_their_own_picture():
     doc, blobs = core.unpack(core.Composer("r").compose(inputs))
     assert doc["image"]["seq"] == 2 and doc["image"]["matched"] and doc["disparity"]["seq"] == 2
     assert doc["obstacles"]["degraded"] == [] and doc["obstacles"]["stale"] is False
+    assert doc["obstacles"]["range_m"] is None  # a list that does not say its range (the segmenter's do)
     left = cv2.imdecode(np.frombuffer(blobs["left"], np.uint8), cv2.IMREAD_UNCHANGED)
     assert abs(int(left.mean()) - 120) <= 2  # the picture of seq 2, not the newest
     assert doc["obstacles"]["list"][0]["bbox_px"] == [3, 4, 20, 30]
@@ -425,6 +426,8 @@ def test_the_page_shows_the_pictures_and_draws_the_boxes_of_the_obstacle_list(tm
                               "text": "NOT A FULL VIEW: near-unmeasured, ground-uncertain"}, banner
             assert page.locator("#services tbody tr").count() >= 5
             assert page.locator("#obstacles tbody tr").count() == 2
+            # what the two obstacles were looked for in: the segmenter's vision range, from the list
+            assert "looked at 1.0-4.5 m" in page.locator("#obstacle-count").text_content()
             shot = tmp_path / "viewer.png"
             page.screenshot(path=str(shot), full_page=True)
             # window.viewer changes at the end of an update, all at once: with the pictures' decoding

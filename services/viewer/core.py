@@ -165,6 +165,7 @@ class Composer:
             doc["obstacles"] = {"seq": obstacles.seq, "stamp_ns": obstacles.stamp_ns,
                                 "publish_ns": obstacles.publish_ns, "stale": obstacles.stale,
                                 "degraded": list(obstacles.degraded), "method": obstacles.method,
+                                "range_m": None if obstacles.range_m is None else list(obstacles.range_m),
                                 "list": [obstacle_doc(o) for o in obstacles.obstacles],
                                 "latency": latency_doc(obstacles),
                                 "ground": None if obstacles.ground is None else obstacles.ground.model_dump()}
