@@ -197,3 +197,30 @@ def test_up_stops_with_status_2_when_a_service_rejects_its_settings(tmp_path):
     finally:
         u.stop()
     assert "max_range_m" in u.log_path.read_text()
+
+
+def test_a_mount_chosen_over_fitting_and_measured_wrong_is_said_everywhere(tmp_path):
+    """fit_floor false with the camera's pitch taped 4 deg off (the scene's camera: 1 m, 15 deg): what a
+    planner reads (`watch`) says mount-disagrees on every list, with the distances it looked at, and
+    `status` says the pipeline is degraded (exit 3), naming it."""
+    from helpers import Up
+    cfg = tmp_path / "taped.yaml"
+    cfg.write_text("mount:\n  height_m: 1.0\n  pitch_deg: 19.0\nsegmenter:\n  fit_floor: false\n")
+    u = Up(extra_env={"BALLBOT_CONFIG": str(cfg)})
+    try:
+        watch = subprocess.run(cli("watch", "--connect", u.endpoint, "--count", "8", "--json", "--timeout", "90"),
+                               capture_output=True, text=True, timeout=150)
+        assert watch.returncode == 0, watch.stderr + u.log_path.read_text()
+        lists = [ObstacleList.model_validate(json.loads(line)) for line in watch.stdout.splitlines()]
+        # the first lists may come before any ground was fitted to check the mount by (then unchecked)
+        checked = [m for m in lists if m.ground is not None and m.ground.prior_agrees is not None]
+        assert checked and all("mount-disagrees" in m.degraded for m in checked), [(m.seq, m.degraded) for m in lists]
+        assert all(m.range_m == (1.0, 4.5) and m.ground.source == "prior" for m in lists)
+        status = subprocess.run(cli("status", "--connect", u.endpoint, "--json", "--wait", "2.5"),
+                                capture_output=True, text=True, timeout=60)
+        doc = json.loads(status.stdout)
+        seg = next(i for i in doc["instances"] if i["name"] == "segmenter")
+        assert status.returncode == 3 and seg["status"].startswith("mount-disagrees"), (seg, status.stderr)
+        assert "says mount-disagrees" in u.log_path.read_text()  # the segmenter's warning, once, at the start
+    finally:
+        u.stop()

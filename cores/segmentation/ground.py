@@ -399,7 +399,8 @@ class GroundEstimator:
             log.warning("segmenter: the configured mount (camera %.2f m high, pitch %+.1f deg, roll %+.1f deg) puts "
                         "the floor %.2f m off the floor in the disparity (camera %.2f m above it, pitch %+.1f deg, "
                         "roll %+.1f deg) within the vision range; fit_floor is false, so the mount is used and "
-                        "every such list says mount-disagrees (measure the mount again, or set fit_floor true)",
+                        "every such list says mount-disagrees (measure the mount again, e.g. `ballbot-vision mount "
+                        "estimate --write`, or set fit_floor true)",
                         prior.height_m, prior.pitch_deg, prior.roll_deg, off, self.smooth_h, pitch, roll)
         return plane, self._estimate(prior.down_camera, prior.height_m, "prior",
                                      confidence=MOUNT_CONFIDENCE if agrees is not False else 0.1, agrees=agrees)

@@ -112,7 +112,8 @@ def run(node: Node, settings: SegmenterSettings) -> None:
                                "nothing low there can be seen (lengthen the range, or pitch the camera down)")
             elif "mount-disagrees" in result.obstacles.degraded:
                 node.status = ("mount-disagrees: the configured mount's floor is off the floor in the disparity "
-                               "(fit_floor false); measure the mount again, or set fit_floor true")
+                               "(fit_floor false); measure the mount again (`ballbot-vision mount estimate`), "
+                               "or set fit_floor true")
             elif "standing-not-listed" in result.obstacles.degraded:
                 node.status = ("standing-not-listed: something standing in the vision range is in no obstacle "
                                "(seed drops what touches the image border, is under its area opening or beyond its "
