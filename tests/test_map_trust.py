@@ -319,8 +319,10 @@ def test_the_list_says_when_the_map_collapsed_against_the_last_frames():
     from test_segmenter import scene
 
     b = ObstacleBuilder(SegmenterSettings(), MountSettings(height_m=1.0, pitch_deg=15.0))
-    full = scene([(200, 330, 1.8, 150)])
-    out = [b.process_message(_disparity_message(full, i), t_s=i / 10).obstacles for i in range(8)]
+    # each map with noise of its own, as a live camera's (the same map over and over is a frozen camera)
+    out = [b.process_message(_disparity_message(scene([(200, 330, 1.8, 150)], seed_=i), i), t_s=i / 10).obstacles
+           for i in range(8)]
+    full = scene([(200, 330, 1.8, 150)], seed_=8)
     assert all(not o.degraded for o in out) and len(out[-1].obstacles) == 1
     thin = full.copy()
     thin[:, 200:] = np.nan  # the right two thirds unmeasured: the box is gone from the map
@@ -359,3 +361,27 @@ def test_the_half_resolution_fallback_after_a_full_resolution_worker_is_not_degr
         lists.append(b.process_message(d, t_s=i / 15).obstacles)
     assert [o.degraded for o in lists] == [[]] * 12, [(o.degraded, round(o.valid_fraction, 2)) for o in lists]
     assert all(len(o.obstacles) >= 2 for o in lists[7:])
+
+
+def test_a_camera_that_repeats_its_last_picture_is_said_after_stale_after_s():
+    """A hung camera driver goes on sending its last picture with fresh stamps: every map is the same,
+    bit for bit, and the lists would look fresh and clear while the world moves. Once the map has not
+    changed for stale_after_s (0.5 s) every list says input-frozen, and no free space is claimed; a
+    driver cycling through two buffers is the same; a live camera's noise is not, and a picture that
+    changes again ends it at once."""
+    from test_segmenter import scene
+
+    b = ObstacleBuilder(SegmenterSettings(), MountSettings(height_m=1.0, pitch_deg=15.0))
+    live = [b.process_message(_disparity_message(scene([(200, 330, 1.8, 150)], seed_=i), i), t_s=i / 10)
+            for i in range(10)]
+    assert all(r.obstacles.degraded == [] for r in live)  # noise: no two maps alike
+    stuck = [scene([(200, 330, 1.8, 150)], seed_=s) for s in (100, 101)]
+    out = [b.process_message(_disparity_message(stuck[i % 2], 10 + i), t_s=1.0 + i / 10) for i in range(12)]
+    said = ["input-frozen" in r.obstacles.degraded for r in out]
+    # nothing new since the second buffer (t = 1.1 s): from 0.6 s after it on (t = 1.7 s), every list
+    assert said == [False] * 7 + [True] * 5, said
+    assert all(r.obstacles.degraded == ["input-frozen"] for r in out[7:])
+    assert not (np.frombuffer(out[-1].freespace.cells, np.int8) == 0).any()  # nothing claimed free
+    assert len(out[-1].obstacles.obstacles) == 1  # what it shows is still listed
+    back = b.process_message(_disparity_message(scene([(200, 330, 1.8, 150)], seed_=200), 30), t_s=2.2)
+    assert back.obstacles.degraded == []

@@ -224,3 +224,29 @@ def test_a_mount_chosen_over_fitting_and_measured_wrong_is_said_everywhere(tmp_p
         assert "says mount-disagrees" in u.log_path.read_text()  # the segmenter's warning, once, at the start
     finally:
         u.stop()
+
+
+def test_a_camera_repeating_one_picture_is_said_by_every_list_and_by_status(tmp_path):
+    """The synthetic camera made to deliver one pair over and over (`preload: 1`, as a hung driver
+    repeats its last buffer with fresh stamps): the lists are fresh by their stamps, but after
+    stale_after_s each says input-frozen, and `status` says degraded (exit 3), naming it."""
+    from helpers import Up
+    cfg = tmp_path / "stuck.yaml"
+    cfg.write_text("capture:\n  preload: 1\n")
+    u = Up(extra_env={"BALLBOT_CONFIG": str(cfg)})
+    try:
+        with u.session() as s:
+            lists = Collector(ObstacleList)
+            s.declare_subscriber(topic("obstacles").key(u.robot_id), lists)
+
+            def said(items) -> bool:
+                return len(items) >= 3 and all("input-frozen" in m.degraded for m in items[-3:])
+            assert lists.wait_for(said, 120), [(m.seq, m.degraded) for m in lists.items[-10:]]
+            # fresh stamps (bar a list a busy machine made late): only the pictures tell
+            assert any("input-frozen" in m.degraded and not m.stale for m in lists.items)
+        status = subprocess.run(cli("status", "--connect", u.endpoint, "--json", "--wait", "2.5"),
+                                capture_output=True, text=True, timeout=60)
+        seg = next(i for i in json.loads(status.stdout)["instances"] if i["name"] == "segmenter")
+        assert status.returncode == 3 and seg["status"].startswith("input-frozen"), (seg, status.stderr)
+    finally:
+        u.stop()

@@ -107,3 +107,31 @@ class RecentValid:
         if self._recent and now_s < self._recent[-1][0]:
             self._recent.clear()  # a clock that went back (a replayed sequence starting over)
         self._recent.append((now_s, valid_fraction))
+
+
+class FrozenInput:
+    """Whether the maps have stopped changing. A camera whose driver hangs (a USB glitch, a driver
+    republishing its last buffer) goes on delivering its last picture with fresh stamps, and every
+    map of it is the same, bit for bit, while a live camera's noise never gives two equal maps.
+    frozen(map, now_s) is True once the map has equalled one of the last `keep` distinct maps (a
+    driver may cycle through a few buffers) for longer than `after_s`. Maps are compared on every
+    `row_step`-th row: noise tells them apart there as well as anywhere, at an eighth of the cost.
+    Times in s on any clock that does not go backwards."""
+
+    def __init__(self, after_s: float, keep: int = 3, row_step: int = 8):
+        from collections import deque
+
+        self.after_s, self.row_step = after_s, row_step
+        self._recent: deque[np.ndarray] = deque(maxlen=keep)
+        self._changed_s: float | None = None  # when the map last differed from every recent one
+
+    def frozen(self, disparity: np.ndarray, now_s: float) -> bool:
+        sample = disparity[::self.row_step]
+        nan = sample.dtype.kind == "f"
+        same = any(s.shape == sample.shape and s.dtype == sample.dtype and np.array_equal(s, sample, equal_nan=nan)
+                   for s in self._recent)
+        if not same or self._changed_s is None or now_s < self._changed_s:
+            self._changed_s = now_s
+            self._recent.append(sample.copy())
+            return False
+        return now_s - self._changed_s > self.after_s

@@ -16,7 +16,7 @@ from common.errors import DecodeError
 from common.messages import DisparityMap, FreeSpace, Obstacle, ObstacleList, Odometry
 from common.settings import MountSettings
 from cores import camera
-from cores.matching.disparity import RecentValid, searched_range, to_float
+from cores.matching.disparity import FrozenInput, RecentValid, searched_range, to_float
 from cores.segmentation import freespace, layers, seed, stats
 from cores.segmentation.ground import TRUSTED, GroundEstimator, frame_mount
 from cores.segmentation.mount import FloorPlane, Mount
@@ -122,6 +122,7 @@ class ObstacleBuilder:
         self._track_frame = ""  # "base" or "camera": the frame the tracks are kept in
         self._last_t: float | None = None
         self.recent_valid = RecentValid(COLLAPSE_WINDOW_S, COLLAPSE_FACTOR, COLLAPSE_WARMUP_FRAMES)
+        self.frozen_input = FrozenInput(settings.stale_after_s)
         self.reach = Reach(False, "")  # of the last map's disparity search
         self._reach_logged: set[str] = set()
 
@@ -239,13 +240,14 @@ class ObstacleBuilder:
 
         The list says how far it can be trusted: valid_fraction is the share of the image with a
         measurement; degraded names why an empty list would not mean "nothing there"
-        ("no-valid-disparity": under 1 % measured; "valid-collapse": under half of what the
-        frames of the last 2 s measured; "range-unreachable": the map's search, `search` = its
-        (min_disparity, num_disparities), cannot measure the vision range; "near-unmeasured": it
-        cannot measure the near part of it (search_reach); "no-ground" /
-        "ground-uncertain": nothing or too little told the floor from what stands on it;
-        "mount-disagrees": fit_floor is false and the configured mount's floor is off the floor the
-        data show;
+        ("input-frozen": the map has not changed, bit for bit, for over stale_after_s: the camera
+        repeats an old picture with fresh stamps; "no-valid-disparity": under 1 % measured;
+        "valid-collapse": under half of what the frames of the last 2 s measured;
+        "range-unreachable": the map's search, `search` = its (min_disparity, num_disparities),
+        cannot measure the vision range; "near-unmeasured": it cannot measure the near part of it
+        (search_reach); "no-ground" / "ground-uncertain": nothing or too little told the floor from
+        what stands on it; "mount-disagrees": fit_floor is false and the configured mount's floor is
+        off the floor the data show;
         "floor-out-of-view": the floor within the vision range is below the camera's view;
         "standing-not-listed": something standing in range, of min_area_m2 frontal area, is in no
         obstacle: seed's border clearing, area opening or Otsu threshold dropped it)."""
@@ -296,6 +298,8 @@ class ObstacleBuilder:
         now = time.time_ns()
         valid_fraction = float(np.count_nonzero(disparity > 0)) / max(1, disparity.size)  # NaN compares false
         degraded = []
+        if self.frozen_input.frozen(disparity, t_s):
+            degraded.append("input-frozen")  # fresh stamps on an old picture: the world it shows is not now's
         if valid_fraction < MIN_VALID_FRACTION:
             degraded.append("no-valid-disparity")
         elif self.recent_valid.collapsed(valid_fraction, t_s):

@@ -110,6 +110,10 @@ def run(node: Node, settings: SegmenterSettings) -> None:
             elif "floor-out-of-view" in result.obstacles.degraded:
                 node.status = ("floor-out-of-view: the floor within the vision range is below the camera's view; "
                                "nothing low there can be seen (lengthen the range, or pitch the camera down)")
+            elif "input-frozen" in result.obstacles.degraded:
+                node.status = (f"input-frozen: the disparity maps have not changed for over "
+                               f"{settings.stale_after_s:g} s: the camera repeats one picture with fresh stamps "
+                               "(a hung driver?)")
             elif "mount-disagrees" in result.obstacles.degraded:
                 node.status = ("mount-disagrees: the configured mount's floor is off the floor in the disparity "
                                "(fit_floor false); measure the mount again (`ballbot-vision mount estimate`), "
