@@ -122,16 +122,17 @@ class FrozenInput:
         from collections import deque
 
         self.after_s, self.row_step = after_s, row_step
-        self._recent: deque[np.ndarray] = deque(maxlen=keep)
+        self._recent: deque[bytes] = deque(maxlen=keep)
         self._changed_s: float | None = None  # when the map last differed from every recent one
 
     def frozen(self, disparity: np.ndarray, now_s: float) -> bool:
-        sample = disparity[::self.row_step]
-        nan = sample.dtype.kind == "f"
-        same = any(s.shape == sample.shape and s.dtype == sample.dtype and np.array_equal(s, sample, equal_nan=nan)
-                   for s in self._recent)
+        # the bytes, shape and type included: one picture gives the same bits, NaNs too, and comparing
+        # bytes stops at the first that differs (a live map's first row)
+        a = np.ascontiguousarray(disparity[::self.row_step])
+        sample = f"{a.shape}{a.dtype}".encode() + a.tobytes()
+        same = any(s == sample for s in self._recent)
         if not same or self._changed_s is None or now_s < self._changed_s:
             self._changed_s = now_s
-            self._recent.append(sample.copy())
+            self._recent.append(sample)
             return False
         return now_s - self._changed_s > self.after_s
