@@ -67,8 +67,9 @@ def obstacle_annotations(msg: ObstacleList) -> fm.ImageAnnotations:
     stamp = timestamp(msg.stamp_ns)
     texts = [_label(stamp, o.bbox_px[0], o.bbox_px[1] - 3, f"#{o.id} {o.distance_m:.2f} m", OBSTACLE_RGBA)
              for o in msg.obstacles]
-    if msg.warnings():
-        texts.append(_label(stamp, 4.0, 18.0, " ".join(msg.warnings()), WARNING_RGBA))
+    warnings = msg.warnings()
+    if warnings:
+        texts.append(_label(stamp, 4.0, 18.0, " ".join(warnings), WARNING_RGBA))
     return fm.ImageAnnotations(timestamp=stamp, points=[_box(stamp, o.bbox_px, OBSTACLE_RGBA) for o in msg.obstacles],
                                texts=texts)
 

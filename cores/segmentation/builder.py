@@ -314,7 +314,7 @@ class ObstacleBuilder:
             # method then clears both at the border; layers reports road and car as one obstacle, at neither's
             # place)
             degraded.append("no-ground")
-        elif cfg.floor_removal:
+        else:
             if frame.unlisted:
                 degraded.append("standing-not-listed")
             g = frame.ground
