@@ -18,7 +18,8 @@ from pydantic import BaseModel, ConfigDict, Field
 # 3: ObstacleList.degraded and valid_fraction (can this list be trusted); GroundEstimate.confidence and the
 #    configured mount beside the fitted ground (prior_*).
 # 4: ObstacleList.range_m (the distances a list looked at: what "looked and saw nothing" covers).
-SCHEMA_VERSION = 4
+# 5: StereoFrame.rows and DisparityMap.rows (the live rectification check).
+SCHEMA_VERSION = 5
 
 Vec3 = tuple[float, float, float]
 Metres = Annotated[float, Field(allow_inf_nan=False, ge=0.0, le=1000.0)]
@@ -65,6 +66,21 @@ class CameraModel(BaseModel):
     Q: list[float] = Field(min_length=16, max_length=16, description="4x4 disparity-to-depth matrix, row-major")
 
 
+class RowAlignment(BaseModel):
+    """rectify's last live check that its pairs are rectified: matched features of one pair lie on
+    the same row in both images (cores/calibration/check.py: RowMonitor). Over `tolerance_px` the
+    calibration no longer fits the rig (a knocked camera, a loose lens, another rig's calibration):
+    the matcher measures less and wrongly, and each list says `rows-misaligned`."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    offset_px: float = Field(ge=0, le=1000, description="median vertical offset |dy| of the matched features, px")
+    p95_px: float = Field(ge=0, le=1000, description="its 95th percentile, px")
+    matches: int = Field(ge=0, description="features measured")
+    tolerance_px: float = Field(gt=0, le=1000, description="rectify's max_row_offset_px: more is misaligned")
+    checked_ns: int = Field(ge=0, description="capture stamp of the pair checked")
+
+
 class StereoFrame(Message):
     """One stereo pair. Raw from capture (camera=None) or rectified by rectify (camera set)."""
 
@@ -72,6 +88,8 @@ class StereoFrame(Message):
     right: Image
     camera: CameraModel | None = None
     source: str = ""
+    rows: RowAlignment | None = Field(None, description="rectify's last live check of the rows (None: raw, or not "
+                                      "checked yet)")
 
 
 class DisparityMap(Message):
@@ -88,6 +106,7 @@ class DisparityMap(Message):
     worker: str = ""
     confidence: Image | None = Field(None, description="per-pixel confidence of the disparity, uint8, same size: "
                                      "0 = no measurement, 255 = certain (None: the method gives none)")
+    rows: RowAlignment | None = Field(None, description="the frame's StereoFrame.rows: rectify's last live check")
 
 
 class WorkDone(Message):
@@ -213,7 +232,7 @@ class ObstacleList(Message):
                                 "trusted as a full view (empty: trustworthy; e.g. 'input-frozen', "
                                 "'no-valid-disparity', 'valid-collapse', 'no-ground', 'ground-uncertain', "
                                 "'range-unreachable', 'near-unmeasured', 'floor-out-of-view', 'standing-not-listed', "
-                                "'mount-disagrees')")
+                                "'mount-disagrees', 'rows-misaligned')")
     valid_fraction: float = Field(0.0, ge=0, le=1, description="share of the image the disparity map measured "
                                   "(valid pixels within the vision range gate's search) for this list")
     range_m: tuple[Metres, Metres] | None = Field(None, description="the distances this list looked at, m: "

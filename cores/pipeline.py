@@ -23,6 +23,7 @@ import numpy as np
 from common.messages import Odometry
 from common.settings import MountSettings
 from cores import camera
+from cores.calibration.check import RowMonitor
 from cores.calibration.rectify import Rectifier
 from cores.matching.config import MatcherConfig
 from cores.matching.stage import MatchStage, StageResult
@@ -49,11 +50,14 @@ class PipelineFrame:
 class Pipeline:
     """calibration: a raw rig (rectified here) or an already-rectified model (pairs pass as they
     are); matcher: the disparity settings; segmenter: the segmenter's settings; alpha: rectify's;
-    mount: the camera on the robot (the `mount:` section every service reads)."""
+    mount: the camera on the robot (the `mount:` section every service reads); rows: rectify's live
+    row check (row_check_s, max_row_offset_px; run in line here, on stream time)."""
 
     def __init__(self, calibration: camera.Calibration, matcher: MatcherConfig | None = None,
-                 segmenter: SegmenterSettings | None = None, alpha: float = 0.0, mount: MountSettings | None = None):
+                 segmenter: SegmenterSettings | None = None, alpha: float = 0.0, mount: MountSettings | None = None,
+                 rows: tuple[float, float] = (1.0, 0.5)):
         self.rectifier = Rectifier(calibration, alpha)
+        self.rows = RowMonitor(*rows)
         self.model: camera.RectifiedModel = self.rectifier.model
         self.matching = MatchStage(matcher or MatcherConfig())
         self.segmenter_settings = segmenter or SegmenterSettings()
@@ -65,6 +69,7 @@ class Pipeline:
         between pairs), with a segmenter of its own (fresh ground and tracks)."""
         other = object.__new__(Pipeline)
         other.rectifier, other.model, other.matching = self.rectifier, self.model, self.matching
+        other.rows = RowMonitor(self.rows.interval_s, self.rows.tolerance_px)
         other.segmenter_settings = segmenter or self.segmenter_settings
         other.mount = mount or self.mount
         other.builder = ObstacleBuilder(other.segmenter_settings, other.mount)
@@ -104,13 +109,15 @@ class Pipeline:
         if not rectified:
             left, right = self.rectify(left, right, names)
         t1 = time.perf_counter()
+        stamp_ns = int(round(t_s * 1e9)) if stamp_ns is None else stamp_ns
+        rows = self.rows.observe(left, right, t_s, stamp_ns)  # rectify checks off its frame path: not timed
+        t1b = time.perf_counter()
         stage = self.match(left, right)
         t2 = time.perf_counter()
         disparity = stage.disparity_px()
-        result = self.builder.process(disparity, self.model, t_s=t_s, seq=seq,
-                                      stamp_ns=int(round(t_s * 1e9)) if stamp_ns is None else stamp_ns,
+        result = self.builder.process(disparity, self.model, t_s=t_s, seq=seq, stamp_ns=stamp_ns,
                                       confidence=stage.match.confidence, odometry=odometry, image=left,
-                                      search=(stage.min_disparity, stage.num_disparities))
+                                      search=(stage.min_disparity, stage.num_disparities), rows=rows)
         t3 = time.perf_counter()
-        return PipelineFrame(seq, left, right, stage, disparity, result, (t1 - t0) * 1e3, (t2 - t1) * 1e3,
+        return PipelineFrame(seq, left, right, stage, disparity, result, (t1 - t0) * 1e3, (t2 - t1b) * 1e3,
                              (t3 - t2) * 1e3)

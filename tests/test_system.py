@@ -250,3 +250,51 @@ def test_a_camera_repeating_one_picture_is_said_by_every_list_and_by_status(tmp_
         assert status.returncode == 3 and seg["status"].startswith("input-frozen"), (seg, status.stderr)
     finally:
         u.stop()
+
+
+def test_a_calibration_that_no_longer_fits_the_rig_is_said_by_every_list_and_by_status(tmp_path):
+    """rectify given the scene's rig with the right camera's principal point 2 px low (what a knocked
+    camera does to a calibration that was right): the pairs it makes are 2 px apart in rows. Its live
+    check finds it off the frame path; every list after says rows-misaligned, `status` says degraded
+    (exit 3) naming it, and rectify's stats carry the offset it measured."""
+    import yaml
+
+    from cores import camera
+    from helpers import Up
+    doc = camera.calibration_to_dict(camera.load_calibration("lifecam-studio"))
+    doc["right"]["K"][5] += 2.0
+    cal = tmp_path / "knocked.yaml"
+    cal.write_text(yaml.safe_dump(doc))
+    u = Up(extra_env={"BALLBOT_RECTIFY_CALIBRATION": str(cal)})
+    try:
+        with u.session() as s:
+            lists = Collector(ObstacleList)
+            s.declare_subscriber(topic("obstacles").key(u.robot_id), lists)
+
+            def said(items) -> bool:
+                return len(items) >= 3 and all("rows-misaligned" in m.degraded for m in items[-3:])
+            assert lists.wait_for(said, 120), [(m.seq, m.degraded) for m in lists.items[-10:]]
+        status = subprocess.run(cli("status", "--connect", u.endpoint, "--json", "--wait", "2.5"),
+                                capture_output=True, text=True, timeout=60)
+        doc = json.loads(status.stdout)
+        seg = next(i for i in doc["instances"] if i["name"] == "segmenter")
+        assert status.returncode == 3 and seg["status"].startswith("rows-misaligned"), (seg, status.stderr)
+        assert "calibration check" in seg["status"]
+        rect = next(i for i in doc["instances"] if i["name"] == "rectify")
+        assert 1.5 < rect["extra"]["row_offset_px"] < 2.5, rect
+        assert "rectified rows misaligned" in u.log_path.read_text()
+    finally:
+        u.stop()
+
+
+def test_the_scene_as_rendered_is_aligned_and_its_lists_do_not_say_otherwise(up):
+    """The same check on the rig the scene renders: well under the tolerance, nothing said."""
+    with up.session() as s:
+        frames = Collector(StereoFrame)
+        s.declare_subscriber(topic("frames_rect").key(up.robot_id), frames)
+        assert frames.wait_for(lambda items: any(f.rows is not None for f in items), 60)
+        rows = next(f.rows for f in frames.items if f.rows is not None)
+        assert rows.offset_px < 0.2 and rows.matches >= 50, rows
+    lists = subprocess.run(cli("watch", "--connect", up.endpoint, "--count", "4", "--json", "--timeout", "60"),
+                           capture_output=True, text=True, timeout=120)
+    assert not any("rows-misaligned" in json.loads(line)["degraded"] for line in lists.stdout.splitlines())

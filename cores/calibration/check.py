@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 
 from common.errors import BallbotError
+from common.messages import RowAlignment
 
 
 @dataclass(frozen=True)
@@ -69,9 +70,12 @@ def _refine_by_correlation(left: np.ndarray, right: np.ndarray, a: np.ndarray, h
 
 def row_alignment(left: np.ndarray, right: np.ndarray, n_features: int = 4000, ratio: float = 0.8,
                   min_matches: int = 8, ransac_px: float = 2.0,
-                  subpixel: bool = True) -> RowCheck:
-    """left, right: a rectified pair (H, W) or (H, W, 3), uint8 -> |dy| statistics of matches."""
-    orb = cv2.ORB.create(nfeatures=n_features)
+                  subpixel: bool = True, max_refined: int | None = None, levels: int = 8) -> RowCheck:
+    """left, right: a rectified pair (H, W) or (H, W, 3), uint8 -> |dy| statistics of matches.
+    max_refined: refine (and measure) at most this many matches, spread over all of them (the
+    refinement is most of the cost; a median of 100 is as good as one of 1000); levels: ORB's
+    pyramid levels."""
+    orb = cv2.ORB.create(nfeatures=n_features, nlevels=levels)
     kl, dl = orb.detectAndCompute(_gray(left), None)
     kr, dr = orb.detectAndCompute(_gray(right), None)
     if dl is None or dr is None or len(kl) < 2 or len(kr) < 2:
@@ -99,6 +103,8 @@ def row_alignment(left: np.ndarray, right: np.ndarray, n_features: int = 4000, r
     F, inl = cv2.findFundamentalMat(a[:, 0], a[:, 1], cv2.FM_RANSAC, ransac_px, 0.999)
     if F is not None and inl is not None and int(inl.sum()) >= min_matches:
         a = a[inl.ravel().astype(bool)]
+    if max_refined is not None and len(a) > max_refined:
+        a = a[np.linspace(0, len(a) - 1, max_refined).astype(int)]
     if subpixel:
         a = _refine_by_correlation(_gray(left), _gray(right), a)
         if len(a) < min_matches:
@@ -107,3 +113,68 @@ def row_alignment(left: np.ndarray, right: np.ndarray, n_features: int = 4000, r
     dy = np.abs(a[:, 0, 1] - a[:, 1, 1])
     return RowCheck(len(a), float(np.median(dy)), float(np.percentile(dy, 95)),
                     float(np.median(a[:, 0, 0] - a[:, 1, 0])), len(pts))
+
+
+class RowMonitor:
+    """The live rectification check (rectify runs it on the stream; cores/pipeline.py offline): a
+    camera knocked on the rig, a loose lens or a calibration of another rig moves the right image
+    off the left's rows. Block matching then finds fewer and wrong matches, and nothing else says
+    why. Every `interval_s` of stream time one rectified pair is checked (row_alignment with fewer
+    features: ~20 ms of one core), and `latest` is what every later frame carries (StereoFrame.rows,
+    DisparityMap.rows), so each list can say `rows-misaligned` (cores/segmentation/builder.py).
+
+    A pair with too few features (a bare wall, darkness) leaves the last result in place: what was
+    measured misaligned stays so until a check says otherwise."""
+
+    def __init__(self, interval_s: float = 1.0, tolerance_px: float = 0.5, n_features: int = 500,
+                 max_refined: int = 100):
+        self.interval_s = interval_s
+        self.tolerance_px = tolerance_px
+        self.n_features = n_features
+        self.max_refined = max_refined
+        self.latest: RowAlignment | None = None
+        self.checks = 0
+        self.failed = 0
+        self.epoch = 0
+        self._last_t: float | None = None
+
+    def due(self, t_s: float) -> bool:
+        """Whether a pair at t_s (s, a clock that never goes backwards) is to be checked."""
+        return self.interval_s > 0 and (self._last_t is None or t_s - self._last_t >= self.interval_s)
+
+    def take(self, t_s: float) -> int | None:
+        """For a checker off the stream's path: if a pair at t_s is due, the next is due only
+        interval_s later (whether this one is checked or dropped) -> the epoch to check it under;
+        None when not due."""
+        if not self.due(t_s):
+            return None
+        self._last_t = t_s
+        return self.epoch
+
+    def reset(self) -> None:
+        """A new calibration: what was measured was another rectification's; the next pair is due."""
+        self.epoch += 1
+        self.latest, self._last_t = None, None
+
+    def check(self, left: np.ndarray, right: np.ndarray, t_s: float, stamp_ns: int,
+              epoch: int | None = None) -> RowAlignment | None:
+        """Check one rectified pair (captured at stamp_ns) -> the latest result. A pair taken under
+        an older epoch (the calibration changed meanwhile) is not counted."""
+        if epoch is None:
+            self._last_t = t_s
+        try:
+            c = row_alignment(left, right, n_features=self.n_features, max_refined=self.max_refined, levels=1,
+                              min_matches=20)
+        except BallbotError:
+            self.failed += 1
+            return self.latest
+        if epoch is not None and epoch != self.epoch:
+            return self.latest
+        self.checks += 1
+        self.latest = RowAlignment(offset_px=min(c.median_dy, 1000.0), p95_px=min(c.p95_dy, 1000.0),
+                                   matches=c.matches, tolerance_px=self.tolerance_px, checked_ns=stamp_ns)
+        return self.latest
+
+    def observe(self, left: np.ndarray, right: np.ndarray, t_s: float, stamp_ns: int) -> RowAlignment | None:
+        """Check the pair if one is due -> the latest result (for a stream checked in line)."""
+        return self.check(left, right, t_s, stamp_ns) if self.due(t_s) else self.latest

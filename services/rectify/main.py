@@ -29,6 +29,7 @@ import time
 from typing import Literal
 
 import cv2
+import numpy as np
 from pydantic import Field
 
 from common import codec
@@ -38,6 +39,7 @@ from common.messages import CalibrationUpdate, StereoFrame
 from common.node import Node
 from common.settings import ServiceSettings
 from common.signing import KEY_ENV, calibration_key, signed
+from cores.calibration.check import RowMonitor
 from cores.calibration.rectify import CalibrationHolder
 
 log = logging.getLogger("ballbot")
@@ -66,6 +68,12 @@ class RectifySettings(ServiceSettings):
     calibration_max_change: float = Field(0.05, ge=0.0, le=10.0, description="refuse a run-time calibration whose "
                                           "baseline or focal length differs from the one rectify started with by "
                                           "more than this fraction (0: no limit); a restart takes any calibration")
+    row_check_s: float = Field(1.0, ge=0.0, le=3600.0, description="check one rectified pair this often that "
+                               "matched features lie on the same rows (~20 ms of one core, off the frame path; 0: "
+                               "never); every frame carries the last result, and lists say rows-misaligned")
+    max_row_offset_px: float = Field(0.5, gt=0.0, le=100.0, description="median vertical offset of matched "
+                                     "features above which the rows are misaligned (a well calibrated rig: 0.05-0.2 "
+                                     "px; a camera knocked 1 px: 1.0)")
     source: Literal["synthetic", "cameras", "sbs", "video", "images", "ros2", "mcap"] | None = Field(
         None, description="the capture source this rectify serves, when the deployment knows it (the compose files "
                           "set it from CAPTURE_SOURCE): cameras, sbs, video and images need rectify.calibration and "
@@ -130,6 +138,50 @@ def preflight(settings: RectifySettings) -> None:
                                f"rig's calibration is configuration (--calibration FILE, BALLBOT_RECTIFY_CALIBRATION, "
                                f"or RECTIFY_CALIBRATION in the compose files); the built-in '{SYNTHETIC_RIG}' profile "
                                f"fits the synthetic scene only")
+
+
+class LiveRowCheck:
+    """The RowMonitor off the frame path: the loop hands a due pair to a thread of its own (a pair
+    arriving while one is checked is not queued), and reads `latest` for each frame it publishes."""
+
+    def __init__(self, node: Node, monitor: RowMonitor):
+        self.node, self.monitor = node, monitor
+        self.slot: queue.Queue[tuple[np.ndarray, np.ndarray, float, int, int]] = queue.Queue(maxsize=1)
+        self.warned = False
+        node.extra["row_checks"] = 0.0
+        threading.Thread(target=self._run, name="row-check", daemon=True).start()
+
+    def offer(self, left: np.ndarray, right: np.ndarray, t_s: float, stamp_ns: int) -> None:
+        epoch = self.monitor.take(t_s)
+        if epoch is None:
+            return
+        try:
+            self.slot.put_nowait((left, right, t_s, stamp_ns, epoch))
+        except queue.Full:
+            pass
+
+    def _run(self) -> None:
+        while self.node.running:
+            try:
+                left, right, t_s, stamp_ns, epoch = self.slot.get(timeout=0.5)
+            except queue.Empty:
+                continue
+            rows = self.monitor.check(left, right, t_s, stamp_ns, epoch)
+            self.node.extra["row_checks"] = float(self.monitor.checks)
+            self.node.extra["row_checks_failed"] = float(self.monitor.failed)
+            if rows is None:
+                continue
+            self.node.extra["row_offset_px"] = round(rows.offset_px, 3)
+            bad = rows.offset_px > rows.tolerance_px
+            if bad:
+                self.node.warn("rows", f"rectified rows misaligned: matched features lie {rows.offset_px:.2f} px "
+                               f"apart vertically (median of {rows.matches}; max_row_offset_px "
+                               f"{rows.tolerance_px:g}): the calibration no longer fits the rig (a knocked camera? "
+                               f"check with `ballbot-vision calibration check`, or calibrate again); every list "
+                               f"says rows-misaligned")
+            elif self.warned:
+                log.info("rectify: rows aligned again (%.2f px)", rows.offset_px)
+            self.warned = bad
 
 
 def run(node: Node, settings: RectifySettings) -> None:
@@ -201,6 +253,8 @@ def run(node: Node, settings: RectifySettings) -> None:
     cv2.setNumThreads(1)
     inbox = node.latest("frames_raw", max_bytes=frame_cap)
     out = node.publisher("frames_rect")
+    rows = LiveRowCheck(node, RowMonitor(settings.row_check_s, settings.max_row_offset_px))
+    rows_generation = holder.generation
     for msg in node.receive(inbox):
         holder.stream_source = msg.source
         with node.processing(msg):
@@ -214,10 +268,14 @@ def run(node: Node, settings: RectifySettings) -> None:
             if node.status.startswith("error: no calibration"):
                 node.status = "ok"
             rectifier = holder.current()  # one calibration for the whole pair
+            if holder.generation != rows_generation:
+                rows.monitor.reset()  # a new calibration: its rows are checked on this pair
+                rows_generation = holder.generation
             left = codec.array_from_image(msg.left, "left")
             right = codec.array_from_image(msg.right, "right")
             rl, rr = rectifier.rectify(left, right)
             holder.mark_used()
+            rows.offer(rl, rr, time.monotonic(), msg.stamp_ns)
             out.put(StereoFrame(robot_id=msg.robot_id, seq=msg.seq, stamp_ns=msg.stamp_ns, stages=msg.stages,
                                 left=codec.image_from_array(rl), right=codec.image_from_array(rr),
-                                camera=rectifier.model_message, source=msg.source))
+                                camera=rectifier.model_message, source=msg.source, rows=rows.monitor.latest))

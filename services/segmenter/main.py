@@ -35,6 +35,42 @@ class _Latest(Generic[T]):
     at: float
 
 
+# What `status` says of a degraded list, most telling reason first: what happened and what to do.
+# A reason not here is listed as it is.
+REASON_STATUS: dict[str, str] = {
+    "floor-out-of-view": "the floor within the vision range is below the camera's view; nothing low there can be "
+                         "seen (lengthen the range, or pitch the camera down)",
+    "input-frozen": "the disparity maps have not changed for over {stale_after_s:g} s: the camera repeats one "
+                    "picture with fresh stamps (a hung driver?)",
+    "rows-misaligned": "rectify finds the pair's rows {offset} apart: the calibration no longer fits the rig (a "
+                       "knocked camera, a loose lens?); check it (`ballbot-vision calibration check`) and calibrate "
+                       "again",
+    "mount-disagrees": "the configured mount's floor is off the floor in the disparity (fit_floor false); measure "
+                       "the mount again (`ballbot-vision mount estimate`), or set fit_floor true",
+    "standing-not-listed": "something standing in the vision range is in no obstacle (seed drops what touches the "
+                           "image border, is under its area opening or beyond its Otsu threshold; method layers "
+                           "keeps them)",
+}
+
+
+def list_status(msg: ObstacleList, builder: ObstacleBuilder, settings: SegmenterSettings, stale: bool) -> str:
+    """The segmenter's status for its last list: ok, or why that list cannot be trusted."""
+    reach = builder.reach
+    if stale:
+        return "stale: input too old"
+    if reach.unreachable:
+        return f"range-unreachable: {reach.message}"
+    if reach.near_unmeasured:
+        return f"near-unmeasured: {reach.message}"
+    for reason, text in REASON_STATUS.items():
+        if reason in msg.degraded:
+            offset = f"{builder.rows.offset_px:.2f} px" if builder.rows is not None else "too far"
+            return f"{reason}: " + text.format(stale_after_s=settings.stale_after_s, offset=offset)
+    if msg.degraded:  # no-ground, ground-uncertain, valid-collapse, ...
+        return f"degraded lists: {', '.join(msg.degraded)}"
+    return "ok"
+
+
 def run(node: Node, settings: SegmenterSettings) -> None:
     builder = ObstacleBuilder(settings, node.mount)
     # Only the robot's dispatcher signs maps (with the key the robot's services share): anyone else's
@@ -100,30 +136,4 @@ def run(node: Node, settings: SegmenterSettings) -> None:
                 free_out.put(result.freespace, count=False)
             g = result.obstacles.ground
             node.extra["ground_height_m"] = g.height_m if g is not None else 0.0
-            reach = builder.reach
-            if stale:
-                node.status = "stale: input too old"
-            elif reach.unreachable:
-                node.status = f"range-unreachable: {reach.message}"
-            elif reach.near_unmeasured:
-                node.status = f"near-unmeasured: {reach.message}"
-            elif "floor-out-of-view" in result.obstacles.degraded:
-                node.status = ("floor-out-of-view: the floor within the vision range is below the camera's view; "
-                               "nothing low there can be seen (lengthen the range, or pitch the camera down)")
-            elif "input-frozen" in result.obstacles.degraded:
-                node.status = (f"input-frozen: the disparity maps have not changed for over "
-                               f"{settings.stale_after_s:g} s: the camera repeats one picture with fresh stamps "
-                               "(a hung driver?)")
-            elif "mount-disagrees" in result.obstacles.degraded:
-                node.status = ("mount-disagrees: the configured mount's floor is off the floor in the disparity "
-                               "(fit_floor false); measure the mount again (`ballbot-vision mount estimate`), "
-                               "or set fit_floor true")
-            elif "standing-not-listed" in result.obstacles.degraded:
-                node.status = ("standing-not-listed: something standing in the vision range is in no obstacle "
-                               "(seed drops what touches the image border, is under its area opening or beyond its "
-                               "Otsu threshold; method layers keeps them)")
-            elif result.obstacles.degraded:  # no-ground, ground-uncertain, valid-collapse, ...: the last list's
-                node.status = f"degraded lists: {', '.join(result.obstacles.degraded)}"
-            else:
-                node.status = "ok"
-            node.status += unsigned_note
+            node.status = list_status(result.obstacles, builder, settings, stale) + unsigned_note

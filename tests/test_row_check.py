@@ -1,0 +1,114 @@
+"""The live rectification check: a pair whose rows no longer align (a knocked camera, another rig's
+calibration) is measured off the frame path and said by every list (`rows-misaligned`)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from common.messages import DisparityMap, RowAlignment, StereoFrame
+from cores import camera
+from cores.calibration.check import RowMonitor
+from cores.calibration.rectify import Rectifier
+from cores.pipeline import Pipeline
+from cores.segmentation.builder import ObstacleBuilder
+from cores.segmentation.settings import SegmenterSettings
+
+KARLSRUHE = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "karlsruhe-0023"
+
+
+def knocked(right: np.ndarray, dy_px: float) -> np.ndarray:
+    """The right image moved dy_px down, sub-pixel: a camera knocked on its mount."""
+    h, w = right.shape[:2]
+    return cv2.warpAffine(right, np.float32([[1, 0, 0], [0, 1, dy_px]]), (w, h), flags=cv2.INTER_LINEAR)
+
+
+@pytest.fixture(scope="module")
+def rectified_pairs() -> list[tuple[np.ndarray, np.ndarray]]:
+    from services.capture.sources import SyntheticSource
+
+    src = SyntheticSource("person-walking", "lifecam-studio", 15.0)
+    rect = Rectifier(camera.load_calibration("lifecam-studio"), 0.0)
+    return [rect.rectify(*(lambda p: (p.left, p.right))(src.read())) for _ in range(3)]
+
+
+@pytest.mark.parametrize("dy, lo, hi", [(0.0, 0.0, 0.2), (1.0, 0.85, 1.15), (4.0, 3.8, 4.2)])
+def test_the_monitor_measures_how_far_the_rows_are_apart(rectified_pairs, dy, lo, hi):
+    m = RowMonitor()
+    for k, (left, right) in enumerate(rectified_pairs):
+        rows = m.check(left, knocked(right, dy), float(k), k)
+        assert rows is not None and lo <= rows.offset_px <= hi and rows.matches >= 50, rows
+        assert rows.checked_ns == k and rows.tolerance_px == 0.5
+
+
+def test_a_turned_camera_is_misaligned_too(rectified_pairs):
+    left, right = rectified_pairs[0]
+    h, w = right.shape[:2]
+    turned = cv2.warpAffine(right, cv2.getRotationMatrix2D((w / 2, h / 2), 0.3, 1.0), (w, h))
+    rows = RowMonitor().check(left, turned, 0.0, 0)
+    assert rows is not None and rows.offset_px > 0.5 and rows.p95_px > 1.0, rows
+
+
+def test_checks_are_spaced_on_stream_time_and_a_new_calibration_starts_afresh(rectified_pairs):
+    left, right = rectified_pairs[0]
+    m = RowMonitor(interval_s=1.0)
+    assert m.take(10.0) == 0 and m.take(10.5) is None and m.take(11.0) == 0
+    bad = m.check(left, knocked(right, 2.0), 11.0, 1, epoch=0)
+    assert bad is not None and bad.offset_px > 1.5
+    # a textureless pair (a bare wall) measures nothing: what was measured stays
+    flat = np.full_like(left, 128)
+    assert m.check(flat, flat, 12.0, 2) is bad and m.failed == 1
+    # a new calibration: the last result was another rectification's; the next pair is due at once,
+    # and a check taken before the change does not count
+    m.reset()
+    assert m.latest is None and m.due(12.1)
+    assert m.check(left, right, 12.1, 3, epoch=0) is None
+    good = m.observe(left, right, 12.2, 4)
+    assert good is not None and good.offset_px < 0.2 and m.observe(left, right, 12.3, 5) is good
+
+
+def test_every_list_after_a_misaligned_check_says_so(rectified_pairs):
+    """The builder decides from what the map carried: over the tolerance rectify measured with."""
+    model = Rectifier(camera.load_calibration("lifecam-studio"), 0.0).model
+    b = ObstacleBuilder(SegmenterSettings())
+    disparity = np.full((model.height, model.width), np.nan, np.float32)
+    disparity[200:, :] = 30.0
+    said = []
+    for k, offset in enumerate([None, 0.1, 0.49, 0.51, 3.0]):
+        rows = None if offset is None else RowAlignment(offset_px=offset, p95_px=offset, matches=80,
+                                                        tolerance_px=0.5, checked_ns=0)
+        said.append("rows-misaligned" in b.process(disparity, model, t_s=k / 10, seq=k, stamp_ns=k,
+                                                   rows=rows).obstacles.degraded)
+    assert said == [False, False, False, True, True]
+
+
+def test_a_row_check_is_finite_and_bounded_on_the_wire():
+    from pydantic import ValidationError
+
+    for bad in ({"offset_px": float("nan")}, {"offset_px": -1.0}, {"tolerance_px": 0.0}, {"matches": -1}):
+        doc = {"offset_px": 0.1, "p95_px": 0.2, "matches": 80, "tolerance_px": 0.5, "checked_ns": 0, **bad}
+        with pytest.raises(ValidationError):
+            RowAlignment.model_validate(doc)
+    assert "rows" in StereoFrame.model_fields and "rows" in DisparityMap.model_fields
+
+
+@pytest.mark.skipif(not (KARLSRUHE / "calibration.yaml").exists(), reason="../shared/data/real/karlsruhe-0023 absent")
+@pytest.mark.parametrize("dy, flagged", [(0.0, False), (1.0, True)])
+def test_the_offline_pipeline_checks_the_street_rows_as_rectify_does(dy, flagged):
+    """The street recording as it is (0.1 px) and with the right camera knocked 1 px: the lists of the
+    one composition every offline command and eval runs say it from the first pair on."""
+    from common.files import read_image
+    from cores.matching.config import MatcherConfig
+    from evaluation.recordings import open_recording
+
+    rec = open_recording(KARLSRUHE)
+    pipe = Pipeline(rec.calibration, MatcherConfig(num_disparities="auto"), SegmenterSettings())
+    said = []
+    for k in range(12):
+        left, right = read_image(rec.pairs[k][0]), read_image(rec.pairs[k][1])
+        f = pipe.process(left, knocked(right, dy), t_s=rec.stamps_s[k], seq=k)
+        said.append("rows-misaligned" in f.result.obstacles.degraded)
+    assert said == [flagged] * 12
+    assert pipe.rows.checks == 2  # ~10 Hz: one check a second of the recording
