@@ -258,9 +258,9 @@ def test_a_calibration_that_no_longer_fits_the_rig_is_said_by_every_list_and_by_
     check finds it off the frame path; every list after says rows-misaligned, `status` says degraded
     (exit 3) naming it, and rectify's stats carry the offset it measured."""
     import yaml
+    from helpers import Up
 
     from cores import camera
-    from helpers import Up
     doc = camera.calibration_to_dict(camera.load_calibration("lifecam-studio"))
     doc["right"]["K"][5] += 2.0
     cal = tmp_path / "knocked.yaml"
