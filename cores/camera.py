@@ -86,6 +86,7 @@ class RawRig:
             raise CalibrationError("T: expected 3 finite numbers (metres)")
         if np.linalg.norm(T) <= 1e-6:
             raise CalibrationError("T: the baseline is zero")
+        _check_baseline(float(np.linalg.norm(T)), "T")
         object.__setattr__(self, "T", T)
         object.__setattr__(self, "R", np.asarray(self.R, dtype=np.float64))
 
@@ -94,12 +95,27 @@ class RawRig:
         return False
 
 
+# The longest baseline of a plausible rig (a truck's cameras sit under 2 m apart). A calibration in mm
+# or cm read as metres would otherwise put everything 100-1000 times farther: past the vision range,
+# every list empty and unflagged.
+MAX_BASELINE_M = 5.0
+
+
+def _check_baseline(b_m: float, where: str) -> None:
+    if b_m > MAX_BASELINE_M:
+        raise CalibrationError(f"{where}: a baseline of {b_m:g} m (over {MAX_BASELINE_M:g} m): calibrations are in "
+                               f"metres; one in millimetres or centimetres must be divided by 1000 or 100")
+
+
 @dataclass(frozen=True)
 class RectifiedRig:
     """An already-rectified pair (ZED, KITTI, a folder of rectified images)."""
 
     model: RectifiedModel
     name: str = ""
+
+    def __post_init__(self) -> None:
+        _check_baseline(self.model.baseline_m, "baseline")
 
     @property
     def image_size(self) -> tuple[int, int]:
@@ -223,6 +239,7 @@ def calibration_from_dict(doc: Any, where: str = "calibration") -> Calibration:
             raise CalibrationError(f"{where}: field 'focal_px' must be positive")
         if B <= 0:
             raise CalibrationError(f"{where}: field 'baseline_m' must be positive")
+        _check_baseline(B, f"{where}: field 'baseline_m'")
         return RectifiedRig(RectifiedModel(w, h, f, float(pp[0]), float(pp[1]), B), name)
     size = _size(doc, where)
     cams = []

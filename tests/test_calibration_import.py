@@ -216,6 +216,8 @@ def test_import_writes_only_what_the_loader_accepts(tmp_path, capsys):
      "larger than this program handles"),
     (b"rectified: true\nimage_size: [1, 1]\nfocal_px: 700\nprincipal_point: [1, 1]\nbaseline_m: 0.1\n",
      "too small"),
+    (b"rectified: true\nimage_size: [640, 480]\nfocal_px: 700\nprincipal_point: [320, 240]\nbaseline_m: 120\n",
+     "a baseline of 120 m (over 5 m): calibrations are in metres"),
     (b"%YAML:1.0\nM1: !!opencv-matrix\n   rows: 1\n   cols: 1\n   dt: d\n   data: [ 1. ]\n",
      "calibration import"),
     (b"cam0: {camera_model: pinhole, intrinsics: [1, 1, 1, 1]}\n", "a Kalibr camchain file"),

@@ -31,6 +31,8 @@ def _write(path, doc) -> str:
     (lambda d: d.__setitem__("R", [1, 0, 0, 0, 2, 0, 0, 0, 1]), "R: not a rotation"),
     (lambda d: d["right"].__setitem__("distortion", [0.1, 0.2]), "'distortion'"),
     (lambda d: d["left"].__setitem__("image_size", [320, 240]), "'image_size'"),
+    # T in mm read as metres: everything 1000 times farther, past every vision range, lists empty
+    (lambda d: d.__setitem__("T", [t * 1000 for t in d["T"]]), "a baseline of 99.4.* m .*in millimetres"),
 ])
 def test_malformed_calibration_is_refused(tmp_path, mutate, field):
     d = _doc()
