@@ -837,6 +837,20 @@ def test_lists_say_when_the_search_cannot_reach_the_range_or_there_is_no_ground(
     assert lst.ground.source == "none" and lst.ground.confidence == 0.0 and "no-ground" in lst.degraded
 
 
+@pytest.mark.parametrize("method", ["layers", "seed"])
+def test_a_vision_range_from_zero_keeps_everything_near_and_says_the_search_cannot_reach_it(method):
+    """min_range_m 0 is a valid setting (ge=0): it once divided by zero on every map, so the service
+    errored on each one and published nothing. Now the box is found, and every list says that no
+    search measures down to 0 m."""
+    d = scene([(250, 390, 2.0, 120)])
+    b = ObstacleBuilder(SegmenterSettings(method=method, min_range_m=0.0, floor_removal=True))
+    for k in range(2):
+        lst = b.process(d, MODEL, t_s=k / 15, seq=k, stamp_ns=0, search=(0, 144)).obstacles
+        assert "near-unmeasured" in lst.degraded and lst.range_m == (0.0, 4.5 if method == "layers" else 3.0)
+    if method == "layers":
+        assert _depths([type("D", (), {"position_m": o.position_m})() for o in lst.obstacles]) == [2.0]
+
+
 def test_free_space_claims_no_clear_way_beside_a_list_that_cannot_vouch_for_its_view():
     """The grid marked free the floor from the image's bottom edge out, measured or not: beside a list
     saying near-unmeasured it told a planner the near floor was clear. Now a degraded (or stale) list's

@@ -136,6 +136,11 @@ def _working_disparity(disparity: np.ndarray, cfg: SegmenterSettings, confidence
     return d0, dm
 
 
+def _nearest_disparity(fB: float, cfg: SegmenterSettings) -> float:
+    """The disparity of min_range_m (px); min_range_m 0 keeps everything near (no division by zero)."""
+    return fB / cfg.min_range_m if cfg.min_range_m > 0 else float(np.finfo(np.float32).max)
+
+
 def _masked(a: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """np.where(mask, a, 0) of a 2-D map and a uint8 mask, by OpenCV (several times faster)."""
     out = np.zeros_like(a)
@@ -159,7 +164,7 @@ def _fit_ground(dm: np.ndarray, dk: np.ndarray | None, model: camera.RectifiedMo
     if dk is not None and ground_range <= range_m:
         dg = dk
     else:
-        dg = _masked(dm, cv2.inRange(dm, fB / ground_range, fB / cfg.min_range_m))
+        dg = _masked(dm, cv2.inRange(dm, fB / ground_range, _nearest_disparity(fB, cfg)))
     return ground.update(dg, model, step)
 
 
@@ -233,7 +238,7 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
     f, B = model.focal_px, model.baseline_m
     fB = f * B
     range_m = cfg.range_for(model)
-    keep8 = cv2.inRange(dm, fB / range_m, fB / cfg.min_range_m)
+    keep8 = cv2.inRange(dm, fB / range_m, _nearest_disparity(fB, cfg))
     keep = keep8 > 0
     dk = _masked(dm, keep8)
     floor, estimate = None, None
