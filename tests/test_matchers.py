@@ -100,6 +100,9 @@ def test_bad_settings_are_refused():
         MatcherConfig(method="sgbm", block_size=4)
     with pytest.raises(ValidationError, match="p2"):
         MatcherConfig(method="sgbm", p1=100, p2=50)
+    # OpenCV's 3-way SGBM divides by 100 - uniqueness_ratio: 100 killed the process (SIGFPE)
+    with pytest.raises(ValidationError, match="uniqueness_ratio"):
+        MatcherConfig(method="dense", uniqueness_ratio=100)
     with pytest.raises(ConfigError, match="odd"):
         load_settings(DisparitySettings, block_size=8)
     with pytest.raises(ConfigError, match="multiple of 16"):

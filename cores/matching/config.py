@@ -52,7 +52,9 @@ class MatcherConfig(ServiceSettings):
                                "left border)")
     min_disparity: int = Field(0, ge=-256, le=256, description="smallest disparity searched, px")
     block_size: int = Field(0, ge=0, le=255, description="matching window, odd, px (0: bm 15, sgbm 5, dense 3)")
-    uniqueness_ratio: int = Field(10, ge=0, le=100, description="reject matches not this percent better than the next")
+    # 99 at most: OpenCV's 3-way SGBM (dense's, and sgbm's with sgbm_mode 3way) divides by 100 - uniqueness_ratio
+    # in integers: 100 killed the worker with SIGFPE (and 100 % better than the next rejects every match anyway)
+    uniqueness_ratio: int = Field(10, ge=0, le=99, description="reject matches not this percent better than the next")
     texture_threshold: int = Field(10, ge=0, description="bm: reject windows with less texture")
     speckle_window: int = Field(100, ge=0, description="max size of speckles removed, px (0: off)")
     speckle_range: int = Field(2, ge=0, description="max disparity variation within a speckle, px")
