@@ -40,6 +40,8 @@ class Box:
         `size` is derived: the extents of the union of the parts in the object frame.
     size: (w, h, d) m. yaw_deg: rotation about world z (counter-clockwise seen from above).
     texture_seed: picks each face's texture offset, scale and rotation.
+    blank: its faces are one even grey (a painted cabinet, a white door, a plain van's side): nothing
+        for a matcher to match inside them, only their outline against what is around.
     path: optional world waypoints [(x, y), ...] (m) followed at `speed_mps`; the object's (x, y) is
         the path position at time t (its z stays center[2]); `loop` closes the path back to the
         first waypoint, otherwise the object stops at the last one. `face_motion` turns the object's
@@ -52,6 +54,7 @@ class Box:
     size: tuple[float, float, float] | None = None
     yaw_deg: float = 0.0
     texture_seed: int = 0
+    blank: bool = False
     path: list[tuple[float, float]] | None = None
     speed_mps: float = 0.0
     loop: bool = True
@@ -357,6 +360,7 @@ class ObjectDoc(_Doc):
     parts: Annotated[list[PartDoc], Field(min_length=1)] | None = None
     yaw_deg: _Num = 0.0
     texture_seed: _Int = 0
+    blank: bool = False
     path: PathDoc | None = None
 
     @model_validator(mode="after")
@@ -382,7 +386,7 @@ class ObjectDoc(_Doc):
             pos.append(0.0 if self.size is None else self.size[1] / 2.0)
         parts = [Part(_three(p.offset), _three(p.size), p.yaw_deg, p.name) for p in self.parts] if self.parts else None
         return Box(name=self.name, kind=self.kind, center=_three(pos), size=_three(self.size) if self.size else None,
-                   yaw_deg=self.yaw_deg, texture_seed=self.texture_seed, path=path,
+                   yaw_deg=self.yaw_deg, texture_seed=self.texture_seed, blank=self.blank, path=path,
                    speed_mps=self.path.speed_mps if self.path else 0.0, loop=self.path.loop if self.path else True,
                    face_motion=self.path.face_motion if self.path else False, parts=parts)
 

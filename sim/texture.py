@@ -82,6 +82,11 @@ class SurfaceTexture:
         return np.array([self.scale, self.cos, self.sin, self.off_u, self.off_v], np.float32)
 
     @classmethod
+    def blank(cls) -> SurfaceTexture:
+        """One texel everywhere: an even grey (the mean of the texture's blurriest level there)."""
+        return cls(0.0, 1.0, 0.0, 0.0, 0.0)
+
+    @classmethod
     def from_seed(cls, *seed: int) -> SurfaceTexture:
         rng = np.random.default_rng([*seed, 0x5EED])
         a = rng.uniform(0, 2 * math.pi)

@@ -51,7 +51,7 @@ from sim.raycast import (
     pinhole_rays,
     undistorted_rays,
 )
-from sim.scene import Scene, box_corners, camera_axes, rot_z
+from sim.scene import Box, Scene, box_corners, camera_axes, rot_z
 from sim.texture import SurfaceTexture, sample_texture, texture_pyramid
 
 # --- ground truth ------------------------------------------------------------------------------------
@@ -147,8 +147,12 @@ class SyntheticWorld:
 
         self._floor_tex = SurfaceTexture.from_seed(scene.floor_texture_seed, seed)
         self._wall_tex = SurfaceTexture.from_seed(scene.wall_texture_seed, seed)
-        self._part_tex = [[np.stack([SurfaceTexture.from_seed(b.texture_seed, j, f, seed).params for f in range(6)])
-                           for j in range(len(b.part_list()))] for b in scene.boxes]
+
+        def face(b: Box, j: int, f: int) -> np.ndarray:
+            return (SurfaceTexture.blank() if b.blank else SurfaceTexture.from_seed(b.texture_seed, j, f, seed)).params
+
+        self._part_tex = [[np.stack([face(b, j, f) for f in range(6)]) for j in range(len(b.part_list()))]
+                          for b in scene.boxes]
         self._static_objs = [i for i, b in enumerate(scene.boxes) if b.is_static()]
         self._moving_objs = [i for i, b in enumerate(scene.boxes) if not b.is_static()]
         self._static_layers: dict[int, Layer] = {}

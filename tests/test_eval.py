@@ -250,3 +250,18 @@ def test_eval_ground_figures_agree_with_the_estimator_on_a_still_camera(data):
     r = E.evaluate(["two-boxes", "chair"], ["layers"], data=data)["overall"]["layers"]
     assert r.ground_fitted == 1.0
     assert r.ground_pitch_err_max_deg < 0.5 and r.ground_roll_err_max_deg < 0.8 and r.ground_height_err_max_m < 0.02
+
+
+@pytest.mark.parametrize("method", ["bm", "sgbm", "dense"])
+def test_plain_faces_nothing_can_be_matched_in_are_obstacles_with_every_matcher(method):
+    """A painted cabinet and a white panel, taller than the camera: block matching measures at most
+    their outlines. Each is an obstacle in every frame, with every matcher (dense's own fill takes
+    them for the wall behind: its confidence says the fill is a guess); none is a silent miss."""
+    from cores.matching.config import MatcherConfig
+
+    data = {"blank-faces": E.render_scenario("blank-faces", matcher=MatcherConfig(method=method))}
+    s = E.evaluate(["blank-faces"], ["layers"], data=data)["scenarios"]["blank-faces"]["layers"]
+    for name in ("cabinet", "panel"):
+        t = s.per_truth[name]
+        assert t["matched"] == t["seen"] == 3, (method, name, t)
+    assert s.silent_misses == 0 and s.floor_fp == 0 and s.wall_fp == 0

@@ -965,3 +965,56 @@ def test_a_small_thing_beyond_an_empty_stretch_of_depth_is_split_from_the_group_
     assert split(np.concatenate([person, leg])) == 2
     arm = np.linspace(FB / 3.3, FB / 2.8, 60)
     assert split(np.concatenate([person, arm, leg])) == 1
+
+
+# --- blank faces -----------------------------------------------------------------------------------
+
+def blank_face(u0: int, u1: int, z_m: float, d: np.ndarray | None = None) -> np.ndarray:
+    """A plain face standing on the floor at z_m over columns u0..u1, taller than the camera: block
+    matching measures nothing of it (NaN from its foot to the image's top) and nothing behind it."""
+    d = scene() if d is None else d.copy()
+    fp = floor_plane(SCENE_MOUNT)
+    col = (u0 + u1) // 2
+    rows = np.nonzero(fp.disparity(np.float32(col), np.arange(MODEL.height, dtype=np.float32)) <= FB / z_m)[0]
+    d[:int(rows.max()) + 1, u0:u1] = np.nan
+    return d
+
+
+def test_a_plain_face_the_matcher_cannot_measure_is_an_obstacle_at_its_foot():
+    """A cabinet with nothing inside to match: the floor seen up to its foot, nothing above, past the
+    horizon. It is listed where it stands, with the confidence of what was measured of it (none)."""
+    d = blank_face(200, 420, 2.2)
+    lst = ObstacleBuilder(SegmenterSettings()).process(d, MODEL, t_s=0.0, seq=0, stamp_ns=0).obstacles
+    assert len(lst.obstacles) == 1 and lst.degraded == [], lst.model_dump_json()
+    o = lst.obstacles[0]
+    assert abs(o.position_m[2] - 2.2) < 0.15 and o.confidence < 0.1 and o.size_m[1] > 0.8
+    assert 190 <= o.bbox_px[0] <= 210 and 410 <= o.bbox_px[2] <= 430
+    # the same map without the step (what the list said before: nothing, unflagged)
+    off = ObstacleBuilder(SegmenterSettings(blank_faces_within_m=0)).process(d, MODEL, t_s=0.0, seq=0, stamp_ns=0)
+    assert off.obstacles.obstacles == [] and off.obstacles.degraded == []
+
+
+@pytest.mark.parametrize("case", ["floor patch", "narrow", "beyond within", "something measured behind"])
+def test_what_is_not_a_blank_face_is_left_alone(case):
+    """Unmeasured floor between seen floor, a gap narrower than 0.3 m, a stretch farther than
+    blank_faces_within_m (a road fading under the sky) and a floor ending at something measured
+    just behind it: no obstacle is made of them."""
+    cfg = SegmenterSettings()
+    if case == "floor patch":  # a smooth stretch of floor from 2 to 3 m, floor seen again beyond it
+        d = scene()
+        fp = floor_plane(SCENE_MOUNT)
+        v, u = np.mgrid[0:MODEL.height, 0:MODEL.width].astype(np.float32)
+        fd = fp.disparity(u, v)
+        d[(fd < FB / 2.0) & (fd > FB / 3.0) & (u > 200) & (u < 420)] = np.nan
+    elif case == "narrow":
+        d = blank_face(300, 320, 2.2)  # 20 px at 2.2 m: 6.6 cm
+    elif case == "beyond within":
+        d = blank_face(200, 420, 3.0)
+        cfg = SegmenterSettings(blank_faces_within_m=2.5)
+    else:
+        d = blank_face(200, 420, 2.2, scene([(200, 420, 2.6, 200)]))  # the box behind shows above the blank
+        d[:150, 200:420] = FB / 2.6
+    lst = ObstacleBuilder(cfg).process(d, MODEL, t_s=0.0, seq=0, stamp_ns=0).obstacles
+    # (the box standing behind at 2.6 m is an obstacle of its own)
+    made = [o for o in lst.obstacles if o.position_m[2] < (2.5 if case == "something measured behind" else 4.5)]
+    assert made == [], [(o.position_m, o.bbox_px) for o in lst.obstacles]

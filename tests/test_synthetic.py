@@ -257,10 +257,11 @@ def test_subpixel_matches_agree_with_true_disparity(clean_world, rig, rect):
 # --- scenarios ---------------------------------------------------------------------------------------
 
 def test_builtin_scenarios_listed():
-    assert S.list_builtin_scenarios() == ["border", "border-right", "chair", "occlusion", "people-border",
-                                          "people-queue", "people-queue-far", "people-side", "people-side-far",
-                                          "person-walking", "sway", "sway-pivot", "toolbox", "touching", "two-boxes"]
-    with pytest.raises(ConfigError, match="no-such-scene.*built-in: border, border-right, chair"):
+    assert S.list_builtin_scenarios() == ["blank-faces", "border", "border-right", "chair", "occlusion",
+                                          "people-border", "people-queue", "people-queue-far", "people-side",
+                                          "people-side-far", "person-walking", "sway", "sway-pivot", "toolbox",
+                                          "touching", "two-boxes"]
+    with pytest.raises(ConfigError, match="no-such-scene.*built-in: blank-faces, border, border-right, chair"):
         S.Scene.builtin("no-such-scene")
 
 

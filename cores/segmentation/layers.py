@@ -17,6 +17,10 @@ only what stands on it counts, and objects are grouped where they stand.
     be off at its distance, and ground_noise_px of disparity) above the floor and at most
     robot_height_m above it; markings, shadows, mats are floor, canopy and ceilings are above the
     robot
+ 5b. blank faces (blank.py): where the floor seen along a column ends short of the range with
+    nothing measured standing there, and the image above is unmeasured up past the horizon, a
+    plain face (a wall, a door, a cabinet: nothing inside to match) stands at the floor's end:
+    its pixels stand, at that depth
  6. a standing pixel with a 4-neighbour nearer by more than step_px + step_rel * d sits on a depth
     step, where block matching blends two depths into a phantom: it is not grouped
  7. grouping on the column-disparity grid (u-disparity): a cell (column, disparity bin) is
@@ -52,7 +56,7 @@ import numpy as np
 
 from common.messages import GroundEstimate
 from cores import camera
-from cores.segmentation import depth_split, freespace, regions, stats
+from cores.segmentation import blank, depth_split, freespace, regions, stats
 from cores.segmentation.cells import LOW_M, group_cells
 from cores.segmentation.ground import GroundEstimator, grid
 from cores.segmentation.mount import FloorPlane, Mount
@@ -265,6 +269,14 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
         stand = keep & ~on_floor & (above <= cfg.robot_height_m)
         seen_floor = keep & on_floor & (above > -4 * cfg.floor_margin_m - 0.1)
         floor_points = freespace.drivable(floor, df, seen_floor, keep & ~on_floor, dk, model, cfg, step)
+        faces = blank.find(dm, df, seen_floor, stand, floor, model, step, range_m, cfg.blank_faces_within_m,
+                           cfg.robot_height_m)
+        if faces is not None:  # a plain face the matcher could not measure stands at the floor's end
+            dm = np.where(faces.mask, faces.disparity, dm)
+            dk = np.where(faces.mask, faces.disparity, dk)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                above = np.where(faces.mask, np.float32(floor.height_m) * (1 - df / faces.disparity), above)
+            stand |= faces.mask
     else:
         above = None
         stand = keep
