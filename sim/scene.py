@@ -249,6 +249,9 @@ class Scene:
     camera_motion: CameraMotion | None = None  # None: the camera stands still at its mount
     range_m: float | None = None  # the vision range the scenario is meant for (None: the segmenter's own)
     default_eval: bool = True  # part of `eval` without scenario names (false: run it by name)
+    # (x_m, depth_m): the floor falls away by depth_m beyond world x = x_m, across the whole view (a
+    # curb or a platform's edge, stairs down); None: one flat floor
+    floor_drop: tuple[float, float] | None = None
 
     @classmethod
     def default(cls) -> Scene:
@@ -297,7 +300,8 @@ class Scene:
                     noise_sigma=d.noise_sigma, floor_texture_seed=d.floor_texture_seed,
                     wall_texture_seed=d.wall_texture_seed, boxes=[o.box() for o in d.objects],
                     camera_motion=d.camera_motion.motion() if d.camera_motion is not None else None,
-                    range_m=d.range_m, default_eval=d.default_eval)
+                    range_m=d.range_m, default_eval=d.default_eval,
+                    floor_drop=(d.floor_drop.x_m, d.floor_drop.depth_m) if d.floor_drop is not None else None)
         for b in scene.boxes:
             if b.center[0] - b.extent[2] / 2 >= scene.wall_distance_m:
                 raise ConfigError(f"{where}: object '{b.name}' stands behind the wall")
@@ -426,6 +430,13 @@ class CameraMotionDoc(_Doc):
                             waves(self.pitch_deg), waves(self.roll_deg), waves(self.height_m), self.pivot_height_m)
 
 
+class FloorDropDoc(_Doc):
+    """`floor_drop:` the floor beyond world x = x_m lies depth_m lower (a curb down, a platform's edge)."""
+
+    x_m: Annotated[float, Strict(), Field(ge=0.3, le=100, allow_inf_nan=False)]
+    depth_m: Annotated[float, Strict(), Field(gt=0, le=10, allow_inf_nan=False)]
+
+
 class SceneDoc(_Doc):
     """A scenario file: camera mount, floor, wall, noise, and the obstacles (world frame, m)."""
 
@@ -444,6 +455,7 @@ class SceneDoc(_Doc):
     range_m: Annotated[float, Strict(), Field(ge=0.5, le=100, allow_inf_nan=False)] | None = None
     # part of `eval` without scenario names; false for one too slow to render for every run
     default_eval: Annotated[bool, Strict()] = True
+    floor_drop: FloorDropDoc | None = None
 
     @model_validator(mode="after")
     def _unique(self) -> SceneDoc:

@@ -391,6 +391,10 @@ class SyntheticWorld:
         o, d = v.origin, v.dirs
         with np.errstate(divide="ignore", invalid="ignore"):
             t_floor = np.where(d[:, 2] < 0, -o[2] / d[:, 2], np.inf)
+            if self.scene.floor_drop is not None:  # past the edge the ray goes on down to the lower floor
+                x_edge, depth = self.scene.floor_drop
+                past = o[0] + t_floor * d[:, 0] > x_edge
+                t_floor = np.where(past, (-depth - o[2]) / d[:, 2], t_floor)
             t_wall = np.where(d[:, 0] > 0, (self.scene.wall_distance_m - o[0]) / d[:, 0], np.inf)
         floor = t_floor < t_wall
         t = np.minimum(t_floor, t_wall).astype(np.float32)

@@ -990,14 +990,14 @@ def test_a_plain_face_the_matcher_cannot_measure_is_an_obstacle_at_its_foot():
     assert abs(o.position_m[2] - 2.2) < 0.15 and o.confidence < 0.1 and o.size_m[1] > 0.8
     assert 190 <= o.bbox_px[0] <= 210 and 410 <= o.bbox_px[2] <= 430
     # the same map without the step (what the list said before: nothing, unflagged)
-    off = ObstacleBuilder(SegmenterSettings(blank_faces_within_m=0)).process(d, MODEL, t_s=0.0, seq=0, stamp_ns=0)
+    off = ObstacleBuilder(SegmenterSettings(near_field_m=0)).process(d, MODEL, t_s=0.0, seq=0, stamp_ns=0)
     assert off.obstacles.obstacles == [] and off.obstacles.degraded == []
 
 
 @pytest.mark.parametrize("case", ["floor patch", "narrow", "beyond within", "something measured behind"])
 def test_what_is_not_a_blank_face_is_left_alone(case):
     """Unmeasured floor between seen floor, a gap narrower than 0.3 m, a stretch farther than
-    blank_faces_within_m (a road fading under the sky) and a floor ending at something measured
+    near_field_m (a road fading under the sky) and a floor ending at something measured
     just behind it: no obstacle is made of them."""
     cfg = SegmenterSettings()
     if case == "floor patch":  # a smooth stretch of floor from 2 to 3 m, floor seen again beyond it
@@ -1010,7 +1010,7 @@ def test_what_is_not_a_blank_face_is_left_alone(case):
         d = blank_face(300, 320, 2.2)  # 20 px at 2.2 m: 6.6 cm
     elif case == "beyond within":
         d = blank_face(200, 420, 3.0)
-        cfg = SegmenterSettings(blank_faces_within_m=2.5)
+        cfg = SegmenterSettings(near_field_m=2.5)
     else:
         d = blank_face(200, 420, 2.2, scene([(200, 420, 2.6, 200)]))  # the box behind shows above the blank
         d[:150, 200:420] = FB / 2.6
@@ -1018,3 +1018,56 @@ def test_what_is_not_a_blank_face_is_left_alone(case):
     # (the box standing behind at 2.6 m is an obstacle of its own)
     made = [o for o in lst.obstacles if o.position_m[2] < (2.5 if case == "something measured behind" else 4.5)]
     assert made == [], [(o.position_m, o.bbox_px) for o in lst.obstacles]
+
+
+# --- drops -----------------------------------------------------------------------------------------
+
+def curb(depth_m: float, at_m: float = 2.5, frames: int = 3, **settings):
+    """The rendered scene of a curb: the floor beyond world x = at_m lies depth_m lower (camera 1 m up,
+    15 deg down, wall at 5 m, a box on the near side), through the pipeline the services run (bm).
+    -> the last pair's FrameResult and the x (base, m) of the farthest free cell."""
+    import sim
+    from cores.matching.config import MatcherConfig
+    from cores.pipeline import Pipeline
+    from sim.scene import Scene
+
+    scene = Scene.from_dict({"name": "curb", "camera_height_m": 1.0, "camera_pitch_deg": 15.0,
+                             "floor_drop": {"x_m": at_m, "depth_m": depth_m},
+                             "objects": [{"name": "box", "size": [0.4, 0.5, 0.3], "position": [1.8, 0.6],
+                                          "texture_seed": 5}]})
+    rig = camera.load_raw_rig("lifecam-studio")
+    pipe = Pipeline(rig, MatcherConfig(method="bm"), SegmenterSettings(**settings))
+    world = sim.SyntheticWorld(scene, rig, pipe.rectifier.rectification, seed=0)
+    for k in range(frames):
+        r = pipe.process(*world.render(k / 15), t_s=k / 15, seq=k).result
+    g = r.freespace
+    cells = np.frombuffer(g.cells, np.int8).reshape(g.height, g.width)
+    xs = g.origin_m[0] + (np.arange(g.width) + 0.5) * g.resolution_m
+    free = xs[(cells == 0).any(0)]
+    return r, (float(free.max()) if free.size else 0.0), cells, xs
+
+
+def test_floor_falling_away_is_an_obstacle_where_the_robot_would_roll_off_and_no_free_space():
+    """A curb 0.2 m down 2.5 m ahead (rendered): the lower floor beyond it counted as floor seen (down
+    to 0.42 m below), so the free space ran on past the edge and the list held the box alone. Now
+    an obstacle lies on the ground over the drop, from its edge, and nothing beyond the edge is free."""
+    r, free_to, cells, xs = curb(0.2)
+    assert r.obstacles.degraded == []  # a list that vouches for its view, and its free space
+    drops = [o for o in r.obstacles.obstacles if o.position_base_m[0] > 2.2]
+    assert len(drops) == 1, r.obstacles.model_dump_json()
+    o = drops[0]
+    assert 2.4 < o.position_base_m[0] - o.size_m[2] / 2 < 2.7 and o.size_m[0] > 1.0
+    assert abs(o.position_base_m[2]) < 0.15  # on the ground, over the hole
+    assert 2.0 < free_to < 2.6 and (cells[:, (xs > 2.6) & (xs < 3.0)] == 100).any()
+    # without looking for drops (what the list said before): the box alone, and free space past the edge
+    off, free_off, _, _ = curb(0.2, near_field_m=0)
+    assert off.obstacles.degraded == [] and free_off > 3.0
+    assert [o.position_base_m[0] < 2.2 for o in off.obstacles.obstacles] == [True]
+
+
+@pytest.mark.parametrize("depth_m, near_field_m", [(0.05, 6.0), (0.3, 2.0)])
+def test_a_floor_within_the_noise_or_a_drop_beyond_the_near_field_is_no_obstacle(depth_m, near_field_m):
+    """5 cm lower is a floor's unevenness and the matcher's noise; beyond near_field_m a road's own
+    camber puts it as low (the street: hundreds of pixels 0.15 m below at 13-20 m)."""
+    r, _, _, _ = curb(depth_m, near_field_m=near_field_m)
+    assert [o.position_base_m[0] < 2.2 for o in r.obstacles.obstacles] == [True], r.obstacles.model_dump_json()

@@ -8,7 +8,7 @@ foot and not beyond.
 
 Along each image column (a ray on the ground) the floor is seen out to a farthest point, Z_f. The
 column holds a blank face standing at Z_f when
-  - Z_f is short of the vision range (0.95 of it) and of blank_faces_within_m,
+  - Z_f is short of the vision range (0.95 of it) and of near_field_m,
   - nothing measured stands in the column within BEHIND_M beyond Z_f (then that is what stops the
     floor: a car's dark underside below its body, a person's shadowed feet), and
   - the image above the floor's last row is unmeasured (UNMEASURED of it) all the way up past the
@@ -22,7 +22,7 @@ how little of it was seen.
 
 A face lower than the camera is not found (its top cannot be told from unmeasured floor beyond);
 nor one whose foot is not seen (nearer than the image's bottom edge). Farther than
-blank_faces_within_m a road fading into the distance under a blank sky looks the same as a face:
+near_field_m a road fading into the distance under a blank sky looks the same as a face:
 on the street recording (karlsruhe, bm, 40 frames) 11 such stretches at 10-17 m, none nearer; on
 the room recording and every synthetic scene, none.
 """

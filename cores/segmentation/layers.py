@@ -17,6 +17,8 @@ only what stands on it counts, and objects are grouped where they stand.
     be off at its distance, and ground_noise_px of disparity) above the floor and at most
     robot_height_m above it; markings, shadows, mats are floor, canopy and ceilings are above the
     robot
+ 5a. drops (drops.py): floor lower than the ground by min_drop_m (beyond the noise) within
+    near_field_m is the far side of a curb or stairs down: not floor seen, and an obstacle
  5b. blank faces (blank.py): where the floor seen along a column ends short of the range with
     nothing measured standing there, and the image above is unmeasured up past the horizon, a
     plain face (a wall, a door, a cabinet: nothing inside to match) stands at the floor's end:
@@ -56,7 +58,7 @@ import numpy as np
 
 from common.messages import GroundEstimate
 from cores import camera
-from cores.segmentation import blank, depth_split, freespace, regions, stats
+from cores.segmentation import blank, depth_split, drops, freespace, regions, stats
 from cores.segmentation.cells import LOW_M, group_cells
 from cores.segmentation.ground import GroundEstimator, grid
 from cores.segmentation.mount import FloorPlane, Mount
@@ -268,8 +270,13 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
             above = np.float32(floor.height_m) * (1 - df / dk)  # height above the floor, m
         stand = keep & ~on_floor & (above <= cfg.robot_height_m)
         seen_floor = keep & on_floor & (above > -4 * cfg.floor_margin_m - 0.1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            doubt = _tilt_doubt(np.float32(fB) / df, floor.height_m, doubt_deg) if doubt_deg >= MIN_DOUBT_DEG else 0.0
+        drop = drops.mask(dk, df, above, floor, cfg, fB, doubt)
+        if drop is not None:
+            seen_floor &= ~drop  # the floor beyond a curb down is no floor to drive on
         floor_points = freespace.drivable(floor, df, seen_floor, keep & ~on_floor, dk, model, cfg, step)
-        faces = blank.find(dm, df, seen_floor, stand, floor, model, step, range_m, cfg.blank_faces_within_m,
+        faces = blank.find(dm, df, seen_floor, stand, floor, model, step, range_m, cfg.near_field_m,
                            cfg.robot_height_m)
         if faces is not None:  # a plain face the matcher could not measure stands at the floor's end
             dm = np.where(faces.mask, faces.disparity, dm)
@@ -278,14 +285,19 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
                 above = np.where(faces.mask, np.float32(floor.height_m) * (1 - df / faces.disparity), above)
             stand |= faces.mask
     else:
-        above = None
+        above, drop = None, None
         stand = keep
+    measured = np.flatnonzero(d0.any(0))  # columns the matcher measured (not its blind left band)
+    left_edge, right_edge = (int(measured[0]), int(measured[-1])) if measured.size else (0, w - 1)
+    dropped: tuple[list[Detection], list[np.ndarray]] = ([], [])
+    if drop is not None:
+        dropped = drops.detections(drop, df, dk, model, cfg, step, (left_edge, right_edge), range_m)
     # A pixel with a 4-neighbour nearer by more than the similarity tolerance sits on a depth step,
     # where block matching blends the two depths into a phantom between them: it is not grouped.
     ds = _masked(dm, stand.view(np.uint8))
     stand &= ~(cv2.dilate(ds, _CROSS) > ds * np.float32(1.0 + cfg.step_rel) + np.float32(cfg.step_px))
     if not stand.any():
-        return LayersFrame([], [], floor, estimate, floor_points)
+        return LayersFrame(*dropped, floor, estimate, floor_points)
 
     ys, xs, dv, lab, ex, cut_from = _group(dm, stand, cfg, model, step, (d0,), above)
     dv0, hv = ex[0], ex[1] if above is not None else np.zeros(ys.size, np.float32)  # raw, height above the floor
@@ -334,8 +346,6 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
                                      cfg.merge_gap_m, model, step)
     out: list[Detection] = []
     points: list[np.ndarray] = []
-    measured = np.flatnonzero(d0.any(0))  # columns the matcher measured (not its blind left band)
-    left_edge, right_edge = (int(measured[0]), int(measured[-1])) if measured.size else (0, w - 1)
     for r in found:
         if floor is None and cfg.floor_removal and _floor_like(r.pts):
             continue  # no ground to tell it by: a patch of floor is still no obstacle (the list says no-ground)
@@ -359,7 +369,7 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
         points.append(r.pts)
     if cfg.edge_refine and image is not None and out:
         out = [_refine_box(det, image) for det in out]
-    return LayersFrame(out, points, floor, estimate, floor_points)
+    return LayersFrame(out + dropped[0], points + dropped[1], floor, estimate, floor_points)
 
 
 def merge_detections(dets: list[Detection], points: list[np.ndarray], model: camera.RectifiedModel

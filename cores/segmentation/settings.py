@@ -91,12 +91,15 @@ class SegmenterSettings(ServiceSettings):
     # free space
     freespace: bool = Field(True, description="publish the free-space grid (needs a ground estimate)")
     freespace_resolution_m: float = Field(0.1, gt=0, le=10, description="free-space cell size, m")
-    blank_faces_within_m: float = Field(6.0, ge=0, le=100, description="layers: where the floor seen along a "
-                                        "column ends nearer than this with nothing measured standing there, and the "
-                                        "image above is unmeasured up past the horizon, a blank face (a plain wall, "
-                                        "door or cabinet, nothing inside to match) stands at the floor's end and is "
-                                        "an obstacle (its confidence says how little was measured); farther, a road "
-                                        "fading into the distance under the sky looks the same (0: off)")
+    near_field_m: float = Field(6.0, ge=0, le=100, description="layers: within this distance what the matcher "
+                                "cannot measure is still an obstacle: a blank face (where the floor seen ends, "
+                                "nothing measured stands there and the image above is unmeasured up past the "
+                                "horizon: a plain wall, door or cabinet) and a drop (the floor falling away by "
+                                "min_drop_m or more: a curb, stairs down); farther, a road fading under the sky and "
+                                "a road's own camber look the same (0: neither)")
+    min_drop_m: float = Field(0.15, ge=0.02, le=10, description="layers: floor this far below the ground (beyond "
+                              "the stereo noise and the ground's doubt there) within near_field_m is a drop, listed "
+                              "as an obstacle where the robot would roll off")
     fill_to_floor: bool = Field(True, description="layers: extend objects standing on the floor down to it")
     downsample: Literal[1, 2, 4] = Field(2, description="layers: work on every n-th pixel")
     edge_refine: bool = Field(False, description="layers: snap boxes to intensity edges "
