@@ -120,14 +120,14 @@ class RowMonitor:
     camera knocked on the rig, a loose lens or a calibration of another rig moves the right image
     off the left's rows. Block matching then finds fewer and wrong matches, and nothing else says
     why. Every `interval_s` of stream time one rectified pair is checked (row_alignment with fewer
-    features: ~20 ms of one core), and `latest` is what every later frame carries (StereoFrame.rows,
+    features: 10-14 ms of one core), and `latest` is what every later frame carries (StereoFrame.rows,
     DisparityMap.rows), so each list can say `rows-misaligned` (cores/segmentation/builder.py).
 
     A pair with too few features (a bare wall, darkness) leaves the last result in place: what was
     measured misaligned stays so until a check says otherwise."""
 
-    def __init__(self, interval_s: float = 1.0, tolerance_px: float = 0.5, n_features: int = 500,
-                 max_refined: int = 100):
+    def __init__(self, interval_s: float = 1.0, tolerance_px: float = 0.5, n_features: int = 300,
+                 max_refined: int = 60):
         self.interval_s = interval_s
         self.tolerance_px = tolerance_px
         self.n_features = n_features

@@ -69,7 +69,7 @@ class RectifySettings(ServiceSettings):
                                           "baseline or focal length differs from the one rectify started with by "
                                           "more than this fraction (0: no limit); a restart takes any calibration")
     row_check_s: float = Field(1.0, ge=0.0, le=3600.0, description="check one rectified pair this often that "
-                               "matched features lie on the same rows (~20 ms of one core, off the frame path; 0: "
+                               "matched features lie on the same rows (10-14 ms of one core, off the frame path; 0: "
                                "never); every frame carries the last result, and lists say rows-misaligned")
     max_row_offset_px: float = Field(0.5, gt=0.0, le=100.0, description="median vertical offset of matched "
                                      "features above which the rows are misaligned (a well calibrated rig: 0.05-0.2 "
