@@ -18,7 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field
 # 3: ObstacleList.degraded and valid_fraction (can this list be trusted); GroundEstimate.confidence and the
 #    configured mount beside the fitted ground (prior_*).
 # 4: ObstacleList.range_m (the distances a list looked at: what "looked and saw nothing" covers).
-# 5: StereoFrame.rows and DisparityMap.rows (the live rectification check).
+# 5: StereoFrame.checks and DisparityMap.checks (rectify's live checks of the pair: rows, frozen cameras).
 SCHEMA_VERSION = 5
 
 Vec3 = tuple[float, float, float]
@@ -81,6 +81,19 @@ class RowAlignment(BaseModel):
     checked_ns: int = Field(ge=0, description="capture stamp of the pair checked")
 
 
+class FrameChecks(BaseModel):
+    """What rectify checked of a pair beyond its stamps, carried by the pair and its disparity map to
+    the segmenter, whose list says what failed."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    rows: RowAlignment | None = Field(None, description="the last live check of the rows (None: not checked yet)")
+    frozen: list[Literal["left", "right"]] = Field(
+        default_factory=list, max_length=2, description="cameras whose picture has not changed, bit for bit, for "
+        "over rectify's frozen_after_s while stamps went on (a hung driver repeating its last buffer): each list "
+        "says camera-frozen. One frozen camera of two leaves the maps changing, so input-frozen cannot tell")
+
+
 class StereoFrame(Message):
     """One stereo pair. Raw from capture (camera=None) or rectified by rectify (camera set)."""
 
@@ -88,8 +101,7 @@ class StereoFrame(Message):
     right: Image
     camera: CameraModel | None = None
     source: str = ""
-    rows: RowAlignment | None = Field(None, description="rectify's last live check of the rows (None: raw, or not "
-                                      "checked yet)")
+    checks: FrameChecks | None = Field(None, description="rectify's live checks (None: a raw pair)")
 
 
 class DisparityMap(Message):
@@ -106,7 +118,7 @@ class DisparityMap(Message):
     worker: str = ""
     confidence: Image | None = Field(None, description="per-pixel confidence of the disparity, uint8, same size: "
                                      "0 = no measurement, 255 = certain (None: the method gives none)")
-    rows: RowAlignment | None = Field(None, description="the frame's StereoFrame.rows: rectify's last live check")
+    checks: FrameChecks | None = Field(None, description="the frame's StereoFrame.checks: rectify's live checks")
 
 
 class WorkDone(Message):
@@ -232,7 +244,7 @@ class ObstacleList(Message):
                                 "trusted as a full view (empty: trustworthy; e.g. 'input-frozen', "
                                 "'no-valid-disparity', 'valid-collapse', 'no-ground', 'ground-uncertain', "
                                 "'range-unreachable', 'near-unmeasured', 'floor-out-of-view', 'standing-not-listed', "
-                                "'mount-disagrees', 'rows-misaligned')")
+                                "'mount-disagrees', 'rows-misaligned', 'camera-frozen')")
     valid_fraction: float = Field(0.0, ge=0, le=1, description="share of the image the disparity map measured "
                                   "(valid pixels within the vision range gate's search) for this list")
     range_m: tuple[Metres, Metres] | None = Field(None, description="the distances this list looked at, m: "

@@ -20,12 +20,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.messages import Odometry
+from common.messages import FrameChecks, Odometry
 from common.settings import MountSettings
 from cores import camera
 from cores.calibration.check import RowMonitor
 from cores.calibration.rectify import Rectifier
 from cores.matching.config import MatcherConfig
+from cores.matching.disparity import FrozenInput
 from cores.matching.stage import MatchStage, StageResult
 from cores.segmentation.builder import FrameResult, ObstacleBuilder
 from cores.segmentation.settings import SegmenterSettings
@@ -51,13 +52,15 @@ class Pipeline:
     """calibration: a raw rig (rectified here) or an already-rectified model (pairs pass as they
     are); matcher: the disparity settings; segmenter: the segmenter's settings; alpha: rectify's;
     mount: the camera on the robot (the `mount:` section every service reads); rows: rectify's live
-    row check (row_check_s, max_row_offset_px; run in line here, on stream time)."""
+    row check (row_check_s, max_row_offset_px; run in line here, on stream time); frozen_after_s:
+    rectify's, for a camera whose picture stopped changing."""
 
     def __init__(self, calibration: camera.Calibration, matcher: MatcherConfig | None = None,
                  segmenter: SegmenterSettings | None = None, alpha: float = 0.0, mount: MountSettings | None = None,
-                 rows: tuple[float, float] = (1.0, 0.5)):
+                 rows: tuple[float, float] = (1.0, 0.5), frozen_after_s: float = 0.5):
         self.rectifier = Rectifier(calibration, alpha)
         self.rows = RowMonitor(*rows)
+        self.frozen = (FrozenInput(frozen_after_s), FrozenInput(frozen_after_s))
         self.model: camera.RectifiedModel = self.rectifier.model
         self.matching = MatchStage(matcher or MatcherConfig())
         self.segmenter_settings = segmenter or SegmenterSettings()
@@ -70,6 +73,7 @@ class Pipeline:
         other = object.__new__(Pipeline)
         other.rectifier, other.model, other.matching = self.rectifier, self.model, self.matching
         other.rows = RowMonitor(self.rows.interval_s, self.rows.tolerance_px)
+        other.frozen = (FrozenInput(self.frozen[0].after_s), FrozenInput(self.frozen[1].after_s))
         other.segmenter_settings = segmenter or self.segmenter_settings
         other.mount = mount or self.mount
         other.builder = ObstacleBuilder(other.segmenter_settings, other.mount)
@@ -105,6 +109,7 @@ class Pipeline:
                 odometry: Odometry | None = None, names: tuple[str, str] = ("left", "right"),
                 rectified: bool = False) -> PipelineFrame:
         """One pair, raw (rectified=False) or already rectified, through the three steps."""
+        stuck = [side for side, a, check in zip(("left", "right"), (left, right), self.frozen) if check.frozen(a, t_s)]
         t0 = time.perf_counter()
         if not rectified:
             left, right = self.rectify(left, right, names)
@@ -117,7 +122,8 @@ class Pipeline:
         disparity = stage.disparity_px()
         result = self.builder.process(disparity, self.model, t_s=t_s, seq=seq, stamp_ns=stamp_ns,
                                       confidence=stage.match.confidence, odometry=odometry, image=left,
-                                      search=(stage.min_disparity, stage.num_disparities), rows=rows)
+                                      search=(stage.min_disparity, stage.num_disparities),
+                                      checks=FrameChecks(rows=rows, frozen=stuck))
         t3 = time.perf_counter()
         return PipelineFrame(seq, left, right, stage, disparity, result, (t1 - t0) * 1e3, (t2 - t1b) * 1e3,
                              (t3 - t2) * 1e3)

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from common.messages import DisparityMap, RowAlignment, StereoFrame
+from common.messages import DisparityMap, FrameChecks, RowAlignment, StereoFrame
 from cores import camera
 from cores.calibration.check import RowMonitor
 from cores.calibration.rectify import Rectifier
@@ -80,7 +80,7 @@ def test_every_list_after_a_misaligned_check_says_so(rectified_pairs):
         rows = None if offset is None else RowAlignment(offset_px=offset, p95_px=offset, matches=80,
                                                         tolerance_px=0.5, checked_ns=0)
         said.append("rows-misaligned" in b.process(disparity, model, t_s=k / 10, seq=k, stamp_ns=k,
-                                                   rows=rows).obstacles.degraded)
+                                                   checks=FrameChecks(rows=rows)).obstacles.degraded)
     assert said == [False, False, False, True, True]
 
 
@@ -91,7 +91,7 @@ def test_a_row_check_is_finite_and_bounded_on_the_wire():
         doc = {"offset_px": 0.1, "p95_px": 0.2, "matches": 80, "tolerance_px": 0.5, "checked_ns": 0, **bad}
         with pytest.raises(ValidationError):
             RowAlignment.model_validate(doc)
-    assert "rows" in StereoFrame.model_fields and "rows" in DisparityMap.model_fields
+    assert "checks" in StereoFrame.model_fields and "checks" in DisparityMap.model_fields
 
 
 @pytest.mark.skipif(not (KARLSRUHE / "calibration.yaml").exists(), reason="../shared/data/real/karlsruhe-0023 absent")
@@ -112,3 +112,28 @@ def test_the_offline_pipeline_checks_the_street_rows_as_rectify_does(dy, flagged
         said.append("rows-misaligned" in f.result.obstacles.degraded)
     assert said == [flagged] * 12
     assert pipe.rows.checks == 2  # ~10 Hz: one check a second of the recording
+
+
+# --- a frozen camera ---------------------------------------------------------------------------------
+
+@pytest.mark.skipif(not (KARLSRUHE / "calibration.yaml").exists(), reason="../shared/data/real/karlsruhe-0023 absent")
+def test_one_camera_repeating_its_picture_is_said_by_every_list_after_frozen_after_s():
+    """The street with the right camera's driver hung after the first pair (it repeats that picture
+    while the left goes on): the maps still change with the left image, so input-frozen cannot tell,
+    and wherever anything moved they are wrong. From 0.5 s on every list says camera-frozen, naming
+    the right camera; the left one live, nothing said of it."""
+    from common.files import read_image
+    from cores.matching.config import MatcherConfig
+    from evaluation.recordings import open_recording
+
+    rec = open_recording(KARLSRUHE)
+    pipe = Pipeline(rec.calibration, MatcherConfig(num_disparities="auto"), SegmenterSettings())
+    stuck_right = read_image(rec.pairs[0][1])
+    said = []
+    for k in range(12):
+        f = pipe.process(read_image(rec.pairs[k][0]), stuck_right, t_s=rec.stamps_s[k], seq=k)
+        said.append((rec.stamps_s[k], "camera-frozen" in f.result.obstacles.degraded,
+                     "input-frozen" in f.result.obstacles.degraded))
+    assert all(flag == (t > 0.5 + 1e-6) for t, flag, _ in said), said
+    assert not any(whole for _, _, whole in said)  # the maps changed all along
+    assert pipe.builder.checks.frozen == ["right"]

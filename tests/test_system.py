@@ -6,6 +6,7 @@ import importlib
 import json
 import subprocess
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -292,9 +293,49 @@ def test_the_scene_as_rendered_is_aligned_and_its_lists_do_not_say_otherwise(up)
     with up.session() as s:
         frames = Collector(StereoFrame)
         s.declare_subscriber(topic("frames_rect").key(up.robot_id), frames)
-        assert frames.wait_for(lambda items: any(f.rows is not None for f in items), 60)
-        rows = next(f.rows for f in frames.items if f.rows is not None)
+        assert frames.wait_for(lambda items: any(f.checks.rows is not None for f in items), 60)
+        rows = next(f.checks.rows for f in frames.items if f.checks.rows is not None)
         assert rows.offset_px < 0.2 and rows.matches >= 50, rows
+        assert all(f.checks.frozen == [] for f in frames.items)
     lists = subprocess.run(cli("watch", "--connect", up.endpoint, "--count", "4", "--json", "--timeout", "60"),
                            capture_output=True, text=True, timeout=120)
     assert not any("rows-misaligned" in json.loads(line)["degraded"] for line in lists.stdout.splitlines())
+
+
+KARLSRUHE = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "karlsruhe-0023"
+
+
+@pytest.mark.skipif(not (KARLSRUHE / "calibration.yaml").exists(), reason="../shared/data/real/karlsruhe-0023 absent")
+def test_one_camera_whose_driver_hung_is_said_by_every_list_and_by_status(tmp_path):
+    """The street through `up` from image folders, with the right camera repeating its first picture
+    while the left goes on (a hung driver of one camera of two): the maps keep changing, so nothing
+    else tells; every list says camera-frozen, and `status` names the right camera (exit 3)."""
+    from helpers import Up
+    left, right = tmp_path / "left", tmp_path / "right"
+    left.mkdir()
+    right.mkdir()
+    first_right = sorted((KARLSRUHE / "right").glob("*.png"))[0]
+    for lp, rp in zip(sorted((KARLSRUHE / "left").glob("*.png")), sorted((KARLSRUHE / "right").glob("*.png"))):
+        (left / lp.name).symlink_to(lp)
+        (right / rp.name).symlink_to(first_right)
+    cfg = tmp_path / "street.yaml"
+    cfg.write_text(f"capture:\n  source: images\n  images_left: {left}\n  images_right: {right}\n  loop: true\n"
+                   f"  rate_hz: 10\nrectify:\n  calibration: {KARLSRUHE / 'calibration.yaml'}\n")
+    u = Up(extra_env={"BALLBOT_CONFIG": str(cfg)})
+    try:
+        with u.session() as s:
+            lists = Collector(ObstacleList)
+            s.declare_subscriber(topic("obstacles").key(u.robot_id), lists)
+
+            def said(items) -> bool:
+                return len(items) >= 3 and all("camera-frozen" in m.degraded for m in items[-3:])
+            assert lists.wait_for(said, 120), [(m.seq, m.degraded) for m in lists.items[-10:]] + \
+                [u.log_path.read_text()[-3000:]]
+            assert not any("input-frozen" in m.degraded for m in lists.items)  # the maps changed all along
+        status = subprocess.run(cli("status", "--connect", u.endpoint, "--json", "--wait", "2.5"),
+                                capture_output=True, text=True, timeout=60)
+        seg = next(i for i in json.loads(status.stdout)["instances"] if i["name"] == "segmenter")
+        assert status.returncode == 3 and seg["status"].startswith("camera-frozen: the right camera"), seg
+        assert "the right camera's picture has not changed" in u.log_path.read_text()
+    finally:
+        u.stop()

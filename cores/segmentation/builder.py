@@ -13,7 +13,7 @@ import numpy as np
 
 from common import codec
 from common.errors import DecodeError
-from common.messages import DisparityMap, FreeSpace, Obstacle, ObstacleList, Odometry, RowAlignment
+from common.messages import DisparityMap, FrameChecks, FreeSpace, Obstacle, ObstacleList, Odometry
 from common.settings import MountSettings
 from cores import camera
 from cores.matching.disparity import FrozenInput, RecentValid, searched_range, to_float
@@ -124,7 +124,7 @@ class ObstacleBuilder:
         self.recent_valid = RecentValid(COLLAPSE_WINDOW_S, COLLAPSE_FACTOR, COLLAPSE_WARMUP_FRAMES)
         self.frozen_input = FrozenInput(settings.stale_after_s)
         self.reach = Reach(False, "")  # of the last map's disparity search
-        self.rows: RowAlignment | None = None  # rectify's last row check, as the last map carried it
+        self.checks: FrameChecks | None = None  # rectify's checks, as the last map carried them
         self._reach_logged: set[str] = set()
 
     def check_search(self, model: camera.RectifiedModel, min_disparity: int, num_disparities: int,
@@ -235,7 +235,7 @@ class ObstacleBuilder:
                 robot_id: str = "offline", confidence: np.ndarray | None = None, odometry: Odometry | None = None,
                 image: np.ndarray | None = None, stale: bool = False,
                 stages: dict[str, int] | None = None, search: tuple[int, int] | None = None,
-                rows: RowAlignment | None = None) -> FrameResult:
+                checks: FrameChecks | None = None) -> FrameResult:
         """disparity: (H, W) float32 px, NaN = invalid, matching `model`; t_s: the frame's time on a
         clock that never goes backwards (the service: Node.frame_time_s; offline: the capture time);
         odometry: the robot's motion at this frame, if known (velocities are then over the ground).
@@ -249,9 +249,11 @@ class ObstacleBuilder:
         cannot measure the vision range; "near-unmeasured": it cannot measure the near part of it
         (search_reach); "no-ground" / "ground-uncertain": nothing or too little told the floor from
         what stands on it; "mount-disagrees": fit_floor is false and the configured mount's floor is
-        off the floor the data show; "rows-misaligned": `rows`, rectify's last live check, found the
-        pair's rows apart by more than its tolerance (the calibration no longer fits the rig: the map
-        measures less, and wrongly);
+        off the floor the data show; "rows-misaligned": rectify's last live check (`checks.rows`)
+        found the pair's rows apart by more than its tolerance (the calibration no longer fits the
+        rig: the map measures less, and wrongly); "camera-frozen": one camera's picture has not changed
+        for over rectify's frozen_after_s (`checks.frozen`: its driver repeats a buffer; with the
+        other live the map changes, and is wrong wherever anything moved);
         "floor-out-of-view": the floor within the vision range is below the camera's view;
         "standing-not-listed": something standing in range, of min_area_m2 frontal area, is in no
         obstacle: seed's border clearing, area opening or Otsu threshold dropped it)."""
@@ -309,9 +311,12 @@ class ObstacleBuilder:
         elif self.recent_valid.collapsed(valid_fraction, t_s):
             degraded.append("valid-collapse")
         self.recent_valid.add(valid_fraction, t_s)
-        self.rows = rows
+        self.checks = checks
+        rows = checks.rows if checks is not None else None
         if rows is not None and rows.offset_px > rows.tolerance_px:
             degraded.append("rows-misaligned")
+        if checks is not None and checks.frozen:
+            degraded.append("camera-frozen")
         if reach.unreachable:
             degraded.append("range-unreachable")
         elif reach.near_unmeasured:
@@ -361,7 +366,7 @@ class ObstacleBuilder:
         return self.process(disparity, model, t_s=msg.stamp_ns / 1e9 if t_s is None else t_s, seq=msg.seq,
                             stamp_ns=msg.stamp_ns, robot_id=msg.robot_id, confidence=confidence, odometry=odometry,
                             stale=stale, stages=msg.stages, search=(msg.min_disparity, msg.num_disparities),
-                            rows=msg.rows)
+                            checks=msg.checks)
 
 
 def _footprint(mount: Mount, points_camera: np.ndarray) -> np.ndarray:

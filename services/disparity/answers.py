@@ -179,10 +179,10 @@ class Answers:
         if self.state.done(name, ticket.seq, True) != "ok":
             self.node.count("results_late")  # timed out while being checked
             return
-        # The frame's own stamp, stages, camera and row check: nothing the worker says moves the robot's
-        # clock or clears a misaligned rig.
+        # The frame's own stamp, stages, camera and checks: nothing the worker says moves the robot's
+        # clock or clears a misaligned rig or a frozen camera.
         out = m.model_copy(update={"robot_id": ticket.robot_id, "seq": ticket.seq, "stamp_ns": ticket.stamp_ns,
-                                   "stages": dict(ticket.stages), "camera": ticket.camera, "rows": ticket.rows,
+                                   "stages": dict(ticket.stages), "camera": ticket.camera, "checks": ticket.checks,
                                    "worker": name,
                                    "method": m.method[:64]})
         self.publish(out, valid_fraction, time.monotonic())

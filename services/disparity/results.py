@@ -34,7 +34,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from common import codec
 from common.errors import DecodeError
-from common.messages import CameraModel, DisparityMap, RowAlignment, StereoFrame
+from common.messages import CameraModel, DisparityMap, FrameChecks, StereoFrame
 from cores.matching.config import MAX_NUM_DISPARITIES, SCALE
 from cores.matching.disparity import searched_range
 
@@ -52,7 +52,7 @@ MIN_MEASURED = 0.01
 @dataclass(frozen=True)
 class Ticket:
     """What the dispatcher remembers of a work item it sent: the answer must match it, and the map
-    it republishes carries the frame's own stamp, stages, camera and row check, not the worker's say-so."""
+    it republishes carries the frame's own stamp, stages, camera and checks, not the worker's say-so."""
 
     robot_id: str
     seq: int
@@ -61,7 +61,7 @@ class Ticket:
     height: int
     camera: CameraModel
     stages: dict[str, int] = field(default_factory=dict)
-    rows: RowAlignment | None = None
+    checks: FrameChecks | None = None
     nonce: bytes = field(default_factory=lambda: os.urandom(NONCE_BYTES))
 
     @classmethod
@@ -69,7 +69,7 @@ class Ticket:
         if msg.camera is None:
             raise DecodeError("StereoFrame.camera: missing; a work item needs a rectified pair")
         return cls(msg.robot_id, msg.seq, msg.stamp_ns, msg.camera.width, msg.camera.height, msg.camera,
-                   dict(msg.stages), msg.rows)
+                   dict(msg.stages), msg.checks)
 
 
 class ResultHeader(BaseModel):

@@ -35,12 +35,13 @@ from pydantic import Field
 from common import codec
 from common.errors import CalibrationError
 from common.keys import topic
-from common.messages import CalibrationUpdate, StereoFrame
+from common.messages import CalibrationUpdate, FrameChecks, StereoFrame
 from common.node import Node
 from common.settings import ServiceSettings
 from common.signing import KEY_ENV, calibration_key, signed
 from cores.calibration.check import RowMonitor
 from cores.calibration.rectify import CalibrationHolder
+from cores.matching.disparity import FrozenInput
 
 log = logging.getLogger("ballbot")
 
@@ -74,6 +75,10 @@ class RectifySettings(ServiceSettings):
     max_row_offset_px: float = Field(0.5, gt=0.0, le=100.0, description="median vertical offset of matched "
                                      "features above which the rows are misaligned (a well calibrated rig: 0.05-0.2 "
                                      "px; a camera knocked 1 px: 1.0)")
+    frozen_after_s: float = Field(0.5, gt=0.0, le=3600.0, description="a camera whose picture has not changed, "
+                                  "bit for bit, for this long while its stamps go on is frozen (a hung driver "
+                                  "repeating its last buffer; a live camera's noise never repeats): every list says "
+                                  "camera-frozen")
     source: Literal["synthetic", "cameras", "sbs", "video", "images", "ros2", "mcap"] | None = Field(
         None, description="the capture source this rectify serves, when the deployment knows it (the compose files "
                           "set it from CAPTURE_SOURCE): cameras, sbs, video and images need rectify.calibration and "
@@ -255,6 +260,10 @@ def run(node: Node, settings: RectifySettings) -> None:
     out = node.publisher("frames_rect")
     rows = LiveRowCheck(node, RowMonitor(settings.row_check_s, settings.max_row_offset_px))
     rows_generation = holder.generation
+    # each camera's raw picture against its last ones: one camera hung while the other is live leaves
+    # the maps changing (the segmenter's input-frozen cannot see it), and wrong wherever anything moved
+    frozen = {"left": FrozenInput(settings.frozen_after_s), "right": FrozenInput(settings.frozen_after_s)}
+    said_frozen: list[str] = []
     for msg in node.receive(inbox):
         holder.stream_source = msg.source
         with node.processing(msg):
@@ -273,9 +282,21 @@ def run(node: Node, settings: RectifySettings) -> None:
                 rows_generation = holder.generation
             left = codec.array_from_image(msg.left, "left")
             right = codec.array_from_image(msg.right, "right")
+            now = time.monotonic()
+            stuck = [side for side, a in (("left", left), ("right", right)) if frozen[side].frozen(a, now)]
+            if stuck != said_frozen:
+                if stuck:
+                    node.warn("frozen", f"the {' and '.join(stuck)} camera's picture has not changed for over "
+                                        f"{settings.frozen_after_s:g} s while its stamps go on: its driver repeats one "
+                                        f"buffer; every list says camera-frozen")
+                else:
+                    log.info("rectify: both cameras' pictures change again")
+                said_frozen = stuck
+            node.extra["frozen_cameras"] = float(len(stuck))
             rl, rr = rectifier.rectify(left, right)
             holder.mark_used()
             rows.offer(rl, rr, time.monotonic(), msg.stamp_ns)
             out.put(StereoFrame(robot_id=msg.robot_id, seq=msg.seq, stamp_ns=msg.stamp_ns, stages=msg.stages,
                                 left=codec.image_from_array(rl), right=codec.image_from_array(rr),
-                                camera=rectifier.model_message, source=msg.source, rows=rows.monitor.latest))
+                                camera=rectifier.model_message, source=msg.source,
+                                checks=FrameChecks(rows=rows.monitor.latest, frozen=stuck)))

@@ -42,6 +42,8 @@ REASON_STATUS: dict[str, str] = {
                          "seen (lengthen the range, or pitch the camera down)",
     "input-frozen": "the disparity maps have not changed for over {stale_after_s:g} s: the camera repeats one "
                     "picture with fresh stamps (a hung driver?)",
+    "camera-frozen": "the {cameras} camera's picture has not changed for over rectify's frozen_after_s while "
+                     "its stamps go on: its driver repeats one buffer (unplug and replug it, or restart capture)",
     "rows-misaligned": "rectify finds the pair's rows {offset} apart: the calibration no longer fits the rig (a "
                        "knocked camera, a loose lens?); check it (`ballbot-vision calibration check`) and calibrate "
                        "again",
@@ -64,8 +66,10 @@ def list_status(msg: ObstacleList, builder: ObstacleBuilder, settings: Segmenter
         return f"near-unmeasured: {reach.message}"
     for reason, text in REASON_STATUS.items():
         if reason in msg.degraded:
-            offset = f"{builder.rows.offset_px:.2f} px" if builder.rows is not None else "too far"
-            return f"{reason}: " + text.format(stale_after_s=settings.stale_after_s, offset=offset)
+            rows = builder.checks.rows if builder.checks is not None else None
+            offset = f"{rows.offset_px:.2f} px" if rows is not None else "too far"
+            cameras = " and ".join(builder.checks.frozen) if builder.checks is not None else "a"
+            return f"{reason}: " + text.format(stale_after_s=settings.stale_after_s, offset=offset, cameras=cameras)
     if msg.degraded:  # no-ground, ground-uncertain, valid-collapse, ...
         return f"degraded lists: {', '.join(msg.degraded)}"
     return "ok"
