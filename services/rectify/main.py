@@ -171,7 +171,12 @@ class LiveRowCheck:
                 left, right, t_s, stamp_ns, epoch = self.slot.get(timeout=0.5)
             except queue.Empty:
                 continue
-            rows = self.monitor.check(left, right, t_s, stamp_ns, epoch)
+            try:
+                rows = self.monitor.check(left, right, t_s, stamp_ns, epoch)
+            except Exception as e:  # a pair OpenCV cannot take (an odd size, a type): this check only, logged
+                self.monitor.failed += 1
+                self.node.warn("rows", f"the row check failed on one pair: {type(e).__name__}: {e}")
+                continue
             self.node.extra["row_checks"] = float(self.monitor.checks)
             self.node.extra["row_checks_failed"] = float(self.monitor.failed)
             if rows is None:
