@@ -16,13 +16,14 @@ road below the plane by as much (karlsruhe: hundreds of pixels 0.15 m below at 1
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import cv2
 import numpy as np
 
 from cores import camera
 from cores.segmentation import stats
 from cores.segmentation.mount import FloorPlane
-from cores.segmentation.seed import Detection
 from cores.segmentation.settings import SegmenterSettings
 
 MIN_WIDTH_M = 0.2  # across: narrower is a crack or a drain, or noise
@@ -42,14 +43,25 @@ def mask(dk: np.ndarray, df: np.ndarray, above: np.ndarray, floor: FloorPlane, c
     return out if out.any() else None
 
 
-def detections(drop: np.ndarray, df: np.ndarray, dk: np.ndarray, model: camera.RectifiedModel,
-               cfg: SegmenterSettings, step: int, sides: tuple[int, int], range_m: float
-               ) -> tuple[list[Detection], list[np.ndarray]]:
-    """Each group of drop pixels -> (its Detection, its points on the ground plane over the hole)."""
+@dataclass
+class Hole:
+    """One group of drop pixels: its points on the ground plane over the hole (camera frame, m),
+    their 2nd / 98th percentiles, its working-grid box (x0, y0, x1, y1), pixels and median disparity."""
+
+    pts: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+    box: tuple[int, int, int, int]
+    area: int
+    disparity_px: float
+
+
+def groups(drop: np.ndarray, df: np.ndarray, dk: np.ndarray, model: camera.RectifiedModel,
+           cfg: SegmenterSettings, step: int) -> list[Hole]:
+    """The groups of drop pixels (touching, min_pixels or more, MIN_WIDTH_M across or more)."""
     n, lab, st, _ = cv2.connectedComponentsWithStats(cv2.morphologyEx(drop.view(np.uint8), cv2.MORPH_CLOSE,
                                                                       np.ones((3, 3), np.uint8)), connectivity=8)
-    out: list[Detection] = []
-    points: list[np.ndarray] = []
+    out: list[Hole] = []
     f, cx, cy = model.focal_px, model.cx, model.cy
     for k in range(1, n):
         if st[k, cv2.CC_STAT_AREA] < cfg.min_pixels:
@@ -71,16 +83,5 @@ def detections(drop: np.ndarray, df: np.ndarray, dk: np.ndarray, model: camera.R
         lo, hi = stats.percentile(pts, [2, 98])
         if hi[0] - lo[0] < MIN_WIDTH_M:
             continue
-        rng = np.sqrt((pts * pts).sum(1))
-        left, right = sides
-        ux = pts[:, 0] / pts[:, 2]
-        a, b = stats.percentile(ux, [5, 95])
-        out.append(Detection(position_m=stats.mean0(pts), size_m=np.maximum(hi - lo, 0.0),
-                             distance_m=float(stats.percentile(rng, 2)),
-                             bbox_px=(x0 * step, y0 * step, min(model.width, x1 * step), min(model.height, y1 * step)),
-                             area_px=int(ys.size * step * step), disparity_px=float(np.median(dk[ys, xs])),
-                             confidence=1.0,
-                             cut=(x0 <= left + 1, x1 - 1 >= right - 1, bool(hi[2] >= 0.97 * range_m)),
-                             edges=np.stack([stats.mean0(pts[ux <= a]), stats.mean0(pts[ux >= b])])))
-        points.append(pts)
-    return out, points
+        out.append(Hole(pts, lo, hi, (x0, y0, x1, y1), int(ys.size), float(np.median(dk[ys, xs]))))
+    return out

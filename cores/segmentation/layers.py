@@ -259,19 +259,19 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
         u, v = grid(h, w, step)
         df = np.float32(floor.a) * u + (np.float32(floor.b) * v + np.float32(floor.c))
         # the margin grows with distance by what the floor's tilt can be off there (_tilt_doubt)
+        doubt: np.ndarray | float = 0.0  # a floor that holds still: one margin everywhere (no per-pixel work)
         if doubt_deg >= MIN_DOUBT_DEG:
             with np.errstate(divide="ignore"):
-                margin = np.float32(cfg.floor_margin_m) + _tilt_doubt(np.float32(fB) / df, floor.height_m, doubt_deg)
+                doubt = _tilt_doubt(np.float32(fB) / df, floor.height_m, doubt_deg)
+            margin = np.float32(cfg.floor_margin_m) + doubt
             k = 1.0 / np.maximum(np.float32(1e-3), 1.0 - margin / np.float32(floor.height_m))
-        else:  # a floor that holds still: one margin everywhere (and no per-pixel work)
+        else:
             k = np.float32(1.0 / max(1e-3, 1.0 - cfg.floor_margin_m / floor.height_m))
         on_floor = dk <= np.maximum(df * k, df + np.float32(cfg.ground_noise_px))
         with np.errstate(divide="ignore", invalid="ignore"):
             above = np.float32(floor.height_m) * (1 - df / dk)  # height above the floor, m
         stand = keep & ~on_floor & (above <= cfg.robot_height_m)
         seen_floor = keep & on_floor & (above > -4 * cfg.floor_margin_m - 0.1)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            doubt = _tilt_doubt(np.float32(fB) / df, floor.height_m, doubt_deg) if doubt_deg >= MIN_DOUBT_DEG else 0.0
         drop = drops.mask(dk, df, above, floor, cfg, fB, doubt)
         if drop is not None:
             seen_floor &= ~drop  # the floor beyond a curb down is no floor to drive on
@@ -289,9 +289,27 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
         stand = keep
     measured = np.flatnonzero(d0.any(0))  # columns the matcher measured (not its blind left band)
     left_edge, right_edge = (int(measured[0]), int(measured[-1])) if measured.size else (0, w - 1)
+
+    def detection(pts: np.ndarray, lo: np.ndarray, hi: np.ndarray, box: tuple[int, int, int, int], area: int,
+                  disparity_px: float, confidence: float) -> Detection:
+        """An obstacle of its camera-frame points, its 2nd/98th percentiles and its working-grid box."""
+        sub = pts[::max(1, len(pts) // regions.STAT_SAMPLES)]
+        rng = np.sqrt((sub * sub).sum(1))
+        x0, y0, x1, y1 = box
+        return Detection(position_m=stats.mean0(pts), size_m=np.maximum(hi - lo, 0.0),
+                         distance_m=float(stats.percentile(rng, 2)),
+                         bbox_px=(x0 * step, y0 * step, min(model.width, x1 * step), min(model.height, y1 * step)),
+                         area_px=int(area * step * step), disparity_px=disparity_px, confidence=confidence,
+                         # cut at the sides or by the range: its footprint is partial (a cut at the
+                         # top or bottom changes its height, not where it stands)
+                         cut=(x0 <= left_edge + 1, x1 - 1 >= right_edge - 1, bool(hi[2] >= 0.97 * range_m)),
+                         edges=_edges(sub, model))
+
     dropped: tuple[list[Detection], list[np.ndarray]] = ([], [])
-    if drop is not None:
-        dropped = drops.detections(drop, df, dk, model, cfg, step, (left_edge, right_edge), range_m)
+    if drop is not None:  # measured lower floor, over which the robot would roll off: confidence 1
+        holes = drops.groups(drop, df, dk, model, cfg, step)
+        dropped = ([detection(g.pts, g.lo, g.hi, g.box, g.area, g.disparity_px, 1.0) for g in holes],
+                   [g.pts for g in holes])
     # A pixel with a 4-neighbour nearer by more than the similarity tolerance sits on a depth step,
     # where block matching blends the two depths into a phantom between them: it is not grouped.
     ds = _masked(dm, stand.view(np.uint8))
@@ -353,19 +371,8 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
         px_m = float(np.mean(r.pts[:, 2])) / f * step
         if max(size[0], size[1]) < cfg.min_size_m or r.area * px_m * px_m < cfg.min_area_m2:
             continue
-        sub = r.pts[::max(1, len(r.pts) // regions.STAT_SAMPLES)]
-        rng = np.sqrt((sub * sub).sum(1))
-        x0, y0, x1, y1 = r.bbox
-        out.append(Detection(position_m=stats.mean0(r.pts), size_m=np.maximum(size, 0.0),
-                             distance_m=float(stats.percentile(rng, 2)),
-                             bbox_px=(x0 * step, y0 * step, min(model.width, x1 * step), min(model.height, y1 * step)),
-                             area_px=int((r.area + r.filled) * step * step),
-                             disparity_px=float(stats.median(r.disparities)),
-                             confidence=float(min(1.0, r.valid / max(1, r.area))),
-                             # cut at the sides or by the range: its footprint is partial (a cut at the
-                             # top or bottom changes its height, not where it stands)
-                             cut=(x0 <= left_edge + 1, x1 - 1 >= right_edge - 1, bool(r.hi[2] >= 0.97 * range_m)),
-                             edges=_edges(sub, model)))
+        out.append(detection(r.pts, r.lo, r.hi, r.bbox, r.area + r.filled, float(stats.median(r.disparities)),
+                             float(min(1.0, r.valid / max(1, r.area)))))
         points.append(r.pts)
     if cfg.edge_refine and image is not None and out:
         out = [_refine_box(det, image) for det in out]
