@@ -20,13 +20,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.messages import FrameChecks, Odometry
+from common.messages import Odometry
 from common.settings import MountSettings
 from cores import camera
-from cores.calibration.check import RowMonitor
+from cores.calibration.check import PairChecks
 from cores.calibration.rectify import Rectifier
 from cores.matching.config import MatcherConfig
-from cores.matching.disparity import FrozenInput
 from cores.matching.stage import MatchStage, StageResult
 from cores.segmentation.builder import FrameResult, ObstacleBuilder
 from cores.segmentation.settings import SegmenterSettings
@@ -59,8 +58,7 @@ class Pipeline:
                  segmenter: SegmenterSettings | None = None, alpha: float = 0.0, mount: MountSettings | None = None,
                  rows: tuple[float, float] = (1.0, 0.5), frozen_after_s: float = 0.5):
         self.rectifier = Rectifier(calibration, alpha)
-        self.rows = RowMonitor(*rows)
-        self.frozen = (FrozenInput(frozen_after_s), FrozenInput(frozen_after_s))
+        self.checks = PairChecks(*rows, frozen_after_s)
         self.model: camera.RectifiedModel = self.rectifier.model
         self.matching = MatchStage(matcher or MatcherConfig())
         self.segmenter_settings = segmenter or SegmenterSettings()
@@ -72,8 +70,7 @@ class Pipeline:
         between pairs), with a segmenter of its own (fresh ground and tracks)."""
         other = object.__new__(Pipeline)
         other.rectifier, other.model, other.matching = self.rectifier, self.model, self.matching
-        other.rows = RowMonitor(self.rows.interval_s, self.rows.tolerance_px)
-        other.frozen = (FrozenInput(self.frozen[0].after_s), FrozenInput(self.frozen[1].after_s))
+        other.checks = self.checks.fresh()
         other.segmenter_settings = segmenter or self.segmenter_settings
         other.mount = mount or self.mount
         other.builder = ObstacleBuilder(other.segmenter_settings, other.mount)
@@ -109,13 +106,13 @@ class Pipeline:
                 odometry: Odometry | None = None, names: tuple[str, str] = ("left", "right"),
                 rectified: bool = False) -> PipelineFrame:
         """One pair, raw (rectified=False) or already rectified, through the three steps."""
-        stuck = [side for side, a, check in zip(("left", "right"), (left, right), self.frozen) if check.frozen(a, t_s)]
+        stuck = self.checks.frozen(left, right, t_s)
         t0 = time.perf_counter()
         if not rectified:
             left, right = self.rectify(left, right, names)
         t1 = time.perf_counter()
         stamp_ns = int(round(t_s * 1e9)) if stamp_ns is None else stamp_ns
-        rows = self.rows.observe(left, right, t_s, stamp_ns)  # rectify checks off its frame path: not timed
+        self.checks.rows.observe(left, right, t_s, stamp_ns)  # rectify checks off its frame path: not timed
         t1b = time.perf_counter()
         stage = self.match(left, right)
         t2 = time.perf_counter()
@@ -123,7 +120,7 @@ class Pipeline:
         result = self.builder.process(disparity, self.model, t_s=t_s, seq=seq, stamp_ns=stamp_ns,
                                       confidence=stage.match.confidence, odometry=odometry, image=left,
                                       search=(stage.min_disparity, stage.num_disparities),
-                                      checks=FrameChecks(rows=rows, frozen=stuck))
+                                      checks=self.checks.message(stuck))
         t3 = time.perf_counter()
         return PipelineFrame(seq, left, right, stage, disparity, result, (t1 - t0) * 1e3, (t2 - t1b) * 1e3,
                              (t3 - t2) * 1e3)

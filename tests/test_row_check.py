@@ -111,7 +111,7 @@ def test_the_offline_pipeline_checks_the_street_rows_as_rectify_does(dy, flagged
         f = pipe.process(left, knocked(right, dy), t_s=rec.stamps_s[k], seq=k)
         said.append("rows-misaligned" in f.result.obstacles.degraded)
     assert said == [flagged] * 12
-    assert pipe.rows.checks == 2  # ~10 Hz: one check a second of the recording
+    assert pipe.checks.rows.checks == 2  # ~10 Hz: one check a second of the recording
 
 
 # --- a frozen camera ---------------------------------------------------------------------------------

@@ -7,12 +7,14 @@ better than the second best (Lowe's ratio test). No CLI and no Zenoh here.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import cv2
 import numpy as np
 
 from common.errors import BallbotError
-from common.messages import RowAlignment
+from common.messages import FrameChecks, RowAlignment
+from cores.matching.disparity import FrozenInput
 
 
 @dataclass(frozen=True)
@@ -178,3 +180,35 @@ class RowMonitor:
     def observe(self, left: np.ndarray, right: np.ndarray, t_s: float, stamp_ns: int) -> RowAlignment | None:
         """Check the pair if one is due -> the latest result (for a stream checked in line)."""
         return self.check(left, right, t_s, stamp_ns) if self.due(t_s) else self.latest
+
+
+class PairChecks:
+    """rectify's live checks of one stream of pairs, as the rectify service and the in-process
+    pipeline (cores/pipeline.py) both run them: the rows (RowMonitor) and each camera's picture
+    against its last ones (FrozenInput: one camera hung while the other is live leaves the maps
+    changing, so the segmenter's input-frozen cannot see it, and they are wrong wherever anything
+    moved). -> the FrameChecks each frame and its map carry."""
+
+    def __init__(self, row_check_s: float = 1.0, max_row_offset_px: float = 0.5, frozen_after_s: float = 0.5):
+        self.rows = RowMonitor(row_check_s, max_row_offset_px)
+        self.frozen_after_s = frozen_after_s
+        self._pictures = (FrozenInput(frozen_after_s), FrozenInput(frozen_after_s))
+
+    def fresh(self) -> PairChecks:
+        """The same checks for another stream, with nothing seen yet."""
+        return PairChecks(self.rows.interval_s, self.rows.tolerance_px, self.frozen_after_s)
+
+    def frozen(self, left: np.ndarray, right: np.ndarray, t_s: float) -> list[Literal["left", "right"]]:
+        """The cameras whose raw picture has not changed for over frozen_after_s at t_s (s, a clock
+        that never goes backwards)."""
+        left_stuck = self._pictures[0].frozen(left, t_s)  # both look at every pair: each keeps its history
+        right_stuck = self._pictures[1].frozen(right, t_s)
+        out: list[Literal["left", "right"]] = []
+        if left_stuck:
+            out.append("left")
+        if right_stuck:
+            out.append("right")
+        return out
+
+    def message(self, frozen: list[Literal["left", "right"]]) -> FrameChecks:
+        return FrameChecks(rows=self.rows.latest, frozen=frozen)

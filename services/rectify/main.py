@@ -35,13 +35,12 @@ from pydantic import Field
 from common import codec
 from common.errors import CalibrationError
 from common.keys import topic
-from common.messages import CalibrationUpdate, FrameChecks, StereoFrame
+from common.messages import CalibrationUpdate, StereoFrame
 from common.node import Node
 from common.settings import ServiceSettings
 from common.signing import KEY_ENV, calibration_key, signed
-from cores.calibration.check import RowMonitor
+from cores.calibration.check import PairChecks, RowMonitor
 from cores.calibration.rectify import CalibrationHolder
-from cores.matching.disparity import FrozenInput
 
 log = logging.getLogger("ballbot")
 
@@ -263,12 +262,10 @@ def run(node: Node, settings: RectifySettings) -> None:
     cv2.setNumThreads(1)
     inbox = node.latest("frames_raw", max_bytes=frame_cap)
     out = node.publisher("frames_rect")
-    rows = LiveRowCheck(node, RowMonitor(settings.row_check_s, settings.max_row_offset_px))
+    checks = PairChecks(settings.row_check_s, settings.max_row_offset_px, settings.frozen_after_s)
+    rows = LiveRowCheck(node, checks.rows)
     rows_generation = holder.generation
-    # each camera's raw picture against its last ones: one camera hung while the other is live leaves
-    # the maps changing (the segmenter's input-frozen cannot see it), and wrong wherever anything moved
-    frozen = {"left": FrozenInput(settings.frozen_after_s), "right": FrozenInput(settings.frozen_after_s)}
-    said_frozen: list[str] = []
+    said_frozen: list[Literal["left", "right"]] = []
     for msg in node.receive(inbox):
         holder.stream_source = msg.source
         with node.processing(msg):
@@ -288,7 +285,7 @@ def run(node: Node, settings: RectifySettings) -> None:
             left = codec.array_from_image(msg.left, "left")
             right = codec.array_from_image(msg.right, "right")
             now = time.monotonic()
-            stuck = [side for side, a in (("left", left), ("right", right)) if frozen[side].frozen(a, now)]
+            stuck = checks.frozen(left, right, now)
             if stuck != said_frozen:
                 if stuck:
                     node.warn("frozen", f"the {' and '.join(stuck)} camera's picture has not changed for over "
@@ -304,4 +301,4 @@ def run(node: Node, settings: RectifySettings) -> None:
             out.put(StereoFrame(robot_id=msg.robot_id, seq=msg.seq, stamp_ns=msg.stamp_ns, stages=msg.stages,
                                 left=codec.image_from_array(rl), right=codec.image_from_array(rr),
                                 camera=rectifier.model_message, source=msg.source,
-                                checks=FrameChecks(rows=rows.monitor.latest, frozen=stuck)))
+                                checks=checks.message(stuck)))
