@@ -98,11 +98,9 @@ def test_up_publishes_obstacles_matching_ground_truth_and_stops_cleanly(up):
             return bool(items) and items[-1].velocity_reference == "ground"
         assert obstacles.wait_for(over_ground, 60), "odometry was not used"
 
-        status = subprocess.run(cli("status", "--connect", up.endpoint, "--json", "--wait", "2.5"),
-                                capture_output=True, text=True, timeout=60)
-        doc = json.loads(status.stdout)
+        code, doc, _ = status_of(up)
         # 0: healthy; 3: something degraded (a loaded machine may make a list stale): named in the summary
-        assert status.returncode == (0 if doc["pipeline"]["health"] == "ok" else 3), status.stderr
+        assert code == (0 if doc["pipeline"]["health"] == "ok" else 3), doc["pipeline"]
         names = {i["name"] for i in doc["instances"]}
         assert {"capture", "rectify", "dispatcher", "segmenter"} <= names
         assert all(i["rate_hz"] > 0 for i in doc["instances"] if i["service"] != "router")
@@ -200,6 +198,28 @@ def test_up_stops_with_status_2_when_a_service_rejects_its_settings(tmp_path):
     assert "max_range_m" in u.log_path.read_text()
 
 
+def lists_saying(u, reason: str) -> list[ObstacleList]:
+    """The lists of `up` u until three in a row say `reason` (generous deadline) -> all seen."""
+    with u.session() as s:
+        lists = Collector(ObstacleList)
+        s.declare_subscriber(topic("obstacles").key(u.robot_id), lists)
+
+        def said(items) -> bool:
+            return len(items) >= 3 and all(reason in m.degraded for m in items[-3:])
+        assert lists.wait_for(said, 120), [(m.seq, m.degraded) for m in lists.items[-10:]] + \
+            [u.log_path.read_text()[-3000:]]
+        return list(lists.items)
+
+
+def status_of(u) -> tuple[int, dict, dict]:
+    """`status --json` on `up` u, as a user runs it -> (exit code, the whole document, the segmenter's row)."""
+    status = subprocess.run(cli("status", "--connect", u.endpoint, "--json", "--wait", "2.5"),
+                            capture_output=True, text=True, timeout=60)
+    assert status.stdout, status.stderr
+    doc = json.loads(status.stdout)
+    return status.returncode, doc, next(i for i in doc["instances"] if i["name"] == "segmenter")
+
+
 def test_a_mount_chosen_over_fitting_and_measured_wrong_is_said_everywhere(tmp_path):
     """fit_floor false with the camera's pitch taped 4 deg off (the scene's camera: 1 m, 15 deg): what a
     planner reads (`watch`) says mount-disagrees on every list, with the distances it looked at, and
@@ -217,11 +237,8 @@ def test_a_mount_chosen_over_fitting_and_measured_wrong_is_said_everywhere(tmp_p
         checked = [m for m in lists if m.ground is not None and m.ground.prior_agrees is not None]
         assert checked and all("mount-disagrees" in m.degraded for m in checked), [(m.seq, m.degraded) for m in lists]
         assert all(m.range_m == (1.0, 4.5) and m.ground.source == "prior" for m in lists)
-        status = subprocess.run(cli("status", "--connect", u.endpoint, "--json", "--wait", "2.5"),
-                                capture_output=True, text=True, timeout=60)
-        doc = json.loads(status.stdout)
-        seg = next(i for i in doc["instances"] if i["name"] == "segmenter")
-        assert status.returncode == 3 and seg["status"].startswith("mount-disagrees"), (seg, status.stderr)
+        code, _, seg = status_of(u)
+        assert code == 3 and seg["status"].startswith("mount-disagrees"), seg
         assert "says mount-disagrees" in u.log_path.read_text()  # the segmenter's warning, once, at the start
     finally:
         u.stop()
@@ -236,19 +253,11 @@ def test_a_camera_repeating_one_picture_is_said_by_every_list_and_by_status(tmp_
     cfg.write_text("capture:\n  preload: 1\n")
     u = Up(extra_env={"BALLBOT_CONFIG": str(cfg)})
     try:
-        with u.session() as s:
-            lists = Collector(ObstacleList)
-            s.declare_subscriber(topic("obstacles").key(u.robot_id), lists)
-
-            def said(items) -> bool:
-                return len(items) >= 3 and all("input-frozen" in m.degraded for m in items[-3:])
-            assert lists.wait_for(said, 120), [(m.seq, m.degraded) for m in lists.items[-10:]]
-            # fresh stamps (bar a list a busy machine made late): only the pictures tell
-            assert any("input-frozen" in m.degraded and not m.stale for m in lists.items)
-        status = subprocess.run(cli("status", "--connect", u.endpoint, "--json", "--wait", "2.5"),
-                                capture_output=True, text=True, timeout=60)
-        seg = next(i for i in json.loads(status.stdout)["instances"] if i["name"] == "segmenter")
-        assert status.returncode == 3 and seg["status"].startswith("input-frozen"), (seg, status.stderr)
+        lists = lists_saying(u, "input-frozen")
+        # fresh stamps (bar a list a busy machine made late): only the pictures tell
+        assert any("input-frozen" in m.degraded and not m.stale for m in lists)
+        code, _, seg = status_of(u)
+        assert code == 3 and seg["status"].startswith("input-frozen"), seg
     finally:
         u.stop()
 
@@ -268,18 +277,9 @@ def test_a_calibration_that_no_longer_fits_the_rig_is_said_by_every_list_and_by_
     cal.write_text(yaml.safe_dump(doc))
     u = Up(extra_env={"BALLBOT_RECTIFY_CALIBRATION": str(cal)})
     try:
-        with u.session() as s:
-            lists = Collector(ObstacleList)
-            s.declare_subscriber(topic("obstacles").key(u.robot_id), lists)
-
-            def said(items) -> bool:
-                return len(items) >= 3 and all("rows-misaligned" in m.degraded for m in items[-3:])
-            assert lists.wait_for(said, 120), [(m.seq, m.degraded) for m in lists.items[-10:]]
-        status = subprocess.run(cli("status", "--connect", u.endpoint, "--json", "--wait", "2.5"),
-                                capture_output=True, text=True, timeout=60)
-        doc = json.loads(status.stdout)
-        seg = next(i for i in doc["instances"] if i["name"] == "segmenter")
-        assert status.returncode == 3 and seg["status"].startswith("rows-misaligned"), (seg, status.stderr)
+        lists_saying(u, "rows-misaligned")
+        code, doc, seg = status_of(u)
+        assert code == 3 and seg["status"].startswith("rows-misaligned"), seg
         assert "calibration check" in seg["status"]
         rect = next(i for i in doc["instances"] if i["name"] == "rectify")
         assert 1.5 < rect["extra"]["row_offset_px"] < 2.5, rect
@@ -323,19 +323,10 @@ def test_one_camera_whose_driver_hung_is_said_by_every_list_and_by_status(tmp_pa
                    f"  rate_hz: 10\nrectify:\n  calibration: {KARLSRUHE / 'calibration.yaml'}\n")
     u = Up(extra_env={"BALLBOT_CONFIG": str(cfg)})
     try:
-        with u.session() as s:
-            lists = Collector(ObstacleList)
-            s.declare_subscriber(topic("obstacles").key(u.robot_id), lists)
-
-            def said(items) -> bool:
-                return len(items) >= 3 and all("camera-frozen" in m.degraded for m in items[-3:])
-            assert lists.wait_for(said, 120), [(m.seq, m.degraded) for m in lists.items[-10:]] + \
-                [u.log_path.read_text()[-3000:]]
-            assert not any("input-frozen" in m.degraded for m in lists.items)  # the maps changed all along
-        status = subprocess.run(cli("status", "--connect", u.endpoint, "--json", "--wait", "2.5"),
-                                capture_output=True, text=True, timeout=60)
-        seg = next(i for i in json.loads(status.stdout)["instances"] if i["name"] == "segmenter")
-        assert status.returncode == 3 and seg["status"].startswith("camera-frozen: the right camera"), seg
+        lists = lists_saying(u, "camera-frozen")
+        assert not any("input-frozen" in m.degraded for m in lists)  # the maps changed all along
+        code, _, seg = status_of(u)
+        assert code == 3 and seg["status"].startswith("camera-frozen: the right camera"), seg
         assert "the right camera's picture has not changed" in u.log_path.read_text()
     finally:
         u.stop()
