@@ -253,6 +253,20 @@ def test_eval_ground_figures_agree_with_the_estimator_on_a_still_camera(data):
 
 
 @pytest.mark.parametrize("method", ["bm", "sgbm", "dense"])
+def test_a_plain_cabinet_lower_than_the_camera_is_an_obstacle_with_every_matcher(method):
+    """The low-faces scene's plain cabinet, 0.85 m high 3 m ahead: the floor beyond it shows above
+    it. dense doubted every pixel of it and the list was empty in every frame, silently; now its
+    doubted top edge and face make it an obstacle with every matcher."""
+    from cores.matching.config import MatcherConfig
+
+    data = {"low-faces": E.render_scenario("low-faces", matcher=MatcherConfig(method=method))}
+    s = E.evaluate(["low-faces"], ["layers"], data=data)["scenarios"]["low-faces"]["layers"]
+    t = s.per_truth["cabinet"]
+    assert t["matched"] == t["seen"] == 3, (method, t)
+    assert s.floor_fp == 0 and s.wall_fp == 0
+
+
+@pytest.mark.parametrize("method", ["bm", "sgbm", "dense"])
 def test_plain_faces_nothing_can_be_matched_in_are_obstacles_with_every_matcher(method):
     """A painted cabinet and a white panel, taller than the camera: block matching measures at most
     their outlines. Each is an obstacle in every frame, with every matcher (dense's own fill takes

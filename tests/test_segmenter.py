@@ -1020,6 +1020,90 @@ def test_what_is_not_a_blank_face_is_left_alone(case):
     assert made == [], [(o.position_m, o.bbox_px) for o in lst.obstacles]
 
 
+def low_face(top_edge_disparity: float | None, z_m: float = 2.2, height_m: float = 0.5, u0: int = 200,
+             u1: int = 420, seed_: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """A plain box height_m tall standing at z_m over columns u0..u1, as dense gives it: the floor
+    beyond it in view above it; inside it nothing but a few doubted matches (confidence 150, under
+    min_confidence) scattered 1 px around its depth; its top edge a doubted row at
+    top_edge_disparity (None: no top edge). -> (disparity, confidence)."""
+    rng = np.random.default_rng(seed_)
+    d = scene()
+    conf = np.full(d.shape, 255, np.uint8)
+    fp = floor_plane(SCENE_MOUNT)
+    col = (u0 + u1) // 2
+    rows = np.arange(MODEL.height, dtype=np.float32)
+    foot = int(np.nonzero(fp.disparity(np.float32(col), rows) <= FB / z_m)[0].max())
+    top = foot - int(round(height_m * MODEL.focal_px / z_m))  # a vertical face: its height over z in pixels
+    d[top:foot + 1, u0:u1] = np.nan
+    conf[top:foot + 1, u0:u1] = 20  # dense's fill
+    inside = rng.random((foot + 1 - top, u1 - u0)) < 0.03
+    d[top:foot + 1, u0:u1][inside] = FB / z_m + rng.normal(0, 1.0, int(inside.sum()))
+    conf[top:foot + 1, u0:u1][inside] = 150
+    if top_edge_disparity is not None:
+        d[top:top + 2, u0:u1] = top_edge_disparity
+        conf[top:top + 2, u0:u1] = 150
+    return d, conf
+
+
+def test_a_plain_face_lower_than_the_camera_is_an_obstacle_by_its_doubted_top_edge():
+    """dense gives a plain box 0.5 m high what it gives every depth edge, a low confidence: the
+    segmenter sets its pixels aside and sees floor up to its foot and again beyond it. The doubted
+    matches inside it and along its top, at the foot's depth, make it an obstacle there, as tall as
+    its top edge; before, the list was empty and unflagged."""
+    d, conf = low_face(FB / 2.2)
+    lst = ObstacleBuilder(SegmenterSettings()).process(d, MODEL, t_s=0.0, seq=0, stamp_ns=0,
+                                                       confidence=conf).obstacles
+    assert len(lst.obstacles) == 1 and lst.degraded == [], lst.model_dump_json()
+    o = lst.obstacles[0]
+    assert abs(o.position_m[2] - 2.2) < 0.15 and 0.35 < o.size_m[1] < 0.65, o
+    assert 190 <= o.bbox_px[0] <= 210 and 410 <= o.bbox_px[2] <= 430
+
+
+@pytest.mark.parametrize("case", ["no top edge", "edge at the floor beyond", "too low"])
+def test_an_unmeasured_stretch_of_floor_is_no_low_face(case):
+    """What the rule must not take for a low face: a stretch with no top edge measured at all (dense
+    saw nothing to go by: a patch of floor looks the same), one whose edge is at the depth of the floor
+    beyond it (a plain mat ends there), and a face under min_height_m (0.2 m)."""
+    if case == "no top edge":
+        d, conf = low_face(None)
+    elif case == "edge at the floor beyond":
+        d, conf = low_face(FB / 3.2)
+    else:
+        d, conf = low_face(FB / 2.2, height_m=0.12)
+    lst = ObstacleBuilder(SegmenterSettings()).process(d, MODEL, t_s=0.0, seq=0, stamp_ns=0,
+                                                       confidence=conf).obstacles
+    assert [o for o in lst.obstacles if o.position_m[2] < 4.5] == [], lst.model_dump_json()
+
+
+def test_free_space_does_not_run_through_a_plain_crate_the_matcher_left_unmeasured():
+    """The low-faces scene, rendered (bm): a plain crate 0.35 m high 1.6 m ahead, its foot below the
+    image. Block matching measures nothing of its faces, and sees the floor beyond it. Counting the
+    floor between points seen as seen made the crate free space; within near_field_m a stretch tall
+    enough to hide min_height_m is no longer bridged. Beside the crate the floor stays free."""
+    import sim
+    from cores.matching.config import MatcherConfig
+    from cores.pipeline import Pipeline
+    from sim.scene import Scene
+
+    def free_cells(**settings):
+        rig = camera.load_raw_rig("lifecam-studio")
+        pipe = Pipeline(rig, MatcherConfig(method="bm"), SegmenterSettings(**settings))
+        world = sim.SyntheticWorld(Scene.builtin("low-faces"), rig, pipe.rectifier.rectification, seed=0)
+        g = pipe.process(*world.render(0.0), t_s=0.0, seq=0).result.freespace
+        cells = np.frombuffer(g.cells, np.int8).reshape(g.height, g.width)
+        xs = g.origin_m[0] + (np.arange(g.width) + 0.5) * g.resolution_m
+        ys = g.origin_m[1] + (np.arange(g.height) + 0.5) * g.resolution_m
+
+        def free(x0, x1, y0, y1):
+            return int((cells[np.ix_((ys > y0) & (ys < y1), (xs > x0) & (xs < x1))] == 0).sum())
+        return free(1.65, 1.95, 0.25, 0.65), free(1.65, 2.5, -0.6, -0.2)  # the crate's top, the floor right of it
+
+    crate, beside = free_cells()
+    assert crate == 0 and beside > 10, (crate, beside)
+    crate_before, _ = free_cells(near_field_m=0)  # every stretch bridged, as before
+    assert crate_before > 10
+
+
 # --- drops -----------------------------------------------------------------------------------------
 
 def curb(depth_m: float, at_m: float = 2.5, frames: int = 3, **settings):

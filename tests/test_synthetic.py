@@ -257,7 +257,7 @@ def test_subpixel_matches_agree_with_true_disparity(clean_world, rig, rect):
 # --- scenarios ---------------------------------------------------------------------------------------
 
 def test_builtin_scenarios_listed():
-    assert S.list_builtin_scenarios() == ["blank-faces", "border", "border-right", "chair", "occlusion",
+    assert S.list_builtin_scenarios() == ["blank-faces", "border", "border-right", "chair", "low-faces", "occlusion",
                                           "people-border", "people-queue", "people-queue-far", "people-side",
                                           "people-side-far", "person-walking", "sway", "sway-pivot", "toolbox",
                                           "touching", "two-boxes"]

@@ -20,8 +20,19 @@ floor's disparity at Z_f, up to robot_height_m above the floor: the obstacle is 
 and tracked as any other, and its confidence (the share of its pixels the matcher measured) says
 how little of it was seen.
 
-A face lower than the camera is not found (its top cannot be told from unmeasured floor beyond);
-nor one whose foot is not seen (nearer than the image's bottom edge). Farther than
+A face lower than the camera (a plain box, a bench, a stair riser) leaves the floor beyond it in
+view above its top, so the stretch above its foot is not unmeasured up past the horizon. Along each
+column, where the floor seen stops for as many rows as a face min_height_m tall standing there would
+cover, the stop may be such a face's foot. What tells it from a plain patch of floor is what was
+measured above the stop: mostly (FACE_SHARE) within CAP_PX of the stop's disparity, up to a top edge
+at that depth, nearer it than the floor's at its row and min_height_m or more above the floor. A
+plain patch of floor ends in floor farther away, or too close above its near edge to be that tall.
+Such a column holds a face from the stop up to that edge, whatever stands farther. What was
+measured includes what the matcher doubted (confidence MEASURED or more, below the segmenter's
+min_confidence): dense gives every depth edge a low confidence, and so set aside the very pixels
+that show the face; on the low-faces scene it missed the plain cabinet in 2 of 3 frames, silently.
+A face whose foot is not seen (nearer than the image's bottom edge) is not found, nor a low one of
+which the matcher measured nothing. Farther than
 near_field_m a road fading into the distance under a blank sky looks the same as a face:
 on the street recording (karlsruhe, bm, 40 frames) 11 such stretches at 10-17 m, none nearer; on
 the room recording and every synthetic scene, none.
@@ -39,6 +50,15 @@ BEHIND_M = 1.0  # something standing measured this close beyond the floor's end 
 UNMEASURED = 0.8  # share of the stretch above the floor's end that must be unmeasured
 ABOVE_HORIZON_M = 0.1  # the stretch reaches this far above the camera's height at Z_f
 MIN_WIDTH_M = 0.3  # narrower: a gap between two things, a pole's dark side, not a face to list
+# a low face's pixels are this close to the disparity at its foot, px: a doubted match's noise (dense on
+# the plain faces of the low-faces scene: 1.3-1.6 px half the interquartile range), whatever the depth
+CAP_PX = 3.0
+GAP_COLS = 2  # working columns
+FACE_SHARE = 0.6  # share of what was measured between a low face's foot and its top edge that is at its depth
+# confidence from which a pixel the segmenter sets aside still counts as measured (a top edge): the
+# matcher's scale is 0 = no measurement, 255 = certain; dense gives 128..255 to what SGBM measured
+# and less to what its fill spread
+MEASURED = 128
 
 
 @dataclass
@@ -52,9 +72,10 @@ class BlankFaces:
 
 def find(dm: np.ndarray, df: np.ndarray, seen_floor: np.ndarray, standing: np.ndarray, floor: FloorPlane,
          model: camera.RectifiedModel, step: int, range_m: float, within_m: float,
-         robot_height_m: float) -> BlankFaces | None:
+         robot_height_m: float, min_height_m: float = 0.2, doubtful: np.ndarray | None = None) -> BlankFaces | None:
     """dm: working disparity (0 = unmeasured, not range-gated); df: the floor's disparity on the
-    working grid; seen_floor / standing: the floor and standing pixels in range (bool, working grid).
+    working grid; seen_floor / standing: the floor and standing pixels in range (bool, working grid);
+    doubtful: the disparity of pixels measured but set aside for their low confidence (0 elsewhere).
     -> the blank faces' pixels, or None."""
     h, w = dm.shape
     if floor.b <= 0 or within_m <= 0:
@@ -69,48 +90,98 @@ def find(dm: np.ndarray, df: np.ndarray, seen_floor: np.ndarray, standing: np.nd
         z_end = np.where(d_end > 0, fB / np.maximum(d_end, 1e-9), np.inf)
         d_stand = np.maximum.reduce(dm, axis=0, where=standing, initial=0)
         z_stand = np.where(d_stand > 0, fB / np.maximum(d_stand, 1e-9), np.inf)
-    cand = has_floor & (z_end < limit) & (z_stand > z_end + BEHIND_M)
-    if not cand.any():
-        return None
+    near = has_floor & (z_end < limit)
+    faces = np.zeros(w, bool)
+    face_top = np.zeros(w, np.int64)  # per face column, the row its face ends at (the top edge, or robot height)
+    # 1. taller than the camera: unmeasured from the floor's end up past the horizon
+    cand = near & (z_stand > z_end + BEHIND_M)
     # the horizon's working row in each column (the floor's disparity 0) and 0.1 m above the camera there
     u = cols.astype(np.float64) * step
     v_h = (-floor.c - floor.a * u) / floor.b / step
     top = np.floor(v_h - ABOVE_HORIZON_M * model.focal_px / (z_end * step)).astype(np.int64)
     cand &= (top >= 0) & (top < top_floor)
-    if not cand.any():
-        return None
-    c = np.flatnonzero(cand)
-    # unmeasured pixels above each row of the candidate columns (a running count: one pass)
-    unmeasured = np.concatenate([np.zeros((1, c.size), np.int32), np.cumsum(dm[:, c] <= 0, axis=0, dtype=np.int32)])
-    k = np.arange(c.size)
-    n = top_floor[c] - top[c]
-    blank = (unmeasured[top_floor[c], k] - unmeasured[top[c], k]) >= UNMEASURED * n
-    faces = np.zeros(w, bool)
-    faces[c[blank]] = True
-    faces = _wide_runs(faces, z_end, MIN_WIDTH_M * model.focal_px / step)
+    if cand.any():
+        c = np.flatnonzero(cand)
+        # unmeasured pixels above each row of the candidate columns (a running count: one pass)
+        unmeasured = np.concatenate([np.zeros((1, c.size), np.int32), np.cumsum(dm[:, c] <= 0, axis=0, dtype=np.int32)])
+        k = np.arange(c.size)
+        n = top_floor[c] - top[c]
+        blank = (unmeasured[top_floor[c], k] - unmeasured[top[c], k]) >= UNMEASURED * n
+        faces[c[blank]] = True
+    foot = np.where(faces, top_floor, -1)  # per face column, the floor row at its foot
+    # 2. lower than the camera: the floor seen stops (for as many rows as a face min_height_m tall would
+    # hide, or to the image's top) and above that stop, what was measured at all (doubted or not) is
+    # mostly at the stop's depth, up to a top edge min_height_m or more above the floor
+    rows = np.arange(h)[:, None]
+    above = np.maximum.accumulate(np.where(seen_floor, rows, -1), axis=0)  # the nearest floor row at or above
+    gap = rows - np.concatenate([np.full((1, w), -1), above[:-1]]) - 1  # rows without floor just above
+    hidden = min_height_m * np.maximum(df, 0) / (model.baseline_m * step)  # rows a face that tall hides
+    with np.errstate(divide="ignore"):
+        stops = seen_floor & (gap >= np.maximum(hidden, 2)) & (fB / np.maximum(df, 1e-9) < limit)
+    low = np.max(np.where(stops, rows, -1), axis=0)  # the nearest such stop in each column
+    c = np.flatnonzero((low >= 0) & ~faces)
+    if c.size:
+        sub = dm[:, c]
+        d = sub if doubtful is None else np.where(sub > 0, sub, doubtful[:, c])
+        v1 = low[c]
+        d0 = df[v1, c].astype(np.float32)
+        z0 = fB / d0
+        reach = np.ceil(robot_height_m * model.focal_px / (z0 * step)).astype(np.int64)
+        window = (rows < v1) & (rows >= v1 - reach)
+        evidence = window & (d > 0)
+        # at the face's depth, within the noise of a doubted match (near the foot the floor's too)
+        off = np.abs(d - d0)
+        at_end = evidence & (off <= np.float32(CAP_PX))
+        # counts from the foot upwards: rows at and below r, down to the foot
+        n_ev = np.cumsum(evidence[::-1], axis=0)[::-1]
+        n_at = np.cumsum(at_end[::-1], axis=0)[::-1]
+        n_unm = np.cumsum((window & (sub <= 0))[::-1], axis=0)[::-1]
+        span = v1[None, :] - rows  # rows from r to the foot
+        tall = span * step * z0[None, :] / model.focal_px >= max(min_height_m, 1e-6)
+        # a top edge: at the face's depth and nearer it than the floor's at its row, so no floor
+        top_ok = (at_end & (off < np.abs(d - df[:, c])) & tall & (n_at >= FACE_SHARE * n_ev)
+                  & (n_unm >= UNMEASURED * span))
+        found = top_ok.any(0)
+        faces[c[found]] = True
+        foot[c[found]] = v1[found]
+        face_top[c[found]] = np.argmax(top_ok, axis=0)[found]  # the highest such top edge
     if not faces.any():
         return None
-    # each face column from its foot up to robot_height_m above the floor there (what the robot can hit)
+    d_face = np.where(faces, df[np.maximum(foot, 0), cols], 0.0).astype(np.float64)
+    with np.errstate(divide="ignore"):
+        z_face = np.where(d_face > 0, fB / np.maximum(d_face, 1e-9), np.inf)
+    faces = _wide_runs(faces, z_face, MIN_WIDTH_M * model.focal_px / step)
+    if not faces.any():
+        return None
+    # each face column from its foot up to its top edge, or robot_height_m above the floor there (what
+    # the robot can hit)
     f = np.flatnonzero(faces)
-    v1 = top_floor[f]
-    v0 = v1 - np.ceil(robot_height_m * model.focal_px / (z_end[f] * step)).astype(np.int64)
-    rows = np.arange(h)[:, None]
+    v1 = foot[f]
+    v0 = np.maximum(v1 - np.ceil(robot_height_m * model.focal_px / (z_face[f] * step)).astype(np.int64), face_top[f])
     in_face = (rows >= v0) & (rows < v1) & (dm[:, f] <= 0)
     if not in_face.any():
         return None
     mask = np.zeros((h, w), bool)
     disparity = np.zeros((h, w), np.float32)
     mask[:, f] = in_face
-    disparity[:, f] = np.where(in_face, d_end[f].astype(np.float32), np.float32(0))
+    disparity[:, f] = np.where(in_face, d_face[f].astype(np.float32), np.float32(0))
     return BlankFaces(mask, disparity)
 
 
 def _wide_runs(a: np.ndarray, z: np.ndarray, fw: float) -> np.ndarray:
     """a (bool, 1-D: columns) with its runs of True narrower than fw / Z (working columns, at the
-    run's median depth z) cleared."""
+    run's median depth z) cleared. Runs apart by GAP_COLS columns or fewer are measured as one (a
+    column or two the rules missed on a noisy face); the gap itself stays False."""
     out = np.zeros_like(a)
     edges = np.flatnonzero(np.diff(np.concatenate([[0], a.astype(np.int8), [0]])))
-    for s, e in zip(edges[::2], edges[1::2]):
-        if e - s >= fw / float(np.median(z[s:e])):
-            out[s:e] = True
+    starts, ends = list(edges[::2]), list(edges[1::2])
+    i = 0
+    while i < len(starts):
+        j = i
+        while j + 1 < len(starts) and starts[j + 1] - ends[j] <= GAP_COLS:
+            j += 1
+        s, e = starts[i], ends[j]
+        if e - s >= fw / float(np.median(z[s:e][a[s:e]])):
+            out[s:e] = a[s:e]
+        i = j + 1
     return out

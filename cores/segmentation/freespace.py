@@ -75,7 +75,9 @@ def drivable(floor: FloorPlane, df: np.ndarray, seen_floor: np.ndarray, standing
     ray on the ground), the floor from the image's bottom edge out to the farthest floor point seen
     in that column, but not beyond anything standing in it (any pixel above the floor margin,
     obstacle or not) nor beyond the vision range. Block matching sees little of a smooth road, so
-    the floor between seen points counts as seen; an obstacle that left no pixel is not known."""
+    the floor between seen points counts as seen, where the rows between are too few to hide
+    anything min_height_m tall (_bridged): a longer unmeasured stretch, the bottom edge's included,
+    is not known. A plain crate left no pixel, and the floor seen beyond it made it free space."""
     fB = model.focal_px * model.baseline_m
 
     def depth(d: np.ndarray) -> np.ndarray:  # float32 f B / d (inf where d <= 0): the same of a column's
@@ -102,4 +104,28 @@ def drivable(floor: FloorPlane, df: np.ndarray, seen_floor: np.ndarray, standing
     f = model.focal_px
     # the floor's pixel row at depth z in column u: a u + b v + c = f B / z
     v = (fB / z - floor.a * u - floor.c) / floor.b
+    h = df.shape[0]
+    vw = np.clip(np.floor(v / step).astype(np.int64), 0, h - 1)
+    keep = _bridged(df, seen_floor, model.baseline_m, cfg.min_height_m, fB / max(cfg.near_field_m, 1e-3),
+                    step)[vw, (u / step).astype(np.int64)]
+    z, u, v = z[keep], u[keep], v[keep]
     return np.stack([(u - model.cx) * z / f, (v - model.cy) * z / f, z], 1)
+
+
+def _bridged(df: np.ndarray, seen_floor: np.ndarray, baseline_m: float, min_height_m: float, near_px: float,
+             step: int) -> np.ndarray:
+    """(h, w) bool, working grid: the rows at or below the farthest floor row seen in their column that
+    count as floor seen. In the near field (rows whose floor disparity is over near_px) a row between
+    two floor rows seen (or the image's bottom edge and one) counts only if the stretch has fewer rows
+    than a face min_height_m tall would cover standing at its nearer end (min_height_m f / Z =
+    min_height_m d / B pixels): an obstacle at least that tall hides at least that many rows, and a
+    shorter stretch is the matcher missing smooth floor. Farther, every stretch counts, as the robot
+    will see it again nearer: block matching leaves most of a smooth road unmeasured (karlsruhe, bm:
+    half the columns from the image's bottom edge at 4 m to the first road point seen)."""
+    h, w = seen_floor.shape
+    rows = np.arange(h)[:, None]
+    above = np.maximum.accumulate(np.where(seen_floor, rows, -1), axis=0)  # the nearest floor row at or above
+    below = np.minimum.accumulate(np.where(seen_floor, rows, h)[::-1], axis=0)[::-1]  # ... at or below (h: none)
+    near_end = df[np.minimum(below, h - 1), np.arange(w)[None, :]]  # the image's bottom edge if none below
+    covers = min_height_m * np.maximum(near_end, 0) / (baseline_m * step)
+    return (above >= 0) & ((df <= near_px) | (below - above - 1 < np.maximum(covers, 1)))

@@ -22,7 +22,8 @@ only what stands on it counts, and objects are grouped where they stand.
  5b. blank faces (blank.py): where the floor seen along a column ends short of the range with
     nothing measured standing there, and the image above is unmeasured up past the horizon, a
     plain face (a wall, a door, a cabinet: nothing inside to match) stands at the floor's end:
-    its pixels stand, at that depth
+    its pixels stand, at that depth; a lower one, where what was measured above the floor's stop
+    (the matcher's doubted pixels too) is mostly at the stop's depth, up to a top edge
  6. a standing pixel with a 4-neighbour nearer by more than step_px + step_rel * d sits on a depth
     step, where block matching blends two depths into a phantom: it is not grouped
  7. grouping on the column-disparity grid (u-disparity): a cell (column, disparity bin) is
@@ -45,7 +46,8 @@ only what stands on it counts, and objects are grouped where they stand.
     (2nd percentile of range), bbox, area, median disparity, confidence (mean matcher confidence,
     else the fraction of its pixels with a valid raw disparity)
 12. the drivable floor: along each column, from the image's bottom edge to the farthest floor
-    point seen, stopped by anything standing (freespace.py: drivable, and the grid)
+    point seen, stopped by anything standing, within near_field_m not across an unmeasured
+    stretch that could hide something min_height_m tall (freespace.py: drivable, and the grid)
 13. optional boundary refinement (edge_refine): each box side snapped to the strongest intensity
     edge of the left image within a few pixels (the thesis's hybrid idea)
 """
@@ -127,19 +129,26 @@ class LayersFrame:
 
 
 def _working_disparity(disparity: np.ndarray, cfg: SegmenterSettings, confidence: np.ndarray | None,
-                       step: int) -> tuple[np.ndarray, np.ndarray]:
-    """(raw, median-filtered) working-resolution disparity, 0 = invalid; pixels whose confidence is
-    below min_confidence are invalid."""
+                       step: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """(raw, median-filtered, doubtful) working-resolution disparity, 0 = invalid; pixels whose
+    confidence is below min_confidence are invalid. doubtful: the disparity of the pixels set aside
+    that the matcher measured nonetheless (confidence from blank.MEASURED up), 0 elsewhere; None when
+    nothing was set aside."""
     d0 = np.ascontiguousarray(np.asarray(disparity, dtype=np.float32)[::step, ::step])
     if d0.base is disparity or d0 is disparity:
         d0 = d0.copy()  # (step 1) the caller's map stays as it is
     cv2.patchNaNs(d0, 0)  # NaN, negative and infinite -> 0, in place (OpenCV: several times numpy's speed)
     cv2.threshold(d0, 0, 0, cv2.THRESH_TOZERO, dst=d0)
     cv2.threshold(d0, float(np.finfo(np.float32).max), 0, cv2.THRESH_TOZERO_INV, dst=d0)
+    doubtful = None
     if confidence is not None and cfg.min_confidence > 0:
-        d0[np.asarray(confidence)[::step, ::step] < cfg.min_confidence] = 0
+        c0 = np.asarray(confidence)[::step, ::step]
+        low = c0 < cfg.min_confidence
+        if cfg.min_confidence > blank.MEASURED:
+            doubtful = np.where(low & (c0 >= blank.MEASURED), d0, np.float32(0))
+        d0[low] = 0
     dm = cv2.medianBlur(d0, cfg.median_ksize) if cfg.median_ksize > 1 else d0
-    return d0, dm
+    return d0, dm, doubtful
 
 
 def _nearest_disparity(fB: float, cfg: SegmenterSettings) -> float:
@@ -180,7 +189,7 @@ def estimate_ground(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Se
     """The floor plane and ground estimate of one full-resolution map, as segment_frame finds them
     (for the seed method, which removes the floor by it)."""
     step = max(1, int(cfg.downsample))
-    _, dm = _working_disparity(disparity, cfg, confidence, step)
+    _, dm, _ = _working_disparity(disparity, cfg, confidence, step)
     return _fit_ground(dm, None, model, cfg, ground, step)
 
 
@@ -239,7 +248,7 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
         raise ValueError(f"confidence is {confidence.shape[1]}x{confidence.shape[0]}, disparity "
                          f"{disparity.shape[1]}x{disparity.shape[0]}")
     step = max(1, int(cfg.downsample))
-    d0, dm = _working_disparity(disparity, cfg, confidence, step)
+    d0, dm, doubtful = _working_disparity(disparity, cfg, confidence, step)
     h, w = dm.shape
     f, B = model.focal_px, model.baseline_m
     fB = f * B
@@ -275,15 +284,17 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
         drop = drops.mask(dk, df, above, floor, cfg, fB, doubt)
         if drop is not None:
             seen_floor &= ~drop  # the floor beyond a curb down is no floor to drive on
-        floor_points = freespace.drivable(floor, df, seen_floor, keep & ~on_floor, dk, model, cfg, step)
         faces = blank.find(dm, df, seen_floor, stand, floor, model, step, range_m, cfg.near_field_m,
-                           cfg.robot_height_m)
+                           cfg.robot_height_m, cfg.min_height_m, doubtful)
+        beyond_floor = keep & ~on_floor
         if faces is not None:  # a plain face the matcher could not measure stands at the floor's end
             dm = np.where(faces.mask, faces.disparity, dm)
             dk = np.where(faces.mask, faces.disparity, dk)
             with np.errstate(divide="ignore", invalid="ignore"):
                 above = np.where(faces.mask, np.float32(floor.height_m) * (1 - df / faces.disparity), above)
             stand |= faces.mask
+            beyond_floor |= faces.mask  # the floor seen past a low face is not the robot's to drive on
+        floor_points = freespace.drivable(floor, df, seen_floor, beyond_floor, dk, model, cfg, step)
     else:
         above, drop = None, None
         stand = keep
