@@ -11,8 +11,10 @@ from typing import Any
 
 import numpy as np
 
+from cores.matching import exposure
 from cores.matching.config import SCALE, MatcherConfig, gate_for_range
 from cores.matching.disparity import searched_range, to_float
+from cores.matching.exposure import Exposure
 from cores.matching.matchers import make_matcher
 from cores.matching.opencv import Match
 
@@ -27,6 +29,7 @@ class StageResult:
     config: MatcherConfig
     min_disparity: int
     num_disparities: int
+    exposure: Exposure = Exposure()  # what the right image's grey levels were mapped by
 
     @property
     def invalid_value(self) -> int:
@@ -65,7 +68,8 @@ class MatchStage:
         """left, right: (H, W) or (H, W, 3) uint8, rectified, of a camera with this focal length (px)
         and baseline (m)."""
         matcher = self.matcher(focal_px, baseline_m, left.shape[1])
+        right, exp = exposure.equalize(left, right)  # two auto exposures: the right one brought to the left's
         result = matcher.match(left, right, gate_for_range(self.config.max_range_m, focal_px, baseline_m))
         c = matcher.config
         lo, num = getattr(matcher, "output_range", (c.min_disparity, c.fixed_num_disparities))
-        return StageResult(result, c, int(lo), int(num))
+        return StageResult(result, c, int(lo), int(num), exp)
