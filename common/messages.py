@@ -19,7 +19,8 @@ from pydantic import BaseModel, ConfigDict, Field
 #    configured mount beside the fitted ground (prior_*).
 # 4: ObstacleList.range_m (the distances a list looked at: what "looked and saw nothing" covers).
 # 5: StereoFrame.checks and DisparityMap.checks (rectify's live checks of the pair: rows, frozen cameras).
-SCHEMA_VERSION = 5
+# 6: FrameChecks.blocked (a camera's view partly blocked).
+SCHEMA_VERSION = 6
 
 Vec3 = tuple[float, float, float]
 Metres = Annotated[float, Field(allow_inf_nan=False, ge=0.0, le=1000.0)]
@@ -92,6 +93,10 @@ class FrameChecks(BaseModel):
         default_factory=list, max_length=2, description="cameras whose picture has not changed, bit for bit, for "
         "over rectify's frozen_after_s while stamps went on (a hung driver repeating its last buffer): each list "
         "says camera-frozen. One frozen camera of two leaves the maps changing, so input-frozen cannot tell")
+    blocked: list[Literal["left", "right"]] = Field(
+        default_factory=list, max_length=2, description="cameras with a part of their view blocked (a finger, a "
+        "sticker, glare: flat where the other camera sees texture) for over rectify's frozen_after_s: each list "
+        "says view-blocked; nothing standing there is measured")
 
 
 class StereoFrame(Message):
@@ -244,7 +249,7 @@ class ObstacleList(Message):
                                 "trusted as a full view (empty: trustworthy; e.g. 'input-frozen', "
                                 "'no-valid-disparity', 'valid-collapse', 'no-ground', 'ground-uncertain', "
                                 "'range-unreachable', 'near-unmeasured', 'floor-out-of-view', 'standing-not-listed', "
-                                "'mount-disagrees', 'rows-misaligned', 'camera-frozen')")
+                                "'mount-disagrees', 'rows-misaligned', 'camera-frozen', 'view-blocked')")
     valid_fraction: float = Field(0.0, ge=0, le=1, description="share of the image the disparity map measured "
                                   "(valid pixels within the vision range gate's search) for this list")
     range_m: tuple[Metres, Metres] | None = Field(None, description="the distances this list looked at, m: "

@@ -106,7 +106,7 @@ class Pipeline:
                 odometry: Odometry | None = None, names: tuple[str, str] = ("left", "right"),
                 rectified: bool = False) -> PipelineFrame:
         """One pair, raw (rectified=False) or already rectified, through the three steps."""
-        stuck = self.checks.frozen(left, right, t_s)
+        stuck, blocked = self.checks.pictures(left, right, t_s)
         t0 = time.perf_counter()
         if not rectified:
             left, right = self.rectify(left, right, names)
@@ -120,7 +120,7 @@ class Pipeline:
         result = self.builder.process(disparity, self.model, t_s=t_s, seq=seq, stamp_ns=stamp_ns,
                                       confidence=stage.match.confidence, odometry=odometry, image=left,
                                       search=(stage.min_disparity, stage.num_disparities),
-                                      checks=self.checks.message(stuck))
+                                      checks=self.checks.message(stuck, blocked))
         t3 = time.perf_counter()
         return PipelineFrame(seq, left, right, stage, disparity, result, (t1 - t0) * 1e3, (t2 - t1b) * 1e3,
                              (t3 - t2) * 1e3)

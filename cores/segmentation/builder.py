@@ -253,7 +253,9 @@ class ObstacleBuilder:
         found the pair's rows apart by more than its tolerance (the calibration no longer fits the
         rig: the map measures less, and wrongly); "camera-frozen": one camera's picture has not changed
         for over rectify's frozen_after_s (`checks.frozen`: its driver repeats a buffer; with the
-        other live the map changes, and is wrong wherever anything moved);
+        other live the map changes, and is wrong wherever anything moved); "view-blocked": part of
+        one camera's view is flat where the other's has texture (`checks.blocked`: a finger on the
+        lens; nothing there is measured);
         "floor-out-of-view": the floor within the vision range is below the camera's view;
         "standing-not-listed": something standing in range, of min_area_m2 frontal area, is in no
         obstacle: seed's border clearing, area opening or Otsu threshold dropped it)."""
@@ -317,6 +319,8 @@ class ObstacleBuilder:
             degraded.append("rows-misaligned")
         if checks is not None and checks.frozen:
             degraded.append("camera-frozen")
+        if checks is not None and checks.blocked:
+            degraded.append("view-blocked")
         if reach.unreachable:
             degraded.append("range-unreachable")
         elif reach.near_unmeasured:

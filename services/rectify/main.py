@@ -77,7 +77,9 @@ class RectifySettings(ServiceSettings):
     frozen_after_s: float = Field(0.5, gt=0.0, le=3600.0, description="a camera whose picture has not changed, "
                                   "bit for bit, for this long while its stamps go on is frozen (a hung driver "
                                   "repeating its last buffer; a live camera's noise never repeats): every list says "
-                                  "camera-frozen")
+                                  "camera-frozen; and one whose view has been partly blocked this long (flat where the "
+                                  "other camera sees texture: a finger on the lens) is blocked: every list says "
+                                  "view-blocked")
     source: Literal["synthetic", "cameras", "sbs", "video", "images", "ros2", "mcap"] | None = Field(
         None, description="the capture source this rectify serves, when the deployment knows it (the compose files "
                           "set it from CAPTURE_SOURCE): cameras, sbs, video and images need rectify.calibration and "
@@ -266,6 +268,7 @@ def run(node: Node, settings: RectifySettings) -> None:
     rows = LiveRowCheck(node, checks.rows)
     rows_generation = holder.generation
     said_frozen: list[Literal["left", "right"]] = []
+    said_blocked: list[Literal["left", "right"]] = []
     for msg in node.receive(inbox):
         holder.stream_source = msg.source
         with node.processing(msg):
@@ -285,7 +288,7 @@ def run(node: Node, settings: RectifySettings) -> None:
             left = codec.array_from_image(msg.left, "left")
             right = codec.array_from_image(msg.right, "right")
             now = time.monotonic()
-            stuck = checks.frozen(left, right, now)
+            stuck, blocked = checks.pictures(left, right, now)
             if stuck != said_frozen:
                 if stuck:
                     node.warn("frozen", f"the {' and '.join(stuck)} camera's picture has not changed for over "
@@ -294,11 +297,20 @@ def run(node: Node, settings: RectifySettings) -> None:
                 else:
                     log.info("rectify: both cameras' pictures change again")
                 said_frozen = stuck
+            if blocked != said_blocked:
+                if blocked:
+                    node.warn("blocked", f"part of the {' and '.join(blocked)} camera's view is flat where the other "
+                                         f"camera sees texture (a finger, a sticker, glare on the lens?): nothing "
+                                         f"there is measured; every list says view-blocked")
+                else:
+                    log.info("rectify: both cameras see the whole view again")
+                said_blocked = blocked
             node.extra["frozen_cameras"] = float(len(stuck))
+            node.extra["blocked_cameras"] = float(len(blocked))
             rl, rr = rectifier.rectify(left, right)
             holder.mark_used()
             rows.offer(rl, rr, time.monotonic(), msg.stamp_ns)
             out.put(StereoFrame(robot_id=msg.robot_id, seq=msg.seq, stamp_ns=msg.stamp_ns, stages=msg.stages,
                                 left=codec.image_from_array(rl), right=codec.image_from_array(rr),
                                 camera=rectifier.model_message, source=msg.source,
-                                checks=checks.message(stuck)))
+                                checks=checks.message(stuck, blocked)))

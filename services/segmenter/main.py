@@ -44,6 +44,8 @@ REASON_STATUS: dict[str, str] = {
                     "picture with fresh stamps (a hung driver?)",
     "camera-frozen": "the {cameras} camera's picture has not changed for over rectify's frozen_after_s while "
                      "its stamps go on: its driver repeats one buffer (unplug and replug it, or restart capture)",
+    "view-blocked": "part of the {blocked} camera's view is flat where the other camera sees texture (a finger, "
+                    "a sticker, glare on the lens?): nothing standing there is measured; clean or clear the lens",
     "rows-misaligned": "rectify finds the pair's rows {offset} apart: the calibration no longer fits the rig (a "
                        "knocked camera, a loose lens?); check it (`ballbot-vision calibration check`) and calibrate "
                        "again",
@@ -69,7 +71,9 @@ def list_status(msg: ObstacleList, builder: ObstacleBuilder, settings: Segmenter
             rows = builder.checks.rows if builder.checks is not None else None
             offset = f"{rows.offset_px:.2f} px" if rows is not None else "too far"
             cameras = " and ".join(builder.checks.frozen) if builder.checks is not None else "a"
-            return f"{reason}: " + text.format(stale_after_s=settings.stale_after_s, offset=offset, cameras=cameras)
+            blocked = " and ".join(builder.checks.blocked) if builder.checks is not None else "a"
+            return f"{reason}: " + text.format(stale_after_s=settings.stale_after_s, offset=offset, cameras=cameras,
+                                               blocked=blocked)
     if msg.degraded:  # no-ground, ground-uncertain, valid-collapse, ...
         return f"degraded lists: {', '.join(msg.degraded)}"
     return "ok"
