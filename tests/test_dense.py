@@ -265,7 +265,9 @@ def test_robot_runs_bm_onboard_and_an_offboard_worker_runs_dense(tmp_path):
             assert stats.wait_for(lambda st: any(x.extra.get("maps_dense", 0) >= 1 and "dense" in x.status
                                                  for x in st if x.service == "disparity"), 30), \
                 [(x.instance, x.status, x.extra) for x in stats.items[-4:]]
+            # the synthetic cameras share one exposure: the stage matched the pairs untouched
             assert stats.wait_for(lambda st: any("range_saturated_pct" in x.extra and x.status.startswith("ok: dense")
+                                                 and x.extra.get("exposure_gain") == 1.0
                                                  for x in st if x.stamp_ns > t_join), 30)
     finally:
         procs.stop_all()

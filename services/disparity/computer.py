@@ -36,6 +36,7 @@ class FrameComputer:
         self.method = config.method + ("" if scale == 1.0 else f"@{scale:g}") + (label and f"/{label}")
         self.saturated = 0.0
         self.range_warning = ""
+        self.exposure_gain = 1.0  # the last pair's right-image gain (cores/matching/exposure.py; 1: untouched)
 
     def compute(self, msg: StereoFrame, worker: str) -> DisparityMap:
         if msg.camera is None:
@@ -48,6 +49,7 @@ class FrameComputer:
         out = self.stage.compute(left, right, msg.camera.focal_px, msg.camera.baseline_m)
         result = out.match
         self.saturated, self.range_warning = result.saturated, result.range_warning
+        self.exposure_gain = out.exposure.gain
         disp = result.disparity
         if self.result_encoding == "png":
             invalid = 0.0
@@ -83,9 +85,10 @@ class FrameComputer:
         return False
 
     def report(self, node: Node) -> None:
-        """The last frame's search-range saturation into node's stats, and a (rate-limited) warning
-        when a large share of the matched pixels sits at the top of the range."""
+        """The last frame's search-range saturation and right-image gain into node's stats, and a
+        (rate-limited) warning when a large share of the matched pixels sits at the top of the range."""
         node.extra["range_saturated_pct"] = round(self.saturated * 100.0, 2)
+        node.extra["exposure_gain"] = round(self.exposure_gain, 3)
         if self.range_warning:
             node.warn("range", self.range_warning)
 
