@@ -44,6 +44,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cores import camera
+from cores.segmentation import freespace
 from cores.segmentation.mount import FloorPlane
 
 BEHIND_M = 1.0  # something standing measured this close beyond the floor's end explains it
@@ -72,11 +73,12 @@ class BlankFaces:
 
 def find(dm: np.ndarray, df: np.ndarray, seen_floor: np.ndarray, standing: np.ndarray, floor: FloorPlane,
          model: camera.RectifiedModel, step: int, range_m: float, within_m: float,
-         robot_height_m: float, min_height_m: float = 0.2, doubtful: np.ndarray | None = None) -> BlankFaces | None:
+         robot_height_m: float, min_height_m: float = 0.2, doubtful: np.ndarray | None = None,
+         gaps: freespace.Gaps | None = None) -> BlankFaces | None:
     """dm: working disparity (0 = unmeasured, not range-gated); df: the floor's disparity on the
     working grid; seen_floor / standing: the floor and standing pixels in range (bool, working grid);
-    doubtful: the disparity of pixels measured but set aside for their low confidence (0 elsewhere).
-    -> the blank faces' pixels, or None."""
+    doubtful: the disparity of pixels measured but set aside for their low confidence (0 elsewhere);
+    gaps: freespace.floor_gaps of seen_floor (None: computed here). -> the blank faces' pixels, or None."""
     h, w = dm.shape
     if floor.b <= 0 or within_m <= 0:
         return None
@@ -100,31 +102,39 @@ def find(dm: np.ndarray, df: np.ndarray, seen_floor: np.ndarray, standing: np.nd
     v_h = (-floor.c - floor.a * u) / floor.b / step
     top = np.floor(v_h - ABOVE_HORIZON_M * model.focal_px / (z_end * step)).astype(np.int64)
     cand &= (top >= 0) & (top < top_floor)
+    # 2. (below) lower than the camera: where the floor seen stops, for as many rows as a face
+    # min_height_m tall would hide (or to the image's top), within the limit
+    gaps = gaps or freespace.floor_gaps(seen_floor, df, model.baseline_m, min_height_m, step)
+    low = gaps.nearest_end
+    d_low = np.where(low >= 0, df[np.maximum(low, 0), cols], 0.0)
+    stops = (low >= 0) & (d_low > fB / limit)
+    # unmeasured pixels above each row of the columns either rule looks at (a running count: one pass)
+    need = np.flatnonzero(cand | stops)
+    at = np.full(w, -1)
+    at[need] = np.arange(need.size)
+    unmeasured = np.concatenate([np.zeros((1, need.size), np.int32),
+                                 np.cumsum(dm[:, need] <= 0, axis=0, dtype=np.int32)])
     if cand.any():
         c = np.flatnonzero(cand)
-        # unmeasured pixels above each row of the candidate columns (a running count: one pass)
-        unmeasured = np.concatenate([np.zeros((1, c.size), np.int32), np.cumsum(dm[:, c] <= 0, axis=0, dtype=np.int32)])
-        k = np.arange(c.size)
         n = top_floor[c] - top[c]
-        blank = (unmeasured[top_floor[c], k] - unmeasured[top[c], k]) >= UNMEASURED * n
+        blank = (unmeasured[top_floor[c], at[c]] - unmeasured[top[c], at[c]]) >= UNMEASURED * n
         faces[c[blank]] = True
     foot = np.where(faces, top_floor, -1)  # per face column, the floor row at its foot
-    # 2. lower than the camera: the floor seen stops (for as many rows as a face min_height_m tall would
-    # hide, or to the image's top) and above that stop, what was measured at all (doubted or not) is
-    # mostly at the stop's depth, up to a top edge min_height_m or more above the floor
+    # 2. above the stop, what was measured at all (doubted or not) is mostly at the stop's depth, up to
+    # a top edge min_height_m or more above the floor
     rows = np.arange(h)[:, None]
-    above = np.maximum.accumulate(np.where(seen_floor, rows, -1), axis=0)  # the nearest floor row at or above
-    gap = rows - np.concatenate([np.full((1, w), -1), above[:-1]]) - 1  # rows without floor just above
-    hidden = min_height_m * np.maximum(df, 0) / (model.baseline_m * step)  # rows a face that tall hides
-    with np.errstate(divide="ignore"):
-        stops = seen_floor & (gap >= np.maximum(hidden, 2)) & (fB / np.maximum(df, 1e-9) < limit)
-    low = np.max(np.where(stops, rows, -1), axis=0)  # the nearest such stop in each column
-    c = np.flatnonzero((low >= 0) & ~faces)
+    c = np.flatnonzero(stops & ~faces)
+    if c.size:
+        # the stretch a face min_height_m tall would cover must be unmeasured: else the matcher saw what
+        # stands there (a textured thing, listed already), and the column costs no more
+        v1 = low[c]
+        first = np.maximum(v1 - np.ceil(min_height_m * d_low[c] / (model.baseline_m * step)).astype(np.int64), 0)
+        c = c[unmeasured[v1, at[c]] - unmeasured[first, at[c]] >= UNMEASURED * (v1 - first)]
     if c.size:
         sub = dm[:, c]
         d = sub if doubtful is None else np.where(sub > 0, sub, doubtful[:, c])
         v1 = low[c]
-        d0 = df[v1, c].astype(np.float32)
+        d0 = d_low[c].astype(np.float32)
         z0 = fB / d0
         reach = np.ceil(robot_height_m * model.focal_px / (z0 * step)).astype(np.int64)
         window = (rows < v1) & (rows >= v1 - reach)
@@ -133,9 +143,9 @@ def find(dm: np.ndarray, df: np.ndarray, seen_floor: np.ndarray, standing: np.nd
         off = np.abs(d - d0)
         at_end = evidence & (off <= np.float32(CAP_PX))
         # counts from the foot upwards: rows at and below r, down to the foot
-        n_ev = np.cumsum(evidence[::-1], axis=0)[::-1]
-        n_at = np.cumsum(at_end[::-1], axis=0)[::-1]
-        n_unm = np.cumsum((window & (sub <= 0))[::-1], axis=0)[::-1]
+        n_ev = np.cumsum(evidence[::-1], axis=0, dtype=np.int32)[::-1]
+        n_at = np.cumsum(at_end[::-1], axis=0, dtype=np.int32)[::-1]
+        n_unm = unmeasured[v1, at[c]][None, :] - unmeasured[:h, at[c]]  # in [r, v1): the window's, for r in it
         span = v1[None, :] - rows  # rows from r to the foot
         tall = span * step * z0[None, :] / model.focal_px >= max(min_height_m, 1e-6)
         # a top edge: at the face's depth and nearer it than the floor's at its row, so no floor

@@ -70,14 +70,17 @@ def occupancy(floor_points: np.ndarray, obstacle_points: list[np.ndarray], mount
 
 
 def drivable(floor: FloorPlane, df: np.ndarray, seen_floor: np.ndarray, standing: np.ndarray, dk: np.ndarray,
-              model: camera.RectifiedModel, cfg: SegmenterSettings, step: int) -> np.ndarray:
+              model: camera.RectifiedModel, cfg: SegmenterSettings, step: int, gaps: Gaps | None = None) -> np.ndarray:
     """Points of the floor plane the robot may drive on, camera frame: along each image column (a
     ray on the ground), the floor from the image's bottom edge out to the farthest floor point seen
     in that column, but not beyond anything standing in it (any pixel above the floor margin,
     obstacle or not) nor beyond the vision range. Block matching sees little of a smooth road, so
-    the floor between seen points counts as seen, where the rows between are too few to hide
-    anything min_height_m tall (_bridged): a longer unmeasured stretch, the bottom edge's included,
-    is not known. A plain crate left no pixel, and the floor seen beyond it made it free space."""
+    the floor between seen points counts as seen; within near_field_m only where the rows between
+    are too few to hide anything min_height_m tall (floor_gaps; gaps: computed already, or None): a
+    longer unmeasured stretch, the bottom edge's included, is not known. Farther, every stretch
+    counts, as the robot will see it again nearer: block matching leaves most of a smooth road
+    unmeasured (karlsruhe, bm: half the columns from the image's bottom edge at 4 m to the first
+    road point seen). A plain crate left no pixel, and the floor seen beyond it made it free space."""
     fB = model.focal_px * model.baseline_m
 
     def depth(d: np.ndarray) -> np.ndarray:  # float32 f B / d (inf where d <= 0): the same of a column's
@@ -106,26 +109,40 @@ def drivable(floor: FloorPlane, df: np.ndarray, seen_floor: np.ndarray, standing
     v = (fB / z - floor.a * u - floor.c) / floor.b
     h = df.shape[0]
     vw = np.clip(np.floor(v / step).astype(np.int64), 0, h - 1)
-    keep = _bridged(df, seen_floor, model.baseline_m, cfg.min_height_m, fB / max(cfg.near_field_m, 1e-3),
-                    step)[vw, (u / step).astype(np.int64)]
+    gaps = gaps or floor_gaps(seen_floor, df, model.baseline_m, cfg.min_height_m, step)
+    unknown = gaps.mask & (df > np.float32(fB / max(cfg.near_field_m, 1e-3)))  # such stretches in the near field
+    keep = ~unknown.ravel()[vw * df.shape[1] + (u / step).astype(np.int64)]
     z, u, v = z[keep], u[keep], v[keep]
     return np.stack([(u - model.cx) * z / f, (v - model.cy) * z / f, z], 1)
 
 
-def _bridged(df: np.ndarray, seen_floor: np.ndarray, baseline_m: float, min_height_m: float, near_px: float,
-             step: int) -> np.ndarray:
-    """(h, w) bool, working grid: the rows at or below the farthest floor row seen in their column that
-    count as floor seen. In the near field (rows whose floor disparity is over near_px) a row between
-    two floor rows seen (or the image's bottom edge and one) counts only if the stretch has fewer rows
-    than a face min_height_m tall would cover standing at its nearer end (min_height_m f / Z =
-    min_height_m d / B pixels): an obstacle at least that tall hides at least that many rows, and a
-    shorter stretch is the matcher missing smooth floor. Farther, every stretch counts, as the robot
-    will see it again nearer: block matching leaves most of a smooth road unmeasured (karlsruhe, bm:
-    half the columns from the image's bottom edge at 4 m to the first road point seen)."""
+@dataclass
+class Gaps:
+    """Stretches of a working grid's columns without floor seen, each ending (below) at a floor row
+    seen or the image's bottom edge, with at least as many rows as a face min_height_m tall standing
+    at that end would cover (min_height_m f / Z = min_height_m d / B pixels, and 2): an obstacle that
+    tall may hide in one; a shorter stretch is the matcher missing smooth floor."""
+
+    mask: np.ndarray  # (h, w) bool: rows inside such a stretch
+    nearest_end: np.ndarray  # (w,) int64: the floor row just below a column's lowest such stretch (-1: none)
+
+
+def floor_gaps(seen_floor: np.ndarray, df: np.ndarray, baseline_m: float, min_height_m: float, step: int) -> Gaps:
+    """seen_floor: (h, w) bool; df: the floor's disparity there. -> Gaps (by runs: one pass each way)."""
     h, w = seen_floor.shape
-    rows = np.arange(h)[:, None]
-    above = np.maximum.accumulate(np.where(seen_floor, rows, -1), axis=0)  # the nearest floor row at or above
-    below = np.minimum.accumulate(np.where(seen_floor, rows, h)[::-1], axis=0)[::-1]  # ... at or below (h: none)
-    near_end = df[np.minimum(below, h - 1), np.arange(w)[None, :]]  # the image's bottom edge if none below
-    covers = min_height_m * np.maximum(near_end, 0) / (baseline_m * step)
-    return (above >= 0) & ((df <= near_px) | (below - above - 1 < np.maximum(covers, 1)))
+    t = np.ones((w, h + 2), np.int8)  # columns as rows, with floor at the virtual rows -1 and h
+    t[:, 1:-1] = seen_floor.T
+    edge = np.diff(t, axis=1)  # -1 where a stretch without floor starts, +1 where it ends (exclusive)
+    cols, starts = np.divmod(np.flatnonzero(edge < 0), h + 1)
+    ends = np.flatnonzero(edge > 0) % (h + 1)  # runs alternate: the k-th end closes the k-th start
+    near = df[np.minimum(ends, h - 1), cols]  # the image's bottom edge stands in for a floor row below
+    long = (ends - starts) >= np.maximum(min_height_m * np.maximum(near, 0) / (baseline_m * step), 2)
+    cols, starts, ends = cols[long], starts[long], ends[long]
+    inside = np.zeros((w, h + 1), np.int8)
+    inside[cols, starts] = 1  # no two runs share a start or an end: a floor row lies between them
+    inside[cols, ends] = -1
+    mask = np.cumsum(inside[:, :h], axis=1, dtype=np.int8).T > 0
+    nearest_end = np.full(w, -1, np.int64)
+    below = ends < h
+    np.maximum.at(nearest_end, cols[below], ends[below])
+    return Gaps(mask, nearest_end)
