@@ -102,8 +102,8 @@ def find(dm: np.ndarray, df: np.ndarray, seen_floor: np.ndarray, standing: np.nd
     v_h = (-floor.c - floor.a * u) / floor.b / step
     top = np.floor(v_h - ABOVE_HORIZON_M * model.focal_px / (z_end * step)).astype(np.int64)
     cand &= (top >= 0) & (top < top_floor)
-    # 2. (below) lower than the camera: where the floor seen stops, for as many rows as a face
-    # min_height_m tall would hide (or to the image's top), within the limit
+    # 2. lower than the camera (looked for after 1's columns are known): where the floor seen stops,
+    # for as many rows as a face min_height_m tall would hide (or to the image's top), within the limit
     gaps = gaps or freespace.floor_gaps(seen_floor, df, model.baseline_m, min_height_m, step)
     low = gaps.nearest_end
     d_low = np.where(low >= 0, df[np.maximum(low, 0), cols], 0.0)
@@ -120,8 +120,8 @@ def find(dm: np.ndarray, df: np.ndarray, seen_floor: np.ndarray, standing: np.nd
         blank = (unmeasured[top_floor[c], at[c]] - unmeasured[top[c], at[c]]) >= UNMEASURED * n
         faces[c[blank]] = True
     foot = np.where(faces, top_floor, -1)  # per face column, the floor row at its foot
-    # 2. above the stop, what was measured at all (doubted or not) is mostly at the stop's depth, up to
-    # a top edge min_height_m or more above the floor
+    # 2, continued: above the stop, what was measured at all (doubted or not) is mostly at the stop's
+    # depth, up to a top edge min_height_m or more above the floor
     rows = np.arange(h)[:, None]
     c = np.flatnonzero(stops & ~faces)
     if c.size:

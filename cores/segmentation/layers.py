@@ -287,15 +287,15 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
         gaps = freespace.floor_gaps(seen_floor, df, model.baseline_m, cfg.min_height_m, step)
         faces = blank.find(dm, df, seen_floor, stand, floor, model, step, range_m, cfg.near_field_m,
                            cfg.robot_height_m, cfg.min_height_m, doubtful, gaps)
-        beyond_floor = keep & ~on_floor
+        not_floor = keep & ~on_floor
         if faces is not None:  # a plain face the matcher could not measure stands at the floor's end
             dm = np.where(faces.mask, faces.disparity, dm)
             dk = np.where(faces.mask, faces.disparity, dk)
             with np.errstate(divide="ignore", invalid="ignore"):
                 above = np.where(faces.mask, np.float32(floor.height_m) * (1 - df / faces.disparity), above)
             stand |= faces.mask
-            beyond_floor |= faces.mask  # the floor seen past a low face is not the robot's to drive on
-        floor_points = freespace.drivable(floor, df, seen_floor, beyond_floor, dk, model, cfg, step, gaps)
+            not_floor |= faces.mask  # a face stops the free space as anything standing does
+        floor_points = freespace.drivable(floor, df, seen_floor, not_floor, dk, model, cfg, step, gaps)
     else:
         above, drop = None, None
         stand = keep
