@@ -195,6 +195,20 @@ class LiveRowCheck:
             self.warned = bad
 
 
+def _say_cameras(node: Node, check: str, cameras: list[Literal["left", "right"]],
+                 said: list[Literal["left", "right"]], warning: str, cleared: str) -> list[Literal["left", "right"]]:
+    """One of PairChecks' per-camera verdicts into the stats (`<check>_cameras`) and, when it changed
+    since `said`, the log: a warning naming the cameras ({cameras} in `warning`), or `cleared`.
+    -> what is now said."""
+    node.extra[f"{check}_cameras"] = float(len(cameras))
+    if cameras != said:
+        if cameras:
+            node.warn(check, warning.format(cameras=" and ".join(cameras)))
+        else:
+            log.info("rectify: %s", cleared)
+    return cameras
+
+
 def run(node: Node, settings: RectifySettings) -> None:
     preflight(settings)
     configured = settings.calibration is not None
@@ -289,24 +303,16 @@ def run(node: Node, settings: RectifySettings) -> None:
             right = codec.array_from_image(msg.right, "right")
             now = time.monotonic()
             stuck, blocked = checks.pictures(left, right, now)
-            if stuck != said_frozen:
-                if stuck:
-                    node.warn("frozen", f"the {' and '.join(stuck)} camera's picture has not changed for over "
-                                        f"{settings.frozen_after_s:g} s while its stamps go on: its driver repeats one "
-                                        f"buffer; every list says camera-frozen")
-                else:
-                    log.info("rectify: both cameras' pictures change again")
-                said_frozen = stuck
-            if blocked != said_blocked:
-                if blocked:
-                    node.warn("blocked", f"part of the {' and '.join(blocked)} camera's view is flat where the other "
-                                         f"camera sees texture (a finger, a sticker, glare on the lens?): nothing "
-                                         f"there is measured; every list says view-blocked")
-                else:
-                    log.info("rectify: both cameras see the whole view again")
-                said_blocked = blocked
-            node.extra["frozen_cameras"] = float(len(stuck))
-            node.extra["blocked_cameras"] = float(len(blocked))
+            said_frozen = _say_cameras(
+                node, "frozen", stuck, said_frozen,
+                f"the {{cameras}} camera's picture has not changed for over {settings.frozen_after_s:g} s while its "
+                f"stamps go on: its driver repeats one buffer; every list says camera-frozen",
+                "both cameras' pictures change again")
+            said_blocked = _say_cameras(
+                node, "blocked", blocked, said_blocked,
+                "part of the {cameras} camera's view is flat where the other camera sees texture (a finger, a "
+                "sticker, glare on the lens?): nothing there is measured; every list says view-blocked",
+                "both cameras see the whole view again")
             rl, rr = rectifier.rectify(left, right)
             holder.mark_used()
             rows.offer(rl, rr, time.monotonic(), msg.stamp_ns)
