@@ -232,3 +232,14 @@ def test_a_brighter_right_camera_costs_the_stage_almost_nothing(scene, method):
     got, err_b, e1 = measured(bright)
     assert got > 0.95 * base and err_b < err + 0.1, (base, got, err, err_b)
     assert not e0.applied and e1.applied
+
+
+@pytest.mark.parametrize("x", [-16.0, -2.25, 0.0, 0.5, 3.0, 3.5, 1007.9375, 40000.0, -40000.0])
+def test_integer_bounds_compare_a_fixed_point_map_as_the_float_bounds_do(x):
+    from cores.matching.disparity import raw_at_least, raw_at_most
+
+    raw = np.random.default_rng(0).integers(-32768, 32768, (48, 64)).astype(np.int16)
+    raw[0, :8] = [-17, -16, -3, -2, 0, 3, 4, 1007]
+    assert np.array_equal(raw >= raw_at_least(x), raw.astype(np.float64) >= x)
+    assert np.array_equal(raw < raw_at_least(x), raw.astype(np.float64) < x)
+    assert np.array_equal(raw <= raw_at_most(x), raw.astype(np.float64) <= x)

@@ -25,6 +25,7 @@ from scipy.linalg import solveh_banded
 
 from common.errors import BallbotError
 from cores.matching.config import SCALE, MatcherConfig
+from cores.matching.disparity import raw_at_least
 from cores.matching.opencv import Match, create_sgbm, gray, saturated_share
 
 FILL_SCALE = 0.5  # the smoother runs at this fraction of the image size
@@ -181,7 +182,7 @@ class DenseMatcher:
         gl = gray(left)
         raw = self.measure(gl, gray(right))
         tex = texture(gl, c.block + 2)
-        valid = (raw >= c.min_disparity * SCALE) & (tex >= FLAT)  # no texture: SGBM's answer is a guess
+        valid = (raw >= raw_at_least(c.min_disparity * SCALE)) & (tex >= FLAT)  # no texture: SGBM's answer is a guess
         # In the left band a match must keep its partner's window in view: d <= x - block // 2 (beyond,
         # it compared against the padding).
         x = np.arange(raw.shape[1], dtype=np.int32)[None, :]
@@ -196,7 +197,7 @@ class DenseMatcher:
         out = np.round(d * SCALE).astype(np.int16)
         invalid = ~reached
         if min_valid_disparity > 0:
-            invalid |= out < min_valid_disparity * SCALE
+            invalid |= out < raw_at_least(min_valid_disparity * SCALE)
         out[invalid] = c.invalid_value
         confidence[invalid] = 0
         return Match(out, confidence, saturated)

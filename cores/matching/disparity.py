@@ -11,6 +11,7 @@ depth (a buggy or hostile producer must not turn "unmeasured" into "far away" or
 from __future__ import annotations
 
 import functools
+import math
 import statistics
 
 import cv2
@@ -20,6 +21,18 @@ import numpy as np
 def searched_range(min_disparity: float, num_disparities: float) -> tuple[float, float]:
     """(lowest, highest) disparity in px a matcher searching this range can give, subpixel included."""
     return float(min_disparity), float(min_disparity + num_disparities)
+
+
+def raw_at_least(x: float) -> int:
+    """The smallest integer >= x: `raw >= x` as `raw >= raw_at_least(x)` (and `raw < x` as
+    `raw < raw_at_least(x)`) on an integer map compares in the map's own type; a float scalar
+    casts every pixel to float64 first (0.12 ms against 0.02 at 640x480)."""
+    return math.ceil(x)
+
+
+def raw_at_most(x: float) -> int:
+    """The largest integer <= x: `raw <= x` as `raw <= raw_at_most(x)` on an integer map."""
+    return math.floor(x)
 
 
 def to_float(raw: np.ndarray, scale: float, invalid_value: float,

@@ -27,6 +27,7 @@ from cores.matching.config import (  # noqa: F401
     auto_num_disparities,
     gate_for_range,
 )
+from cores.matching.disparity import raw_at_least
 from cores.matching.opencv import Match, create_opencv_matcher, create_sgbm, gray, saturated_share  # noqa: F401
 
 
@@ -60,12 +61,12 @@ class StereoMatcher:
         c.check_width(left.shape[1])
         gl, gr = gray(left), gray(right)
         d = self._m.compute(gl, gr)
-        invalid = d < c.min_disparity * SCALE  # OpenCV marks failures below min_disparity*16
+        invalid = d < raw_at_least(c.min_disparity * SCALE)  # OpenCV marks failures below min_disparity*16
         if self._mr is not None:
             invalid |= ~self._consistent(self._mr, d, gl, gr)
         saturated = saturated_share(d, ~invalid, c.max_disparity)
         if min_valid_disparity > 0:
-            invalid |= d < min_valid_disparity * SCALE
+            invalid |= d < raw_at_least(min_valid_disparity * SCALE)
         if not c.subpixel:
             d = ((d.astype(np.int32) + 8) // 16 * 16).astype(np.int16)
         d[invalid] = c.invalid_value

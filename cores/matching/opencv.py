@@ -9,6 +9,7 @@ import numpy as np
 
 from common.errors import BallbotError
 from cores.matching.config import SATURATION_WARN, SCALE, TOP_BAND_PX, MatcherConfig
+from cores.matching.disparity import raw_at_least
 
 _SGBM_MODES = {"sgbm": cv2.STEREO_SGBM_MODE_SGBM, "hh": cv2.STEREO_SGBM_MODE_HH,
                "3way": cv2.STEREO_SGBM_MODE_SGBM_3WAY, "hh4": cv2.STEREO_SGBM_MODE_HH4}
@@ -39,7 +40,7 @@ def saturated_share(raw: np.ndarray, valid: np.ndarray, max_disparity: float) ->
     n = int(np.count_nonzero(valid))
     if not n:
         return 0.0
-    return float(np.count_nonzero(valid & (raw >= (max_disparity - TOP_BAND_PX) * SCALE)) / n)
+    return float(np.count_nonzero(valid & (raw >= raw_at_least((max_disparity - TOP_BAND_PX) * SCALE))) / n)
 
 
 def gray(image: np.ndarray) -> np.ndarray:

@@ -36,7 +36,7 @@ from common import codec
 from common.errors import DecodeError
 from common.messages import CameraModel, DisparityMap, FrameChecks, StereoFrame
 from cores.matching.config import MAX_NUM_DISPARITIES, SCALE
-from cores.matching.disparity import searched_range
+from cores.matching.disparity import raw_at_least, raw_at_most, searched_range
 
 NONCE_BYTES = 16
 HEADER_MAX_BYTES = 1024
@@ -165,8 +165,9 @@ def measure(raw: np.ndarray, invalid_value: float, scale: float, min_disparity: 
             num_disparities: int) -> MapCheck:
     """Valid and out-of-range shares of a fixed-point map (int16/uint16)."""
     lo, hi = searched_range(min_disparity, num_disparities)
-    valid = raw != invalid_value
-    inside = (raw >= lo * scale) & (raw <= hi * scale)
+    # integer bounds: the map's integers are compared as they are, not cast to float64 (raw_at_least)
+    valid = raw != int(invalid_value) if float(invalid_value).is_integer() else np.ones(raw.shape, bool)
+    inside = (raw >= raw_at_least(lo * scale)) & (raw <= raw_at_most(hi * scale))
     n = max(1, raw.size)
     measured = np.count_nonzero(valid & inside & (raw > 0))
     outside = np.count_nonzero(valid & ~inside)
