@@ -1075,6 +1075,58 @@ def test_an_unmeasured_stretch_of_floor_is_no_low_face(case):
     assert [o for o in lst.obstacles if o.position_m[2] < 4.5] == [], lst.model_dump_json()
 
 
+def outlined_face(sliver_m: float | None, z_m: float = 2.2, height_m: float = 0.8, u0: int = 200,
+                  u1: int = 420) -> np.ndarray:
+    """A plain cabinet height_m tall at z_m over columns u0..u1 as block matching gives it: nothing
+    measured inside; above it the floor beyond, whose texture its top edge takes; its left side
+    against what is beside it measured at its depth, sliver_m tall (None: not at all)."""
+    d = scene()
+    fp = floor_plane(SCENE_MOUNT)
+    rows = np.arange(MODEL.height, dtype=np.float32)
+    foot = int(np.nonzero(fp.disparity(np.float32((u0 + u1) // 2), rows) <= FB / z_m)[0].max())
+    d[foot - int(round(height_m * MODEL.focal_px / z_m)):foot + 1, u0:u1] = np.nan
+    if sliver_m is not None:
+        d[foot - int(round(sliver_m * MODEL.focal_px / z_m)):foot + 1, u0 - 8:u0] = FB / z_m
+    return d
+
+
+def test_a_plain_face_whose_top_edge_takes_the_depth_beyond_is_found_by_its_outline():
+    """Block matching measures no top edge of a plain cabinet (the edge takes the depth of the
+    textured floor or wall beyond it) but measures its side: the list held a sliver 8 px wide at its
+    left edge, 0.4 m off the cabinet's centre. A run of floor stops at one depth beside such a sliver,
+    plain up to its height, is one face: the obstacle spans the cabinet, as tall as the sliver."""
+    for sliver_m in (0.8, 0.4):
+        lst = ObstacleBuilder(SegmenterSettings()).process(outlined_face(sliver_m), MODEL, t_s=0.0, seq=0,
+                                                           stamp_ns=0).obstacles
+        near = [o for o in lst.obstacles if o.position_m[2] < 4.5]
+        assert len(near) == 1 and lst.degraded == [], lst.model_dump_json()
+        o = near[0]
+        assert abs(o.position_m[2] - 2.2) < 0.15 and abs(o.size_m[1] - sliver_m) < 0.15, o
+        assert 185 <= o.bbox_px[0] <= 200 and 410 <= o.bbox_px[2] <= 430, o
+
+
+@pytest.mark.parametrize("case", ["no outline", "outline too low", "floor patch beside a pole"])
+def test_a_sliver_beside_an_unmeasured_stretch_makes_no_face_of_what_is_not_one(case):
+    """The outline rule's negatives: the same cabinet without its side measured (nothing to go by:
+    a patch of floor looks the same), a side under min_height_m, and a plain stretch of floor from 2
+    to 3 m whose near end meets a pole 1 m tall: the floor beyond the stretch is measured within the
+    pole's height, so the stretch is no face (the pole stays an obstacle of its own)."""
+    if case == "no outline":
+        d = outlined_face(None)
+    elif case == "outline too low":
+        d = outlined_face(0.12)
+    else:
+        d = scene()
+        fp = floor_plane(SCENE_MOUNT)
+        v, u = np.mgrid[0:MODEL.height, 0:MODEL.width].astype(np.float32)
+        fd = fp.disparity(u, v)
+        d[(fd < FB / 2.0) & (fd > FB / 3.0) & (u > 200) & (u < 420)] = np.nan
+        foot = int(np.nonzero(fp.disparity(np.float32(200), v[:, 0]) <= FB / 2.0)[0].max())
+        d[foot - int(round(1.0 * MODEL.focal_px / 2.0)):foot + 1, 192:200] = FB / 2.0
+    lst = ObstacleBuilder(SegmenterSettings()).process(d, MODEL, t_s=0.0, seq=0, stamp_ns=0).obstacles
+    assert [o for o in lst.obstacles if o.position_m[2] < 4.5 and o.bbox_px[2] > 230] == [], lst.model_dump_json()
+
+
 def test_free_space_does_not_run_through_a_plain_crate_the_matcher_left_unmeasured():
     """The low-faces scene, rendered (bm): a plain crate 0.35 m high 1.6 m ahead, its foot below the
     image. Block matching measures nothing of its faces, and sees the floor beyond it. Counting the

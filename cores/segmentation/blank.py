@@ -31,8 +31,10 @@ Such a column holds a face from the stop up to that edge, whatever stands farthe
 measured includes what the matcher doubted (confidence MEASURED or more, below the segmenter's
 min_confidence): dense gives every depth edge a low confidence, and so set aside the very pixels
 that show the face; on the low-faces scene it missed the plain cabinet in 2 of 3 frames, silently.
-A face whose foot is not seen (nearer than the image's bottom edge) is not found, nor a low one of
-which the matcher measured nothing. Farther than
+Block matching measures no such top edge where the face stands against texture (a cabinet before a
+wall: the edge takes the wall's depth) but measures its side; _outlined takes a run of stops at one
+depth beside such a measured side for one face. A face whose foot is not seen (nearer than the
+image's bottom edge) is not found, nor a low one of which nothing at its depth was measured. Farther than
 near_field_m a road fading into the distance under a blank sky looks the same as a face:
 on the street recording (karlsruhe, bm, 40 frames) 11 such stretches at 10-17 m, none nearer; on
 the room recording and every synthetic scene, none.
@@ -95,6 +97,7 @@ def find(dm: np.ndarray, df: np.ndarray, seen_floor: np.ndarray, standing: np.nd
     near = has_floor & (z_end < limit)
     faces = np.zeros(w, bool)
     face_top = np.zeros(w, np.int64)  # per face column, the row its face ends at (the top edge, or robot height)
+    shift = np.zeros(w)  # per face column, its disparity less the floor's at its foot (a measured side's)
     # 1. taller than the camera: unmeasured from the floor's end up past the horizon
     cand = near & (z_stand > z_end + BEHIND_M)
     # the horizon's working row in each column (the floor's disparity 0) and 0.1 m above the camera there
@@ -155,9 +158,11 @@ def find(dm: np.ndarray, df: np.ndarray, seen_floor: np.ndarray, standing: np.nd
         faces[c[found]] = True
         foot[c[found]] = v1[found]
         face_top[c[found]] = np.argmax(top_ok, axis=0)[found]  # the highest such top edge
+        _outlined(c[~found], low, d_low, dm, standing, unmeasured, at, min_height_m, model, step,
+                  faces, foot, face_top, shift)
     if not faces.any():
         return None
-    d_face = np.where(faces, df[np.maximum(foot, 0), cols], 0.0).astype(np.float64)
+    d_face = np.where(faces, df[np.maximum(foot, 0), cols] + shift, 0.0).astype(np.float64)
     with np.errstate(divide="ignore"):
         z_face = np.where(d_face > 0, fB / np.maximum(d_face, 1e-9), np.inf)
     faces = _wide_runs(faces, z_face, MIN_WIDTH_M * model.focal_px / step)
@@ -176,6 +181,59 @@ def find(dm: np.ndarray, df: np.ndarray, seen_floor: np.ndarray, standing: np.nd
     mask[:, f] = in_face
     disparity[:, f] = np.where(in_face, d_face[f].astype(np.float32), np.float32(0))
     return BlankFaces(mask, disparity)
+
+
+def _outlined(c: np.ndarray, low: np.ndarray, d_low: np.ndarray, dm: np.ndarray, standing: np.ndarray,
+              unmeasured: np.ndarray, at: np.ndarray, min_height_m: float, model: camera.RectifiedModel,
+              step: int, faces: np.ndarray, foot: np.ndarray, face_top: np.ndarray, shift: np.ndarray) -> None:
+    """Rule 2's third way (faces, foot, face_top, shift updated in place): c, the stop columns that passed
+    its prefilter (the stretch above the stop unmeasured) and showed no top edge. Block matching
+    measures no top edge of a plain cabinet against a textured wall behind: the edge's pixels take the
+    wall's depth. It measures the outline's side (the face's edge against what is beside it), a
+    sliver standing at the face's depth; the list held that sliver alone, 0.1 m wide and 0.4 m off
+    the 0.9 m cabinet's centre. A run of stops at one depth (each column within CAP_PX of the next),
+    with such a sliver beside one of its ends (within GAP_COLS + 2 columns, within CAP_PX of the
+    end's stop, reaching down to within min_height_m of that stop, min_height_m tall or more) is one face,
+    as tall as the sliver, where the stretch up to that height is unmeasured (UNMEASURED of it).
+    A plain patch of floor (a shadow beside a pole) fails that: the floor beyond it is measured
+    within the pole's height. The face takes the side's depth: the floor seen reaches a little way up
+    a face (what is within the floor margin counts as floor), so its last row lies beyond the foot (on
+    low-faces, bm: 7.5 cm beyond the cabinet's 2.75 m); the run keeps the stops' slope along it."""
+    if not c.size:
+        return
+    h, w = dm.shape
+    near = GAP_COLS + 2
+    rows = np.arange(h)
+    # runs of stop columns: adjacent (GAP_COLS apart at most) and at one depth
+    split = np.flatnonzero((np.diff(c) > GAP_COLS + 1) | (np.abs(np.diff(d_low[c])) > CAP_PX)) + 1
+    for run in np.split(c, split):
+        tops, offsets = [], []
+        for end, side in ((run[0], range(run[0] - 1, max(run[0] - 1 - near, -1), -1)),
+                          (run[-1], range(run[-1] + 1, min(run[-1] + 1 + near, w)))):
+            d0, v1 = d_low[end], low[end]
+            for col in side:
+                at_depth = standing[:, col] & (np.abs(dm[:, col] - d0) <= CAP_PX)
+                if not at_depth.any():
+                    continue
+                r = rows[at_depth]
+                # it reaches down to the stop's row, but for the floor margin (what is that low counts
+                # as floor): within min_height_m of it; else it stands elsewhere, higher up
+                if (v1 - r[-1]) * step * model.baseline_m / d0 > max(min_height_m, 1e-6):
+                    continue
+                if (v1 - r[0]) * step * model.baseline_m / d0 >= max(min_height_m, 1e-6):
+                    tops.append(v1 - int(r[0]))  # the sliver's height above the stop, rows
+                    offsets.append(float(np.median(dm[at_depth, col])) - d0)
+        if not tops:
+            continue
+        rise = max(tops)
+        v1 = low[run]
+        v0 = np.maximum(v1 - rise, 0)
+        plain = (unmeasured[v1, at[run]] - unmeasured[v0, at[run]]) >= UNMEASURED * (v1 - v0)
+        ok = run[plain]
+        faces[ok] = True
+        foot[ok] = low[ok]
+        face_top[ok] = np.maximum(low[ok] - rise, 0)
+        shift[ok] = offsets[int(np.argmax(tops))]
 
 
 def _wide_runs(a: np.ndarray, z: np.ndarray, fw: float) -> np.ndarray:
