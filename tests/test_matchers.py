@@ -234,7 +234,7 @@ def test_a_brighter_right_camera_costs_the_stage_almost_nothing(scene, method):
     assert not e0.applied and e1.applied
 
 
-@pytest.mark.parametrize("x", [-16.0, -2.25, 0.0, 0.5, 3.0, 3.5, 1007.9375, 40000.0, -40000.0])
+@pytest.mark.parametrize("x", [-16.0, -2.25, 0.0, 0.5, 3.0, 3.5, 1007.9375, 40000.0, -40000.0, np.inf, -np.inf])
 def test_integer_bounds_compare_a_fixed_point_map_as_the_float_bounds_do(x):
     from cores.matching.disparity import raw_at_least, raw_at_most
 
