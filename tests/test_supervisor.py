@@ -5,7 +5,7 @@ import argparse
 
 import pytest
 
-from ballbot_vision.cli import build_parser, up_endpoints
+from ballbot_vision.cli import OPENCV_POOL_SLEEPS, build_parser, up_endpoints
 from common.errors import BallbotError
 from common.supervisor import INITIAL_BACKOFF_S, Child, Supervisor
 
@@ -146,54 +146,49 @@ def test_up_viewer_without_aiohttp_keeps_the_pipeline_and_says_what_to_install(t
     assert " viewer " not in "".join(up_lines)
 
 
-# what OpenCV saw when the process loaded it: a fresh interpreter, as a service's process starts
+# what OpenCV saw when the process loaded it: a fresh interpreter runs the CLI as a process would,
+# with `run` and `up` stopped where they would start the services, and OpenCV imported at the latest
+# after it (where an offline command would). -> the environment at cv2's first import, as JSON.
 OPENCV_POOL_PROBE = r'''
 import json, os, sys
+import ballbot_vision.cli as cli
 seen = {}
-class Watch:  # records the environment at the moment cv2 is first imported
+class Watch:
     def find_spec(self, name, path=None, target=None):
         if name == "cv2" and not seen:
-            seen.update({k: os.environ.get(k) for k in
-                         ("OPENCV_THREAD_POOL_ACTIVE_WAIT_WORKER", "OPENCV_THREAD_POOL_ACTIVE_WAIT_MAIN")})
+            seen.update({k: os.environ.get(k) for k in cli.OPENCV_POOL_SLEEPS})
 sys.meta_path.insert(0, Watch())
-import ballbot_vision.cli as cli
-def started(args):  # a service imports OpenCV at the latest when it starts
-    import cv2  # noqa: F401
-    return 0
-cli.cmd_run = cli.cmd_up = started
+cli.cmd_run = cli.cmd_up = lambda args: 0
 cli.main(sys.argv[1:])
+import cv2  # noqa: F401
 print(json.dumps(seen))
 '''
 
 
-@pytest.mark.parametrize("argv", [["run", "disparity"], ["run", "segmenter"], ["up"]])
-def test_a_service_process_lets_opencvs_threads_sleep_between_frames_unless_the_user_says(argv):
+def opencv_pool_env(argv: list[str], **env: str) -> dict:
+    """The OpenCV pool variables a process started with argv had when it loaded OpenCV, in an
+    environment without them but for env."""
     import json
     import os
     import subprocess
     import sys
 
-    env = {k: v for k, v in os.environ.items() if not k.startswith("OPENCV_THREAD_POOL")}
-    run = subprocess.run([sys.executable, "-c", OPENCV_POOL_PROBE, *argv], env=env, capture_output=True,
-                         text=True, timeout=120)
+    clean = {k: v for k, v in os.environ.items() if k not in OPENCV_POOL_SLEEPS}
+    run = subprocess.run([sys.executable, "-c", OPENCV_POOL_PROBE, *argv], env=dict(clean, **env),
+                         capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stderr
-    assert json.loads(run.stdout) == {"OPENCV_THREAD_POOL_ACTIVE_WAIT_WORKER": "0",
-                                      "OPENCV_THREAD_POOL_ACTIVE_WAIT_MAIN": "0"}
-    run = subprocess.run([sys.executable, "-c", OPENCV_POOL_PROBE, *argv], capture_output=True, text=True,
-                         env=dict(env, OPENCV_THREAD_POOL_ACTIVE_WAIT_WORKER="500"), timeout=120)
-    assert json.loads(run.stdout)["OPENCV_THREAD_POOL_ACTIVE_WAIT_WORKER"] == "500", run.stderr
+    return json.loads(run.stdout.strip().splitlines()[-1])
+
+
+@pytest.mark.parametrize("argv", [["run", "disparity"], ["run", "segmenter"], ["up"]])
+def test_a_service_process_lets_opencvs_threads_sleep_between_frames_unless_the_user_says(argv):
+    assert opencv_pool_env(argv) == {"OPENCV_THREAD_POOL_ACTIVE_WAIT_WORKER": "0",
+                                     "OPENCV_THREAD_POOL_ACTIVE_WAIT_MAIN": "0"}
+    assert opencv_pool_env(argv, OPENCV_THREAD_POOL_ACTIVE_WAIT_WORKER="500") == {
+        "OPENCV_THREAD_POOL_ACTIVE_WAIT_WORKER": "500", "OPENCV_THREAD_POOL_ACTIVE_WAIT_MAIN": "0"}
 
 
 def test_offline_commands_leave_opencvs_pool_as_opencv_sets_it():
     """`bench` measures OpenCV alone as OpenCV comes (a peer's default settings) in its own process."""
-    import json
-    import os
-    import subprocess
-    import sys
-
-    env = {k: v for k, v in os.environ.items() if not k.startswith("OPENCV_THREAD_POOL")}
-    probe = OPENCV_POOL_PROBE.replace("cli.cmd_run = cli.cmd_up = started", "import cv2")
-    run = subprocess.run([sys.executable, "-c", probe, "keys"], env=env, capture_output=True, text=True, timeout=120)
-    assert run.returncode == 0, run.stderr
-    assert json.loads(run.stdout.strip().splitlines()[-1]) == {"OPENCV_THREAD_POOL_ACTIVE_WAIT_WORKER": None,
-                                                               "OPENCV_THREAD_POOL_ACTIVE_WAIT_MAIN": None}
+    assert opencv_pool_env(["keys"]) == {"OPENCV_THREAD_POOL_ACTIVE_WAIT_WORKER": None,
+                                         "OPENCV_THREAD_POOL_ACTIVE_WAIT_MAIN": None}
