@@ -190,8 +190,8 @@ def _outlined(c: np.ndarray, low: np.ndarray, d_low: np.ndarray, dm: np.ndarray,
     its prefilter (the stretch above the stop unmeasured) and showed no top edge. Block matching
     measures no top edge of a plain cabinet against a textured wall behind: the edge's pixels take the
     wall's depth. It measures the outline's side (the face's edge against what is beside it), a
-    sliver standing at the face's depth; the list held that sliver alone, 0.1 m wide and 0.4 m off
-    the 0.9 m cabinet's centre. A run of stops at one depth (each column within CAP_PX of the next),
+    sliver standing at the face's depth; the list held that sliver alone, 0.1 m wide, its centre
+    0.48 m from the 0.9 m wide cabinet's. A run of stops at one depth (each column within CAP_PX of the next),
     with such a sliver beside one of its ends (within GAP_COLS + 2 columns, within CAP_PX of the
     end's stop, reaching down to within min_height_m of that stop, min_height_m tall or more) is one face,
     as tall as the sliver, where the stretch up to that height is unmeasured (UNMEASURED of it).
