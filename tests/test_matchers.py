@@ -243,3 +243,11 @@ def test_integer_bounds_compare_a_fixed_point_map_as_the_float_bounds_do(x):
     assert np.array_equal(raw >= raw_at_least(x), raw.astype(np.float64) >= x)
     assert np.array_equal(raw < raw_at_least(x), raw.astype(np.float64) < x)
     assert np.array_equal(raw <= raw_at_most(x), raw.astype(np.float64) <= x)
+
+
+def test_a_nan_bound_has_no_integer_and_says_so():
+    from cores.matching.disparity import raw_at_least, raw_at_most
+
+    for bound in (raw_at_least, raw_at_most):
+        with pytest.raises(ValueError, match="NaN bound"):
+            bound(float("nan"))
