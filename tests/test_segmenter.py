@@ -30,9 +30,10 @@ SCENE_MOUNT = Mount(1.0, 15.0)  # the synthetic scene's camera
 
 
 def scene(boxes=(), mount: Mount = SCENE_MOUNT, wall_m: float = 5.0, noise: float = 0.08,
-          holes: float = 0.03, seed_: int = 0) -> np.ndarray:
+          holes: float = 0.03, seed_: int = 0, band: bool = True) -> np.ndarray:
     """Disparity (H, W) float32 of a floor seen from `mount`, a wall at wall_m, and boxes standing on
-    the floor: (u0, u1, z_m, height_px) columns u0..u1 at depth z, bottom where the floor is at z."""
+    the floor: (u0, u1, z_m, height_px) columns u0..u1 at depth z, bottom where the floor is at z.
+    band: block matching's blind left band left unmeasured."""
     rng = np.random.default_rng(seed_)
     v, u = np.mgrid[0:MODEL.height, 0:MODEL.width].astype(np.float32)
     fp = floor_plane(mount)
@@ -46,7 +47,8 @@ def scene(boxes=(), mount: Mount = SCENE_MOUNT, wall_m: float = 5.0, noise: floa
         d[max(0, bottom - h_px):bottom, max(0, u0):min(MODEL.width, u1)] = dz
     d += rng.normal(0, noise, d.shape).astype(np.float32)
     d[rng.random(d.shape) < holes] = np.nan
-    d[:, :70] = np.nan  # block matching has no match in the left num_disparities columns
+    if band:
+        d[:, :70] = np.nan  # block matching has no match in the left num_disparities columns
     return d
 
 
@@ -258,6 +260,21 @@ def test_layers_keeps_an_object_cut_by_the_image_border():
     assert _depths(dets) == [2.0]
     assert dets[0].bbox_px[2] == MODEL.width
     assert seed.segment(d, MODEL, SegmenterSettings(method="seed")) == []  # the thesis clears the border
+
+
+def test_a_near_object_left_of_where_its_partner_leaves_the_right_image_is_flagged_cut():
+    """A matcher without a fixed blind band (dense pads the pair) measures the far wall up to the
+    image's left side, but left of x = d nothing at disparity d has a partner in the right image: a
+    crate 1.5 m away (44 px) from x = 0 is measured from about x = 44 on. Its left side is cut there,
+    though the map's first measured column is 0 (low-faces, dense: unflagged). A box 3 m away whose
+    left side is in view is not cut."""
+    d = scene([(0, 200, 1.5, 200), (300, 420, 3.0, 150)], band=False)
+    near = d[:, :int(FB / 1.5)]
+    near[near > FB / 1.6] = np.nan  # the crate's pixels without a partner
+    dets = sorted(layers.segment(d, MODEL, SegmenterSettings()), key=lambda o: o.distance_m)
+    assert _depths(dets) == [1.5, 3.0], [(o.distance_m, o.bbox_px) for o in dets]
+    assert dets[0].cut[0] and dets[0].bbox_px[0] <= int(FB / 1.5) + 4, dets[0]
+    assert not any(dets[1].cut), dets[1]
 
 
 def test_seed_says_when_what_stands_in_range_is_not_in_its_list():

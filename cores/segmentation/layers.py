@@ -313,8 +313,12 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
                          bbox_px=(x0 * step, y0 * step, min(model.width, x1 * step), min(model.height, y1 * step)),
                          area_px=int(area * step * step), disparity_px=disparity_px, confidence=confidence,
                          # cut at the sides or by the range: its footprint is partial (a cut at the
-                         # top or bottom changes its height, not where it stands)
-                         cut=(x0 <= left_edge + 1, x1 - 1 >= right_edge - 1, bool(hi[2] >= 0.97 * range_m)),
+                         # top or bottom changes its height, not where it stands). Left of x = d its
+                         # points have no partner in the right image, whatever the matcher: dense's
+                         # band is as wide as the disparity there (no fixed band; low-faces: the crate
+                         # cut by the image's side ended at 20 px, unflagged)
+                         cut=(x0 <= left_edge + 1 or x0 * step <= disparity_px + 2 * step,
+                              x1 - 1 >= right_edge - 1, bool(hi[2] >= 0.97 * range_m)),
                          edges=_edges(sub, model))
 
     dropped: tuple[list[Detection], list[np.ndarray]] = ([], [])
