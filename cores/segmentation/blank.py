@@ -33,8 +33,10 @@ min_confidence): dense gives every depth edge a low confidence, and so set aside
 that show the face; on the low-faces scene it missed the plain cabinet in 2 of 3 frames, silently.
 Block matching measures no such top edge where the face stands against texture (a cabinet before a
 wall: the edge takes the wall's depth) but measures its side; _outlined takes a run of stops at one
-depth beside such a measured side for one face. A face whose foot is not seen (nearer than the
-image's bottom edge) is not found, nor a low one of which nothing at its depth was measured. Farther than
+depth beside such a measured side for one face. A face whose foot is below the image (nearer than
+the floor at its bottom edge) leaves no stop: _below_image takes a plain stretch from the bottom edge
+up to the floor seen again, beside a side measured down to that edge, for one face. A face of which
+nothing at its depth was measured is not found. Farther than
 near_field_m a road fading into the distance under a blank sky looks the same as a face:
 on the street recording (karlsruhe, bm, 40 frames) 11 such stretches at 10-17 m, none nearer; on
 the room recording and every synthetic scene, none.
@@ -111,8 +113,9 @@ def find(dm: np.ndarray, df: np.ndarray, seen_floor: np.ndarray, standing: np.nd
     low = gaps.nearest_end
     d_low = np.where(low >= 0, df[np.maximum(low, 0), cols], 0.0)
     stops = (low >= 0) & (d_low > fB / limit)
-    # unmeasured pixels above each row of the columns either rule looks at (a running count: one pass)
-    need = np.flatnonzero(cand | stops)
+    bottom = (gaps.bottom_start >= 0) & (df[h - 1] > fB / limit)  # 3's columns
+    # unmeasured pixels above each row of the columns the rules look at (a running count: one pass)
+    need = np.flatnonzero(cand | stops | bottom)
     at = np.full(w, -1)
     at[need] = np.arange(need.size)
     unmeasured = np.concatenate([np.zeros((1, need.size), np.int32),
@@ -160,9 +163,12 @@ def find(dm: np.ndarray, df: np.ndarray, seen_floor: np.ndarray, standing: np.nd
         face_top[c[found]] = np.argmax(top_ok, axis=0)[found]  # the highest such top edge
         _outlined(c[~found], low, d_low, dm, standing, unmeasured, at, min_height_m, model, step,
                   faces, foot, face_top, shift)
+    # 3. a face whose foot is below the image: nearer than the floor at the image's bottom edge
+    _below_image(np.flatnonzero(bottom & ~faces), gaps.bottom_start, df, dm, standing, unmeasured, at,
+                 min_height_m, model, step, faces, foot, face_top, shift)
     if not faces.any():
         return None
-    d_face = np.where(faces, df[np.maximum(foot, 0), cols] + shift, 0.0).astype(np.float64)
+    d_face = np.where(faces, df[np.clip(foot, 0, h - 1), cols] + shift, 0.0).astype(np.float64)
     with np.errstate(divide="ignore"):
         z_face = np.where(d_face > 0, fB / np.maximum(d_face, 1e-9), np.inf)
     faces = _wide_runs(faces, z_face, MIN_WIDTH_M * model.focal_px / step)
@@ -234,6 +240,62 @@ def _outlined(c: np.ndarray, low: np.ndarray, d_low: np.ndarray, dm: np.ndarray,
         foot[ok] = low[ok]
         face_top[ok] = np.maximum(low[ok] - rise, 0)
         shift[ok] = offsets[int(np.argmax(tops))]
+
+
+def _below_image(c: np.ndarray, start: np.ndarray, df: np.ndarray, dm: np.ndarray, standing: np.ndarray,
+                 unmeasured: np.ndarray, at: np.ndarray, min_height_m: float, model: camera.RectifiedModel,
+                 step: int, faces: np.ndarray, foot: np.ndarray, face_top: np.ndarray, shift: np.ndarray) -> None:
+    """Rule 3 (faces, foot, face_top, shift updated in place): c, the columns whose floor seen stops
+    for a stretch that reaches the image's bottom edge (start: its first row). A plain crate 0.35 m high
+    whose near face stands just short of the image's bottom edge (low-faces: the floor there at 1.65 m,
+    the crate at 1.4-1.8 m) leaves such a stretch: its faces and top unmeasured, the floor seen again
+    just above its far top edge. Neither rule above sees it (no floor at its foot), and the list held
+    its measured side alone (bm) or nothing (dense), unflagged. A smooth road at the bottom edge leaves
+    the same stretch (karlsruhe, bm: most columns), so the stretch alone says nothing. What tells a
+    face is a measured sliver beside one end of a run of such columns (within GAP_COLS + 2 columns)
+    standing nearer than the floor at the bottom edge (so its foot is below the image too), reaching
+    down to within min_height_m of the edge and min_height_m tall or more, with the floor seen again
+    within min_height_m above its top (what stands there hides the floor up to its top edge; the side
+    measured may fall short of it: 26 rows in one low-faces frame) and the run's columns unmeasured
+    (UNMEASURED) from there down. The face reaches up to where the floor is seen again, at the sliver's
+    median disparity. A pole beside a plain stretch of road fails: the road beyond is measured
+    within the pole's height."""
+    h, w = dm.shape
+    c = c[(unmeasured[h, at[c]] - unmeasured[start[c], at[c]]) >= UNMEASURED * (h - start[c])]  # the plain ones
+    if not c.size:
+        return
+    near = GAP_COLS + 2
+    per_m = 1.0 / (model.baseline_m * step)  # rows a metre of height covers, per px of disparity
+    for run in np.split(c, np.flatnonzero(np.diff(c) > GAP_COLS + 1) + 1):
+        best: tuple[int, float] | None = None  # the tallest sliver: (its top row, its disparity)
+        for side in (range(run[0] - 1, max(run[0] - 1 - near, -1), -1), range(run[-1] + 1, min(run[-1] + 1 + near, w))):
+            for col in side:
+                nearer = standing[:, col] & (dm[:, col] > df[h - 1, col])
+                if not nearer.any():
+                    continue
+                r = np.flatnonzero(nearer)
+                d = float(np.median(dm[nearer, col]))
+                tall = min_height_m * d * per_m
+                if h - r[-1] > tall or h - r[0] < max(tall, 1):  # stands higher up, or too low
+                    continue
+                if best is None or r[0] < best[0]:
+                    best = (int(r[0]), d)
+        if best is None:
+            continue
+        top, d = best
+        # left of x = d nothing at the face's depth has a partner in the right image: unmeasured there
+        # says nothing of plainness (dense, karlsruhe: a railing's "face" in that band, every few frames)
+        run = run[run * step >= d + step]
+        if not run.size:
+            continue
+        v0 = np.minimum(start[run], top)  # up to where the floor is seen again
+        plain = (unmeasured[h, at[run]] - unmeasured[v0, at[run]]) >= UNMEASURED * (h - v0)
+        plain &= start[run] >= top - min_height_m * d * per_m
+        ok = run[plain]
+        faces[ok] = True
+        foot[ok] = h
+        face_top[ok] = v0[plain]
+        shift[ok] = d - df[h - 1, ok]
 
 
 def _wide_runs(a: np.ndarray, z: np.ndarray, fw: float) -> np.ndarray:

@@ -125,6 +125,9 @@ class Gaps:
 
     mask: np.ndarray  # (h, w) bool: rows inside such a stretch
     nearest_end: np.ndarray  # (w,) int64: the floor row just below a column's lowest such stretch (-1: none)
+    # (w,) int64: the first row of a column's stretch that reaches the image's bottom edge (-1: none), what
+    # stands nearer than the floor there leaves: its foot is below the image
+    bottom_start: np.ndarray
 
 
 def floor_gaps(seen_floor: np.ndarray, df: np.ndarray, baseline_m: float, min_height_m: float, step: int) -> Gaps:
@@ -145,4 +148,6 @@ def floor_gaps(seen_floor: np.ndarray, df: np.ndarray, baseline_m: float, min_he
     nearest_end = np.full(w, -1, np.int64)
     below = ends < h
     np.maximum.at(nearest_end, cols[below], ends[below])
-    return Gaps(mask, nearest_end)
+    bottom_start = np.full(w, -1, np.int64)
+    bottom_start[cols[~below]] = starts[~below]  # a column has one stretch at most that reaches row h
+    return Gaps(mask, nearest_end, bottom_start)
