@@ -310,8 +310,9 @@ def run(node: Node, settings: RectifySettings) -> None:
                 "both cameras' pictures change again")
             said_blocked = _say_cameras(
                 node, "blocked", blocked, said_blocked,
-                "part of the {cameras} camera's view is flat where the other camera sees texture (a finger, a "
-                "sticker, glare on the lens?): nothing there is measured; every list says view-blocked",
+                "part of the {cameras} camera's view is flat or blurred where the other camera sees texture (a "
+                "finger, a sticker, glare, grease on the lens?): little or nothing there is measured; every list "
+                "says view-blocked",
                 "both cameras see the whole view again")
             rl, rr = rectifier.rectify(left, right)
             holder.mark_used()

@@ -44,8 +44,9 @@ REASON_STATUS: dict[str, str] = {
                     "picture with fresh stamps (a hung driver?)",
     "camera-frozen": "the {cameras} camera's picture has not changed for over rectify's frozen_after_s while "
                      "its stamps go on: its driver repeats one buffer (unplug and replug it, or restart capture)",
-    "view-blocked": "part of the {blocked} camera's view is flat where the other camera sees texture (a finger, "
-                    "a sticker, glare on the lens?): nothing standing there is measured; clean or clear the lens",
+    "view-blocked": "part of the {blocked} camera's view is flat or blurred where the other camera sees texture "
+                    "(a finger, a sticker, glare, grease on the lens?): what stands there is measured little or not "
+                    "at all; clean or clear the lens",
     "rows-misaligned": "rectify finds the pair's rows {offset} apart: the calibration no longer fits the rig (a "
                        "knocked camera, a loose lens?); check it (`ballbot-vision calibration check`) and calibrate "
                        "again",
