@@ -237,7 +237,8 @@ class BlockedView:
     the textured tiles: one camera's exposure or contrast, which scales the whole picture's detail,
     cancels (the right picture at 0.4 of its brightness: no tile). Measured, flat or blurred: at most
     4.7 % of the tiles (karlsruhe) and 6.2 % (euroc); a smudge of sigma 3-4 px over a quarter of one
-    picture, 13-26 % (sigma 2 px, where the matcher still keeps both boxes: 3-11 %). Looked at every
+    picture, 13-26 % (sigma 2 px, where the matcher still keeps both boxes: 3-11 %). A smudge over
+    most of a picture moves that median itself and is not told so (nor a lens out of focus). Looked at every
     EVERY_S at most (its cost: two pictures shrunk and their detail, 1.3 ms)."""
 
     GRID = (16, 12)
