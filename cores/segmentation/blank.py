@@ -267,7 +267,8 @@ def _below_image(c: np.ndarray, start: np.ndarray, df: np.ndarray, dm: np.ndarra
     near = GAP_COLS + 2
     per_m = 1.0 / (model.baseline_m * step)  # rows a metre of height covers, per px of disparity
     for run in np.split(c, np.flatnonzero(np.diff(c) > GAP_COLS + 1) + 1):
-        best: tuple[int, float] | None = None  # the tallest sliver: (its top row, its disparity)
+        # the tallest sliver: (its top row, its median disparity, its nearest part's: the 95th percentile)
+        best: tuple[int, float, float] | None = None
         for side in (range(run[0] - 1, max(run[0] - 1 - near, -1), -1), range(run[-1] + 1, min(run[-1] + 1 + near, w))):
             for col in side:
                 nearer = standing[:, col] & (dm[:, col] > df[h - 1, col])
@@ -279,13 +280,14 @@ def _below_image(c: np.ndarray, start: np.ndarray, df: np.ndarray, dm: np.ndarra
                 if h - r[-1] > tall or h - r[0] < max(tall, 1):  # stands higher up, or too low
                     continue
                 if best is None or r[0] < best[0]:
-                    best = (int(r[0]), d)
+                    best = (int(r[0]), d, float(np.percentile(dm[nearer, col], 95)))
         if best is None:
             continue
-        top, d = best
-        # left of x = d nothing at the face's depth has a partner in the right image: unmeasured there
-        # says nothing of plainness (dense, karlsruhe: a railing's "face" in that band, every few frames)
-        run = run[run * step >= d + step]
+        top, d, d_near = best
+        # left of x = d nothing at disparity d has a partner in the right image: unmeasured there says
+        # nothing of plainness, out to the disparity of the face's nearest part (dense, karlsruhe: that
+        # band beside a railing 3.9-4.3 m away, ending at its median 85-95 px, passed for a face in 12 of 40 frames)
+        run = run[run * step >= d_near + step]
         if not run.size:
             continue
         v0 = np.minimum(start[run], top)  # up to where the floor is seen again
