@@ -48,7 +48,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cores import camera
-from cores.segmentation import freespace
+from cores.segmentation import freespace, stats
 from cores.segmentation.mount import FloorPlane
 
 BEHIND_M = 1.0  # something standing measured this close beyond the floor's end explains it
@@ -228,7 +228,7 @@ def _outlined(c: np.ndarray, low: np.ndarray, d_low: np.ndarray, dm: np.ndarray,
                     continue
                 if (v1 - r[0]) * step * model.baseline_m / d0 >= max(min_height_m, 1e-6):
                     tops.append(v1 - int(r[0]))  # the sliver's height above the stop, rows
-                    offsets.append(float(np.median(dm[at_depth, col])) - d0)
+                    offsets.append(float(stats.median(dm[at_depth, col])) - d0)
         if not tops:
             continue
         rise = max(tops)
@@ -275,12 +275,13 @@ def _below_image(c: np.ndarray, start: np.ndarray, df: np.ndarray, dm: np.ndarra
                 if not nearer.any():
                     continue
                 r = np.flatnonzero(nearer)
-                d = float(np.median(dm[nearer, col]))
+                ds = dm[nearer, col]
+                d = float(stats.median(ds))
                 tall = min_height_m * d * per_m
                 if h - r[-1] > tall or h - r[0] < max(tall, 1):  # stands higher up, or too low
                     continue
                 if best is None or r[0] < best[0]:
-                    best = (int(r[0]), d, float(np.percentile(dm[nearer, col], 95)))
+                    best = (int(r[0]), d, float(stats.percentile(ds, 95)))
         if best is None:
             continue
         top, d, d_near = best
@@ -313,7 +314,7 @@ def _wide_runs(a: np.ndarray, z: np.ndarray, fw: float) -> np.ndarray:
         while j + 1 < len(starts) and starts[j + 1] - ends[j] <= GAP_COLS:
             j += 1
         s, e = starts[i], ends[j]
-        if e - s >= fw / float(np.median(z[s:e][a[s:e]])):
+        if e - s >= fw / float(stats.median(z[s:e][a[s:e]])):
             out[s:e] = a[s:e]
         i = j + 1
     return out
