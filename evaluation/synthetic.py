@@ -38,6 +38,12 @@ least 3 frames, how far each frame's error vector strays from that obstacle's me
 sightings). The ground: the share of frames whose ground was fitted in that frame, and the 95th
 percentile and maximum of the error of its pitch, roll (deg) and height (m) against the camera's
 true mount in that frame.
+
+Free space (the list's FreeSpace grid, base frame): `free under` counts the true obstacles in range
+whose ground outline (each part that reaches between STANDS_FROM_M and STANDS_TO_M above the floor,
+hidden parts included) has a free cell more than half of which lies FREE_TOLERANCE_M or more inside
+it: the grid saying the way is clear where something stands (_free_under). The same ground truth as
+the rest, in the true base frame, so a ground estimate's error shows there too.
 """
 from __future__ import annotations
 
@@ -88,6 +94,9 @@ class EvalFrame:
     # num_disparities) the segmenter checks the vision range against
     confidence: np.ndarray | None = None
     search: tuple[int, int] | None = None
+    # per truth: the ground outlines ((4, 2) base-frame (x, y), m) of its parts between STANDS_FROM_M and
+    # STANDS_TO_M above the floor (SyntheticWorld.footprints): where it stands, which free space must never call free
+    stands: list = field(default_factory=list)
 
     @property
     def mount(self) -> Mount:
@@ -121,6 +130,12 @@ def mount_from_T(T: np.ndarray) -> Mount:
     roll = math.atan2(R[2, 1], R[2, 2])
     return Mount(float(T[2, 3]), math.degrees(pitch), math.degrees(yaw), math.degrees(roll),
                  float(T[0, 3]), float(T[1, 3]))
+
+
+# a part reaching into these heights above the floor (m) stands in the way of a robot 2 m tall (the
+# segmenter's robot_height_m); a thing lower than 0.1 m is within the floor's noise
+STANDS_FROM_M, STANDS_TO_M = 0.1, 2.0
+FREE_TOLERANCE_M = 0.03  # see _free_under
 
 
 def _truth_maps(world: S.SyntheticWorld, t: float,
@@ -182,7 +197,8 @@ def render_scenario(name: str, frames: int | None = None, fps: float | None = No
         out.append(EvalFrame(t, left, stage.disparity_px(), world.truth(t), kind, [seen[i][:2] for i in range(n)],
                              [seen[i][2] for i in range(n)], world.T_base_rect(t),
                              world.odometry(t) if scene.camera_moves() else None, stage.match.confidence,
-                             (stage.min_disparity, stage.num_disparities)))
+                             (stage.min_disparity, stage.num_disparities),
+                             world.footprints(t, STANDS_FROM_M, STANDS_TO_M)))
     return ScenarioData(scene.name, scene, pipe.model, mount_from_world(world), out, time.perf_counter() - t0)
 
 
@@ -212,6 +228,9 @@ class Score:
     # beyond the list's range, was at least said
     silent_misses: int = 0
     flagged_frames: int = 0  # lists with a reason in degraded
+    # truths in range whose standing surface (EvalFrame.stands) falls in a cell the list's free space calls
+    # free: the way said clear where something stands
+    free_under: int = 0
     vel_err_mps: float = float("nan")
     seg_ms: float = float("nan")
     base_err_med_m: float = float("nan")  # base frame, against the truth's measurable centroid
@@ -292,7 +311,7 @@ class Score:
         out = cls(scenario, scores[0].method if scores else "")
         for s in scores:
             for k in ("frames", "truths", "detections", "matched", "floor_fp", "wall_fp", "split_fp", "id_switches",
-                      "border_truths", "border_flagged", "silent_misses", "flagged_frames"):
+                      "border_truths", "border_flagged", "silent_misses", "flagged_frames", "free_under"):
                 setattr(out, k, getattr(out, k) + getattr(s, k))
             for k in ("_pos", "_pct", "_depth", "_center", "_visible", "_vel", "_ms", "_base", "_wobble", "ground",
                       "_near", "_edge"):
@@ -402,6 +421,7 @@ def score_method(data: ScenarioData, method: str, overrides: dict | None = None,
             lo, hi = res.obstacles.range_m or (0.0, math.inf)
             found = {ti for _, ti in pairs}
             sc.silent_misses += sum(1 for ti, c in enumerate(centroids) if ti not in found and lo <= c[2] <= hi)
+        sc.free_under += _free_under(res.freespace, [fr.stands[i] for i in in_range] if fr.stands else [])
         for i, t in enumerate(fr.truth):
             rec = sc.per_truth.setdefault(t.name, {"seen": 0, "matched": 0, "ids": [], "hidden": 0, "gaps": 0})
             if i in keep:
@@ -471,6 +491,67 @@ def score_method(data: ScenarioData, method: str, overrides: dict | None = None,
     for rec in sc.per_truth.values():
         rec.pop("_gone", None)
     return sc.finish()
+
+
+def _free_under(fs, stands: list[list[np.ndarray]]) -> int:
+    """How many of these truths (each its parts' ground outlines, EvalFrame.stands) the free space
+    grid `fs` (FreeSpace or None) calls free: a free cell more than half of which lies FREE_TOLERANCE_M
+    or more inside one of its parts. A cell the outline only crosses holds floor beside it too, and
+    floor seen right at a face's foot falls a centimetre or two either side of it (stereo noise, the
+    ground's fit): which way such a cell goes is the grid's resolution, not a way said clear through
+    the thing."""
+    if fs is None:
+        return 0
+    grid = np.frombuffer(fs.cells, np.int8).reshape(fs.height, fs.width)
+    res, (ox, oy) = fs.resolution_m, fs.origin_m
+    sub = (np.arange(4) + 0.5) / 4  # 4 x 4 samples of a cell
+    n = 0
+    for polys in stands:
+        hit = False
+        for outline in polys:
+            poly = _shrunk(outline, FREE_TOLERANCE_M)
+            if poly is None:
+                continue
+            c0, r0 = np.floor((poly.min(0) - (ox, oy)) / res).astype(int)
+            c1, r1 = np.floor((poly.max(0) - (ox, oy)) / res).astype(int)
+            c0, r0, c1, r1 = max(c0, 0), max(r0, 0), min(c1, fs.width - 1), min(r1, fs.height - 1)
+            if c0 > c1 or r0 > r1:
+                continue
+            rows, cols = np.nonzero(grid[r0:r1 + 1, c0:c1 + 1] == 0)
+            if not rows.size:
+                continue
+            # sample points of every free cell in the outline's box, (cells, 16, 2)
+            x = ox + (cols[:, None, None] + c0 + sub[None, :, None]) * res
+            y = oy + (rows[:, None, None] + r0 + sub[None, None, :]) * res
+            pts = np.stack(np.broadcast_arrays(x, y), -1).reshape(rows.size, 16, 2)
+            inside = np.ones(pts.shape[:2], bool)
+            for k in range(4):  # a convex outline, corners in order: inside = on one side of every edge
+                a, b = poly[k], poly[(k + 1) % 4]
+                cross = (b[0] - a[0]) * (pts[..., 1] - a[1]) - (b[1] - a[1]) * (pts[..., 0] - a[0])
+                inside &= cross * _turn(poly) >= 0
+            if np.any(inside.mean(1) > 0.5):
+                hit = True
+                break
+        n += hit
+    return n
+
+
+def _shrunk(rect: np.ndarray, margin: float) -> np.ndarray | None:
+    """A rectangle's (4, 2) corners in order, each side moved `margin` inwards (None: nothing left)."""
+    c = rect.mean(0)
+    e1, e2 = rect[1] - rect[0], rect[3] - rect[0]
+    l1, l2 = float(np.linalg.norm(e1)), float(np.linalg.norm(e2))
+    h1, h2 = l1 / 2 - margin, l2 / 2 - margin
+    if h1 <= 0 or h2 <= 0:
+        return None
+    u1, u2 = e1 / l1 * h1, e2 / l2 * h2
+    return np.array([c - u1 - u2, c + u1 - u2, c + u1 + u2, c - u1 + u2])
+
+
+def _turn(poly: np.ndarray) -> float:
+    """+1 for corners counter-clockwise, -1 clockwise."""
+    x, y = poly[:, 0], poly[:, 1]
+    return 1.0 if float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))) >= 0 else -1.0
 
 
 def _draw(path: Path, fr, res, model: camera.RectifiedModel, truths: list) -> None:
@@ -544,8 +625,8 @@ COLUMNS = [("recall", "recall", "{:.0%}"), ("precision", "prec", "{:.0%}"), ("po
            ("center_err_med_m", "vs centre m", "{:.3f}"), ("visible_err_med_m", "vs visib. m", "{:.3f}"),
            ("floor_fp", "floor FP", "{}"), ("wall_fp", "wall FP", "{}"),
            ("split_fp", "split FP", "{}"), ("id_switches", "id sw", "{}"), ("silent_misses", "silent miss", "{}"),
-           ("flagged_frames", "flagged", "{}"), ("vel_err_mps", "vel err m/s", "{:.2f}"),
-           ("seg_ms", "seg ms", "{:.1f}")]
+           ("flagged_frames", "flagged", "{}"), ("free_under", "free under", "{}"),
+           ("vel_err_mps", "vel err m/s", "{:.2f}"), ("seg_ms", "seg ms", "{:.1f}")]
 
 
 # the base frame and the ground (the second table)

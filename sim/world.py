@@ -425,6 +425,23 @@ class SyntheticWorld:
         return sample_texture(self._levels, u, v, minor.astype(np.float32), major.astype(np.float32),
                        dir_u / norm, dir_v / norm, np.broadcast_to(tex, (u.shape[0], 5)))
 
+    def footprints(self, t: float, z_from: float, z_to: float) -> list[list[np.ndarray]]:
+        """Per obstacle, the ground outlines ((4, 2) corners, robot base frame (x, y), m) of its parts
+        that reach from z_from to z_to above the floor anywhere (what stands in the way of a robot
+        that tall), at time t."""
+        T = np.linalg.inv(self.T_world_base(t))
+        out = []
+        for i in range(len(self.scene.boxes)):
+            polys = []
+            for p in self._placed_parts(i, t):
+                if p.center[2] - p.half[2] > z_to or p.center[2] + p.half[2] < z_from:
+                    continue
+                local = np.array([[1, 1], [1, -1], [-1, -1], [-1, 1]], float) * p.half[:2]  # along x = depth d
+                world = local @ rot_z(p.yaw)[:2, :2].T + p.center[:2]
+                polys.append(world @ T[:2, :2].T + T[:2, 3])
+            out.append(polys)
+        return out
+
     def _placed_parts(self, i: int, t: float) -> list[PlacedPart]:
         """Obstacle i's parts posed at time t."""
         b = self.scene.boxes[i]
