@@ -135,7 +135,7 @@ def mount_from_T(T: np.ndarray) -> Mount:
 # a part reaching into these heights above the floor (m) stands in the way of a robot 2 m tall (the
 # segmenter's robot_height_m); a thing lower than 0.1 m is within the floor's noise
 STANDS_FROM_M, STANDS_TO_M = 0.1, 2.0
-FREE_TOLERANCE_M = 0.03  # see _free_under
+FREE_TOLERANCE_M = 0.05  # half the default 0.1 m cell; see _free_under
 
 
 def _truth_maps(world: S.SyntheticWorld, t: float,
@@ -172,11 +172,12 @@ def default_sequence(scene: S.Scene) -> tuple[int, float]:
     return (3, 15.0) if scene.is_static() else (45, 15.0)
 
 
-def render_scenario(name: str, frames: int | None = None, fps: float | None = None, seed: int = 0,
+def render_scenario(name: str | S.Scene, frames: int | None = None, fps: float | None = None, seed: int = 0,
                     calibration: str = "lifecam-studio", matcher: MatcherConfig | None = None) -> ScenarioData:
-    """Render `frames` pairs at `fps` (scene time), rectify and match them."""
+    """Render `frames` pairs at `fps` (scene time) of a built-in scenario (by name) or a Scene,
+    rectify and match them."""
     t0 = time.perf_counter()
-    scene = S.Scene.builtin(name)
+    scene = name if isinstance(name, S.Scene) else S.Scene.builtin(name)
     rig = camera.load_raw_rig(calibration)  # the world renders through the lenses
     pipe = Pipeline(rig, matcher or MatcherConfig())  # rectify and match as the services do; each method segments apart
     assert pipe.rectifier.rectification is not None  # a raw rig is rectified
