@@ -323,8 +323,35 @@ def test_free_under_counts_a_free_cell_inside_what_stands_and_not_one_its_outlin
     assert E._free_under(_grid(occupied), [box]) == 0
     assert E._free_under(None, [box]) == 0
     crossed = cells.copy()
-    # y -0.1 to 0: 70 % of it under the box, but only 40 % deeper than the 3 cm that floor seen right at a
-    # face's foot may stray into it
+    # y -0.1 to 0: 70 % of it under the box, but only 20 % deeper than the half cell (5 cm) within which floor
+    # seen right at a face's foot may stray into it
     crossed[9, 12] = 0
     crossed[10, 12] = crossed[7, 15] = crossed[4, 9] = 0  # beside the box
     assert E._free_under(_grid(crossed), [box]) == 0
+
+
+def test_a_rolled_camera_sees_no_free_floor_under_a_table_top_beside_the_column(monkeypatch):
+    """A leaning ballbot's camera rolls: image columns are no longer verticals, and the floor under a
+    table top's edge, whose vertical runs through the top in the next columns, was free (the sway,
+    camera rolled 9 deg: up to 11 cm under the top)."""
+    import sim as S
+    from cores.segmentation import freespace
+
+    legs = [{"name": f"leg-{k}", "offset": [x, y, 0.355], "size": [0.05, 0.71, 0.05]}
+            for k, x, y in (("fl", -0.26, 0.36), ("fr", -0.26, -0.36), ("bl", 0.26, 0.36), ("br", 0.26, -0.36))]
+    table = {"name": "table", "kind": "table", "position": [2.7, -0.75], "yaw_deg": 10, "texture_seed": 83,
+             "parts": [{"name": "top", "offset": [0.0, 0.0, 0.73], "size": [0.8, 0.04, 0.6]},
+                       {"name": "apron-f", "offset": [-0.27, 0.0, 0.65], "size": [0.72, 0.12, 0.03]},
+                       {"name": "apron-l", "offset": [0.0, 0.37, 0.65], "size": [0.03, 0.12, 0.52]}, *legs]}
+    scene = S.Scene.from_dict({
+        "name": "rolled-table", "camera_height_m": 0.9, "camera_pitch_deg": 3.25, "wall_distance_m": 7.0,
+        "noise_sigma": 1.5, "objects": [table],
+        # the sway's frame 13: the robot 0.22 m on, turned 2.6 deg, the camera rolled 9.3 deg (held)
+        "camera_motion": {"start": [0.22, 0.0, 2.6],
+                          "roll_deg": [{"amplitude": 9.3, "frequency_hz": 0.001, "phase_deg": 270}]}})
+    data = E.render_scenario(scene, frames=1)
+    s = E.score_method(data, "layers")
+    assert s.recall == 1.0 and s.free_under == 0, s.to_dict()
+    # the columns alone, as before: the floor under the top's edge is free
+    monkeypatch.setattr(freespace, "vertical_tilt", lambda floor, model: 0.0)
+    assert E.score_method(data, "layers").free_under == 1

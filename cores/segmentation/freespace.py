@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from cores import camera
@@ -74,8 +75,9 @@ def drivable(floor: FloorPlane, df: np.ndarray, seen_floor: np.ndarray, standing
     """Points of the floor plane the robot may drive on, camera frame: along each image column (a
     ray on the ground), the floor from the image's bottom edge out to the farthest floor point seen
     in that column, but not beyond anything standing in it (any pixel above the floor margin,
-    obstacle or not) nor beyond the vision range. Block matching sees little of a smooth road, so
-    the floor between seen points counts as seen; within near_field_m only where the rows between
+    obstacle or not), nor where anything standing is nearer on its vertical, which leaves the column
+    when the camera rolls (_open_above), nor beyond the vision range. Block matching sees little of a
+    smooth road, so the floor between seen points counts as seen; within near_field_m only where the rows between
     are too few to hide anything min_height_m tall (floor_gaps; gaps: computed already, or None): a
     longer unmeasured stretch, the bottom edge's included, is not known. Farther, every stretch
     counts, as the robot will see it again nearer: block matching leaves most of a smooth road
@@ -112,8 +114,38 @@ def drivable(floor: FloorPlane, df: np.ndarray, seen_floor: np.ndarray, standing
     gaps = gaps or floor_gaps(seen_floor, df, model.baseline_m, cfg.min_height_m, step)
     unknown = gaps.mask & (df > np.float32(fB / max(cfg.near_field_m, 1e-3)))  # such stretches in the near field
     keep = ~unknown.ravel()[vw * df.shape[1] + (u / step).astype(np.int64)]
+    tilt = vertical_tilt(floor, model)
+    if abs(tilt) * h >= 0.5:  # verticals drift half a working column or more over the image
+        keep &= _open_above(u / step, v / step, fB / z, standing, dk, tilt)
     z, u, v = z[keep], u[keep], v[keep]
     return np.stack([(u - model.cx) * z / f, (v - model.cy) * z / f, z], 1)
+
+
+def vertical_tilt(floor: FloorPlane, model: camera.RectifiedModel) -> float:
+    """du/dv of a vertical line (the floor's normal) in the image at its centre: 0 for a camera
+    that does not roll; tan(roll) for one that does (a leaning ballbot's)."""
+    n, _ = floor.normal_height(model.focal_px, model.cx, model.cy, model.baseline_m)
+    return float(n[0] / n[1]) if abs(n[1]) > 1e-6 else 0.0
+
+
+def _open_above(uw: np.ndarray, vw: np.ndarray, d: np.ndarray, standing: np.ndarray, dk: np.ndarray,
+                tilt: float) -> np.ndarray:
+    """For floor samples at working-grid (uw, vw) with disparity d: False where something standing
+    is nearer on the sample's vertical in the image.
+
+    drivable stops each column's floor at the nearest thing standing in the column: the column is
+    the vertical through the floor only while the camera does not roll. Rolled (a ballbot leans by
+    10 degrees), the vertical above the floor beside a table runs through the table top in the
+    next columns, and the floor under its edge was free (the sway: up to 11 cm under the top).
+    The standing disparities are sheared so that verticals are columns (u' = u - (v - h/2) tilt),
+    and a sample is open when nothing standing in its sheared column is nearer: the column rule,
+    along the vertical."""
+    h, w = dk.shape
+    shear = np.array([[1.0, -tilt, 0.5 * h * tilt], [0.0, 1.0, 0.0]], np.float32)
+    nearest = cv2.warpAffine(dk * standing, shear, (w, h), flags=cv2.INTER_NEAREST, borderValue=0.0).max(axis=0)
+    col = np.rint(uw - (vw - 0.5 * h) * tilt).astype(np.int64)
+    inside = (col >= 0) & (col < w)
+    return ~(inside & (nearest.take(np.clip(col, 0, w - 1)) > d))
 
 
 @dataclass
