@@ -229,8 +229,8 @@ class Score:
     # beyond the list's range, was at least said
     silent_misses: int = 0
     flagged_frames: int = 0  # lists with a reason in degraded
-    # truths in range whose standing surface (EvalFrame.stands) falls in a cell the list's free space calls
-    # free: the way said clear where something stands
+    # truths in range whose ground outline (EvalFrame.stands) holds a cell the list's free space calls free,
+    # past the tolerance (_free_under): the way said clear where something stands
     free_under: int = 0
     vel_err_mps: float = float("nan")
     seg_ms: float = float("nan")
@@ -498,9 +498,9 @@ def _free_under(fs, stands: list[list[np.ndarray]]) -> int:
     """How many of these truths (each its parts' ground outlines, EvalFrame.stands) the free space
     grid `fs` (FreeSpace or None) calls free: a free cell more than half of which lies FREE_TOLERANCE_M
     or more inside one of its parts. A cell the outline only crosses holds floor beside it too, and
-    floor seen right at a face's foot falls a centimetre or two either side of it (stereo noise, the
-    ground's fit): which way such a cell goes is the grid's resolution, not a way said clear through
-    the thing."""
+    floor seen right at a face's foot falls a few centimetres either side of it (stereo noise, the
+    ground's fit; 3.7 cm past the low-faces cabinet's plain side): which way such a cell goes is the
+    grid's resolution, not a way said clear through the thing."""
     if fs is None:
         return 0
     grid = np.frombuffer(fs.cells, np.int8).reshape(fs.height, fs.width)
