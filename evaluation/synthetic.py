@@ -9,7 +9,8 @@ Matching: per frame, detections and true obstacles are paired one-to-one (Hungar
 between the detection's centroid and the centroid of the truth's measurable surface: the surface
 points seen by the left image's pixels (as `visible_centroid_m`) restricted to the columns where
 block matching has a right-image counterpart (x >= min_disparity + num_disparities + block/2 - 1;
-this differs from `visible_centroid_m` only for objects cut by the left border), within a gate of
+for dense, which pads the pair and matches that band too, x >= d + block/2, d the pixel's true
+disparity; this differs from `visible_centroid_m` only for objects cut by the left border), within a gate of
 max(gate_m, gate_rel * distance). A true obstacle counts (is expected to be detected) when at least
 `min_visible_px` (400) pixels of its measurable surface are visible and it is within `eval_range_m`.
 A true obstacle that is only glimpsed (1 .. min_visible_px - 1 measurable pixels, e.g. the last sliver
@@ -138,12 +139,14 @@ STANDS_FROM_M, STANDS_TO_M = 0.1, 2.0
 FREE_TOLERANCE_M = 0.05  # half the default 0.1 m cell; see _free_under
 
 
-def _truth_maps(world: S.SyntheticWorld, t: float,
-                x_valid: int) -> tuple[np.ndarray, dict[int, tuple[np.ndarray, int, float]]]:
+def _truth_maps(world: S.SyntheticWorld, t: float, x_valid: int,
+                band_margin: int | None = None) -> tuple[np.ndarray, dict[int, tuple[np.ndarray, int, float]]]:
     """(kind map (H, W) int8: -3 nothing, -2 wall, -1 floor, >= 0 obstacle index;
     {obstacle index: (centroid (3,) m, pixels, nearest distance m)} of the obstacle's surface that
     the matcher can measure: visible in the left image at columns >= x_valid, where block matching
-    has a right-image counterpart)."""
+    has a right-image counterpart; with band_margin (a matcher that matches the left band too,
+    dense), at columns x >= d + band_margin instead, d its true disparity: where its partner's
+    window is in the right image)."""
     ids = world.obstacle_ids(t).astype(np.int8)
     depth = world.true_depth(t)
     m = world.rect.model
@@ -156,7 +159,11 @@ def _truth_maps(world: S.SyntheticWorld, t: float,
     z_world = pts @ T[2, :3] + T[2, 3]
     kind = np.where(ids >= 0, ids, np.where(np.isfinite(depth), np.where(z_world < 0.02, -1, -2), -3)).astype(np.int8)
     seen = {}
-    cols = np.arange(w)[None, :] >= x_valid
+    if band_margin is None:
+        cols = np.arange(w)[None, :] >= x_valid
+    else:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            cols = np.arange(w)[None, :] >= m.focal_px * m.baseline_m / depth + band_margin
     for i in range(len(world.scene.boxes)):
         mask = (ids == i) & cols
         n = int(mask.sum())
@@ -186,14 +193,16 @@ def render_scenario(name: str | S.Scene, frames: int | None = None, fps: float |
     frames = frames or n_def
     fps = fps or fps_def
     out = []
-    c = pipe.matching.matcher(pipe.model.focal_px, pipe.model.baseline_m, pipe.model.width).config
+    built = pipe.matching.matcher(pipe.model.focal_px, pipe.model.baseline_m, pipe.model.width)
+    c = built.config
     x_valid = c.min_disparity + c.fixed_num_disparities + c.block // 2 - 1
-    static = _truth_maps(world, 0.0, x_valid) if scene.is_static() else None
+    band = c.block // 2 if getattr(built, "pad", 0) else None  # dense pads the pair: its band is matched
+    static = _truth_maps(world, 0.0, x_valid, band) if scene.is_static() else None
     for k in range(frames):
         t = k / fps
         left, right = pipe.rectify(*world.render(t))
         stage = pipe.match(left, right)
-        kind, seen = static if static is not None else _truth_maps(world, t, x_valid)
+        kind, seen = static if static is not None else _truth_maps(world, t, x_valid, band)
         n = len(scene.boxes)
         out.append(EvalFrame(t, left, stage.disparity_px(), world.truth(t), kind, [seen[i][:2] for i in range(n)],
                              [seen[i][2] for i in range(n)], world.T_base_rect(t),
