@@ -277,6 +277,22 @@ def test_a_near_object_left_of_where_its_partner_leaves_the_right_image_is_flagg
     assert not any(dets[1].cut), dets[1]
 
 
+def test_an_object_whose_first_columns_after_x_d_are_lost_is_still_flagged_cut():
+    """dense lists a person cut by the image's left side as pieces; the lower one began at x 54, 4.6 px
+    right of x = d (49.4 px: its first columns had too little confidence), past a rule of two working
+    columns, and was not flagged cut (people-border). The median filter eats its reach into an edge
+    beside no data, and the working grid rounds by a column: that far right of x = d is still cut."""
+    d = scene([(0, 200, 1.5, 200), (300, 420, 3.0, 150)], band=False)
+    x_d = int(FB / 1.5)
+    near = d[:, :x_d + 5]
+    near[near > FB / 1.6] = np.nan  # no partner, then 5 columns not measured
+    dets = sorted(layers.segment(d, MODEL, SegmenterSettings()), key=lambda o: o.distance_m)
+    assert _depths(dets) == [1.5, 3.0], [(o.distance_m, o.bbox_px) for o in dets]
+    assert dets[0].bbox_px[0] > x_d + 4, dets[0]  # past the old rule's reach
+    assert dets[0].cut[0], dets[0]
+    assert not any(dets[1].cut), dets[1]
+
+
 def test_seed_says_when_what_stands_in_range_is_not_in_its_list():
     """The thesis drops what touches the image border, what is under its area opening and what lies
     beyond its Otsu threshold: such a list names standing-not-listed, never a list that reads "nothing

@@ -301,6 +301,9 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
         stand = keep
     measured = np.flatnonzero(d0.any(0))  # columns the matcher measured (not its blind left band)
     left_edge, right_edge = (int(measured[0]), int(measured[-1])) if measured.size else (0, w - 1)
+    # px an object's side may lie right of where it is cut: the median filter's reach and a column, and
+    # never under two columns (the matcher's own first columns beside no data are doubtful)
+    edge_reach = max(2, cfg.median_ksize // 2 + 1) * step
 
     def detection(pts: np.ndarray, lo: np.ndarray, hi: np.ndarray, box: tuple[int, int, int, int], area: int,
                   disparity_px: float, confidence: float) -> Detection:
@@ -316,8 +319,10 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
                          # top or bottom changes its height, not where it stands). Left of x = d its
                          # points have no partner in the right image, whatever the matcher: dense's
                          # band is as wide as the disparity there (no fixed band; low-faces: the crate
-                         # cut by the image's side ended at 20 px, unflagged)
-                         cut=(x0 <= left_edge + 1 or x0 * step <= disparity_px + 2 * step,
+                         # cut by the image's side ended at 20 px, unflagged). The median filter eats
+                         # its reach into an edge beside no data, and the grid rounds by a column
+                         # (people-border, dense: a person's lower piece began 4.6 px right of x = d)
+                         cut=(x0 <= left_edge + 1 or x0 * step <= disparity_px + edge_reach,
                               x1 - 1 >= right_edge - 1, bool(hi[2] >= 0.97 * range_m)),
                          edges=_edges(sub, model))
 
