@@ -513,55 +513,33 @@ def _free_under(fs, stands: list[list[np.ndarray]]) -> int:
     if fs is None:
         return 0
     grid = np.frombuffer(fs.cells, np.int8).reshape(fs.height, fs.width)
-    res, (ox, oy) = fs.resolution_m, fs.origin_m
+    res, origin = fs.resolution_m, np.asarray(fs.origin_m, float)
     sub = (np.arange(4) + 0.5) / 4  # 4 x 4 samples of a cell
     n = 0
-    for polys in stands:
-        hit = False
-        for outline in polys:
-            poly = _shrunk(outline, FREE_TOLERANCE_M)
-            if poly is None:
+    for rects in stands:
+        for rect in rects:  # corners in order: two sides from corner 0 along the part's axes
+            centre = rect.mean(0)
+            axes = np.stack([rect[1] - rect[0], rect[3] - rect[0]])
+            length = np.linalg.norm(axes, axis=1)
+            half = length / 2 - FREE_TOLERANCE_M  # the part shrunk by the tolerance on every side
+            if np.any(half <= 0):
                 continue
-            c0, r0 = np.floor((poly.min(0) - (ox, oy)) / res).astype(int)
-            c1, r1 = np.floor((poly.max(0) - (ox, oy)) / res).astype(int)
-            c0, r0, c1, r1 = max(c0, 0), max(r0, 0), min(c1, fs.width - 1), min(r1, fs.height - 1)
+            c0, r0 = np.maximum(np.floor((rect.min(0) - origin) / res).astype(int), 0)
+            c1, r1 = np.minimum(np.floor((rect.max(0) - origin) / res).astype(int), (fs.width - 1, fs.height - 1))
             if c0 > c1 or r0 > r1:
                 continue
             rows, cols = np.nonzero(grid[r0:r1 + 1, c0:c1 + 1] == 0)
             if not rows.size:
                 continue
-            # sample points of every free cell in the outline's box, (cells, 16, 2)
-            x = ox + (cols[:, None, None] + c0 + sub[None, :, None]) * res
-            y = oy + (rows[:, None, None] + r0 + sub[None, None, :]) * res
+            # sample points of every free cell in the part's box, (cells, 16, 2)
+            x = origin[0] + (cols[:, None, None] + c0 + sub[None, :, None]) * res
+            y = origin[1] + (rows[:, None, None] + r0 + sub[None, None, :]) * res
             pts = np.stack(np.broadcast_arrays(x, y), -1).reshape(rows.size, 16, 2)
-            inside = np.ones(pts.shape[:2], bool)
-            for k in range(4):  # a convex outline, corners in order: inside = on one side of every edge
-                a, b = poly[k], poly[(k + 1) % 4]
-                cross = (b[0] - a[0]) * (pts[..., 1] - a[1]) - (b[1] - a[1]) * (pts[..., 0] - a[0])
-                inside &= cross * _turn(poly) >= 0
-            if np.any(inside.mean(1) > 0.5):
-                hit = True
+            along = np.abs((pts - centre) @ (axes / length[:, None]).T)  # (cells, 16, 2) from the centre
+            if np.any(np.all(along <= half, axis=-1).mean(1) > 0.5):
+                n += 1
                 break
-        n += hit
     return n
-
-
-def _shrunk(rect: np.ndarray, margin: float) -> np.ndarray | None:
-    """A rectangle's (4, 2) corners in order, each side moved `margin` inwards (None: nothing left)."""
-    c = rect.mean(0)
-    e1, e2 = rect[1] - rect[0], rect[3] - rect[0]
-    l1, l2 = float(np.linalg.norm(e1)), float(np.linalg.norm(e2))
-    h1, h2 = l1 / 2 - margin, l2 / 2 - margin
-    if h1 <= 0 or h2 <= 0:
-        return None
-    u1, u2 = e1 / l1 * h1, e2 / l2 * h2
-    return np.array([c - u1 - u2, c + u1 - u2, c + u1 + u2, c - u1 + u2])
-
-
-def _turn(poly: np.ndarray) -> float:
-    """+1 for corners counter-clockwise, -1 clockwise."""
-    x, y = poly[:, 0], poly[:, 1]
-    return 1.0 if float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))) >= 0 else -1.0
 
 
 def _draw(path: Path, fr, res, model: camera.RectifiedModel, truths: list) -> None:
