@@ -108,15 +108,17 @@ def drivable(floor: FloorPlane, df: np.ndarray, seen_floor: np.ndarray, standing
     z, u = z.take(ok), u.take(ok)
     f = model.focal_px
     # the floor's pixel row at depth z in column u: a u + b v + c = f B / z
-    v = (fB / z - floor.a * u - floor.c) / floor.b
+    d = fB / z
+    v = (d - floor.a * u - floor.c) / floor.b
     h = df.shape[0]
     vw = np.clip(np.floor(v / step).astype(np.int64), 0, h - 1)
+    uw = u / step
     gaps = gaps or floor_gaps(seen_floor, df, model.baseline_m, cfg.min_height_m, step)
     unknown = gaps.mask & (df > np.float32(fB / max(cfg.near_field_m, 1e-3)))  # such stretches in the near field
-    keep = ~unknown.ravel()[vw * df.shape[1] + (u / step).astype(np.int64)]
+    keep = ~unknown.ravel()[vw * df.shape[1] + uw.astype(np.int64)]
     tilt = vertical_tilt(floor, model)
     if abs(tilt) * h >= 0.5:  # verticals drift half a working column or more over the image
-        keep &= _open_above(u / step, v / step, fB / z, standing, dk, tilt)
+        keep &= _open_above(uw, v / step, d, standing, dk, tilt)
     z, u, v = z[keep], u[keep], v[keep]
     return np.stack([(u - model.cx) * z / f, (v - model.cy) * z / f, z], 1)
 
