@@ -157,6 +157,25 @@ def test_the_depth_layer_split_keeps_a_surface_resting_on_the_far_side_s_top_who
     assert parts(rail, None) == 2 and parts(rail, floor_up) == 1
 
 
+def test_the_depth_layer_split_keeps_a_table_s_legs_below_its_top_with_a_person_behind():
+    """A table 1.85 m away (top and apron d 36) with its back legs (d 35) below the top, and a person
+    0.9 m behind it (d 24) in the same group, joined by the ramp down the top's side. The legs'
+    depths lie in the valley between the two, in rows of their own below the top: beyond a ramp's
+    reach of it (layer_bridge_px, 12 working rows) they are the table's (the sway: dropped as the
+    ramp, the table's box ended at its top). The ramp beside the top is still dropped."""
+    top = (np.arange(50, 66), np.arange(150, 250), 36.0)
+    legs = (np.arange(66, 101), np.r_[152:157, 240:245], 35.0)
+    person = (np.arange(20, 101), np.arange(262, 301), 24.0)
+    ramp = [(np.arange(50, 66), [250 + k], 34.0 - 3.0 * k) for k in range(3)]
+    ys, xs, dv, lab = _grouped(top, legs, *ramp, person)
+    out = depth_split.split_layers(ys, xs, dv, lab, SegmenterSettings(max_range_m=10.0), MODEL, 2)[0]
+    table, behind = out[(dv == 36.0)], out[dv == 24.0]
+    assert np.unique(table).size == 1 and np.unique(behind).size == 1 and table[0] != behind[0] > 0
+    assert np.all(out[(dv == 35.0) & (ys > 65 + 12)] == table[0])  # the legs: the table's,
+    assert ys[out == table[0]].max() == 100  # down to their feet
+    assert np.all(out[(dv < 35.0) & (dv > 24.0)] == 0)  # the ramp: dropped
+
+
 def test_depth_layers_of_one_group_are_not_joined_again_but_a_fence_s_stretches_are():
     """Regions whose extents come within merge_gap_depth_m along the view join (the stretches of a
     fence the matcher left out), unless the depth-layer split made them two (one behind the other)."""

@@ -121,7 +121,20 @@ def split_layers(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, lab: np.ndarray
             # side apron seen end-on, on its back leg): one object
             if heights is not None and rests_on(ys, xs, heights, idx[in_band], far):
                 continue
-            out[idx[in_band]] = 0
+            # the ramp runs along the nearer side's contour, so within its rows and a ramp's width
+            # (layer_bridge_px) above or below them. What of the valley lies farther up or down is a
+            # surface at those depths: the sway's table, before a person walking behind it, lost its
+            # back legs below the top as the ramp, and its box ended at the top
+            band = idx[in_band]
+            yb, yn = ys[band], ys[near]
+            ramp = (yb >= yn.min() - bridge) & (yb <= yn.max() + bridge)
+            if not ramp.all():
+                d_split = 0.5 * fB * (1.0 / z_far + 1.0 / z_near)
+                kept = band[~ramp]
+                to_near = dv[kept] >= d_split
+                far, near = np.concatenate([far, kept[~to_near]]), np.concatenate([near, kept[to_near]])
+                band = band[ramp]
+            out[band] = 0
             out[far] = next_label
             family[next_label] = family[int(lab[a])] = int(lab[a])
             next_label += 1
