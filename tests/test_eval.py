@@ -353,5 +353,31 @@ def test_a_rolled_camera_sees_no_free_floor_under_a_table_top_beside_the_column(
     s = E.score_method(data, "layers")
     assert s.recall == 1.0 and s.free_under == 0, s.to_dict()
     # the columns alone, as before: the floor under the top's edge is free
-    monkeypatch.setattr(freespace, "vertical_tilt", lambda floor, model: 0.0)
+    monkeypatch.setattr(freespace, "vertical_point", _columns)
+    assert E.score_method(data, "layers").free_under == 1
+
+
+def _columns(floor, model, step):
+    """vertical_point of a camera that neither rolls nor pitches: verticals are image columns."""
+    return np.array([0.0, 1.0, 0.0])
+
+
+def test_a_pitched_camera_sees_no_free_floor_under_a_table_top_at_the_image_side(monkeypatch):
+    """A camera pitched 12 deg down sees verticals converge below the image: at its side they lean
+    by several degrees, and the floor under a table top's edge, whose vertical runs through the top
+    in the next columns out, was free."""
+    import sim as S
+    from cores.segmentation import freespace
+
+    legs = [{"name": f"leg-{k}", "offset": [x, y, 0.355], "size": [0.05, 0.71, 0.05]}
+            for k, x, y in (("fl", -0.26, 0.36), ("fr", -0.26, -0.36), ("bl", 0.26, 0.36), ("br", 0.26, -0.36))]
+    table = {"name": "table", "kind": "table", "position": [1.6, -1.0], "texture_seed": 83,
+             "parts": [{"name": "top", "offset": [0.0, 0.0, 0.73], "size": [0.8, 0.04, 0.6]},
+                       {"name": "apron-f", "offset": [-0.27, 0.0, 0.65], "size": [0.72, 0.12, 0.03]}, *legs]}
+    scene = S.Scene.from_dict({"name": "pitched-table", "camera_height_m": 0.9, "camera_pitch_deg": 12.0,
+                               "wall_distance_m": 7.0, "noise_sigma": 1.5, "objects": [table]})
+    data = E.render_scenario(scene, frames=1)
+    s = E.score_method(data, "layers")
+    assert s.recall == 1.0 and s.free_under == 0, s.to_dict()
+    monkeypatch.setattr(freespace, "vertical_point", _columns)  # the columns alone, as before
     assert E.score_method(data, "layers").free_under == 1
