@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 # 2: ground estimate, track confirmation, truncation and base-frame velocities in ObstacleList;
 #    FreeSpace; Odometry; an optional confidence image beside a disparity map.
@@ -24,6 +24,7 @@ SCHEMA_VERSION = 6
 
 Vec3 = tuple[float, float, float]
 Metres = Annotated[float, Field(allow_inf_nan=False, ge=0.0, le=1000.0)]
+Degrees90 = Annotated[float, Field(allow_inf_nan=False, ge=-90.0, le=90.0)]
 # A robot's own motion: finite and physical, so one forged message cannot turn every track into NaN
 Speed = Annotated[float, Field(allow_inf_nan=False, ge=-100.0, le=100.0)]  # m/s
 TurnRate = Annotated[float, Field(allow_inf_nan=False, ge=-50.0, le=50.0)]  # rad/s
@@ -256,6 +257,11 @@ class ObstacleList(Message):
                                                   "[nearest, farthest] of the vision range. What is nearer or "
                                                   "farther is not in the list, however clear it looks (None: not "
                                                   "said)")
+    bearing_deg: tuple[Degrees90, Degrees90] | None = Field(
+        None, description="the bearings this list looked at, deg from the optical axis, positive to the right "
+        "(camera x): [leftmost, rightmost] image column the disparity search measures at every distance of "
+        "range_m. Left of it (x < min_disparity + num_disparities) the right camera does not see the near part "
+        "of the range, and what stands there is not in the list, however clear it looks (None: not said)")
     frame_id: Literal["camera"] = "camera"
     method: str = ""
     obstacles: list[Obstacle] = Field(default_factory=list)
@@ -265,6 +271,13 @@ class ObstacleList(Message):
     velocity_reference: Literal["camera", "ground"] = Field(
         "camera", description="camera: velocities relative to the moving camera; ground: over the ground "
                               "(the robot's own motion from odometry removed)")
+
+    @field_validator("bearing_deg")
+    @classmethod
+    def _left_before_right(cls, v: tuple[float, float] | None) -> tuple[float, float] | None:
+        if v is not None and v[0] > v[1]:
+            raise ValueError(f"leftmost bearing {v[0]:g} deg lies right of the rightmost, {v[1]:g} deg")
+        return v
 
     def warnings(self) -> list[str]:
         """What a person watching must read before taking an empty list as a clear way (none when the

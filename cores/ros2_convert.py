@@ -88,6 +88,7 @@ def trust(t: RosTypes, msg: ObstacleList, name: str) -> Any:
              ("degraded", ",".join(msg.degraded)), ("stale", str(msg.stale).lower()),
              ("valid_fraction", f"{msg.valid_fraction:.3f}"),
              ("range_m", "" if msg.range_m is None else f"{msg.range_m[0]:.2f}-{msg.range_m[1]:.2f}"),
+             ("bearing_deg", "" if msg.bearing_deg is None else f"{msg.bearing_deg[0]:.1f}..{msg.bearing_deg[1]:.1f}"),
              ("ground_source", g.source if g is not None else "none"),
              ("ground_confidence", f"{g.confidence:.2f}" if g is not None else "0.00")]
     status = t.new("diagnostic_msgs/msg/DiagnosticStatus", level=level, name=name, message=text,

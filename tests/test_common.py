@@ -202,6 +202,16 @@ def test_status_verdict_is_degraded_while_the_segmenters_lists_are():
         assert level == "degraded" and text == f"obstacles {status}", (status, text)
 
 
+def test_a_list_says_the_bearings_it_looked_at_and_a_forged_one_is_a_decode_error():
+    lst = ObstacleList(robot_id="r", seq=1, stamp_ns=1, publish_ns=1, stale=False, bearing_deg=(-21.0, 25.6))
+    assert codec.decode(codec.encode(lst), ObstacleList).bearing_deg == (-21.0, 25.6)
+    for bad in ([float("nan"), 25.6], [-21.0, 91.0], [25.6, -21.0], [1.0]):
+        doc = lst.model_dump()
+        doc["bearing_deg"] = bad
+        with pytest.raises(DecodeError, match="ObstacleList.bearing_deg"):
+            codec.decode(msgpack.packb(doc), ObstacleList)
+
+
 def test_a_list_says_the_distances_it_looked_at_and_a_forged_range_is_a_decode_error():
     lst = ObstacleList(robot_id="r", seq=1, stamp_ns=1, publish_ns=1, stale=False, range_m=(1.0, 4.5))
     assert codec.decode(codec.encode(lst), ObstacleList).range_m == (1.0, 4.5)

@@ -183,7 +183,7 @@ def test_diagnostics_say_how_far_each_list_can_be_trusted(jazzy):
     """An empty Detection3DArray reads as a clear way: /diagnostics says whether it is one."""
     def status(**change):
         lst = ObstacleList(robot_id="r", seq=5, stamp_ns=STAMP, publish_ns=STAMP, stale=False, obstacles=[],
-                           valid_fraction=0.4, range_m=(1.0, 4.5),
+                           valid_fraction=0.4, range_m=(1.0, 4.5), bearing_deg=(-20.4, 26.2),
                            ground=GroundEstimate(height_m=1.0, pitch_deg=15.0, roll_deg=0.0, source="fitted",
                                                  confidence=0.8))
         a = _roundtrip(jazzy, convert.trust(jazzy, lst.model_copy(update=change), "/ballbot_vision: obstacles"))
@@ -195,7 +195,8 @@ def test_diagnostics_say_how_far_each_list_can_be_trusted(jazzy):
     level, text, kv = status()
     assert level == 0 and "looked and saw nothing" in text
     assert kv == {"seq": "5", "stamp_ns": str(STAMP), "obstacles": "0", "degraded": "", "stale": "false",
-                  "valid_fraction": "0.400", "range_m": "1.00-4.50", "ground_source": "fitted",
+                  "valid_fraction": "0.400", "range_m": "1.00-4.50", "bearing_deg": "-20.4..26.2",
+                  "ground_source": "fitted",
                   "ground_confidence": "0.80"}
     level, text, kv = status(degraded=["near-unmeasured", "ground-uncertain"])
     assert level == 1 and "near-unmeasured, ground-uncertain" in text and "not a clear way" in text

@@ -866,6 +866,12 @@ def test_lists_say_when_the_search_cannot_reach_the_range_or_there_is_no_ground(
     ok = ObstacleBuilder(SegmenterSettings()).process(d, MODEL, t_s=0.0, seq=0, stamp_ns=0, search=(0, 144))
     assert ok.obstacles.degraded == [] and ok.obstacles.ground.confidence >= 0.3
     assert ok.obstacles.range_m == (1.0, 4.5)  # what "looked and saw nothing" covers: the vision range
+    # ... and the bearings: left of x = 144 the right camera does not see what stands 0.46 m away
+    left, right = ok.obstacles.bearing_deg
+    assert left == pytest.approx(np.degrees(np.arctan((144 - 320) / 665)), abs=1e-6)
+    assert right == pytest.approx(np.degrees(np.arctan(319 / 665)), abs=1e-6)
+    no_search = ObstacleBuilder(SegmenterSettings()).process(d, MODEL, t_s=0.0, seq=0, stamp_ns=0)
+    assert no_search.obstacles.bearing_deg is None  # not said
     # 16 px reach no nearer than f*B/15 = 4.4 m: a 3 m range is out of reach, whatever the map holds
     b = ObstacleBuilder(SegmenterSettings(max_range_m=3.0))
     lst = b.process(d, MODEL, t_s=0.0, seq=0, stamp_ns=0, search=(0, 16)).obstacles

@@ -237,6 +237,8 @@ def test_a_mount_chosen_over_fitting_and_measured_wrong_is_said_everywhere(tmp_p
         checked = [m for m in lists if m.ground is not None and m.ground.prior_agrees is not None]
         assert checked and all("mount-disagrees" in m.degraded for m in checked), [(m.seq, m.degraded) for m in lists]
         assert all(m.range_m == (1.0, 4.5) and m.ground.source == "prior" for m in lists)
+        # the bearings looked at: the disparity search's band at the left side is not among them
+        assert all(m.bearing_deg is not None and -45 < m.bearing_deg[0] < -15 < 15 < m.bearing_deg[1] for m in lists)
         code, _, seg = status_of(u)
         assert code == 3 and seg["status"].startswith("mount-disagrees"), seg
         assert "says mount-disagrees" in u.log_path.read_text()  # the segmenter's warning, once, at the start

@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import json
 import os
+import re
 import shutil
 import statistics
 import subprocess
@@ -428,6 +429,8 @@ def test_the_page_shows_the_pictures_and_draws_the_boxes_of_the_obstacle_list(tm
             assert page.locator("#obstacles tbody tr").count() == 2
             # what the two obstacles were looked for in: the segmenter's vision range, from the list
             assert "looked at 1.0-4.5 m" in page.locator("#obstacle-count").text_content()
+            # ... and the bearings: not the left band the disparity search leaves unmatched
+            assert re.search(r"4\.5 m, -2\d to 2\d deg", page.locator("#obstacle-count").text_content())
             shot = tmp_path / "viewer.png"
             page.screenshot(path=str(shot), full_page=True)
             # window.viewer changes at the end of an update, all at once: with the pictures' decoding

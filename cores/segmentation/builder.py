@@ -46,6 +46,19 @@ class Reach:
     near_unmeasured: bool = False
 
 
+def view_bearings(model: camera.RectifiedModel, min_disparity: int, num_disparities: int) -> tuple[float, float]:
+    """The bearings (deg from the optical axis, positive right) of the leftmost and rightmost columns
+    a search (min_disparity, num_disparities px) measures at every distance it reaches: left of
+    x = min_disparity + num_disparities the right camera does not see what stands at the nearest of
+    them (bm and sgbm leave that band unmatched at any distance; dense matches it only where the
+    partner is in view). On the Karlsruhe car's rig, 320 px of 1344: 18.5 deg of its 92."""
+    left = float(np.clip(min_disparity + num_disparities, 0, model.width - 1))
+
+    def bearing(u: float) -> float:
+        return float(np.degrees(np.arctan2(u - model.cx, model.focal_px)))
+    return bearing(left), bearing(model.width - 1.0)
+
+
 # How far beyond min_range_m the nearest depth the search measures may lie before the lists say
 # "near-unmeasured": a few centimetres short is no news (the Karlsruhe car's `auto` search, capped at a
 # quarter of the image width, measures from 1.15 m for a 1 m range); 1 m short of a 1 m range is a
@@ -345,6 +358,7 @@ class ObstacleBuilder:
         out = ObstacleList(robot_id=robot_id, seq=seq, stamp_ns=stamp_ns, stages=dict(stages or {}), publish_ns=now,
                            stale=stale, degraded=degraded, valid_fraction=valid_fraction, method=cfg.method,
                            range_m=(cfg.min_range_m, cfg.range_for(model)),
+                           bearing_deg=None if search is None else view_bearings(model, *search),
                            obstacles=obstacles, ground=frame.ground,
                            mount=None if mount is None else mount.message(mount_source),
                            velocity_reference="ground" if over_ground else "camera")

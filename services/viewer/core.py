@@ -166,6 +166,7 @@ class Composer:
                                 "publish_ns": obstacles.publish_ns, "stale": obstacles.stale,
                                 "degraded": list(obstacles.degraded), "method": obstacles.method,
                                 "range_m": None if obstacles.range_m is None else list(obstacles.range_m),
+                                "bearing_deg": None if obstacles.bearing_deg is None else list(obstacles.bearing_deg),
                                 "list": [obstacle_doc(o) for o in obstacles.obstacles],
                                 "latency": latency_doc(obstacles),
                                 "ground": None if obstacles.ground is None else obstacles.ground.model_dump()}

@@ -178,7 +178,8 @@ function drawInfo(doc) {
   $("degraded").hidden = reasons.length === 0;
   $("degraded-reasons").textContent = reasons.join(", ");
   if (obs) {
-    const looked = obs.range_m ? `, looked at ${fmt(obs.range_m[0], 1)}-${fmt(obs.range_m[1], 1)} m` : "";
+    const looked = (obs.range_m ? `, looked at ${fmt(obs.range_m[0], 1)}-${fmt(obs.range_m[1], 1)} m` : "") +
+      (obs.bearing_deg ? `, ${fmt(obs.bearing_deg[0], 0)} to ${fmt(obs.bearing_deg[1], 0)} deg` : "");
     $("obstacle-count").textContent = `(${obs.list.length}${looked}, nearest first${obs.list.length > MAX_LABELS ? `; the ${MAX_LABELS} nearest labelled on the pictures` : ""})`;
     $("latency").textContent = fmt(obs.latency.capture_to_obstacles_ms, 1);
     fillTable($("obstacles").tBodies[0], obs.list.map((o) => {
