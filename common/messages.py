@@ -20,7 +20,8 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 # 4: ObstacleList.range_m (the distances a list looked at: what "looked and saw nothing" covers).
 # 5: StereoFrame.checks and DisparityMap.checks (rectify's live checks of the pair: rows, frozen cameras).
 # 6: FrameChecks.blocked (a camera's view partly blocked).
-SCHEMA_VERSION = 6
+# 7: ObstacleList.bearing_deg (the bearings a list looked at: left of the search's band is not among them).
+SCHEMA_VERSION = 7
 
 Vec3 = tuple[float, float, float]
 Metres = Annotated[float, Field(allow_inf_nan=False, ge=0.0, le=1000.0)]
