@@ -225,11 +225,18 @@ class FreshnessGate:
         quiet = now_mono - self._last_accept_mono >= self.limits.resync_s * 1e9
         return quiet and self._refused_since_accept >= 3 and n == max(self._refused_by_source.values())
 
-    def commit(self, stamp_ns: int) -> None:
-        """The payload with this stamp decoded and is handed on: it is the new reference."""
-        if self.reference is None or stamp_ns > self.reference:
-            self.reference = stamp_ns
+    def commit(self, stamp_ns: int) -> bool:
+        """The payload with this stamp decoded: it becomes the new reference and may be handed on
+        (True), unless a newer one was committed meanwhile (False: counted late). check() saw the
+        reference before the newer payload, taken ahead of it, had finished decoding; without this
+        second look a worker's older map would follow the newer one out, and the lists would go
+        backwards."""
+        if self.reference is not None and stamp_ns <= self.reference:
+            self.counts["late"] += 1
+            return False
+        self.reference = stamp_ns
         self._accepted(self.clock.mono_ns())
+        return True
 
     def age_ns(self, stamp_ns: int, wall_ns: int) -> int:
         """Age of a capture stamp at wall time wall_ns (ours), in the learned time base; >= 0."""
@@ -365,10 +372,15 @@ class Inbox:
                 self.late += 1
             return verdict
 
-    def commit(self, stamp_ns: int) -> None:
-        if self.gate is not None:
-            with self._cond:
-                self.gate.commit(stamp_ns)
+    def commit(self, stamp_ns: int) -> bool:
+        """-> may the decoded payload with this stamp be handed on (FreshnessGate.commit)?"""
+        if self.gate is None:
+            return True
+        with self._cond:
+            ok = self.gate.commit(stamp_ns)
+            if not ok:
+                self.late += 1
+            return ok
 
     def refusals(self) -> dict[str, int]:
         out = dict(self.gate.counts) if self.gate is not None else {"late": self.late}

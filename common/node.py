@@ -328,7 +328,8 @@ class Node:
             if verdict != "ok":
                 self.warn(f"refused-{verdict}", f"refused input on {inbox.topic.name}: stamp {verdict}")
                 return None
-        inbox.commit(msg.stamp_ns)
+        if not inbox.commit(msg.stamp_ns):
+            return None  # a newer payload was handed on while this one decoded
         age = inbox.gate.age_ns(msg.stamp_ns, d.wall_ns) if inbox.gate is not None else 0
         with self._lock:
             self._capture_mono[msg.stamp_ns] = d.mono_ns - age

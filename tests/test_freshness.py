@@ -48,8 +48,7 @@ def deliver(box: Inbox, meta: Meta, payload: bytes = b"x") -> bool:
     d = box.take_delivery(0)
     if d is None:
         return False
-    box.commit(d.meta.stamp_ns)
-    return True
+    return box.commit(d.meta.stamp_ns)
 
 
 def test_a_forged_future_stamp_is_refused_and_costs_nothing_else():
@@ -110,6 +109,28 @@ def test_old_results_never_displace_newer_ones_and_replays_are_refused():
     assert not deliver(box, w1.meta(older.stamp_ns))  # older than what was handed on
     assert not deliver(box, newer)                    # a replay of what was handed on
     assert box.gate.counts["late"] == 3
+
+
+def test_an_older_result_that_passed_the_gate_while_a_newer_one_decoded_is_not_handed_on():
+    # The CI failure it answers (three workers, one killed): the newer map was taken and decoding
+    # when a slower worker's older one arrived; the slot was empty and the reference not yet moved,
+    # so the older map waited, was handed on after the newer one and the obstacle lists went back.
+    clock = StepClock()
+    box = inbox(clock)
+    w1, w2 = Stream(clock, 1), Stream(clock, 2)
+    older = w1.meta(clock.wall)
+    clock.advance(0.033)
+    newer = w2.meta(clock.wall)
+    box.offer(b"new", newer)
+    taken = box.take_delivery(0)  # the receive loop decodes it ...
+    box.offer(b"old", older)      # ... while the older map arrives: nothing newer waits or is committed
+    assert box.commit(taken.meta.stamp_ns)
+    d = box.take_delivery(0)
+    assert d is not None and d.payload == b"old"
+    assert not box.commit(d.meta.stamp_ns), "the older map must not follow the newer one out"
+    assert box.gate.reference == newer.stamp_ns and box.gate.counts["late"] == 1 and box.late == 1
+    clock.advance(0.033)
+    assert deliver(box, w1.meta()), "the next frame passes"
 
 
 def test_a_forged_sequence_number_cannot_poison_a_real_publisher():
