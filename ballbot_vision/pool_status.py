@@ -11,6 +11,7 @@ from common import codec
 from common.errors import DecodeError
 from common.keys import topic
 from common.messages import ServiceStats
+from common.zenoh_session import LiveTokens
 
 
 class PoolWatch:
@@ -21,6 +22,7 @@ class PoolWatch:
         self.seen_at: dict[tuple[str, str], float] = {}
         self.lock = threading.Lock()
         self._sub = session.declare_subscriber(topic("pool_stats").pattern(), self._on_stats)
+        self._tokens = LiveTokens(session, topic("pool_alive").pattern())
 
     def _on_stats(self, sample) -> None:
         parts = str(sample.key_expr).split("/")  # ballbot/pool/<pool>/stats/<instance>
@@ -34,14 +36,13 @@ class PoolWatch:
             self.latest[(parts[2], parts[4])] = s
             self.seen_at[(parts[2], parts[4])] = time.monotonic()
 
-    def collect(self, session: Any, robot: str = "*") -> list[dict]:
+    def collect(self, robot: str = "*") -> list[dict]:
         """-> one dict per pool: workers, robots (weight, share, maps/s, queue), warnings."""
         alive: set[tuple[str, str]] = set()
-        for reply in session.liveliness().get(topic("pool_alive").pattern(), timeout=2.0):
-            if reply.ok is not None:
-                parts = str(reply.ok.key_expr).split("/")
-                if len(parts) == 5:
-                    alive.add((parts[2], parts[4]))
+        for token in self._tokens.keys():
+            parts = token.split("/")  # ballbot/pool/<pool>/alive/<instance>
+            if len(parts) == 5:
+                alive.add((parts[2], parts[4]))
         now = time.monotonic()
         pools: dict[str, dict] = {}
         with self.lock:

@@ -19,7 +19,7 @@ from common import codec
 from common.errors import DecodeError
 from common.keys import WORKER_SEGMENT, topic
 from common.messages import ServiceStats
-from common.zenoh_session import ZenohOptions, open_session
+from common.zenoh_session import LiveTokens, ZenohOptions, open_session
 
 ORDER = {"router": 0, "capture": 1, "rectify": 2, "disparity": 3, "segmenter": 4}
 
@@ -128,14 +128,14 @@ def status(opts: ZenohOptions, robot: str, wait_s: float, as_json: bool) -> int:
     alive_prefix = topic("alive").pattern(robot)
     with open_session(opts) as session:
         session.declare_subscriber(topic("stats").pattern(robot), on_stats)
+        tokens = LiveTokens(session, alive_prefix)
         pool_watch = PoolWatch(session)  # fleet pools: their workers report under ballbot/pool/<pool>/
         time.sleep(wait_s)  # stats arrive once a second: listen for a couple of periods
-        pools = pool_watch.collect(session, robot)
+        pools = pool_watch.collect(robot)
         alive = set()
-        for reply in session.liveliness().get(alive_prefix, timeout=2.0):
-            if reply.ok is not None:
-                parts = str(reply.ok.key_expr).split("/")  # ballbot/<robot>/alive/<service>/<instance>
-                alive.add(f"{parts[1]}/{parts[3]}/{parts[4]}")
+        for token in tokens.keys():
+            parts = token.split("/")  # ballbot/<robot>/alive/<service>/<instance>
+            alive.add(f"{parts[1]}/{parts[3]}/{parts[4]}")
     now = time.monotonic()
     with lock:
         names = sorted(set(latest) | alive)

@@ -112,3 +112,33 @@ def test_a_frame_arrives_whole_through_shared_memory_and_through_the_network_pat
 
 def test_meta_of_ignores_a_missing_attachment():
     assert meta_of(None) is None
+
+
+def test_live_tokens_sees_the_tokens_alive_before_it_and_their_coming_and_going():
+    """`status`'s view of who is alive (common/zenoh_session.py: LiveTokens), as `up` lays the
+    sessions out: peers that listen and meet through a router's gossip, and a newcomer. A liveliness
+    query from the newcomer in its first seconds can come back empty (the flake LiveTokens answers):
+    the subscriber's history must hold every token from the start."""
+    from common.zenoh_session import LiveTokens
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    peer = ZenohOptions(mode="peer", connect=[endpoint], listen=["tcp/127.0.0.1:0"], lease_ms=None)
+    with open_session(ZenohOptions(mode="router", connect=[], listen=[endpoint], lease_ms=None)), \
+            open_session(peer) as a, open_session(peer) as b:
+        token_a = a.liveliness().declare_token("test/alive/a")  # noqa: F841 (a dropped token is undeclared)
+        token_b = b.liveliness().declare_token("test/alive/b")
+        deadline = time.monotonic() + 30
+
+        def wait_for(tokens: LiveTokens, want: set[str]) -> None:
+            while tokens.keys() != want and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert tokens.keys() == want
+
+        with open_session(peer) as newcomer:
+            tokens = LiveTokens(newcomer, "test/alive/*")
+            wait_for(tokens, {"test/alive/a", "test/alive/b"})
+            token_b.undeclare()
+            wait_for(tokens, {"test/alive/a"})
+            c = a.liveliness().declare_token("test/alive/c")
+            wait_for(tokens, {"test/alive/a", "test/alive/c"})
+            c.undeclare()
