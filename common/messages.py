@@ -21,7 +21,8 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 # 5: StereoFrame.checks and DisparityMap.checks (rectify's live checks of the pair: rows, frozen cameras).
 # 6: FrameChecks.blocked (a camera's view partly blocked).
 # 7: ObstacleList.bearing_deg (the bearings a list looked at: left of the search's band is not among them).
-SCHEMA_VERSION = 7
+# 8: RowAlignment.reversed_share (swapped cameras: the lists say cameras-swapped).
+SCHEMA_VERSION = 8
 
 Vec3 = tuple[float, float, float]
 Metres = Annotated[float, Field(allow_inf_nan=False, ge=0.0, le=1000.0)]
@@ -82,6 +83,10 @@ class RowAlignment(BaseModel):
     matches: int = Field(ge=0, description="features measured")
     tolerance_px: float = Field(gt=0, le=1000, description="rectify's max_row_offset_px: more is misaligned")
     checked_ns: int = Field(ge=0, description="capture stamp of the pair checked")
+    reversed_share: float = Field(0.0, ge=0, le=1, description="of the matched features over 1 px off zero "
+                                  "disparity, the share at negative disparity (left of their place in the right "
+                                  "image): about 0 for a rectified pair, about 1 with the cameras swapped; over "
+                                  "0.5 each list says cameras-swapped (0: fewer than 10 such features)")
 
 
 class FrameChecks(BaseModel):
@@ -251,7 +256,8 @@ class ObstacleList(Message):
                                 "trusted as a full view (empty: trustworthy; e.g. 'input-frozen', "
                                 "'no-valid-disparity', 'valid-collapse', 'no-ground', 'ground-uncertain', "
                                 "'range-unreachable', 'near-unmeasured', 'floor-out-of-view', 'standing-not-listed', "
-                                "'mount-disagrees', 'rows-misaligned', 'camera-frozen', 'view-blocked')")
+                                "'mount-disagrees', 'rows-misaligned', 'cameras-swapped', 'camera-frozen', "
+                                "'view-blocked')")
     valid_fraction: float = Field(0.0, ge=0, le=1, description="share of the image the disparity map measured "
                                   "(valid pixels within the vision range gate's search) for this list")
     range_m: tuple[Metres, Metres] | None = Field(None, description="the distances this list looked at, m: "

@@ -114,6 +114,64 @@ def test_the_offline_pipeline_checks_the_street_rows_as_rectify_does(dy, flagged
     assert pipe.checks.rows.checks == 2  # ~10 Hz: one check a second of the recording
 
 
+# --- swapped cameras ---------------------------------------------------------------------------------
+
+def test_the_monitor_finds_swapped_cameras_from_where_features_lie(rectified_pairs):
+    """Exchanged cables: what is near lies farther left in the "left" image than in the "right" one.
+    The rows still align (a rectified pair swapped is still rectified), so only the sign tells."""
+    left, right = rectified_pairs[0]
+    good = RowMonitor().check(left, right, 0.0, 0)
+    swapped = RowMonitor().check(right, left, 0.0, 0)
+    assert good is not None and good.reversed_share < 0.1, good
+    assert swapped is not None and swapped.reversed_share > 0.9 and swapped.offset_px < 0.5, swapped
+
+
+def test_a_scene_all_at_infinity_says_nothing_of_a_swap():
+    from cores.calibration.check import reversed_share
+
+    rng = np.random.default_rng(0)
+    assert reversed_share(rng.normal(0.0, 0.4, 200)) == 0.0  # nothing over 1 px off zero: no evidence
+    assert reversed_share(np.array([-5.0] * 9 + [0.0] * 100)) == 0.0  # 9: too few to say
+    assert reversed_share(np.array([-5.0] * 9 + [3.0])) == 0.9
+
+
+@pytest.mark.parametrize("share, said", [(0.0, False), (0.5, False), (0.51, True), (1.0, True)])
+def test_a_list_says_cameras_swapped_over_half_reversed(share, said):
+    model = Rectifier(camera.load_calibration("lifecam-studio"), 0.0).model
+    disparity = np.full((model.height, model.width), np.nan, np.float32)
+    disparity[200:, :] = 30.0
+    rows = RowAlignment(offset_px=0.1, p95_px=0.2, matches=80, tolerance_px=0.5, checked_ns=0, reversed_share=share)
+    out = ObstacleBuilder(SegmenterSettings()).process(disparity, model, t_s=0.0, seq=0, stamp_ns=0,
+                                                       checks=FrameChecks(rows=rows)).obstacles
+    assert ("cameras-swapped" in out.degraded) == said
+
+
+@pytest.mark.skipif(not (KARLSRUHE / "calibration.yaml").exists(), reason="../shared/data/real/karlsruhe-0023 absent")
+def test_the_street_with_its_cameras_swapped_is_flagged_and_claims_no_free_floor():
+    """The street with left and right exchanged and the rig's mount configured as a prior only
+    (fit_floor false): before the check these lists carried the mirror scene's 3-9 obstacles, none of
+    them a car, free floor, and no reason at all. Now every list says cameras-swapped and no cell is
+    free; the pairs the right way round say nothing of it."""
+    from common.files import read_image
+    from common.settings import MountSettings
+    from cores.matching.config import MatcherConfig
+    from cores.segmentation.freespace import FREE
+    from evaluation.recordings import open_recording
+
+    rec = open_recording(KARLSRUHE)
+    mount = MountSettings(height_m=1.64, pitch_deg=6.0)
+    settings = SegmenterSettings(fit_floor=False)
+    for swap in (True, False):
+        pipe = Pipeline(rec.calibration, MatcherConfig(num_disparities="auto"), settings, mount=mount)
+        for k in range(0, 40, 8):
+            left, right = read_image(rec.pairs[k][0]), read_image(rec.pairs[k][1])
+            f = pipe.process(*((right, left) if swap else (left, right)), t_s=rec.stamps_s[k], seq=k)
+            assert ("cameras-swapped" in f.result.obstacles.degraded) == swap, (k, f.result.obstacles.degraded)
+            if swap:
+                cells = np.frombuffer(f.result.freespace.cells, np.int8)
+                assert not np.any(cells == FREE), k
+
+
 # --- a frozen camera ---------------------------------------------------------------------------------
 
 @pytest.mark.skipif(not (KARLSRUHE / "calibration.yaml").exists(), reason="../shared/data/real/karlsruhe-0023 absent")

@@ -290,6 +290,36 @@ def test_a_calibration_that_no_longer_fits_the_rig_is_said_by_every_list_and_by_
         u.stop()
 
 
+def test_swapped_cameras_are_said_by_every_list_by_status_and_by_rectify(tmp_path):
+    """The scene's pairs from image folders with the cables exchanged (the right camera's pictures as
+    the left): rows still align, so only where the features lie tells. Every list says
+    cameras-swapped, `status` says degraded (exit 3) naming it, rectify warns once."""
+    import cv2
+    from helpers import Up
+
+    from services.capture.sources import SyntheticSource
+    src = SyntheticSource("person-walking", "lifecam-studio", 15.0)
+    for side in ("left", "right"):
+        (tmp_path / side).mkdir()
+    for k in range(6):
+        pair = src.read()
+        cv2.imwrite(str(tmp_path / "left" / f"{k:03d}.png"), pair.right)
+        cv2.imwrite(str(tmp_path / "right" / f"{k:03d}.png"), pair.left)
+    u = Up(extra_env={"BALLBOT_CAPTURE_SOURCE": "images", "BALLBOT_CAPTURE_LOOP": "true",
+                      "BALLBOT_CAPTURE_IMAGES_LEFT": str(tmp_path / "left"),
+                      "BALLBOT_CAPTURE_IMAGES_RIGHT": str(tmp_path / "right"),
+                      "BALLBOT_RECTIFY_CALIBRATION": "lifecam-studio"})
+    try:
+        lists_saying(u, "cameras-swapped")
+        code, doc, seg = status_of(u)
+        assert code == 3 and seg["status"].startswith("cameras-swapped"), seg
+        rect = next(i for i in doc["instances"] if i["name"] == "rectify")
+        assert rect["extra"]["reversed_share"] > 0.9, rect
+        assert u.log_path.read_text().count("cameras swapped:") == 1
+    finally:
+        u.stop()
+
+
 def test_the_scene_as_rendered_is_aligned_and_its_lists_do_not_say_otherwise(up):
     """The same check on the rig the scene renders: well under the tolerance, nothing said."""
     with up.session() as s:

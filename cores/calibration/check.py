@@ -24,6 +24,7 @@ class RowCheck:
     p95_dy: float  # px
     median_disparity: float  # px, x_left - x_right
     candidates: int = 0  # matches before the epipolar (RANSAC) filter
+    reversed_share: float = 0.0  # of the matches over 1 px off zero disparity, the share below -1 px
 
     def format(self) -> str:
         return (f"rectification check: {self.matches} ORB matches (of {self.candidates} before RANSAC), "
@@ -113,14 +114,32 @@ def row_alignment(left: np.ndarray, right: np.ndarray, n_features: int = 4000, r
             raise BallbotError(f"rectification check: only {len(a)} matches could be refined to sub-pixel "
                                f"(need {min_matches})")
     dy = np.abs(a[:, 0, 1] - a[:, 1, 1])
-    return RowCheck(len(a), float(np.median(dy)), float(np.percentile(dy, 95)),
-                    float(np.median(a[:, 0, 0] - a[:, 1, 0])), len(pts))
+    d = a[:, 0, 0] - a[:, 1, 0]
+    return RowCheck(len(a), float(np.median(dy)), float(np.percentile(dy, 95)), float(np.median(d)), len(pts),
+                    reversed_share(d))
+
+
+SWAP_MIN_MATCHES = 10
+SWAPPED_SHARE = 0.5  # a reversed_share over it: the pair is swapped. Measured: 0-0.10 on the real recordings and
+                     # every shipped scene the right way round, 0.88-1.0 swapped
+
+
+def reversed_share(d: np.ndarray) -> float:
+    """Of matched features' disparities (x_left - x_right, px) those over 1 px off zero, the share
+    below -1 px; 0 with fewer than SWAP_MIN_MATCHES of them. A rectified pair puts infinity at zero
+    disparity and everything nearer to the right in the left image, so the share is about 0 (RANSAC
+    lets few wrong partners through); with the cameras swapped (cables, or the devices' order) it is
+    about 1. A scene all far away (|d| <= 1 px) says nothing either way, and has nothing near to
+    misplace."""
+    off = d[np.abs(d) > 1.0]
+    return float(np.mean(off < 0)) if off.size >= SWAP_MIN_MATCHES else 0.0
 
 
 class RowMonitor:
     """The live rectification check (rectify runs it on the stream; cores/pipeline.py offline): a
     camera knocked on the rig, a loose lens or a calibration of another rig moves the right image
-    off the left's rows. Block matching then finds fewer and wrong matches, and nothing else says
+    off the left's rows; swapped cameras put what is near to the left in the left image
+    (`reversed_share`). Block matching then finds fewer and wrong matches, and nothing else says
     why. Every `interval_s` of stream time one rectified pair is checked (row_alignment with fewer
     features: 10-14 ms of one core), and `latest` is what every later frame carries (StereoFrame.rows,
     DisparityMap.rows), so each list can say `rows-misaligned` (cores/segmentation/builder.py).
@@ -174,7 +193,8 @@ class RowMonitor:
             return self.latest
         self.checks += 1
         self.latest = RowAlignment(offset_px=min(c.median_dy, 1000.0), p95_px=min(c.p95_dy, 1000.0),
-                                   matches=c.matches, tolerance_px=self.tolerance_px, checked_ns=stamp_ns)
+                                   matches=c.matches, tolerance_px=self.tolerance_px, checked_ns=stamp_ns,
+                                   reversed_share=c.reversed_share)
         return self.latest
 
     def observe(self, left: np.ndarray, right: np.ndarray, t_s: float, stamp_ns: int) -> RowAlignment | None:

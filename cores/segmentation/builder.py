@@ -16,6 +16,7 @@ from common.errors import DecodeError
 from common.messages import DisparityMap, FrameChecks, FreeSpace, Obstacle, ObstacleList, Odometry
 from common.settings import MountSettings
 from cores import camera
+from cores.calibration.check import SWAPPED_SHARE
 from cores.matching.disparity import FrozenInput, RecentValid, searched_range, to_float
 from cores.segmentation import freespace, layers, seed, stats
 from cores.segmentation.ground import TRUSTED, GroundEstimator, frame_mount
@@ -264,9 +265,12 @@ class ObstacleBuilder:
         what stands on it; "mount-disagrees": fit_floor is false and the configured mount's floor is
         off the floor the data show; "rows-misaligned": rectify's last live check (`checks.rows`)
         found the pair's rows apart by more than its tolerance (the calibration no longer fits the
-        rig: the map measures less, and wrongly); "camera-frozen": one camera's picture has not changed
-        for over rectify's frozen_after_s (`checks.frozen`: its driver repeats a buffer; with the
-        other live the map changes, and is wrong wherever anything moved); "view-blocked": part of
+        rig: the map measures less, and wrongly); "cameras-swapped": that check found most features
+        at negative disparity (the left and right cameras exchanged: the map is of a mirror scene, its
+        obstacles are not there and what is there is not measured); "camera-frozen": one camera's
+        picture has not changed for over rectify's frozen_after_s (`checks.frozen`: its driver
+        repeats a buffer; with the other live the map changes, and is wrong wherever anything
+        moved); "view-blocked": part of
         one camera's view is flat where the other's has texture (`checks.blocked`: a finger on the
         lens; nothing there is measured);
         "floor-out-of-view": the floor within the vision range is below the camera's view;
@@ -330,6 +334,8 @@ class ObstacleBuilder:
         rows = checks.rows if checks is not None else None
         if rows is not None and rows.offset_px > rows.tolerance_px:
             degraded.append("rows-misaligned")
+        if rows is not None and rows.reversed_share > SWAPPED_SHARE:
+            degraded.append("cameras-swapped")  # the map is of the mirror scene: what it lists is not there
         if checks is not None and checks.frozen:
             degraded.append("camera-frozen")
         if checks is not None and checks.blocked:

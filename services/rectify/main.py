@@ -39,7 +39,7 @@ from common.messages import CalibrationUpdate, StereoFrame
 from common.node import Node
 from common.settings import ServiceSettings
 from common.signing import KEY_ENV, calibration_key, signed
-from cores.calibration.check import PairChecks, RowMonitor
+from cores.calibration.check import SWAPPED_SHARE, PairChecks, RowMonitor
 from cores.calibration.rectify import CalibrationHolder
 
 log = logging.getLogger("ballbot")
@@ -154,6 +154,7 @@ class LiveRowCheck:
         self.node, self.monitor = node, monitor
         self.slot: queue.Queue[tuple[np.ndarray, np.ndarray, float, int, int]] = queue.Queue(maxsize=1)
         self.warned = False
+        self.warned_swapped = False
         node.extra["row_checks"] = 0.0
         threading.Thread(target=self._run, name="row-check", daemon=True).start()
 
@@ -183,6 +184,16 @@ class LiveRowCheck:
             if rows is None:
                 continue
             self.node.extra["row_offset_px"] = round(rows.offset_px, 3)
+            self.node.extra["reversed_share"] = round(rows.reversed_share, 3)
+            swapped = rows.reversed_share > SWAPPED_SHARE
+            if swapped and not self.warned_swapped:
+                self.node.warn("swapped", f"cameras swapped: {rows.reversed_share:.0%} of the matched features off "
+                               f"zero disparity lie farther left in the left image than in the right; exchange "
+                               f"camera_left and camera_right (or the inputs) in capture's settings; every list "
+                               f"says cameras-swapped")
+            elif self.warned_swapped and not swapped:
+                log.info("rectify: cameras the right way round again (%.0f%% reversed)", 100 * rows.reversed_share)
+            self.warned_swapped = swapped
             bad = rows.offset_px > rows.tolerance_px
             if bad:
                 self.node.warn("rows", f"rectified rows misaligned: matched features lie {rows.offset_px:.2f} px "
