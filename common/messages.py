@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 # 2: ground estimate, track confirmation, truncation and base-frame velocities in ObstacleList;
 #    FreeSpace; Odometry; an optional confidence image beside a disparity map.
@@ -21,7 +21,8 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 # 5: StereoFrame.checks and DisparityMap.checks (rectify's live checks of the pair: rows, frozen cameras).
 # 6: FrameChecks.blocked (a camera's view partly blocked).
 # 7: ObstacleList.bearing_deg (the bearings a list looked at: left of the search's band is not among them).
-# 8: RowAlignment.reversed_share (swapped cameras: the lists say cameras-swapped).
+# 8: RowAlignment.reversed_share (swapped cameras: the lists say cameras-swapped); FrameChecks.near (what
+#    stands nearer than the vision range: the lists say nearer-than-range).
 SCHEMA_VERSION = 8
 
 Vec3 = tuple[float, float, float]
@@ -89,6 +90,29 @@ class RowAlignment(BaseModel):
                                   "0.5 each list says cameras-swapped (0: fewer than 10 such features)")
 
 
+class NearField(BaseModel):
+    """rectify's coarse disparity map of the pair over a wide search (cores/calibration/near.py):
+    what stands nearer than the matcher's search reaches shows here, so a list can say its view of
+    the range was blocked (`nearer-than-range`) instead of saying nothing."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    width: int = Field(gt=0, le=1024, description="coarse pixels across")
+    height: int = Field(gt=0, le=1024, description="coarse pixels down")
+    image_width: int = Field(gt=0, le=16384, description="the rectified pair's width it was made from, px")
+    image_height: int = Field(gt=0, le=16384, description="the rectified pair's height, px")
+    data: bytes = Field(description="width*height uint8, row-major: disparity in quarter coarse px (0: not "
+                       "measured)")
+
+    @model_validator(mode="after")
+    def _sized(self) -> NearField:
+        if len(self.data) != self.width * self.height:
+            raise ValueError(f"data: {len(self.data)} bytes for {self.width}x{self.height}")
+        if self.width > self.image_width or self.height > self.image_height:
+            raise ValueError("the coarse map is larger than the pair it was made from")
+        return self
+
+
 class FrameChecks(BaseModel):
     """What rectify checked of a pair beyond its stamps, carried by the pair and its disparity map to
     the segmenter, whose list says what failed."""
@@ -104,6 +128,9 @@ class FrameChecks(BaseModel):
         default_factory=list, max_length=2, description="cameras with a part of their view blocked (a finger, a "
         "sticker, glare, grease: flat or blurred where the other camera sees texture) for over rectify's "
         "frozen_after_s: each list says view-blocked; little or nothing standing there is measured")
+    near: NearField | None = Field(None, description="the pair's coarse wide disparity map (None: not checked): "
+                                   "what stands nearer than the vision range shows here; each list says "
+                                   "nearer-than-range")
 
 
 class StereoFrame(Message):
@@ -257,7 +284,7 @@ class ObstacleList(Message):
                                 "'no-valid-disparity', 'valid-collapse', 'no-ground', 'ground-uncertain', "
                                 "'range-unreachable', 'near-unmeasured', 'floor-out-of-view', 'standing-not-listed', "
                                 "'mount-disagrees', 'rows-misaligned', 'cameras-swapped', 'camera-frozen', "
-                                "'view-blocked')")
+                                "'view-blocked', 'nearer-than-range')")
     valid_fraction: float = Field(0.0, ge=0, le=1, description="share of the image the disparity map measured "
                                   "(valid pixels within the vision range gate's search) for this list")
     range_m: tuple[Metres, Metres] | None = Field(None, description="the distances this list looked at, m: "

@@ -52,13 +52,14 @@ class Pipeline:
     are); matcher: the disparity settings; segmenter: the segmenter's settings; alpha: rectify's;
     mount: the camera on the robot (the `mount:` section every service reads); rows: rectify's live
     row check (row_check_s, max_row_offset_px; run in line here, on stream time); frozen_after_s:
-    rectify's, for a camera whose picture stopped changing."""
+    rectify's, for a camera whose picture stopped changing; near_check: rectify's coarse wide search
+    for what stands nearer than the vision range."""
 
     def __init__(self, calibration: camera.Calibration, matcher: MatcherConfig | None = None,
                  segmenter: SegmenterSettings | None = None, alpha: float = 0.0, mount: MountSettings | None = None,
-                 rows: tuple[float, float] = (1.0, 0.5), frozen_after_s: float = 0.5):
+                 rows: tuple[float, float] = (1.0, 0.5), frozen_after_s: float = 0.5, near_check: bool = True):
         self.rectifier = Rectifier(calibration, alpha)
-        self.checks = PairChecks(*rows, frozen_after_s)
+        self.checks = PairChecks(*rows, frozen_after_s, near_check)
         self.model: camera.RectifiedModel = self.rectifier.model
         self.matching = MatchStage(matcher or MatcherConfig())
         self.segmenter_settings = segmenter or SegmenterSettings()
@@ -110,6 +111,7 @@ class Pipeline:
         t0 = time.perf_counter()
         if not rectified:
             left, right = self.rectify(left, right, names)
+        near = self.checks.near_field(left, right)  # rectify's, on its frame path: timed as rectify
         t1 = time.perf_counter()
         stamp_ns = int(round(t_s * 1e9)) if stamp_ns is None else stamp_ns
         self.checks.rows.observe(left, right, t_s, stamp_ns)  # rectify checks off its frame path: not timed
@@ -120,7 +122,7 @@ class Pipeline:
         result = self.builder.process(disparity, self.model, t_s=t_s, seq=seq, stamp_ns=stamp_ns,
                                       confidence=stage.match.confidence, odometry=odometry, image=left,
                                       search=(stage.min_disparity, stage.num_disparities),
-                                      checks=self.checks.message(stuck, blocked))
+                                      checks=self.checks.message(stuck, blocked, near))
         t3 = time.perf_counter()
         return PipelineFrame(seq, left, right, stage, disparity, result, (t1 - t0) * 1e3, (t2 - t1b) * 1e3,
                              (t3 - t2) * 1e3)

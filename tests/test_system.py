@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib
 import json
+import re
 import subprocess
 import time
 from pathlib import Path
@@ -316,6 +317,26 @@ def test_swapped_cameras_are_said_by_every_list_by_status_and_by_rectify(tmp_pat
         rect = next(i for i in doc["instances"] if i["name"] == "rectify")
         assert rect["extra"]["reversed_share"] > 0.9, rect
         assert u.log_path.read_text().count("cameras swapped:") == 1
+    finally:
+        u.stop()
+
+
+def test_someone_standing_nearer_than_the_range_is_said_by_every_list_and_by_status(tmp_path):
+    """A person-sized box walks up to the camera and stops 0.3 m from it, nearer than the vision range
+    (1-4.5 m) and beyond the matcher's search: every list from then on says nearer-than-range, and
+    `status` names it with the distance rectify's coarse search measured."""
+    from helpers import Up
+    from test_near import APPROACH
+
+    scene = tmp_path / "approach.yaml"
+    scene.write_text(APPROACH)
+    u = Up(extra_env={"BALLBOT_CAPTURE_SCENARIO": str(scene)})
+    try:
+        lists_saying(u, "nearer-than-range")
+        code, doc, seg = status_of(u)
+        assert code == 3 and seg["status"].startswith("nearer-than-range"), seg
+        at = float(re.search(r"at about ([0-9.]+) m", seg["status"]).group(1))
+        assert 0.2 < at < 1.0, seg["status"]  # walking in, or standing at 0.3 m
     finally:
         u.stop()
 

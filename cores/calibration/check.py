@@ -13,7 +13,8 @@ import cv2
 import numpy as np
 
 from common.errors import BallbotError
-from common.messages import FrameChecks, RowAlignment
+from common.messages import FrameChecks, NearField, RowAlignment
+from cores.calibration.near import NearCheck
 from cores.matching.disparity import FrozenInput
 
 
@@ -313,18 +314,25 @@ class PairChecks:
     pipeline (cores/pipeline.py) both run them: the rows (RowMonitor), each camera's picture
     against its last ones (FrozenInput: one camera hung while the other is live leaves the maps
     changing, so the segmenter's input-frozen cannot see it, and they are wrong wherever anything
-    moved) and against the other camera's (BlockedView: a finger on one lens).
+    moved), against the other camera's (BlockedView: a finger on one lens), and the rectified pair
+    over a wide coarse search (NearCheck: what stands nearer than the vision range).
     -> the FrameChecks each frame and its map carry."""
 
-    def __init__(self, row_check_s: float = 1.0, max_row_offset_px: float = 0.5, frozen_after_s: float = 0.5):
+    def __init__(self, row_check_s: float = 1.0, max_row_offset_px: float = 0.5, frozen_after_s: float = 0.5,
+                 near_check: bool = True):
         self.rows = RowMonitor(row_check_s, max_row_offset_px)
         self.frozen_after_s = frozen_after_s
         self._pictures = (FrozenInput(frozen_after_s), FrozenInput(frozen_after_s))
         self._view = BlockedView(frozen_after_s)
+        self._near = NearCheck() if near_check else None
 
     def fresh(self) -> PairChecks:
         """The same checks for another stream, with nothing seen yet."""
-        return PairChecks(self.rows.interval_s, self.rows.tolerance_px, self.frozen_after_s)
+        return PairChecks(self.rows.interval_s, self.rows.tolerance_px, self.frozen_after_s, self._near is not None)
+
+    def near_field(self, left: np.ndarray, right: np.ndarray) -> NearField | None:
+        """The rectified pair's coarse wide disparity map (cores/calibration/near.py); None when off."""
+        return self._near.field(left, right) if self._near is not None else None
 
     def pictures(self, left: np.ndarray, right: np.ndarray, t_s: float) -> tuple[list[Camera], list[Camera]]:
         """(the cameras whose raw picture has not changed, those whose view is blocked), for over
@@ -333,5 +341,6 @@ class PairChecks:
         right_stuck = self._pictures[1].frozen(right, t_s)
         return _cameras(left_stuck, right_stuck), self._view.blocked(left, right, t_s)
 
-    def message(self, frozen: list[Camera], blocked: list[Camera] | None = None) -> FrameChecks:
-        return FrameChecks(rows=self.rows.latest, frozen=frozen, blocked=blocked or [])
+    def message(self, frozen: list[Camera], blocked: list[Camera] | None = None,
+                near: NearField | None = None) -> FrameChecks:
+        return FrameChecks(rows=self.rows.latest, frozen=frozen, blocked=blocked or [], near=near)

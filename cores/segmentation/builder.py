@@ -21,6 +21,7 @@ from cores.matching.disparity import FrozenInput, RecentValid, searched_range, t
 from cores.segmentation import freespace, layers, seed, stats
 from cores.segmentation.ground import TRUSTED, GroundEstimator, frame_mount
 from cores.segmentation.mount import FloorPlane, Mount
+from cores.segmentation.near import NearStanding, near_standing
 from cores.segmentation.seed import Detection
 from cores.segmentation.settings import SegmenterSettings
 from cores.segmentation.tracking import Tracker
@@ -139,6 +140,7 @@ class ObstacleBuilder:
         self.frozen_input = FrozenInput(settings.stale_after_s)
         self.reach = Reach(False, "")  # of the last map's disparity search
         self.checks: FrameChecks | None = None  # rectify's checks, as the last map carried them
+        self.near: NearStanding | None = None  # what of the last map's near field stands nearer than the range
         self._reach_logged: set[str] = set()
 
     def check_search(self, model: camera.RectifiedModel, min_disparity: int, num_disparities: int,
@@ -272,7 +274,10 @@ class ObstacleBuilder:
         repeats a buffer; with the other live the map changes, and is wrong wherever anything
         moved); "view-blocked": part of
         one camera's view is flat where the other's has texture (`checks.blocked`: a finger on the
-        lens; nothing there is measured);
+        lens; nothing there is measured); "nearer-than-range": rectify's coarse wide search
+        (`checks.near`) finds over 2 % of the picture standing nearer than min_range_m (a person
+        stepping up to the camera: the matcher's search does not reach it, and it blocks the view of
+        the range);
         "floor-out-of-view": the floor within the vision range is below the camera's view;
         "standing-not-listed": something standing in range, of min_area_m2 frontal area, is in no
         obstacle: seed's border clearing, area opening or Otsu threshold dropped it)."""
@@ -340,6 +345,11 @@ class ObstacleBuilder:
             degraded.append("camera-frozen")
         if checks is not None and checks.blocked:
             degraded.append("view-blocked")
+        self.near = None
+        if checks is not None and checks.near is not None:
+            self.near = near_standing(checks.near, model, frame.floor, cfg.min_range_m, cfg.min_height_m)
+            if self.near.blocks:
+                degraded.append("nearer-than-range")  # the view of the range is blocked, not clear
         if reach.unreachable:
             degraded.append("range-unreachable")
         elif reach.near_unmeasured:

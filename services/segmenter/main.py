@@ -38,6 +38,9 @@ class _Latest(Generic[T]):
 # What `status` says of a degraded list, most telling reason first: what happened and what to do.
 # A reason not here is listed as it is.
 REASON_STATUS: dict[str, str] = {
+    "nearer-than-range": "{near_share} of the picture stands nearer than the vision range's {min_range} m (at about "
+                         "{near_m}, by rectify's coarse wide search): the list does not cover it, and it blocks the "
+                         "view of the range; stop or back off",
     "cameras-swapped": "rectify finds most matched features farther left in the left image than in the right: the "
                        "left and right cameras are swapped (cables, or the devices' order); exchange camera_left and "
                        "camera_right (or the inputs) in capture's settings",
@@ -76,8 +79,12 @@ def list_status(msg: ObstacleList, builder: ObstacleBuilder, settings: Segmenter
             offset = f"{rows.offset_px:.2f} px" if rows is not None else "too far"
             cameras = " and ".join(builder.checks.frozen) if builder.checks is not None else "a"
             blocked = " and ".join(builder.checks.blocked) if builder.checks is not None else "a"
+            near = builder.near
+            near_m = f"{near.distance_m:.2f} m" if near is not None and near.distance_m is not None else "?"
+            near_share = f"{near.share:.0%}" if near is not None else "part"
             return f"{reason}: " + text.format(stale_after_s=settings.stale_after_s, offset=offset, cameras=cameras,
-                                               blocked=blocked)
+                                               blocked=blocked, near_m=near_m, near_share=near_share,
+                                               min_range=f"{settings.min_range_m:g}")
     if msg.degraded:  # no-ground, ground-uncertain, valid-collapse, ...
         return f"degraded lists: {', '.join(msg.degraded)}"
     return "ok"
