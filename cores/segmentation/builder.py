@@ -346,7 +346,7 @@ class ObstacleBuilder:
         if checks is not None and checks.blocked:
             degraded.append("view-blocked")
         self.near = None
-        if checks is not None and checks.near is not None:
+        if checks is not None and checks.near is not None and "cameras-swapped" not in degraded:  # else a mirror's
             self.near = near_standing(checks.near, model, frame.floor, cfg.min_range_m, cfg.min_height_m)
             if self.near.blocks:
                 degraded.append("nearer-than-range")  # the view of the range is blocked, not clear

@@ -38,12 +38,12 @@ class _Latest(Generic[T]):
 # What `status` says of a degraded list, most telling reason first: what happened and what to do.
 # A reason not here is listed as it is.
 REASON_STATUS: dict[str, str] = {
-    "nearer-than-range": "{near_share} of the picture stands nearer than the vision range's {min_range} m (at about "
-                         "{near_m}, by rectify's coarse wide search): the list does not cover it, and it blocks the "
-                         "view of the range; stop or back off",
     "cameras-swapped": "rectify finds most matched features farther left in the left image than in the right: the "
                        "left and right cameras are swapped (cables, or the devices' order); exchange camera_left and "
                        "camera_right (or the inputs) in capture's settings",
+    "nearer-than-range": "{near_share} of the picture stands nearer than the vision range's {min_range} m (at about "
+                         "{near_m}, by rectify's coarse wide search): the list does not cover it, and it blocks the "
+                         "view of the range; stop or back off",
     "floor-out-of-view": "the floor within the vision range is below the camera's view; nothing low there can be "
                          "seen (lengthen the range, or pitch the camera down)",
     "input-frozen": "the disparity maps have not changed for over {stale_after_s:g} s: the camera repeats one "
