@@ -139,8 +139,8 @@ def reversed_share(d: np.ndarray) -> float:
 class RowMonitor:
     """The live rectification check (rectify runs it on the stream; cores/pipeline.py offline): a
     camera knocked on the rig, a loose lens or a calibration of another rig moves the right image
-    off the left's rows; swapped cameras put what is near to the left in the left image
-    (`reversed_share`). Block matching then finds fewer and wrong matches, and nothing else says
+    off the left's rows; swapped cameras put what is near farther left in the left image than in
+    the right (`reversed_share`). Block matching then finds fewer and wrong matches, and nothing else says
     why. Every `interval_s` of stream time one rectified pair is checked (row_alignment with fewer
     features: 10-14 ms of one core), and `latest` is what every later frame carries (StereoFrame.rows,
     DisparityMap.rows), so each list can say `rows-misaligned` (cores/segmentation/builder.py).
