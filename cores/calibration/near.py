@@ -7,8 +7,8 @@ disparity beyond the search: bm and sgbm measure nothing or garbage there, dense
 background's. The list then covers its range, empty or with a few wrong obstacles, while its view
 of that range is blocked (a textured box 0.3 m from the camera: 0 obstacles, `degraded` empty with
 a configured mount and fit_floor false; with sgbm, obstacles at the search's 1.05 m limit). At a
-quarter of the resolution half the picture's width of disparity costs about 0.9 ms a 640x480 pair
-(one OpenCV thread) and measures the near face to within 0.03 m (0.3-2.8 m). The segmenter
+quarter of the resolution half the picture's width of disparity, matched from each image, costs
+about 1.5 ms a 640x480 pair (one OpenCV thread) and measures the near face to within 5 % (0.3-2.9 m). The segmenter
 decides what of it stands above its floor (cores/segmentation/near.py). No Zenoh here.
 """
 from __future__ import annotations
@@ -52,8 +52,17 @@ class NearCheck:
             bm.setSpeckleWindowSize(16)  # lone mismatches are not a near face
             bm.setSpeckleRange(2)
             self._bm, self._size = bm, (cw, ch, nd)
-        small = [cv2.resize(g, (cw, ch), interpolation=cv2.INTER_AREA) for g in (gl, gr)]
-        d16 = self._bm.compute(small[0], small[1])
+        sl, sr = (cv2.resize(g, (cw, ch), interpolation=cv2.INTER_AREA) for g in (gl, gr))
+        d = self._bm.compute(sl, sr).astype(np.int32)  # 1/16 coarse px; left of column nd: nothing
+        # BM leaves the picture's left nd columns (40 % of it) unmatched, where something near and a
+        # little left of ahead stands. Matched from the right image (both flipped), a right pixel
+        # x_r with disparity dr is the left one's x_r + dr: put those into the left band.
+        dr = self._bm.compute(cv2.flip(sr, 1), cv2.flip(sl, 1))[:, ::-1][:, :nd].astype(np.int32)
+        rows, xr = np.nonzero(dr > 0)
+        xl = xr + ((dr[rows, xr] + 8) >> 4)
+        band = xl < nd
+        rows, xl, dband = rows[band], xl[band], dr[rows[band], xr[band]]
+        d[rows, xl] = np.maximum(d[rows, xl], dband)
         # quarter coarse px (BM's 1/16, rounded); <= 0: nothing; the search's last quarter clips to 255
-        d = np.clip((d16.astype(np.int32) + 2) >> 2, 0, 255).astype(np.uint8)
-        return NearField(width=cw, height=ch, image_width=w, image_height=h, data=d.tobytes())
+        q = np.clip((d + 2) >> 2, 0, 255).astype(np.uint8)
+        return NearField(width=cw, height=ch, image_width=w, image_height=h, data=q.tobytes())
