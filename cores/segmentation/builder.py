@@ -275,7 +275,7 @@ class ObstacleBuilder:
         moved); "view-blocked": part of
         one camera's view is flat where the other's has texture (`checks.blocked`: a finger on the
         lens; nothing there is measured); "nearer-than-range": rectify's coarse wide search
-        (`checks.near`) finds over 2 % of the picture standing nearer than min_range_m (a person
+        (`checks.near`) finds over 1.2 % of the picture standing nearer than min_range_m (a person
         stepping up to the camera: the matcher's search does not reach it, and it blocks the view of
         the range);
         "floor-out-of-view": the floor within the vision range is below the camera's view;

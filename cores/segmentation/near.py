@@ -11,7 +11,11 @@ from common.messages import NearField
 from cores import camera
 from cores.segmentation.mount import FloorPlane
 
-NEAR_SHARE = 0.02  # of the picture standing nearer than the range: the list's view of its range is blocked
+# Of the picture standing nearer than the range: the list's view of its range is blocked. Measured:
+# at most 0.66 % on scenes with nothing that near (the sway's floor at its most pitched; the street
+# 0, the room 0.1 %); a box 0.3 m ahead-left 1.9-2.3 % (its face is then in the left camera's view
+# only: what the coarse search sees is its side).
+NEAR_SHARE = 0.012
 
 
 @dataclass(frozen=True)

@@ -80,9 +80,10 @@ class RectifySettings(ServiceSettings):
                                   "camera-frozen; and one whose view has been partly blocked this long (flat where the "
                                   "other camera sees texture: a finger on the lens) is blocked: every list says "
                                   "view-blocked")
-    near_check: bool = Field(True, description="match each rectified pair coarsely (a quarter of the resolution) "
+    near_check: bool = Field(True, description="match each rectified pair coarsely (a quarter of the resolution, from "
+                             "each image) "
                              "over half the picture's width of disparity, so that what stands nearer than the vision "
-                             "range is seen: lists say nearer-than-range (about 0.9 ms of one core a 640x480 pair; "
+                             "range is seen: lists say nearer-than-range (about 1.6 ms of one core a 640x480 pair; "
                              "false for a rig that sees part of the robot over min_height_m up)")
     source: Literal["synthetic", "cameras", "sbs", "video", "images", "ros2", "mcap"] | None = Field(
         None, description="the capture source this rectify serves, when the deployment knows it (the compose files "
