@@ -94,13 +94,19 @@ def test_a_flood_without_attachments_never_takes_the_slot_of_a_stamped_payload()
     assert box.unstamped == 20 * 7 and box.late == 0
 
 
-def test_old_results_never_displace_newer_ones_and_replays_are_refused():
-    clock = StepClock()
-    box = inbox(clock)
+def two_workers(clock: StepClock) -> tuple[Stream, Meta, Meta]:
+    """Worker 1 and its frame's meta, then worker 2's of the next frame (33 ms on) -> (worker 1,
+    the older meta, the newer one)."""
     w1, w2 = Stream(clock, 1), Stream(clock, 2)
     older = w1.meta(clock.wall)
     clock.advance(0.033)
-    newer = w2.meta(clock.wall)
+    return w1, older, w2.meta(clock.wall)
+
+
+def test_old_results_never_displace_newer_ones_and_replays_are_refused():
+    clock = StepClock()
+    box = inbox(clock)
+    w1, older, newer = two_workers(clock)
     box.offer(b"new", newer)
     box.offer(b"old", older)  # a slow worker's older frame arrives after a newer one
     d = box.take_delivery(0)
@@ -117,10 +123,7 @@ def test_an_older_result_that_passed_the_gate_while_a_newer_one_decoded_is_not_h
     # so the older map waited, was handed on after the newer one and the obstacle lists went back.
     clock = StepClock()
     box = inbox(clock)
-    w1, w2 = Stream(clock, 1), Stream(clock, 2)
-    older = w1.meta(clock.wall)
-    clock.advance(0.033)
-    newer = w2.meta(clock.wall)
+    w1, older, newer = two_workers(clock)
     box.offer(b"new", newer)
     taken = box.take_delivery(0)  # the receive loop decodes it ...
     box.offer(b"old", older)      # ... while the older map arrives: nothing newer waits or is committed

@@ -339,14 +339,15 @@ class ObstacleBuilder:
         rows = checks.rows if checks is not None else None
         if rows is not None and rows.offset_px > rows.tolerance_px:
             degraded.append("rows-misaligned")
-        if rows is not None and rows.reversed_share > SWAPPED_SHARE:
+        swapped = rows is not None and rows.reversed_share > SWAPPED_SHARE
+        if swapped:
             degraded.append("cameras-swapped")  # the map is of the mirror scene: what it lists is not there
         if checks is not None and checks.frozen:
             degraded.append("camera-frozen")
         if checks is not None and checks.blocked:
             degraded.append("view-blocked")
         self.near = None
-        if checks is not None and checks.near is not None and "cameras-swapped" not in degraded:  # else a mirror's
+        if checks is not None and checks.near is not None and not swapped:  # else a mirror scene's near field
             self.near = near_standing(checks.near, model, frame.floor, cfg.min_range_m, cfg.min_height_m)
             if self.near.blocks:
                 degraded.append("nearer-than-range")  # the view of the range is blocked, not clear
