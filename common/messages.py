@@ -281,12 +281,14 @@ class ObstacleList(Message):
     stale: bool = Field(description="true when the input stream stopped or fell behind")
     degraded: list[str] = Field(default_factory=list, max_length=32, description="short reasons this list cannot be "
                                 "trusted as a full view (empty: trustworthy; e.g. 'input-frozen', "
-                                "'no-valid-disparity', 'valid-collapse', 'no-ground', 'ground-uncertain', "
+                                "'no-valid-disparity', 'little-measured', 'valid-collapse', 'no-ground', "
+                                "'ground-uncertain', "
                                 "'range-unreachable', 'near-unmeasured', 'floor-out-of-view', 'standing-not-listed', "
                                 "'mount-disagrees', 'rows-misaligned', 'cameras-swapped', 'camera-frozen', "
                                 "'view-blocked', 'nearer-than-range')")
     valid_fraction: float = Field(0.0, ge=0, le=1, description="share of the image the disparity map measured "
-                                  "(valid pixels within the vision range gate's search) for this list")
+                                  "(valid pixels within the vision range gate's search; with a confidence, only "
+                                  "measured ones, not a dense matcher's fill) for this list")
     range_m: tuple[Metres, Metres] | None = Field(None, description="the distances this list looked at, m: "
                                                   "[nearest, farthest] of the vision range. What is nearer or "
                                                   "farther is not in the list, however clear it looks (None: not "

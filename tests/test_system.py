@@ -390,6 +390,36 @@ def test_a_finger_on_one_lens_is_said_by_every_list_and_by_status(tmp_path):
 
 
 @pytest.mark.skipif(not (KARLSRUHE / "calibration.yaml").exists(), reason="../shared/data/real/karlsruhe-0023 absent")
+def test_the_street_at_dusk_is_said_by_every_list_and_by_status(tmp_path):
+    """The street through `up` at 4 % of its light, the cameras' gain bringing it back up with their
+    noise, the mount configured and fit_floor false (no ground fit to fail): the matcher measures 1-2 %
+    of the picture and the lists had emptied with nothing said. Every list says little-measured, and
+    `status` says how much was measured (exit 3)."""
+    import cv2
+    from helpers import Up
+    from test_little_measured import dusk
+    rng = np.random.default_rng(0)
+    folders = {side: tmp_path / side for side in ("left", "right")}
+    for side, pattern in (("left", "I1_*.png"), ("right", "I2_*.png")):
+        folders[side].mkdir()
+        for p in sorted((KARLSRUHE / side).glob(pattern))[:10]:
+            cv2.imwrite(str(folders[side] / p.name), dusk(cv2.imread(str(p), cv2.IMREAD_GRAYSCALE), 0.04, rng))
+    cfg = tmp_path / "dusk.yaml"
+    cfg.write_text(f"capture:\n  source: images\n  images_left: {folders['left']}\n  images_right: "
+                   f"{folders['right']}\n  loop: true\n  rate_hz: 10\nrectify:\n  calibration: "
+                   f"{KARLSRUHE / 'calibration.yaml'}\nmount:\n  height_m: 1.64\n  pitch_deg: 6.0\n"
+                   f"segmenter:\n  fit_floor: false\n")
+    u = Up(extra_env={"BALLBOT_CONFIG": str(cfg)})
+    try:
+        lists = lists_saying(u, "little-measured")
+        assert all({"little-measured", "no-valid-disparity"} & set(m.degraded) for m in lists[-3:])
+        code, _, seg = status_of(u)
+        assert code == 3 and seg["status"].startswith("little-measured: the disparity map measured "), seg
+    finally:
+        u.stop()
+
+
+@pytest.mark.skipif(not (KARLSRUHE / "calibration.yaml").exists(), reason="../shared/data/real/karlsruhe-0023 absent")
 def test_one_camera_whose_driver_hung_is_said_by_every_list_and_by_status(tmp_path):
     """The street through `up` from image folders, with the right camera repeating its first picture
     while the left goes on (a hung driver of one camera of two): the maps keep changing, so nothing

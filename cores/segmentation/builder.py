@@ -19,6 +19,7 @@ from cores import camera
 from cores.calibration.check import SWAPPED_SHARE
 from cores.matching.disparity import FrozenInput, RecentValid, searched_range, to_float
 from cores.segmentation import freespace, layers, seed, stats
+from cores.segmentation.blank import MEASURED
 from cores.segmentation.ground import TRUSTED, GroundEstimator, frame_mount
 from cores.segmentation.mount import FloorPlane, Mount
 from cores.segmentation.near import NearStanding, near_standing
@@ -30,9 +31,29 @@ log = logging.getLogger("ballbot")
 
 # A map measuring less of the image than this saw nothing it could vouch for: the list says so.
 MIN_VALID_FRACTION = 0.01
+# ... and less than this too little to vouch for what it did not list: "little-measured". The dark comes
+# on slowly (dusk, a corridor with the lights off), too slowly for valid-collapse, and the matcher
+# measures less and less while the list empties. The street darkened to 8 % of its light (sensor noise
+# as a camera's gain brings it up): bm measured 5-6 % of the picture and listed 9 of its 18 things;
+# at 4 %, 1-2 % measured, empty lists, and until now no reason at all (mount configured, fit_floor
+# false). The recordings in daylight measure 27-30 % (the street, bm: sky and plain road) and more;
+# every shipped scene 48 % or more, whatever the matcher.
+LITTLE_MEASURED = 0.10
 # A map measuring less than half of what the maps of the last 2 s measured (a covered lens, glare, a
 # broken matcher) is flagged "valid-collapse" until it is no longer a sudden change (cores/matching/disparity.py).
 COLLAPSE_FACTOR, COLLAPSE_WINDOW_S, COLLAPSE_WARMUP_FRAMES = 0.5, 2.0, 5
+
+
+def measured_share(disparity: np.ndarray, confidence: np.ndarray | None, min_confidence: int = MEASURED) -> float:
+    """The share of the picture the matcher measured and the segmenter uses: a valid disparity, and
+    where the matcher gives a confidence, at least min_confidence (the segmenter's, never below
+    blank.MEASURED). `dense` fills every pixel its measurements reach, so its valid share stays near 1
+    in the dark as in daylight, and only its confidence tells what it saw: the street in daylight
+    0.41-0.44 of the picture at 200 (the segmenter's default), at 4 % of the light 0.05."""
+    valid = disparity > 0  # NaN compares false
+    if confidence is not None and confidence.shape == disparity.shape:
+        valid &= confidence >= max(MEASURED, min_confidence)
+    return float(np.count_nonzero(valid)) / max(1, disparity.size)
 
 
 @dataclass(frozen=True)
@@ -260,6 +281,7 @@ class ObstacleBuilder:
         measurement; degraded names why an empty list would not mean "nothing there"
         ("input-frozen": the map has not changed, bit for bit, for over stale_after_s: the camera
         repeats an old picture with fresh stamps; "no-valid-disparity": under 1 % measured;
+        "little-measured": under 10 % (too dark, fog, a plain wall filling the view);
         "valid-collapse": under half of what the frames of the last 2 s measured;
         "range-unreachable": the map's search, `search` = its (min_disparity, num_disparities),
         cannot measure the vision range; "near-unmeasured": it cannot measure the near part of it
@@ -326,14 +348,17 @@ class ObstacleBuilder:
                 confirmed=tr.confirmed, track_frames=tr.hits, truncated=det.truncated))
         obstacles.sort(key=lambda o: o.distance_m)
         now = time.time_ns()
-        valid_fraction = float(np.count_nonzero(disparity > 0)) / max(1, disparity.size)  # NaN compares false
+        valid_fraction = measured_share(disparity, confidence, cfg.min_confidence)
         degraded = []
         if self.frozen_input.frozen(disparity, t_s):
             degraded.append("input-frozen")  # fresh stamps on an old picture: the world it shows is not now's
         if valid_fraction < MIN_VALID_FRACTION:
             degraded.append("no-valid-disparity")
-        elif self.recent_valid.collapsed(valid_fraction, t_s):
-            degraded.append("valid-collapse")
+        else:
+            if self.recent_valid.collapsed(valid_fraction, t_s):
+                degraded.append("valid-collapse")
+            if valid_fraction < LITTLE_MEASURED:
+                degraded.append("little-measured")  # most of the view unmeasured: an empty list is not a clear way
         self.recent_valid.add(valid_fraction, t_s)
         self.checks = checks
         rows = checks.rows if checks is not None else None

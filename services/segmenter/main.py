@@ -53,6 +53,9 @@ REASON_STATUS: dict[str, str] = {
     "view-blocked": "part of the {blocked} camera's view is flat or blurred where the other camera sees texture "
                     "(a finger, a sticker, glare, grease on the lens?): what stands there is measured little or not "
                     "at all; clean or clear the lens",
+    "little-measured": "the disparity map measured {measured} of the picture: too dark, fog, a plain wall "
+                       "filling the view, or a matcher's texture threshold too high; what was not measured is not "
+                       "in the list (light the scene, raise the cameras' exposure or gain, or try method sgbm)",
     "rows-misaligned": "rectify finds the pair's rows {offset} apart: the calibration no longer fits the rig (a "
                        "knocked camera, a loose lens?); check it (`ballbot-vision calibration check`) and calibrate "
                        "again",
@@ -84,6 +87,7 @@ def list_status(msg: ObstacleList, builder: ObstacleBuilder, settings: Segmenter
             near_share = f"{near.share:.0%}" if near is not None else "part"
             return f"{reason}: " + text.format(stale_after_s=settings.stale_after_s, offset=offset, cameras=cameras,
                                                blocked=blocked, near_m=near_m, near_share=near_share,
+                                               measured=f"{msg.valid_fraction:.1%}",
                                                min_range=f"{settings.min_range_m:g}")
     if msg.degraded:  # no-ground, ground-uncertain, valid-collapse, ...
         return f"degraded lists: {', '.join(msg.degraded)}"
