@@ -206,7 +206,8 @@ def test_a_map_that_is_not_what_its_header_said_or_not_for_the_frame_is_refused(
              (m.model_copy(update={"camera": other_cam}), "camera model"),
              (m.model_copy(update={"stamp_ns": m.stamp_ns + 1}), "not the item's"),
              (m.model_copy(update={"image": m.image.model_copy(update={"data": m.image.data[:-2]})}), "bytes for"),
-             (m.model_copy(update={"confidence": m.image}), "not what its header said")]
+             (m.model_copy(update={"confidence": m.image}), "not what its header said"),
+             (m.model_copy(update={"method": "dense"}), "says dense and carries no confidence")]
     for bad, expect in wrong:
         why, check = vet_map(bad, header, t)
         assert expect in why and check is None, (expect, why)

@@ -188,6 +188,10 @@ def vet_map(m: DisparityMap, h: ResultHeader, t: Ticket) -> tuple[str, MapCheck 
         return f"the map is not what its header said (header {said}, map {has})", None
     if m.camera != t.camera:
         return "the map carries another camera model than the frame's", None
+    if m.method == "dense" and m.confidence is None:
+        # dense fills every pixel its measurements reach: without the confidence that tells them apart the
+        # segmenter would take the fill for measurement, and a dark or blank view for a full one
+        return "it says dense and carries no confidence (its fill cannot be told from what it measured)", None
     try:
         raw = codec.array_from_image(img, "disparity")
         if m.confidence is not None:
