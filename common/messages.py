@@ -23,7 +23,8 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 # 7: ObstacleList.bearing_deg (the bearings a list looked at: left of the search's band is not among them).
 # 8: RowAlignment.reversed_share (swapped cameras: the lists say cameras-swapped); FrameChecks.near (what
 #    stands nearer than the vision range: the lists say nearer-than-range).
-SCHEMA_VERSION = 8
+# 9: FrameChecks.clipped (where both cameras are washed out: the lists say washed-out).
+SCHEMA_VERSION = 9
 
 Vec3 = tuple[float, float, float]
 Metres = Annotated[float, Field(allow_inf_nan=False, ge=0.0, le=1000.0)]
@@ -113,6 +114,27 @@ class NearField(BaseModel):
         return self
 
 
+class ClippedTiles(BaseModel):
+    """rectify's coarse grid over the rectified pair: per tile, the share of its pixels clipped white
+    in both cameras at once (the sun or a lamp in view, glare over the lens, a snow field in full
+    sun). Nothing is measured there, and a scene point far enough to look the same in both pictures
+    sits at the same pixel in each, so the segmenter can tell where on its floor the pair is blind
+    (`washed-out`)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    width: int = Field(gt=0, le=256, description="tiles across")
+    height: int = Field(gt=0, le=256, description="tiles down")
+    data: bytes = Field(description="width*height uint8, row-major: the tile's share clipped in both "
+                        "cameras, 0-255 for 0-1")
+
+    @model_validator(mode="after")
+    def _sized(self) -> ClippedTiles:
+        if len(self.data) != self.width * self.height:
+            raise ValueError(f"data: {len(self.data)} bytes for {self.width}x{self.height}")
+        return self
+
+
 class FrameChecks(BaseModel):
     """What rectify checked of a pair beyond its stamps, carried by the pair and its disparity map to
     the segmenter, whose list says what failed."""
@@ -131,6 +153,9 @@ class FrameChecks(BaseModel):
     near: NearField | None = Field(None, description="the pair's coarse wide disparity map (None: not checked): "
                                    "what stands nearer than the vision range shows here; each list says "
                                    "nearer-than-range")
+    clipped: ClippedTiles | None = Field(None, description="where both cameras are clipped white (None: not "
+                                         "checked): over WASHED_OUT of the floor in range, each list says "
+                                         "washed-out")
 
 
 class StereoFrame(Message):
@@ -285,7 +310,7 @@ class ObstacleList(Message):
                                 "'ground-uncertain', "
                                 "'range-unreachable', 'near-unmeasured', 'floor-out-of-view', 'standing-not-listed', "
                                 "'mount-disagrees', 'rows-misaligned', 'cameras-swapped', 'camera-frozen', "
-                                "'view-blocked', 'nearer-than-range')")
+                                "'view-blocked', 'nearer-than-range', 'washed-out')")
     valid_fraction: float = Field(0.0, ge=0, le=1, description="share of the image the disparity map measured "
                                   "(valid pixels within the vision range gate's search; with a confidence, only "
                                   "measured ones, not a dense matcher's fill) for this list")

@@ -112,6 +112,7 @@ class Pipeline:
         if not rectified:
             left, right = self.rectify(left, right, names)
         near = self.checks.near_field(left, right)  # rectify's, on its frame path: timed as rectify
+        clipped = self.checks.clipped(left, right)
         t1 = time.perf_counter()
         stamp_ns = int(round(t_s * 1e9)) if stamp_ns is None else stamp_ns
         self.checks.rows.observe(left, right, t_s, stamp_ns)  # rectify checks off its frame path: not timed
@@ -122,7 +123,7 @@ class Pipeline:
         result = self.builder.process(disparity, self.model, t_s=t_s, seq=seq, stamp_ns=stamp_ns,
                                       confidence=stage.match.confidence, odometry=odometry, image=left,
                                       search=(stage.min_disparity, stage.num_disparities),
-                                      checks=self.checks.message(stuck, blocked, near))
+                                      checks=self.checks.message(stuck, blocked, near, clipped))
         t3 = time.perf_counter()
         return PipelineFrame(seq, left, right, stage, disparity, result, (t1 - t0) * 1e3, (t2 - t1b) * 1e3,
                              (t3 - t2) * 1e3)

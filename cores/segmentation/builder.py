@@ -26,6 +26,7 @@ from cores.segmentation.near import NearStanding, near_standing
 from cores.segmentation.seed import Detection
 from cores.segmentation.settings import SegmenterSettings
 from cores.segmentation.tracking import Tracker
+from cores.segmentation.washout import WASHED_OUT, washed_out_share
 
 log = logging.getLogger("ballbot")
 
@@ -162,6 +163,7 @@ class ObstacleBuilder:
         self.reach = Reach(False, "")  # of the last map's disparity search
         self.checks: FrameChecks | None = None  # rectify's checks, as the last map carried them
         self.near: NearStanding | None = None  # what of the last map's near field stands nearer than the range
+        self.washed_out = 0.0  # the share of the last map's floor in range clipped white in both cameras
         self._reach_logged: set[str] = set()
 
     def check_search(self, model: camera.RectifiedModel, min_disparity: int, num_disparities: int,
@@ -299,7 +301,9 @@ class ObstacleBuilder:
         lens; nothing there is measured); "nearer-than-range": rectify's coarse wide search
         (`checks.near`) finds over 1.2 % of the picture standing nearer than min_range_m (a person
         stepping up to the camera: the matcher's search does not reach it, and it blocks the view of
-        the range);
+        the range); "washed-out": rectify's clipped tiles (`checks.clipped`) cover over
+        WASHED_OUT of the floor within the range with white at infinity in both cameras (the sun or a
+        lamp low ahead: nothing there is measured, and what stands there is in no list);
         "floor-out-of-view": the floor within the vision range is below the camera's view;
         "standing-not-listed": something standing in range, of min_area_m2 frontal area, is in no
         obstacle: seed's border clearing, area opening or Otsu threshold dropped it)."""
@@ -376,6 +380,12 @@ class ObstacleBuilder:
             self.near = near_standing(checks.near, model, frame.floor, cfg.min_range_m, cfg.min_height_m)
             if self.near.blocks:
                 degraded.append("nearer-than-range")  # the view of the range is blocked, not clear
+        self.washed_out = 0.0
+        if checks is not None and checks.clipped is not None and frame.floor is not None:
+            self.washed_out = washed_out_share(checks.clipped, model, frame.floor, cfg.min_range_m,
+                                               cfg.range_for(model))
+            if self.washed_out > WASHED_OUT:
+                degraded.append("washed-out")  # white in both cameras where the path lies: not seen, not clear
         if reach.unreachable:
             degraded.append("range-unreachable")
         elif reach.near_unmeasured:

@@ -53,6 +53,9 @@ REASON_STATUS: dict[str, str] = {
     "view-blocked": "part of the {blocked} camera's view is flat or blurred where the other camera sees texture "
                     "(a finger, a sticker, glare, grease on the lens?): what stands there is measured little or not "
                     "at all; clean or clear the lens",
+    "washed-out": "{washed} of the floor within the vision range is clipped white in both cameras, at infinity: "
+                  "the sun or a lamp low ahead, glare over both lenses; what stands there is not seen (shade "
+                  "the lenses with a hood, lower the exposure, or turn away from the light)",
     "little-measured": "the disparity map measured {measured} of the picture: too dark, fog, a plain wall "
                        "filling the view, or a matcher's texture threshold too high; what was not measured is not "
                        "in the list (light the scene, raise the cameras' exposure or gain, or try method sgbm)",
@@ -88,6 +91,7 @@ def list_status(msg: ObstacleList, builder: ObstacleBuilder, settings: Segmenter
             return f"{reason}: " + text.format(stale_after_s=settings.stale_after_s, offset=offset, cameras=cameras,
                                                blocked=blocked, near_m=near_m, near_share=near_share,
                                                measured=f"{msg.valid_fraction:.1%}",
+                                               washed=f"{builder.washed_out:.1%}",
                                                min_range=f"{settings.min_range_m:g}")
     if msg.degraded:  # no-ground, ground-uncertain, valid-collapse, ...
         return f"degraded lists: {', '.join(msg.degraded)}"
