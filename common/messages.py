@@ -116,10 +116,10 @@ class NearField(BaseModel):
 
 class ClippedTiles(BaseModel):
     """rectify's coarse grid over the rectified pair: per tile, the share of its pixels clipped white
-    in both cameras at once (the sun or a lamp in view, glare over the lens, a snow field in full
-    sun). Nothing is measured there, and a scene point far enough to look the same in both pictures
-    sits at the same pixel in each, so the segmenter can tell where on its floor the pair is blind
-    (`washed-out`)."""
+    in both cameras at the same place, in patches whose outline is the same in both pictures, so at
+    infinity (the sun or a lamp low ahead, glare over both lenses, the sky; not a white thing near
+    enough to sit apart in the two). Nothing is measured there; the segmenter tells where on its
+    floor the pair is blind (`washed-out`)."""
 
     model_config = ConfigDict(extra="forbid")
 
