@@ -218,6 +218,23 @@ def test_a_map_that_is_not_what_its_header_said_or_not_for_the_frame_is_refused(
     assert "outside its search range" in why
 
 
+def test_a_dense_answer_counts_what_it_measured_not_its_fill():
+    """dense fills every pixel its measurements reach (confidence under 128): a worker whose matcher
+    stopped measuring still sends a full-looking map. What the dispatcher judges a worker's collapse
+    on, and what it remembers of the robot's maps, is the share it measured."""
+    t = Ticket.for_frame(frame())
+    conf = np.full((t.height, t.width), 60, np.uint8)  # all fill
+    m, h = answer(t, method="dense", confidence=codec.image_from_array(conf))
+    why, check = vet_map(m, parse_header(h), t)
+    assert why == "" and check is not None and check.valid_fraction == 0.0
+    conf[: t.height // 4] = 200  # a quarter measured
+    m, h = answer(t, method="dense", confidence=codec.image_from_array(conf))
+    why, check = vet_map(m, parse_header(h), t)
+    assert why == "" and check is not None and check.valid_fraction == 0.25
+    m, h = answer(t)  # bm: every valid pixel is a measurement
+    assert vet_map(m, parse_header(h), t)[1].valid_fraction == 1.0
+
+
 # --- the pool's verdicts -------------------------------------------------------------------------------
 
 class FakeClock:

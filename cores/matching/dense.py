@@ -25,7 +25,7 @@ from scipy.linalg import solveh_banded
 
 from common.errors import BallbotError
 from cores.matching.config import SCALE, MatcherConfig
-from cores.matching.disparity import raw_at_least
+from cores.matching.disparity import MEASURED_CONFIDENCE, raw_at_least
 from cores.matching.opencv import Match, create_sgbm, gray, saturated_share
 
 FILL_SCALE = 0.5  # the smoother runs at this fraction of the image size
@@ -143,7 +143,8 @@ def fill_and_confidence(disparity: np.ndarray, valid: np.ndarray, guide: np.ndar
     trust = local_agreement(out, c)
     if texture_map is not None:
         trust *= 1 - np.exp(texture_map * np.float32(-1.0 / TEXTURE))
-    conf = np.where(valid, 128 + 127 * trust, 1 + 126 * support)
+    top = 255 - MEASURED_CONFIDENCE
+    conf = np.where(valid, MEASURED_CONFIDENCE + top * trust, 1 + (MEASURED_CONFIDENCE - 2) * support)
     return out, (conf + 0.5).astype(np.uint8)
 
 

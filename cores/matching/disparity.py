@@ -23,6 +23,9 @@ def searched_range(min_disparity: float, num_disparities: float) -> tuple[float,
     return float(min_disparity), float(min_disparity + num_disparities)
 
 
+# A matcher's confidence (uint8, where it gives one): 0 = no measurement, 255 = certain; from this
+# value on, the pixel was measured; below it, filled in from measured ones around it (dense's fill)
+MEASURED_CONFIDENCE = 128
 _BEYOND = 2**31  # past every value of a map's integer type: the bound an infinite one stands for
 
 

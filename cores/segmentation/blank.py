@@ -49,6 +49,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cores import camera
+from cores.matching.disparity import MEASURED_CONFIDENCE
 from cores.segmentation import freespace, stats
 from cores.segmentation.mount import FloorPlane
 
@@ -61,10 +62,9 @@ MIN_WIDTH_M = 0.3  # narrower: a gap between two things, a pole's dark side, not
 CAP_PX = 3.0
 GAP_COLS = 2  # working columns
 FACE_SHARE = 0.6  # share of what was measured between a low face's foot and its top edge that is at its depth
-# confidence from which a pixel the segmenter sets aside still counts as measured (a top edge): the
-# matcher's scale is 0 = no measurement, 255 = certain; dense gives 128..255 to what SGBM measured
-# and less to what its fill spread
-MEASURED = 128
+# confidence from which a pixel the segmenter sets aside still counts as measured (a top edge): dense
+# gives MEASURED_CONFIDENCE..255 to what SGBM measured and less to what its fill spread
+MEASURED = MEASURED_CONFIDENCE
 
 
 @dataclass

@@ -244,7 +244,8 @@ class Dispatcher:
         with node.processing(msg):
             m = fallback.compute(msg, node.instance)
             raw = codec.array_from_image(m.image, "disparity")
-            vf = measure(raw, m.invalid_value, m.scale, m.min_disparity, m.num_disparities).valid_fraction
+            conf = codec.array_from_image(m.confidence, "disparity confidence") if m.confidence is not None else None
+            vf = measure(raw, m.invalid_value, m.scale, m.min_disparity, m.num_disparities, conf).valid_fraction
             self.answers.publish(m, vf, time.monotonic())
             fallback.report(node)
             node.count("fallback_frames")

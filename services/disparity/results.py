@@ -36,7 +36,7 @@ from common import codec
 from common.errors import DecodeError
 from common.messages import CameraModel, DisparityMap, FrameChecks, StereoFrame
 from cores.matching.config import MAX_NUM_DISPARITIES, SCALE
-from cores.matching.disparity import raw_at_least, raw_at_most, searched_range
+from cores.matching.disparity import MEASURED_CONFIDENCE, raw_at_least, raw_at_most, searched_range
 
 NONCE_BYTES = 16
 HEADER_MAX_BYTES = 1024
@@ -157,19 +157,25 @@ def vet_header(h: ResultHeader, t: Ticket, payload_len: int) -> str:
 
 @dataclass
 class MapCheck:
-    valid_fraction: float  # share of the pixels with a measurement in the stated range (> 0 px)
+    valid_fraction: float  # share of the pixels measured (> 0 px; not a dense fill) in the stated range
     out_of_range: float  # share of the pixels neither invalid nor in the stated range
 
 
 def measure(raw: np.ndarray, invalid_value: float, scale: float, min_disparity: int,
-            num_disparities: int) -> MapCheck:
-    """Valid and out-of-range shares of a fixed-point map (int16/uint16)."""
+            num_disparities: int, confidence: np.ndarray | None = None) -> MapCheck:
+    """Valid and out-of-range shares of a fixed-point map (int16/uint16). With the map's confidence,
+    only what the matcher measured (MEASURED_CONFIDENCE or more) counts as valid: dense fills every
+    pixel its measurements reach, so its maps would never measure less, dark or blind, and a
+    worker whose matcher stopped measuring would never be told from one that sees."""
     lo, hi = searched_range(min_disparity, num_disparities)
     # integer bounds: the map's integers are compared as they are, not cast to float64 (raw_at_least)
     valid = raw != int(invalid_value) if float(invalid_value).is_integer() else np.ones(raw.shape, bool)
     inside = (raw >= raw_at_least(lo * scale)) & (raw <= raw_at_most(hi * scale))
     n = max(1, raw.size)
-    measured = np.count_nonzero(valid & inside & (raw > 0))
+    measured_px = valid & inside & (raw > 0)
+    if confidence is not None and confidence.shape == raw.shape:
+        measured_px &= confidence >= MEASURED_CONFIDENCE
+    measured = np.count_nonzero(measured_px)
     outside = np.count_nonzero(valid & ~inside)
     return MapCheck(measured / n, outside / n)
 
@@ -194,16 +200,17 @@ def vet_map(m: DisparityMap, h: ResultHeader, t: Ticket) -> tuple[str, MapCheck 
         return "it says dense and carries no confidence (its fill cannot be told from what it measured)", None
     try:
         raw = codec.array_from_image(img, "disparity")
+        conf = None
         if m.confidence is not None:
             c = m.confidence
             if (c.width, c.height, c.channels, c.dtype, c.encoding) != (img.width, img.height, 1, "uint8",
                                                                           img.encoding):
                 return (f"its confidence is {c.width}x{c.height}x{c.channels} {c.dtype} {c.encoding}, expected "
                         f"{img.width}x{img.height} uint8 {img.encoding}"), None
-            codec.array_from_image(c, "disparity confidence")
+            conf = codec.array_from_image(c, "disparity confidence")
     except DecodeError as e:
         return str(e), None
-    check = measure(raw, m.invalid_value, m.scale, m.min_disparity, m.num_disparities)
+    check = measure(raw, m.invalid_value, m.scale, m.min_disparity, m.num_disparities, conf)
     if check.out_of_range > MAX_OUT_OF_RANGE:
         return (f"{check.out_of_range:.1%} of its pixels lie outside its search range "
                 f"[{m.min_disparity}, {m.min_disparity + m.num_disparities}] px"), None
