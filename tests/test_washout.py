@@ -103,6 +103,12 @@ def test_a_list_whose_floor_is_washed_out_says_so():
     assert not glared.obstacles.obstacles  # nothing stands: only the flag keeps this from a clear way
     unchecked = b.process(d.copy(), MODEL, t_s=0.2, seq=2, stamp_ns=2)
     assert "washed-out" not in unchecked.obstacles.degraded
+    # a floor the list cannot vouch for (the mount taped 12 deg off, fit_floor false) does not say where
+    # the floor lies in the picture: its "floor" may be the sky, whose white is no glare
+    taped = ObstacleBuilder(SegmenterSettings(fit_floor=False), MountSettings(height_m=1.0, pitch_deg=22.0))
+    out = taped.process(d.copy(), MODEL, t_s=0.0, seq=0, stamp_ns=0,
+                        checks=FrameChecks(clipped=ClippedTiles(width=32, height=24, data=ahead.tobytes())))
+    assert "mount-disagrees" in out.obstacles.degraded and "washed-out" not in out.obstacles.degraded
 
 
 @pytest.mark.skipif(not (KARLSRUHE / "calibration.yaml").exists(), reason="../shared/data/real/karlsruhe-0023 absent")

@@ -302,8 +302,9 @@ class ObstacleBuilder:
         (`checks.near`) finds over 1.2 % of the picture standing nearer than min_range_m (a person
         stepping up to the camera: the matcher's search does not reach it, and it blocks the view of
         the range); "washed-out": rectify's clipped tiles (`checks.clipped`) cover over
-        WASHED_OUT of the floor within the range with white at infinity in both cameras (the sun or a
-        lamp low ahead: nothing there is measured, and what stands there is in no list);
+        WASHED_OUT of the floor within the range (a floor the list vouches for) with white at
+        infinity in both cameras (the sun or a lamp low ahead: nothing there is measured, and what
+        stands there is in no list);
         "floor-out-of-view": the floor within the vision range is below the camera's view;
         "standing-not-listed": something standing in range, of min_area_m2 frontal area, is in no
         obstacle: seed's border clearing, area opening or Otsu threshold dropped it)."""
@@ -380,12 +381,6 @@ class ObstacleBuilder:
             self.near = near_standing(checks.near, model, frame.floor, cfg.min_range_m, cfg.min_height_m)
             if self.near.blocks:
                 degraded.append("nearer-than-range")  # the view of the range is blocked, not clear
-        self.washed_out = 0.0
-        if checks is not None and checks.clipped is not None and frame.floor is not None:
-            self.washed_out = washed_out_share(checks.clipped, model, frame.floor, cfg.min_range_m,
-                                               cfg.range_for(model))
-            if self.washed_out > WASHED_OUT:
-                degraded.append("washed-out")  # white in both cameras where the path lies: not seen, not clear
         if reach.unreachable:
             degraded.append("range-unreachable")
         elif reach.near_unmeasured:
@@ -407,6 +402,15 @@ class ObstacleBuilder:
                 degraded.append("ground-uncertain")
             if frame.floor is not None and not floor_in_view(frame.floor, model, cfg.range_for(model)):
                 degraded.append("floor-out-of-view")
+        self.washed_out = 0.0
+        floor_known = not {"no-ground", "ground-uncertain", "mount-disagrees"} & set(degraded)
+        if checks is not None and checks.clipped is not None and frame.floor is not None and floor_known:
+            # where the floor lies in the picture, by a floor the list can vouch for (a floor fitted
+            # metres off puts the sky in the range, whose white is no glare)
+            self.washed_out = washed_out_share(checks.clipped, model, frame.floor, cfg.min_range_m,
+                                               cfg.range_for(model))
+            if self.washed_out > WASHED_OUT:
+                degraded.append("washed-out")  # white in both cameras where the path lies: not seen, not clear
         out = ObstacleList(robot_id=robot_id, seq=seq, stamp_ns=stamp_ns, stages=dict(stages or {}), publish_ns=now,
                            stale=stale, degraded=degraded, valid_fraction=valid_fraction, method=cfg.method,
                            range_m=(cfg.min_range_m, cfg.range_for(model)),
