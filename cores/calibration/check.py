@@ -316,7 +316,7 @@ CLIPPED_GRID = (32, 24)  # tiles across, down
 # those clipped in both: glare's disc lies at the same place in both pictures; a white thing at
 # disparity D and W px wide is clipped in one camera only over 2 D for W - D in both (the street's
 # backlit bus-shelter poster 4 m away: 3.5). Measured: nothing below the floor's horizon passes on
-# either recording, a glare disc does (docs/trust.md, "washed-out").
+# either recording, a glare disc does (docs/architecture.md, washed-out).
 AT_INFINITY = 0.2
 STRIPS = 12  # the picture is cut into this many bands before patches are told apart: see clipped_tiles
 

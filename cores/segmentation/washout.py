@@ -16,7 +16,7 @@ from cores.segmentation.mount import FloorPlane
 # Of the floor's tiles within the range, the share clipped at infinity in both cameras over which a
 # list cannot vouch for its view. Measured: 0.000 on every frame of both recordings, the synthetic
 # scenes and the sway; a glare disc over the street's horizon, of radius 0.1/0.15/0.5 of the
-# picture's height: 0.008/0.017/0.20 (docs/trust.md, "washed-out").
+# picture's height: 0.007/0.016/0.18 (docs/architecture.md, washed-out).
 WASHED_OUT = 0.005
 
 
