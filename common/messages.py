@@ -24,8 +24,10 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 # 8: RowAlignment.reversed_share (swapped cameras: the lists say cameras-swapped); FrameChecks.near (what
 #    stands nearer than the vision range: the lists say nearer-than-range).
 # 9: FrameChecks.clipped (where both cameras are washed out: the lists say washed-out).
-SCHEMA_VERSION = 9
+# 10: CameraModel.view_left / view_right (the part of the rectified picture each camera saw, alpha > 0).
+SCHEMA_VERSION = 10
 
+MAX_OUTLINE_POINTS = 4096
 Vec3 = tuple[float, float, float]
 Metres = Annotated[float, Field(allow_inf_nan=False, ge=0.0, le=1000.0)]
 Degrees90 = Annotated[float, Field(allow_inf_nan=False, ge=-90.0, le=90.0)]
@@ -70,6 +72,12 @@ class CameraModel(BaseModel):
     cy: float
     baseline_m: float = Field(gt=0)
     Q: list[float] = Field(min_length=16, max_length=16, description="4x4 disparity-to-depth matrix, row-major")
+    view_left: list[tuple[float, float]] | None = Field(
+        None, min_length=3, max_length=MAX_OUTLINE_POINTS, description="outline (polygon, px) of the part of the "
+        "rectified left picture the left camera saw (None: all of it). rectify's alpha above 0 keeps more of the "
+        "view and leaves the rest black; the matcher measures nothing within its window of the black")
+    view_right: list[tuple[float, float]] | None = Field(
+        None, min_length=3, max_length=MAX_OUTLINE_POINTS, description="the same for the right picture")
 
 
 class RowAlignment(BaseModel):

@@ -9,6 +9,7 @@ Conventions: OpenCV's. `R`, `T` map a point from the left camera frame to the ri
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -57,6 +58,12 @@ class RectifiedModel:
     cx: float
     cy: float
     baseline_m: float
+    # The outline (a polygon, px) of the part of the rectified picture each camera saw; None: all of
+    # it. alpha 0 crops to what both saw; a larger alpha keeps more of the view and leaves the rest of
+    # the picture black, and the seam between black and picture is an edge the two cameras draw at
+    # different places: matched, it is a wall of phantom depths along the border (view_masks).
+    view_left: tuple[tuple[float, float], ...] | None = None
+    view_right: tuple[tuple[float, float], ...] | None = None
 
     @property
     def Q(self) -> np.ndarray:
@@ -66,6 +73,60 @@ class RectifiedModel:
 
     def disparity_for_depth(self, z_m: float) -> float:
         return self.focal_px * self.baseline_m / z_m
+
+
+def model_of(cam: Any) -> RectifiedModel:
+    """A CameraModel message (common/messages.py) -> the RectifiedModel it describes."""
+    return RectifiedModel(cam.width, cam.height, cam.focal_px, cam.cx, cam.cy, cam.baseline_m,
+                          view_left=_outline(cam.view_left), view_right=_outline(cam.view_right))
+
+
+def _outline(points: Any) -> tuple[tuple[float, float], ...] | None:
+    return None if points is None else tuple((float(x), float(y)) for x, y in points)
+
+
+def view_masks(model: RectifiedModel, margin_px: int, scale: int = 1) -> tuple[np.ndarray, np.ndarray] | None:
+    """(left, right) bool masks of the picture (shrunk `scale` times) that lie margin_px (px of
+    that picture) or more inside what each camera saw; None when both saw every pixel. A matching
+    window reaching past the outline sees the black beyond it."""
+    if model.view_left is None and model.view_right is None:
+        return None
+    return _view_masks(model.width, model.height, model.view_left, model.view_right, margin_px, scale)
+
+
+@functools.lru_cache(maxsize=8)
+def _view_masks(width: int, height: int, left: tuple | None, right: tuple | None, margin_px: int,
+                scale: int) -> tuple[np.ndarray, np.ndarray]:
+    import cv2
+
+    w, h = width // scale, height // scale
+    kernel = np.ones((2 * margin_px + 1, 2 * margin_px + 1), np.uint8) if margin_px > 0 else None
+    out = []
+    for outline in (left, right):
+        m = np.full((h, w), 255, np.uint8)
+        if outline is not None:
+            m[:] = 0
+            pts = np.round(np.asarray(outline, np.float64) / scale * 16).astype(np.int32)  # 4 fractional bits
+            cv2.fillPoly(m, [pts], 255, cv2.LINE_8, shift=4)
+        if outline is not None and kernel is not None:
+            m = np.asarray(cv2.erode(m, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=255))
+        mask = m > 0
+        mask.setflags(write=False)  # cached: shared by every caller
+        out.append(mask)
+    return out[0], out[1]
+
+
+def seen_by_both(d: np.ndarray, scale: float, seen_left: np.ndarray, seen_right: np.ndarray) -> np.ndarray:
+    """Per pixel of a disparity map (px * scale, fixed point): whether it is in seen_left and its
+    partner in the right picture (x - d, rounded) in seen_right (masks of view_masks)."""
+    import cv2
+
+    h, w = d.shape
+    cols = np.arange(w, dtype=np.float32)[None, :] - d.astype(np.float32) * np.float32(1.0 / scale)
+    rows = np.broadcast_to(np.arange(h, dtype=np.float32)[:, None], (h, w))
+    partner = cv2.remap(seen_right.view(np.uint8), cols, np.ascontiguousarray(rows), cv2.INTER_NEAREST,
+                        borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    return seen_left & (partner > 0)
 
 
 @dataclass(frozen=True)

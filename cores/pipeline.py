@@ -86,7 +86,7 @@ class Pipeline:
 
     def match(self, left: np.ndarray, right: np.ndarray) -> StageResult:
         """A rectified pair -> the disparity stage's result, as the disparity service computes it."""
-        return self.matching.compute(left, right, self.model.focal_px, self.model.baseline_m)
+        return self.matching.compute(left, right, self.model.focal_px, self.model.baseline_m, self.model)
 
     def segment(self, stage: StageResult | np.ndarray, *, t_s: float, seq: int = 0, stamp_ns: int | None = None,
                 odometry: Odometry | None = None, image: np.ndarray | None = None,
@@ -111,7 +111,7 @@ class Pipeline:
         t0 = time.perf_counter()
         if not rectified:
             left, right = self.rectify(left, right, names)
-        near = self.checks.near_field(left, right)  # rectify's, on its frame path: timed as rectify
+        near = self.checks.near_field(left, right, self.model)  # rectify's, on its frame path: timed as rectify
         clipped = self.checks.clipped(left, right)
         t1 = time.perf_counter()
         stamp_ns = int(round(t_s * 1e9)) if stamp_ns is None else stamp_ns

@@ -14,6 +14,7 @@ import numpy as np
 
 from common.errors import BallbotError
 from common.messages import ClippedTiles, FrameChecks, NearField, RowAlignment
+from cores import camera
 from cores.calibration.near import NearCheck
 from cores.matching.disparity import FrozenInput
 
@@ -364,9 +365,11 @@ class PairChecks:
         """The same checks for another stream, with nothing seen yet."""
         return PairChecks(self.rows.interval_s, self.rows.tolerance_px, self.frozen_after_s, self._near is not None)
 
-    def near_field(self, left: np.ndarray, right: np.ndarray) -> NearField | None:
-        """The rectified pair's coarse wide disparity map (cores/calibration/near.py); None when off."""
-        return self._near.field(left, right) if self._near is not None else None
+    def near_field(self, left: np.ndarray, right: np.ndarray, view: camera.RectifiedModel | None = None
+                   ) -> NearField | None:
+        """The rectified pair's coarse wide disparity map (cores/calibration/near.py); None when off.
+        view: the rectified camera (what part of each picture its camera saw)."""
+        return self._near.field(left, right, view) if self._near is not None else None
 
     def clipped(self, left: np.ndarray, right: np.ndarray) -> ClippedTiles:
         """The rectified pair's tiles clipped white in both cameras (clipped_tiles)."""

@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 
 from common.messages import NearField
+from cores import camera
 
 COARSE_MIN_WIDTH = 160  # coarse pixels across: the scale is the largest that keeps 160 x 120 or more
 COARSE_MIN_HEIGHT = 120
@@ -35,8 +36,10 @@ class NearCheck:
         self._bm: cv2.StereoBM | None = None
         self._size: tuple[int, int, int] | None = None  # coarse width, height, disparities
 
-    def field(self, left: np.ndarray, right: np.ndarray) -> NearField | None:
-        """A rectified pair (H, W[, 3]) uint8 -> its NearField; None for a pair too small to search."""
+    def field(self, left: np.ndarray, right: np.ndarray, view: camera.RectifiedModel | None = None
+              ) -> NearField | None:
+        """A rectified pair (H, W[, 3]) uint8 -> its NearField; None for a pair too small to search.
+        view: the rectified camera, whose outlines say what each camera saw (None: all of it)."""
         gl = cv2.cvtColor(left, cv2.COLOR_BGR2GRAY) if left.ndim == 3 else left
         gr = cv2.cvtColor(right, cv2.COLOR_BGR2GRAY) if right.ndim == 3 else right
         h, w = gl.shape[:2]
@@ -65,6 +68,10 @@ class NearCheck:
         band = xl < nd
         rows, xl, dband = rows[band], xl[band], dr[rows[band], xr[band]]
         d[rows, xl] = np.maximum(d[rows, xl], dband)
+        masks = None if view is None or (view.width, view.height) != (w, h) else \
+            camera.view_masks(view, BLOCK // 2 + 2, scale=s)
+        if masks is not None:  # the seam of what a camera saw draws phantom near faces (camera.RectifiedModel)
+            d[~camera.seen_by_both(d, 16, *masks)] = 0
         # quarter coarse px (BM's 1/16, rounded); <= 0: nothing; the search's last quarter clips to 255
         q = np.clip((d + 2) >> 2, 0, 255).astype(np.uint8)
         return NearField(width=cw, height=ch, image_width=w, image_height=h, data=q.tobytes())

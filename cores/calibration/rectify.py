@@ -5,6 +5,7 @@ No Zenoh here; the service (main.py) and the offline `rectify` command share thi
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import threading
@@ -20,7 +21,9 @@ from cores import camera
 
 def camera_model_message(m: camera.RectifiedModel) -> CameraModel:
     return CameraModel(width=m.width, height=m.height, focal_px=m.focal_px, cx=m.cx, cy=m.cy,
-                       baseline_m=m.baseline_m, Q=[float(x) for x in m.Q.ravel()])
+                       baseline_m=m.baseline_m, Q=[float(x) for x in m.Q.ravel()],
+                       view_left=None if m.view_left is None else list(m.view_left),
+                       view_right=None if m.view_right is None else list(m.view_right))
 
 
 def _map(cam: camera.Intrinsics, R: np.ndarray, P: np.ndarray, size: tuple[int, int],
@@ -44,6 +47,23 @@ def _map(cam: camera.Intrinsics, R: np.ndarray, P: np.ndarray, size: tuple[int, 
 
 
 MAP_TYPES = {"float": cv2.CV_32FC1, "fixed": cv2.CV_16SC2}
+UNSEEN_SHARE = 0.001  # less of the picture than this unseen (alpha 0: a few corner pixels) is no outline
+OUTLINE_TOLERANCE_PX = 1.0  # well within the matcher's margin (window_reach)
+
+
+def seen_outline(mx: np.ndarray, my: np.ndarray, size: tuple[int, int]) -> tuple[tuple[float, float], ...] | None:
+    """The outline (polygon, px, within OUTLINE_TOLERANCE_PX) of the rectified pixels whose source
+    lies inside the camera's picture (all of the bilinear remap's four source pixels), by its float
+    maps; None when (nearly) all do."""
+    w, h = size
+    seen = ((mx >= 0) & (mx <= w - 1) & (my >= 0) & (my <= h - 1)).astype(np.uint8)
+    if 1.0 - seen.mean() < UNSEEN_SHARE:
+        return None
+    contours, _ = cv2.findContours(seen, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    if not contours:
+        return ((0.0, 0.0), (0.0, 0.0), (0.0, 0.0))  # the camera saw none of it
+    c = cv2.approxPolyDP(max(contours, key=cv2.contourArea), OUTLINE_TOLERANCE_PX, True)
+    return tuple((float(x), float(y)) for x, y in c.reshape(-1, 2))
 
 
 class Rectifier:
@@ -68,9 +88,11 @@ class Rectifier:
         else:
             r = camera.rectify_rig(calibration, alpha)
             self.rectification = r
-            self.model = r.model
-            self._maps = (_map(calibration.left, r.R1, r.P1, self.size, MAP_TYPES[maps]),
-                          _map(calibration.right, r.R2, r.P2, self.size, MAP_TYPES[maps]))
+            floats = (_map(calibration.left, r.R1, r.P1, self.size), _map(calibration.right, r.R2, r.P2, self.size))
+            self.model = dataclasses.replace(r.model, view_left=seen_outline(*floats[0], self.size),
+                                             view_right=seen_outline(*floats[1], self.size))
+            self._maps = floats if maps == "float" else \
+                tuple(cv2.convertMaps(mx, my, MAP_TYPES[maps]) for mx, my in floats)  # type: ignore[assignment]
         self.model_message = camera_model_message(self.model)
 
     def check_size(self, image: np.ndarray, name: str) -> None:

@@ -123,8 +123,7 @@ def floor_in_view(floor: FloorPlane, model: camera.RectifiedModel, range_m: floa
 
 
 def model_from_message(msg: DisparityMap) -> camera.RectifiedModel:
-    c = msg.camera
-    return camera.RectifiedModel(c.width, c.height, c.focal_px, c.cx, c.cy, c.baseline_m)
+    return camera.model_of(msg.camera)
 
 
 @dataclass

@@ -11,6 +11,7 @@ from common import codec
 from common.errors import BallbotError, DecodeError
 from common.messages import DisparityMap, StereoFrame
 from common.node import Node
+from cores import camera
 from cores.matching.matchers import SCALE, MatcherConfig
 from cores.matching.stage import MatchStage
 from services.disparity.rates import Rates
@@ -46,7 +47,7 @@ class FrameComputer:
                               f"{msg.camera.width}x{msg.camera.height}")
         left = codec.array_from_image(msg.left, "left")
         right = codec.array_from_image(msg.right, "right")
-        out = self.stage.compute(left, right, msg.camera.focal_px, msg.camera.baseline_m)
+        out = self.stage.compute(left, right, msg.camera.focal_px, msg.camera.baseline_m, camera.model_of(msg.camera))
         result = out.match
         self.saturated, self.range_warning = result.saturated, result.range_warning
         self.exposure_gain = out.exposure.gain

@@ -333,7 +333,7 @@ def run(node: Node, settings: RectifySettings) -> None:
             rl, rr = rectifier.rectify(left, right)
             holder.mark_used()
             rows.offer(rl, rr, time.monotonic(), msg.stamp_ns)
-            near = checks.near_field(rl, rr)
+            near = checks.near_field(rl, rr, rectifier.model)
             clipped = checks.clipped(rl, rr)
             out.put(StereoFrame(robot_id=msg.robot_id, seq=msg.seq, stamp_ns=msg.stamp_ns, stages=msg.stages,
                                 left=codec.image_from_array(rl), right=codec.image_from_array(rr),
