@@ -115,7 +115,8 @@ class Pipeline:
         clipped = self.checks.clipped(left, right)
         t1 = time.perf_counter()
         stamp_ns = int(round(t_s * 1e9)) if stamp_ns is None else stamp_ns
-        self.checks.rows.observe(left, right, t_s, stamp_ns)  # rectify checks off its frame path: not timed
+        if not stuck:  # a frozen camera's pair is of two moments: its rows say nothing of the rig
+            self.checks.rows.observe(left, right, t_s, stamp_ns)  # rectify checks off its frame path: not timed
         t1b = time.perf_counter()
         stage = self.match(left, right)
         t2 = time.perf_counter()

@@ -146,6 +146,22 @@ def test_a_list_says_cameras_swapped_over_half_reversed(share, said):
     assert ("cameras-swapped" in out.degraded) == said
 
 
+def test_a_frozen_camera_says_camera_frozen_and_nothing_of_the_rows():
+    """A row check that compared a live picture with a frozen one (before the freeze was declared)
+    compared two moments: it said cameras-swapped, first in `status` (the street through `up` with
+    its right camera hung). The list says camera-frozen only; live again, the rows count."""
+    model = Rectifier(camera.load_calibration("lifecam-studio"), 0.0).model
+    disparity = np.full((model.height, model.width), np.nan, np.float32)
+    disparity[200:, :] = 30.0
+    rows = RowAlignment(offset_px=0.9, p95_px=2.0, matches=80, tolerance_px=0.5, checked_ns=0, reversed_share=0.8)
+    b = ObstacleBuilder(SegmenterSettings())
+    out = b.process(disparity, model, t_s=0.0, seq=0, stamp_ns=0, checks=FrameChecks(rows=rows, frozen=["right"]))
+    assert "camera-frozen" in out.obstacles.degraded
+    assert not {"cameras-swapped", "rows-misaligned"} & set(out.obstacles.degraded)
+    out = b.process(disparity, model, t_s=0.1, seq=1, stamp_ns=1, checks=FrameChecks(rows=rows))
+    assert {"cameras-swapped", "rows-misaligned"} <= set(out.obstacles.degraded)
+
+
 @pytest.mark.skipif(not (KARLSRUHE / "calibration.yaml").exists(), reason="../shared/data/real/karlsruhe-0023 absent")
 def test_the_street_with_its_cameras_swapped_is_flagged_and_claims_no_free_floor():
     """The street with left and right exchanged and the rig's mount configured as a prior only

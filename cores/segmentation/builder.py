@@ -365,7 +365,9 @@ class ObstacleBuilder:
                 degraded.append("little-measured")  # most of the view unmeasured: an empty list is not a clear way
         self.recent_valid.add(valid_fraction, t_s)
         self.checks = checks
-        rows = checks.rows if checks is not None else None
+        # a camera frozen: the last row check may have compared pictures of two moments (before the freeze
+        # was declared), whose features say nothing of the rig; the list says camera-frozen
+        rows = checks.rows if checks is not None and not checks.frozen else None
         if rows is not None and rows.offset_px > rows.tolerance_px:
             degraded.append("rows-misaligned")
         swapped = rows is not None and rows.reversed_share > SWAPPED_SHARE

@@ -332,7 +332,8 @@ def run(node: Node, settings: RectifySettings) -> None:
                 "both cameras see the whole view again")
             rl, rr = rectifier.rectify(left, right)
             holder.mark_used()
-            rows.offer(rl, rr, time.monotonic(), msg.stamp_ns)
+            if not stuck:  # a frozen camera's pair is of two moments: its rows say nothing of the rig
+                rows.offer(rl, rr, time.monotonic(), msg.stamp_ns)
             near = checks.near_field(rl, rr, rectifier.model)
             clipped = checks.clipped(rl, rr)
             out.put(StereoFrame(robot_id=msg.robot_id, seq=msg.seq, stamp_ns=msg.stamp_ns, stages=msg.stages,
