@@ -28,6 +28,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 SCHEMA_VERSION = 10
 
 MAX_OUTLINE_POINTS = 4096
+Pixel = Annotated[float, Field(ge=-65536.0, le=65536.0)]  # an image coordinate, px (fits fillPoly's fixed point)
 Vec3 = tuple[float, float, float]
 Metres = Annotated[float, Field(allow_inf_nan=False, ge=0.0, le=1000.0)]
 Degrees90 = Annotated[float, Field(allow_inf_nan=False, ge=-90.0, le=90.0)]
@@ -72,11 +73,11 @@ class CameraModel(BaseModel):
     cy: float
     baseline_m: float = Field(gt=0)
     Q: list[float] = Field(min_length=16, max_length=16, description="4x4 disparity-to-depth matrix, row-major")
-    view_left: list[tuple[float, float]] | None = Field(
+    view_left: list[tuple[Pixel, Pixel]] | None = Field(
         None, min_length=3, max_length=MAX_OUTLINE_POINTS, description="outline (polygon, px) of the part of the "
         "rectified left picture the left camera saw (None: all of it). rectify's alpha above 0 keeps more of the "
         "view and leaves the rest black; the matcher measures nothing within its window of the black")
-    view_right: list[tuple[float, float]] | None = Field(
+    view_right: list[tuple[Pixel, Pixel]] | None = Field(
         None, min_length=3, max_length=MAX_OUTLINE_POINTS, description="the same for the right picture")
 
 

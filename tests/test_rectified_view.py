@@ -63,6 +63,8 @@ def test_the_outline_travels_with_the_camera_model_and_a_broken_one_is_refused()
         CameraModel(**{**msg.model_dump(), "view_left": [(0.0, 0.0), (1.0, 1.0)]})
     with pytest.raises(ValueError, match="view_right"):
         CameraModel(**{**msg.model_dump(), "view_right": [(0.0, 0.0), (float("nan"), 1.0), (2.0, 0.0)]})
+    with pytest.raises(ValueError, match="view_right"):  # would overflow the rasteriser's fixed point
+        CameraModel(**{**msg.model_dump(), "view_right": [(0.0, 0.0), (1e9, 1.0), (2.0, 0.0)]})
 
 
 @needs_euroc
