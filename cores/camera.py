@@ -287,6 +287,20 @@ def _size(doc: dict, where: str) -> tuple[int, int]:
     return int(s[0]), int(s[1])
 
 
+def _outline_field(doc: dict, key: str, where: str) -> tuple[tuple[float, float], ...] | None:
+    """An optional outline of a rectified calibration (what a camera saw of the rectified picture,
+    RectifiedModel.view_left / view_right: a recording of pairs rectified with alpha > 0 keeps it)."""
+    if doc.get(key) is None:
+        return None
+    try:
+        a = np.asarray(doc[key], dtype=np.float64)
+    except (TypeError, ValueError):
+        a = np.empty(0)
+    if a.ndim != 2 or a.shape[1] != 2 or len(a) < 3 or not np.isfinite(a).all() or np.abs(a).max() > 65536:
+        raise CalibrationError(f"{where}: field '{key}' must be a list of 3 or more [x, y] points (px)")
+    return tuple((float(x), float(y)) for x, y in a)
+
+
 def calibration_from_dict(doc: Any, where: str = "calibration") -> Calibration:
     if not isinstance(doc, dict):
         raise CalibrationError(f"{where}: expected a mapping at the top level")
@@ -301,7 +315,8 @@ def calibration_from_dict(doc: Any, where: str = "calibration") -> Calibration:
         if B <= 0:
             raise CalibrationError(f"{where}: field 'baseline_m' must be positive")
         _check_baseline(B, f"{where}: field 'baseline_m'")
-        return RectifiedRig(RectifiedModel(w, h, f, float(pp[0]), float(pp[1]), B), name)
+        views = [_outline_field(doc, k, where) for k in ("view_left", "view_right")]
+        return RectifiedRig(RectifiedModel(w, h, f, float(pp[0]), float(pp[1]), B, *views), name)
     size = _size(doc, where)
     cams = []
     for side in ("left", "right"):
@@ -327,8 +342,11 @@ def calibration_from_dict(doc: Any, where: str = "calibration") -> Calibration:
 def calibration_to_dict(cal: Calibration) -> dict:
     if isinstance(cal, RectifiedRig):
         m = cal.model
-        return {"name": cal.name, "rectified": True, "image_size": [m.width, m.height], "focal_px": m.focal_px,
-                "principal_point": [m.cx, m.cy], "baseline_m": m.baseline_m}
+        doc = {"name": cal.name, "rectified": True, "image_size": [m.width, m.height], "focal_px": m.focal_px,
+               "principal_point": [m.cx, m.cy], "baseline_m": m.baseline_m}
+        doc.update({k: [list(p) for p in v] for k, v in (("view_left", m.view_left), ("view_right", m.view_right))
+                    if v is not None})
+        return doc
     out: dict[str, Any] = {"name": cal.name, "rectified": False, "image_size": list(cal.image_size)}
     for side, c in (("left", cal.left), ("right", cal.right)):
         out[side] = {"K": [float(x) for x in c.K.ravel()], "distortion": [float(x) for x in c.dist]}

@@ -334,9 +334,13 @@ def rectified_calibration_yaml(cam: CameraModel) -> str:
     """The rectified rig a frame was rectified for, as a calibration file (`rectified: true`)."""
     import yaml as pyyaml
 
-    return pyyaml.safe_dump({"name": "rectified camera", "rectified": True, "image_size": [cam.width, cam.height],
-                             "focal_px": float(cam.focal_px), "principal_point": [float(cam.cx), float(cam.cy)],
-                             "baseline_m": float(cam.baseline_m)}, sort_keys=False)
+    doc: dict[str, Any] = {"name": "rectified camera", "rectified": True, "image_size": [cam.width, cam.height],
+                           "focal_px": float(cam.focal_px), "principal_point": [float(cam.cx), float(cam.cy)],
+                           "baseline_m": float(cam.baseline_m)}
+    # what each camera saw of pairs rectified with alpha > 0: replayed, the matcher still leaves the black alone
+    doc.update({k: [[float(x), float(y)] for x, y in v] for k, v in (("view_left", cam.view_left),
+                                                                      ("view_right", cam.view_right)) if v is not None})
+    return pyyaml.safe_dump(doc, sort_keys=False)
 
 
 # -- reading -------------------------------------------------------------------------------------

@@ -119,3 +119,19 @@ def test_a_disparity_worker_drops_the_seam_as_the_pipeline_does():
                                                                                 "view_right": None})})
     assert not np.array_equal(codec.array_from_image(FrameComputer(MatcherConfig()).compute(blind, "w").image, "m"),
                               want)
+
+
+def test_a_recording_of_pairs_rectified_with_alpha_1_keeps_the_outline_for_replay(tmp_path):
+    """Replay hands rectify the rectified calibration the recording carries (`rectified: true`): with
+    the outline in it, the replayed pairs' seam is left alone as it was live."""
+    from cores.recording import rectified_calibration_yaml
+
+    model = Rectifier(camera.PROFILES["lifecam-studio"](), 1.0).model
+    path = tmp_path / "rectified.yaml"
+    path.write_text(rectified_calibration_yaml(camera_model_message(model)))
+    again = camera.load_calibration(str(path))
+    assert isinstance(again, camera.RectifiedRig) and again.model == model
+    assert Rectifier(again).model == model  # passed through, outline and all
+    path.write_text(path.read_text().replace("view_left:", "view_left: [[0, 0], [1, 1]]\nold_left:"))
+    with pytest.raises(camera.CalibrationError, match="view_left"):
+        camera.load_calibration(str(path))
