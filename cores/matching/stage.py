@@ -109,4 +109,3 @@ def drop_unseen(match: Match, seen_left: np.ndarray, seen_right: np.ndarray, inv
     conf = match.confidence
     return Match(np.where(drop, np.int16(invalid), d), None if conf is None else np.where(drop, np.uint8(0), conf),
                  match.saturated)
-
