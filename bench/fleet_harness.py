@@ -72,6 +72,7 @@ class Fleet:
         self.maps: list[Map] = []
         self.tokens: list[tuple[float, str, bool]] = []  # (t, worker, up)
         self.stats: dict[str, dict] = {}
+        self.busy: dict[str, list[tuple[float, float, float]]] = {}  # worker -> (received, uptime_s, pool_busy_s)
         self.proc_ms: list[tuple[float, float]] = []  # (t, a pool worker's compute time per map, median of 1 s)
         self.lock = threading.Lock()
         self.tag = uuid.uuid4().hex[:5]
@@ -254,6 +255,8 @@ class Fleet:
                                                                     "t": time.monotonic()}
                 if s.role == "pool-worker" and s.rate_hz > 0:
                     self.proc_ms.append((time.monotonic(), s.proc_ms_p50))
+                if s.role == "pool-worker" and "pool_busy_s" in s.extra:
+                    self.busy.setdefault(s.instance, []).append((time.monotonic(), s.uptime_s, s.extra["pool_busy_s"]))
 
         self._subs = [self.session.declare_subscriber(topic("disparity").pattern("*"), on_disp),
                       self.session.declare_subscriber(topic("pool_stats").pattern(pool=POOL), on_stats),

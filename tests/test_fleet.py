@@ -66,6 +66,21 @@ def test_equal_robots_get_equal_shares_and_wait_behind_one_item_at_most():
     assert all(sum(w[40:]) / len(w[40:]) <= 1.0 and max(w[40:]) <= 1 for w in waits.values()), waits
 
 
+def test_the_worker_counts_its_time_on_items_and_not_its_idle_time():
+    """busy_s (reported as pool_busy_s): what `bench fleet` weighs the pool's feeding by."""
+    clock = FakeClock()
+    sched = FairScheduler(clock=clock)
+    start = clock.t
+    served, _ = run_worker(sched, clock, lambda r, i: True, 200)
+    assert sched.busy_s == pytest.approx(clock.t - start) and sum(served.values()) == 200  # fed all along
+    clock = FakeClock()
+    sched = FairScheduler(clock=clock)
+    start = clock.t
+    served, _ = run_worker(sched, clock, lambda r, i: r == "a" and i % 4 == 0, 200)  # a quarter of the steps
+    assert sched.busy_s == pytest.approx(0.1 * sum(served.values()))
+    assert 0.2 < sched.busy_s / (clock.t - start) < 0.3
+
+
 def test_weights_divide_the_worker():
     clock = FakeClock()
     sched = FairScheduler({"a": 2, "b": 1, "c": 1}, clock=clock)
@@ -355,6 +370,11 @@ def test_a_fleet_shares_a_pool_fairly_and_survives_a_kill_and_a_join(tmp_path):
         assert others_fully_served or flooded["fa"] <= 1.6 * others, (equal, flooded)
         fleet.wait(lambda: any(v["extra"].get("robot.fa.unsolicited", 0) > 0 for k, v in fleet.stats.items()
                                if "/pool-worker/" in k), 20, "a pool worker to count fa's unsolicited frames")
+        # each worker says how long it has been on items (bench fleet weighs the pool's feeding by it):
+        # some time, after the work above, and never more than it has been up
+        with fleet.lock:
+            busy = {w: v for w, v in fleet.busy.items() if len(v) >= 2}
+        assert busy and all(0.0 < v[-1][2] <= v[-1][1] for v in busy.values()), busy
         # each map went back only to the robot that asked: no dispatcher saw a result it had not asked for
         fleet.wait(lambda: len([k for k in fleet.stats if "/dispatcher/" in k]) == 3, 20, "every dispatcher's stats")
         for k, v in fleet.stats.items():

@@ -105,6 +105,9 @@ class FairScheduler:
         self.flows: dict[str, Flow] = {}
         self.vtime = 0.0  # start tag of the item last started
         self.busy_since: float | None = None  # when the item being computed started
+        # seconds spent on items, taken to finished: over a span of the clock, the share of it the worker
+        # had work (what the pool did not feed it, it idled: `bench fleet` weighs that, not the machine's load)
+        self.busy_s = 0.0
         self.cost_s = 0.0  # EMA over every robot: a new robot's first estimate
         self.counters = {k: 0 for k in ("granted", "declined", "expired", "unsolicited", "too_many_robots",
                                         "superseded", "priority")}
@@ -271,6 +274,8 @@ class FairScheduler:
             if f is None:
                 return
             f.computing = max(0, f.computing - 1)
+            if self.busy_since is not None:
+                self.busy_s += max(0.0, now - self.busy_since)
             self.busy_since = None
             if compute_s is None:
                 f.counts["stale"] += 1
