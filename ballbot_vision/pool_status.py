@@ -1,5 +1,6 @@
 """The fleet pools in `ballbot-vision status`: per pool its workers (from their stats on
-`ballbot/pool/<pool>/stats/<instance>`, never taken for a robot's services) and each robot's weight,
+`ballbot/pool/<pool>/stats/<instance>`, never taken for a robot's services; each with its share of
+the last 5 s on items: near 100 % the pool is saturated, and a robot gets only its share) and each robot's weight,
 share of the pool, maps/s and queue, summed over the workers (services/disparity/fleet.py)."""
 from __future__ import annotations
 
@@ -59,7 +60,8 @@ class PoolWatch:
                     silent_s = now - self.seen_at[(pool, instance)]
                     p["warnings"].append(f"{instance}: stopped reporting {silent_s:.1f} s ago")
                 p["workers"].append({"instance": instance, "host": s.host, "rate_hz": s.rate_hz,
-                                     "proc_ms_p50": s.proc_ms_p50, "health": s.health, "status": s.status})
+                                     "proc_ms_p50": s.proc_ms_p50, "busy": s.extra.get("pool_busy_share"),
+                                     "health": s.health, "status": s.status})
                 for key, v in s.extra.items():
                     if not key.startswith("robot."):
                         continue
@@ -86,8 +88,9 @@ def format_pools(pools: list[dict]) -> list[str]:
         lines.append(f"pool {p['pool']}: {len(p['workers'])} worker(s)")
         for w in p["workers"]:
             mark = {"ok": " ", "starting": " ", "degraded": "!", "failed": "X"}.get(w["health"], "?")
+            busy = "    -" if w["busy"] is None else f"{w['busy']:5.0%}"
             lines.append(f"  {mark} worker {w['instance'][:24]:24} {w['host'][:16]:16} {w['rate_hz']:5.1f}Hz "
-                         f"{w['proc_ms_p50']:6.1f}ms  {w['status']}")
+                         f"{w['proc_ms_p50']:6.1f}ms {busy} busy  {w['status']}")
         if p["robots"]:
             lines.append(f"    {'robot':20} {'weight':>6} {'share':>6} {'maps/s':>7} {'queue':>5} {'unsolicited':>11}")
         for r in p["robots"]:

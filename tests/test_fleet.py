@@ -81,6 +81,28 @@ def test_the_worker_counts_its_time_on_items_and_not_its_idle_time():
     assert 0.2 < sched.busy_s / (clock.t - start) < 0.3
 
 
+def test_the_worker_says_how_busy_it_was_lately():
+    """busy_share, over the last 5 s (`status` shows it per pool worker): the item being computed
+    counts; idle seconds pull it down; no figure before a second of history."""
+    clock = FakeClock()
+    sched = FairScheduler(clock=clock)
+    assert sched.busy_share() is None
+    sched.demand("a", True)
+    robot, grant = sched.next_grant()
+    assert sched.arrived(robot, grant, b"frame", None) == "ok"
+    item = sched.take(0)
+    assert item is not None
+    clock.t += 2.0
+    assert sched.busy_share() == pytest.approx(1.0)  # computing all along
+    sched.finished(item, 2.0)
+    clock.t += 2.0
+    assert sched.busy_share() == pytest.approx(0.5)  # then idle as long
+    for _ in range(30):  # idle on: the window forgets the busy seconds
+        clock.t += 0.25
+        share = sched.busy_share()
+    assert share == pytest.approx(0.0)
+
+
 def test_weights_divide_the_worker():
     clock = FakeClock()
     sched = FairScheduler({"a": 2, "b": 1, "c": 1}, clock=clock)
@@ -387,6 +409,7 @@ def test_a_fleet_shares_a_pool_fairly_and_survives_a_kill_and_a_join(tmp_path):
                              timeout=120)
         pools = {p["pool"]: p for p in json.loads(out.stdout)["pools"]}
         assert {w["instance"] for w in pools["fleet"]["workers"]} == {"w0", "w1"}, pools
+        assert all(w["busy"] is not None and 0.0 <= w["busy"] <= 1.0 for w in pools["fleet"]["workers"]), pools
         shares = {r["robot"]: r for r in pools["fleet"]["robots"]}
         assert set(robots) <= set(shares) and all(0 < shares[r]["share"] <= 1 for r in robots), shares
         # a killed worker: every robot carries on with the survivor

@@ -239,5 +239,8 @@ def _report(node: Node, sched: FairScheduler, rates: Any, what: str) -> None:
             node.extra[f"robot.{robot}.{k}"] = float(figures[k])
     node.extra.update({f"pool_{k}": float(v) for k, v in sched.counters.items()})
     node.extra["pool_busy_s"] = round(sched.busy_s, 4)  # the worker's seconds on items since it started
+    share = sched.busy_share()
+    if share is not None:  # of the last few seconds, on items: near 1, the pool is saturated
+        node.extra["pool_busy_share"] = round(share, 3)
     busy = [r for r, f in report.items() if f["share"] > 0]
     node.status = f"ok: {what}, " + (f"serving {len(busy)} robot(s)" if busy else "waiting for work")

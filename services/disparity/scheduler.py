@@ -16,6 +16,7 @@ from common.errors import BallbotError
 
 GRANT_BYTES = 16
 RATE_WINDOW_S = 5.0  # served maps/s per robot: over this window
+BUSY_WINDOW_S = 5.0  # the worker's share of time on items (`status`): over this window
 
 
 def parse_weights(value: Any) -> dict[str, float]:
@@ -108,6 +109,7 @@ class FairScheduler:
         # seconds spent on items, taken to finished: over a span of the clock, the share of it the worker
         # had work (what the pool did not feed it, it idled: `bench fleet` weighs that, not the machine's load)
         self.busy_s = 0.0
+        self._busy_marks: deque[tuple[float, float]] = deque()  # (clock, busy_s then)
         self.cost_s = 0.0  # EMA over every robot: a new robot's first estimate
         self.counters = {k: 0 for k in ("granted", "declined", "expired", "unsolicited", "too_many_robots",
                                         "superseded", "priority")}
@@ -284,6 +286,19 @@ class FairScheduler:
             self.cost_s = compute_s if not self.cost_s else 0.9 * self.cost_s + 0.1 * compute_s
             f.served.append(now)
             f.counts["served"] += 1
+
+    def busy_share(self, window_s: float = BUSY_WINDOW_S) -> float | None:
+        """The share of the last window_s (of the clock) spent on items, the item being computed
+        included; None until a second of history. Called periodically (the worker's report)."""
+        now = self.clock()
+        with self.cond:
+            busy = self.busy_s + (now - self.busy_since if self.busy_since is not None else 0.0)
+            marks = self._busy_marks
+            marks.append((now, busy))
+            while len(marks) > 2 and now - marks[1][0] >= window_s:
+                marks.popleft()
+            t0, b0 = marks[0]
+            return None if now - t0 < 1.0 else min(1.0, max(0.0, (busy - b0) / (now - t0)))
 
     def grant_wait_s(self, robot: str, grant: str) -> float:
         """How long the frame sent against this grant will wait here before it is started: the rest
