@@ -55,7 +55,7 @@ from common.messages import (
     ServiceStats,
     StereoFrame,
 )
-from cores import foxglove
+from cores import camera, foxglove
 
 log = logging.getLogger("ballbot.recording")
 
@@ -331,16 +331,13 @@ class Converter:
 
 
 def rectified_calibration_yaml(cam: CameraModel) -> str:
-    """The rectified rig a frame was rectified for, as a calibration file (`rectified: true`)."""
+    """The rectified rig a frame was rectified for, as a calibration file (`rectified: true`), with
+    what each camera saw of pairs rectified with alpha > 0: replayed, the matcher still leaves the
+    black alone."""
     import yaml as pyyaml
 
-    doc: dict[str, Any] = {"name": "rectified camera", "rectified": True, "image_size": [cam.width, cam.height],
-                           "focal_px": float(cam.focal_px), "principal_point": [float(cam.cx), float(cam.cy)],
-                           "baseline_m": float(cam.baseline_m)}
-    # what each camera saw of pairs rectified with alpha > 0: replayed, the matcher still leaves the black alone
-    doc.update({k: [[float(x), float(y)] for x, y in v] for k, v in (("view_left", cam.view_left),
-                                                                      ("view_right", cam.view_right)) if v is not None})
-    return pyyaml.safe_dump(doc, sort_keys=False)
+    rig = camera.RectifiedRig(camera.model_of(cam), "rectified camera")
+    return pyyaml.safe_dump(camera.calibration_to_dict(rig), sort_keys=False)
 
 
 # -- reading -------------------------------------------------------------------------------------
