@@ -122,10 +122,6 @@ def floor_in_view(floor: FloorPlane, model: camera.RectifiedModel, range_m: floa
     return bool(nearest >= model.focal_px * abs(model.baseline_m) / range_m)
 
 
-def model_from_message(msg: DisparityMap) -> camera.RectifiedModel:
-    return camera.model_of(msg.camera)
-
-
 @dataclass
 class FrameResult:
     """One frame's output: the public obstacle list, the free-space grid (None without a ground or
@@ -192,7 +188,7 @@ class ObstacleBuilder:
                                   f"{confidence.dtype}, the map {msg.image.width}x{msg.image.height}: expected uint8 "
                                   f"of the same size")
         d = to_float(raw, msg.scale, msg.invalid_value, searched_range(msg.min_disparity, msg.num_disparities))
-        return d, model_from_message(msg), confidence
+        return d, camera.model_of(msg.camera), confidence
 
     def segment(self, disparity: np.ndarray, model: camera.RectifiedModel, confidence: np.ndarray | None = None,
                 image: np.ndarray | None = None) -> layers.LayersFrame:
