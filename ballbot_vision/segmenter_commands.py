@@ -93,22 +93,27 @@ def _obstacles_matcher_settings(args: argparse.Namespace):
 
 
 def _warn_reach(pipe) -> None:
-    """Say at the start, on stderr, when the disparity search cannot measure (all or the near part
-    of) the segmenter's vision range: the lists then carry "range-unreachable" (or
-    "near-unmeasured")."""
+    """Say at the start, on stderr, when the disparity search (or its range gate) cannot measure all,
+    the near or the far part of the segmenter's vision range: the lists then carry
+    "range-unreachable" (or "near-unmeasured", "far-unmeasured")."""
+    from cores.matching.config import gate_for_range
+
     cfg = pipe.matching.config.resolved(pipe.model.focal_px, pipe.model.baseline_m, pipe.model.width)
-    reach = pipe.builder.check_search(pipe.model, cfg.min_disparity, cfg.num_disparities, quiet=True)
+    gate = gate_for_range(cfg.max_range_m, pipe.model.focal_px, pipe.model.baseline_m)
+    reach = pipe.builder.check_search(pipe.model, cfg.min_disparity, cfg.num_disparities, quiet=True, gate_px=gate)
     if reach.message:
         print(f"warning: {reach.message}", file=sys.stderr, flush=True)
 
 
 def _warn_recording_reach(rec, seg, disp, alpha: float) -> None:
     from cores.calibration.rectify import Rectifier
+    from cores.matching.config import gate_for_range
     from cores.segmentation.builder import search_reach
 
     model = Rectifier(rec.calibration, alpha).model
     cfg = disp.resolved(model.focal_px, model.baseline_m, model.width)
-    reach = search_reach(model, cfg.min_disparity, cfg.num_disparities, seg)
+    gate = gate_for_range(cfg.max_range_m, model.focal_px, model.baseline_m)
+    reach = search_reach(model, cfg.min_disparity, cfg.num_disparities, seg, gate)
     if reach.message:
         print(f"warning: {reach.message}", file=sys.stderr, flush=True)
 

@@ -25,7 +25,9 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 #    stands nearer than the vision range: the lists say nearer-than-range).
 # 9: FrameChecks.clipped (where both cameras are washed out: the lists say washed-out).
 # 10: CameraModel.view_left / view_right (the part of the rectified picture each camera saw, alpha > 0).
-SCHEMA_VERSION = 10
+# 11: DisparityMap.gate_px (the matcher's vision range gate: what lies farther is not in the map; a gate
+#     nearer than the segmenter's range makes the lists say far-unmeasured).
+SCHEMA_VERSION = 11
 
 MAX_OUTLINE_POINTS = 4096
 Pixel = Annotated[float, Field(ge=-65536.0, le=65536.0)]  # an image coordinate, px (fits fillPoly's fixed point)
@@ -186,6 +188,9 @@ class DisparityMap(Message):
     invalid_value: float = Field(description="raw pixel value marking 'no disparity'")
     min_disparity: int
     num_disparities: int = Field(gt=0)
+    gate_px: float = Field(0.0, ge=0.0, le=4096.0, allow_inf_nan=False,
+                           description="the matcher's vision range gate, px: smaller disparities (what lies farther "
+                           "than its max_range_m) were dropped, measured or not (0: no gate)")
     camera: CameraModel
     method: str
     worker: str = ""
@@ -316,8 +321,8 @@ class ObstacleList(Message):
     degraded: list[str] = Field(default_factory=list, max_length=32, description="short reasons this list cannot be "
                                 "trusted as a full view (empty: trustworthy; e.g. 'input-frozen', "
                                 "'no-valid-disparity', 'little-measured', 'valid-collapse', 'no-ground', "
-                                "'ground-uncertain', "
-                                "'range-unreachable', 'near-unmeasured', 'floor-out-of-view', 'standing-not-listed', "
+                                "'ground-uncertain', 'range-unreachable', 'near-unmeasured', 'far-unmeasured', "
+                                "'floor-out-of-view', 'standing-not-listed', "
                                 "'mount-disagrees', 'rows-misaligned', 'cameras-swapped', 'camera-frozen', "
                                 "'view-blocked', 'nearer-than-range', 'washed-out')")
     valid_fraction: float = Field(0.0, ge=0, le=1, description="share of the image the disparity map measured "

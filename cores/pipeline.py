@@ -97,11 +97,13 @@ class Pipeline:
         if isinstance(stage, StageResult):
             disparity, confidence = stage.disparity_px(), stage.match.confidence
             search = (stage.min_disparity, stage.num_disparities)
+            gate_px = stage.gate_px
         else:
-            disparity = stage
+            disparity, gate_px = stage, 0.0
         return self.builder.process(disparity, self.model, t_s=t_s, seq=seq,
                                     stamp_ns=int(round(t_s * 1e9)) if stamp_ns is None else stamp_ns,
-                                    confidence=confidence, odometry=odometry, image=image, search=search)
+                                    confidence=confidence, odometry=odometry, image=image, search=search,
+                                    gate_px=gate_px)
 
     def process(self, left: np.ndarray, right: np.ndarray, *, t_s: float, seq: int = 0, stamp_ns: int | None = None,
                 odometry: Odometry | None = None, names: tuple[str, str] = ("left", "right"),
@@ -123,7 +125,7 @@ class Pipeline:
         disparity = stage.disparity_px()
         result = self.builder.process(disparity, self.model, t_s=t_s, seq=seq, stamp_ns=stamp_ns,
                                       confidence=stage.match.confidence, odometry=odometry, image=left,
-                                      search=(stage.min_disparity, stage.num_disparities),
+                                      search=(stage.min_disparity, stage.num_disparities), gate_px=stage.gate_px,
                                       checks=self.checks.message(stuck, blocked, near, clipped))
         t3 = time.perf_counter()
         return PipelineFrame(seq, left, right, stage, disparity, result, (t1 - t0) * 1e3, (t2 - t1b) * 1e3,

@@ -106,6 +106,7 @@ class ProcessedFrame:
     model: camera.RectifiedModel
     segment_ms: float
     match_ms: float
+    gate_px: float = 0.0  # the matcher's vision range gate (StageResult.gate_px)
 
 
 def process_recording(rec: Recording, seg_settings, matcher_cfg, frames: int | None = None,
@@ -130,7 +131,7 @@ def process_recording(rec: Recording, seg_settings, matcher_cfg, frames: int | N
         f = pipe.process(left, right, t_s=t_s, seq=k, stamp_ns=int(round(t_s * 1e9)), odometry=odo,
                          names=(str(lp), str(rp)))
         yield ProcessedFrame(k, lp, f.left, f.disparity, f.stage.match, f.result, pipe.model, f.segment_ms,
-                             f.match_ms)
+                             f.match_ms, f.stage.gate_px)
 
 
 def evaluate_recording(rec: Recording, seg_settings, matcher_cfg, frames: int | None = None,
@@ -157,7 +158,7 @@ def evaluate_recording(rec: Recording, seg_settings, matcher_cfg, frames: int | 
             cfg = matcher_cfg.resolved(pf.model.focal_px, pf.model.baseline_m, pf.model.width)
             report.settings["disparity"] = cfg.model_dump()
             report.settings["search_warning"] = search_reach(pf.model, cfg.min_disparity, cfg.num_disparities,
-                                                             seg_settings).message
+                                                             seg_settings, pf.gate_px).message
         result, d = pf.result, pf.disparity
         road = fit_road_profile(d, pf.model)
         obs = []

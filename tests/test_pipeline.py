@@ -58,3 +58,30 @@ def test_fork_shares_the_matcher_and_keeps_its_own_tracks(pairs):
     stage = pipe.match(*pipe.rectify(pairs[0].left, pairs[0].right))
     assert other.segment(stage, t_s=0.0).obstacles.method == "seed"
     assert pipe.segment(stage, t_s=0.0).obstacles.method == "layers"
+
+
+def test_a_matcher_gated_nearer_than_the_range_says_so_on_every_list(pairs):
+    """The thesis's vision range gate on the disparity stage (max_range_m 2 m) under the segmenter's
+    4.5 m range: the box at 2.3 m and the floor beyond 2 m are in no map, and the lists had said
+    nothing of it (an empty list there read as a clear way to 4.5 m). Now the map carries its gate
+    (DisparityMap.gate_px) and every list, the pipeline's and the services', says far-unmeasured. A
+    gate at the range's own end (the thesis's 3 m with a 3 m range) is no news."""
+    cal = camera.load_calibration("lifecam-studio")
+    for gate_m, range_m, said in ((2.0, None, True), (3.0, 3.0, False)):
+        matcher, segmenter = MatcherConfig(method="bm", max_range_m=gate_m), SegmenterSettings(max_range_m=range_m)
+        pipe = Pipeline(cal, matcher, segmenter)
+        computer, builder = FrameComputer(matcher), ObstacleBuilder(segmenter)
+        for k, pair in enumerate(pairs[:2]):
+            frame = pipe.process(pair.left, pair.right, t_s=k / 30.0, seq=k)
+            msg = StereoFrame(robot_id="r", seq=k, stamp_ns=k, camera=pipe.rectifier.model_message,
+                              left=codec.image_from_array(frame.left), right=codec.image_from_array(frame.right))
+            wire = codec.decode(codec.encode(computer.compute(msg, "w")), DisparityMap)
+            fB = pipe.model.focal_px * pipe.model.baseline_m
+            assert wire.gate_px == pytest.approx(fB / gate_m)
+            served = builder.process_message(wire, t_s=k / 30.0).obstacles
+            for lst in (frame.result.obstacles, served):
+                assert ("far-unmeasured" in lst.degraded) == said, (gate_m, lst.degraded)
+        if said:
+            assert f"nothing farther than {gate_m:.2f} m is measured" in builder.reach.message
+            assert "max_range_m" in builder.reach.message and builder.reach.far_unmeasured
+            assert [round(o.distance_m, 1) for o in served.obstacles if o.distance_m > gate_m] == []

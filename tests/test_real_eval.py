@@ -349,3 +349,11 @@ def test_obstacles_with_only_a_calibration_sees_the_street_and_an_unreachable_ra
     assert "nothing nearer than 5.85 m" in out.err and "near-unmeasured" in out.err
     for lst in map(json.loads, out.out.splitlines()):
         assert "near-unmeasured" in lst["degraded"] and "range-unreachable" not in lst["degraded"]
+    # a min_disparity of 32 px, or the disparity stage's 10 m gate, under the street's 30 m: nothing farther than
+    # 11.5 m (10 m) is measured; the lists had said nothing of it (issue 20: never silent emptiness)
+    for flag, far in ((["--disparity-min-disparity", "32"], "11.51"), (["--disparity-max-range-m", "10"], "10.00")):
+        assert main(["obstacles", *pairs, *cal, "--json", *flag]) == 0
+        out = capsys.readouterr()
+        assert f"nothing farther than {far} m is measured" in out.err and "far-unmeasured" in out.err, out.err
+        for lst in map(json.loads, out.out.splitlines()):
+            assert "far-unmeasured" in lst["degraded"] and "near-unmeasured" not in lst["degraded"], lst["degraded"]

@@ -895,6 +895,38 @@ def test_lists_say_when_the_search_cannot_reach_the_range_or_there_is_no_ground(
     assert lst.ground.source == "none" and lst.ground.confidence == 0.0 and "no-ground" in lst.degraded
 
 
+def test_lists_say_when_the_search_or_its_gate_cannot_reach_the_far_part_of_the_range():
+    """A min_disparity of 32 px measures nothing farther than f*B/32 = 2.1 m; the default range runs
+    to 4.5 m. The lists had said nothing: the box at 3 m was simply not there (or aliased nearer),
+    and an empty list read as a clear way to 4.5 m. Now every list says far-unmeasured, as a search
+    that misses the near part says near-unmeasured; the matcher's vision range gate (gate_px) counts
+    as the same; a few centimetres short of the range's end is no news."""
+    d = scene([(250, 390, 1.5, 120), (400, 560, 3.0, 80)])
+    cut = np.where(d >= 32, d, np.nan).astype(np.float32)  # what a 32..175 px search gives
+    b = ObstacleBuilder(SegmenterSettings())
+    for k in range(2):
+        lst = b.process(cut, MODEL, t_s=k / 15, seq=k, stamp_ns=0, search=(32, 144)).obstacles
+        assert lst.degraded == ["far-unmeasured"] and not b.reach.unreachable, lst.degraded
+        dist = [round(o.distance_m, 1) for o in lst.obstacles]
+        assert 1.5 in dist and max(dist) <= round(FB / 32, 1), dist  # the box at 3 m is in no list
+    assert f"nothing farther than {FB / 32:.2f} m is measured" in b.reach.message
+    assert "far-unmeasured" in b.reach.message and "lower min_disparity" in b.reach.message
+    # the same through the disparity stage's gate (max_range_m 2 m), and both ends missed at once
+    gated = np.where(d >= FB / 2.0, d, np.nan).astype(np.float32)
+    lst = ObstacleBuilder(SegmenterSettings()).process(gated, MODEL, t_s=0.0, seq=0, stamp_ns=0, search=(0, 144),
+                                                       gate_px=FB / 2.0).obstacles
+    assert lst.degraded == ["far-unmeasured"], lst.degraded
+    both = ObstacleBuilder(SegmenterSettings())
+    lst = both.process(gated, MODEL, t_s=0.0, seq=0, stamp_ns=0, search=(0, 32), gate_px=FB / 2.0).obstacles
+    assert lst.degraded == ["near-unmeasured", "far-unmeasured"], lst.degraded
+    assert "nothing nearer than" in both.reach.message and "the disparity stage's max_range_m" in both.reach.message
+    # the search reaching 4.4 m of a 4.5 m range: no news; an unreachable range is still said as such
+    for search, gate, said in (((15, 144), 0.0, []), ((0, 144), FB / 4.4, []), ((0, 144), FB / 0.5, None)):
+        lst = ObstacleBuilder(SegmenterSettings()).process(d, MODEL, t_s=0.0, seq=0, stamp_ns=0, search=search,
+                                                           gate_px=gate).obstacles
+        assert ("range-unreachable" in lst.degraded) if said is None else lst.degraded == said, (search, gate)
+
+
 @pytest.mark.parametrize("method", ["layers", "seed"])
 def test_a_vision_range_from_zero_keeps_everything_near_and_says_the_search_cannot_reach_it(method):
     """min_range_m 0 is a valid setting (ge=0): it once divided by zero on every map, so the service

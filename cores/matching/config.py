@@ -154,7 +154,7 @@ def auto_num_disparities(focal_px: float, baseline_m: float, min_range_m: float,
 
 
 def gate_for_range(max_range_m: float | None, focal_px: float, baseline_m: float) -> float:
-    """Smallest disparity (px) inside the vision range: d = f * B / Z. None or <= 0: no gate."""
+    """Smallest disparity (px) inside the vision range: d = f * |B| / Z. None or <= 0: no gate (0)."""
     if not max_range_m or max_range_m <= 0:
         return 0.0
-    return focal_px * baseline_m / max_range_m
+    return focal_px * abs(baseline_m) / max_range_m

@@ -24,12 +24,14 @@ from cores.matching.opencv import Match
 class StageResult:
     """One pair's disparity. match.disparity: (H, W) int16, px * SCALE, `invalid_value` where no
     match; (min_disparity, num_disparities): the range the values span (what a DisparityMap
-    states); config: the settings it was computed with (num_disparities resolved)."""
+    states); gate_px: the vision range gate (config.max_range_m) that dropped the smaller ones (0:
+    none); config: the settings it was computed with (num_disparities resolved)."""
 
     match: Match
     config: MatcherConfig
     min_disparity: int
     num_disparities: int
+    gate_px: float = 0.0
     exposure: Exposure = Exposure()  # what the right image's grey levels were mapped by
 
     @property
@@ -72,14 +74,15 @@ class MatchStage:
         what part of each picture its camera saw (None: all of it)."""
         matcher = self.matcher(focal_px, baseline_m, left.shape[1])
         right, exp = exposure.equalize(left, right)  # two auto exposures: the right one brought to the left's
-        result = matcher.match(left, right, gate_for_range(self.config.max_range_m, focal_px, baseline_m))
+        gate = gate_for_range(self.config.max_range_m, focal_px, baseline_m)
+        result = matcher.match(left, right, gate)
         c = matcher.config
         if view is not None and view.width == left.shape[1] and view.height == left.shape[0]:
             masks = camera.view_masks(view, window_reach(c, self.scale))
             if masks is not None:
                 result = drop_unseen(result, *masks, c.invalid_value)
         lo, num = getattr(matcher, "output_range", (c.min_disparity, c.fixed_num_disparities))
-        return StageResult(result, c, int(lo), int(num), exp)
+        return StageResult(result, c, int(lo), int(num), float(gate), exp)
 
 
 # Semi-global matching (sgbm, dense) carries a pixel's cost along its paths past its window: on the room

@@ -59,15 +59,19 @@ def measured_share(disparity: np.ndarray, confidence: np.ndarray | None, min_con
 
 @dataclass(frozen=True)
 class Reach:
-    """Whether a disparity search (min_disparity, num_disparities px) can measure the segmenter's
-    vision range (min_range_m..range_m) with this camera: `unreachable` when the two do not overlap
-    at all (every list from such a map says "range-unreachable"); `near_unmeasured` when the search
-    misses the near part of the range (every list says "near-unmeasured": what stands that near is
-    not measured, and block matching aliases it to a farther false depth); `message` says which."""
+    """Whether a disparity search (min_disparity, num_disparities px, and the matcher's vision range
+    gate) can measure the segmenter's vision range (min_range_m..range_m) with this camera:
+    `unreachable` when the two do not overlap at all (every list from such a map says
+    "range-unreachable"); `near_unmeasured` when the search misses the near part of the range (every
+    list says "near-unmeasured": what stands that near is not measured, and block matching aliases it
+    to a farther false depth); `far_unmeasured` when it misses the far part (every list says
+    "far-unmeasured": what stands farther is in no list, and matching aliases it to a nearer false
+    depth); `message` says which."""
 
     unreachable: bool
     message: str
     near_unmeasured: bool = False
+    far_unmeasured: bool = False
 
 
 def view_bearings(model: camera.RectifiedModel, min_disparity: int, num_disparities: int) -> tuple[float, float]:
@@ -86,30 +90,43 @@ def view_bearings(model: camera.RectifiedModel, min_disparity: int, num_disparit
 # How far beyond min_range_m the nearest depth the search measures may lie before the lists say
 # "near-unmeasured": a few centimetres short is no news (the Karlsruhe car's `auto` search, capped at a
 # quarter of the image width, measures from 1.15 m for a 1 m range); 1 m short of a 1 m range is a
-# blind spot where a robot meets its obstacles.
+# blind spot where a robot meets its obstacles. The same factor short of the range's far end: "far-unmeasured".
 NEAR_SLACK = 1.25
 
 
 def search_reach(model: camera.RectifiedModel, min_disparity: int, num_disparities: int,
-                 settings: SegmenterSettings) -> Reach:
+                 settings: SegmenterSettings, gate_px: float = 0.0) -> Reach:
+    """gate_px: the matcher's vision range gate (DisparityMap.gate_px; 0: none), which drops what lies
+    farther, like a larger min_disparity."""
     fB = model.focal_px * abs(model.baseline_m)
     d_max = min_disparity + num_disparities - 1  # largest disparity searched: the nearest depth measured
+    d_min = max(float(min_disparity), float(gate_px))  # smallest kept: the farthest depth measured
     near_m = fB / d_max if d_max > 0 else float("inf")
-    far_m = fB / min_disparity if min_disparity > 0 else float("inf")
+    far_m = fB / d_min if d_min > 0 else float("inf")
     lo, hi = settings.min_range_m, settings.range_for(model)
-    search = (f"the disparity search ({min_disparity}..{d_max} px with f*B = {fB:.1f} px m) measures "
+    gated = gate_px > max(0, min_disparity)
+    gate = f", gated at {gate_px:.1f} px (the disparity stage's max_range_m)" if gated else ""
+    search = (f"the disparity search ({min_disparity}..{d_max} px{gate} with f*B = {fB:.1f} px m) measures "
               f"{near_m:.2f} m" + (f"..{far_m:.2f} m" if math.isfinite(far_m) else " and farther"))
     if near_m > hi or far_m < lo:
         return Reach(True, f"{search}, the segmenter's vision range is {lo:g}..{hi:g} m: they do not overlap, "
                            "nothing in view can be measured; raise num_disparities (auto: from the calibration "
                            "and min_range_m) or change the range")
-    if near_m > NEAR_SLACK * lo:
-        return Reach(False, f"{search}: nothing nearer than {near_m:.2f} m is measured, though the vision range "
-                            f"starts at {lo:g} m, so every list says near-unmeasured (raise num_disparities, or "
-                            f"num_disparities auto; or min_range_m to {near_m:.2f} m if nothing nearer matters)",
-                     near_unmeasured=True)
+    near = near_m > NEAR_SLACK * lo
+    far = far_m * NEAR_SLACK < hi
+    said = []
+    if near:
+        said.append(f"nothing nearer than {near_m:.2f} m is measured, though the vision range starts at {lo:g} m, "
+                    f"so every list says near-unmeasured (raise num_disparities, or num_disparities auto; or "
+                    f"min_range_m to {near_m:.2f} m if nothing nearer matters)")
+    if far:
+        lower = "lower min_disparity" + (", or raise or unset the disparity stage's max_range_m" if gate else "")
+        said.append(f"nothing farther than {far_m:.2f} m is measured, though the vision range reaches {hi:g} m, "
+                    f"so every list says far-unmeasured ({lower}; or the segmenter's max_range_m to {far_m:.2f} m "
+                    f"if nothing farther matters)")
+    if said:
+        return Reach(False, f"{search}: " + "; and ".join(said), near_unmeasured=near, far_unmeasured=far)
     return Reach(False, "")
-
 
 
 def floor_in_view(floor: FloorPlane, model: camera.RectifiedModel, range_m: float) -> bool:
@@ -162,10 +179,10 @@ class ObstacleBuilder:
         self._reach_logged: set[str] = set()
 
     def check_search(self, model: camera.RectifiedModel, min_disparity: int, num_disparities: int,
-                     quiet: bool = False) -> Reach:
-        """The disparity search of a map against the vision range; each new finding is logged once
-        (quiet: the caller says it itself)."""
-        reach = search_reach(model, min_disparity, num_disparities, self.settings)
+                     quiet: bool = False, gate_px: float = 0.0) -> Reach:
+        """The disparity search of a map (and its range gate) against the vision range; each new
+        finding is logged once (quiet: the caller says it itself)."""
+        reach = search_reach(model, min_disparity, num_disparities, self.settings, gate_px)
         if reach.message and reach.message not in self._reach_logged:
             self._reach_logged.add(reach.message)
             if not quiet:
@@ -269,7 +286,7 @@ class ObstacleBuilder:
                 robot_id: str = "offline", confidence: np.ndarray | None = None, odometry: Odometry | None = None,
                 image: np.ndarray | None = None, stale: bool = False,
                 stages: dict[str, int] | None = None, search: tuple[int, int] | None = None,
-                checks: FrameChecks | None = None) -> FrameResult:
+                checks: FrameChecks | None = None, gate_px: float = 0.0) -> FrameResult:
         """disparity: (H, W) float32 px, NaN = invalid, matching `model`; t_s: the frame's time on a
         clock that never goes backwards (the service: Node.frame_time_s; offline: the capture time);
         odometry: the robot's motion at this frame, if known (velocities are then over the ground).
@@ -281,14 +298,16 @@ class ObstacleBuilder:
         "little-measured": under 10 % (too dark, fog, a plain wall filling the view);
         "valid-collapse": under half of what the frames of the last 2 s measured;
         "range-unreachable": the map's search, `search` = its (min_disparity, num_disparities),
-        cannot measure the vision range; "near-unmeasured": it cannot measure the near part of it
-        (search_reach); "no-ground" / "ground-uncertain": nothing or too little told the floor from
-        what stands on it; "mount-disagrees": fit_floor is false and the configured mount's floor is
-        off the floor the data show; "rows-misaligned": rectify's last live check (`checks.rows`)
-        found the pair's rows apart by more than its tolerance (the calibration no longer fits the
-        rig: the map measures less, and wrongly); "cameras-swapped": that check found most features
-        at negative disparity (the left and right cameras exchanged: the map is of a mirror scene, its
-        obstacles are not there and what is there is not measured); "camera-frozen": one camera's
+        cannot measure the vision range; "near-unmeasured": it cannot measure the near part of it;
+        "far-unmeasured": it, or the matcher's vision range gate `gate_px` (DisparityMap.gate_px),
+        cannot measure the far part of it (search_reach); "no-ground" / "ground-uncertain": nothing or
+        too little told the floor from what stands on it; "mount-disagrees": fit_floor is false and
+        the configured mount's floor is off the floor the data show; "rows-misaligned": rectify's
+        last live check (`checks.rows`) found the pair's rows apart by more than its tolerance (the
+        calibration no longer fits the rig: the map measures less, and wrongly); "cameras-swapped":
+        that check found most features at negative disparity (the left and right cameras exchanged:
+        the map is of a mirror scene, its obstacles are not there and what is there is not
+        measured); "camera-frozen": one camera's
         picture has not changed for over rectify's frozen_after_s (`checks.frozen`: its driver
         repeats a buffer; with the other live the map changes, and is wrong wherever anything
         moved); "view-blocked": part of
@@ -304,7 +323,7 @@ class ObstacleBuilder:
         "standing-not-listed": something standing in range, of min_area_m2 frontal area, is in no
         obstacle: seed's border clearing, area opening or Otsu threshold dropped it)."""
         cfg = self.settings
-        reach = self.check_search(model, *search) if search is not None else Reach(False, "")
+        reach = self.check_search(model, *search, gate_px=gate_px) if search is not None else Reach(False, "")
         if disparity.dtype.kind == "f":
             inf = np.isinf(disparity)
             if inf.any():  # an infinite disparity is no measurement (nor a point at zero distance)
@@ -380,8 +399,11 @@ class ObstacleBuilder:
                 degraded.append("nearer-than-range")  # the view of the range is blocked, not clear
         if reach.unreachable:
             degraded.append("range-unreachable")
-        elif reach.near_unmeasured:
-            degraded.append("near-unmeasured")
+        else:
+            if reach.near_unmeasured:
+                degraded.append("near-unmeasured")
+            if reach.far_unmeasured:
+                degraded.append("far-unmeasured")
         if not cfg.floor_removal or (cfg.method == "seed" and frame.floor is None):
             # no floor removed: a textured floor in range is one region with what stands on it (the thesis's
             # method then clears both at the border; layers reports road and car as one obstacle, at neither's
@@ -437,7 +459,7 @@ class ObstacleBuilder:
         return self.process(disparity, model, t_s=msg.stamp_ns / 1e9 if t_s is None else t_s, seq=msg.seq,
                             stamp_ns=msg.stamp_ns, robot_id=msg.robot_id, confidence=confidence, odometry=odometry,
                             stale=stale, stages=msg.stages, search=(msg.min_disparity, msg.num_disparities),
-                            checks=msg.checks)
+                            checks=msg.checks, gate_px=msg.gate_px)
 
 
 def _footprint(mount: Mount, points_camera: np.ndarray) -> np.ndarray:

@@ -65,8 +65,8 @@ class FrameComputer:
         # the range its values span (consumers treat anything outside it as invalid)
         return DisparityMap(robot_id=msg.robot_id, seq=msg.seq, stamp_ns=msg.stamp_ns, stages=msg.stages,
                             image=image, scale=SCALE, invalid_value=invalid, min_disparity=out.min_disparity,
-                            num_disparities=out.num_disparities, camera=msg.camera, method=self.method,
-                            worker=worker, confidence=confidence, checks=msg.checks)
+                            num_disparities=out.num_disparities, gate_px=out.gate_px, camera=msg.camera,
+                            method=self.method, worker=worker, confidence=confidence, checks=msg.checks)
 
     def answer(self, node: Node, msg: StereoFrame, worker: str, nonce: bytes, put: Callable[..., Any],
                rates: Rates) -> bool:

@@ -77,8 +77,10 @@ def list_status(msg: ObstacleList, builder: ObstacleBuilder, settings: Segmenter
         return "stale: input too old"
     if reach.unreachable:
         return f"range-unreachable: {reach.message}"
-    if reach.near_unmeasured:
-        return f"near-unmeasured: {reach.message}"
+    if reach.near_unmeasured or reach.far_unmeasured:
+        said = [r for r, on in (("near-unmeasured", reach.near_unmeasured), ("far-unmeasured", reach.far_unmeasured))
+                if on]
+        return f"{', '.join(said)}: {reach.message}"
     for reason, text in REASON_STATUS.items():
         if reason in msg.degraded:
             rows = builder.checks.rows if builder.checks is not None else None
