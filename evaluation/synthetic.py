@@ -146,7 +146,8 @@ def _truth_maps(world: S.SyntheticWorld, t: float, x_valid: int,
     the matcher can measure: visible in the left image at columns >= x_valid, where block matching
     has a right-image counterpart; with band_margin (a matcher that matches the left band too,
     dense), at columns x >= d + band_margin instead, d its true disparity: where its partner's
-    window is in the right image)."""
+    window is in the right image); and seen by the right camera too (visible_in_right: the sliver
+    of a crate beside a nearer person that only the left camera sees is no measurable surface)."""
     ids = world.obstacle_ids(t).astype(np.int8)
     depth = world.true_depth(t)
     m = world.rect.model
@@ -164,6 +165,8 @@ def _truth_maps(world: S.SyntheticWorld, t: float, x_valid: int,
     else:
         with np.errstate(divide="ignore", invalid="ignore"):
             cols = np.arange(w)[None, :] >= m.focal_px * m.baseline_m / depth + band_margin
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cols = cols & visible_in_right(m.focal_px * m.baseline_m / depth)
     for i in range(len(world.scene.boxes)):
         mask = (ids == i) & cols
         n = int(mask.sum())
@@ -171,6 +174,19 @@ def _truth_maps(world: S.SyntheticWorld, t: float, x_valid: int,
         nearest = float(np.sqrt((p * p).sum(1).min())) if n else float("nan")
         seen[i] = (p.mean(0) if n else np.full(3, np.nan), n, nearest)
     return kind, seen
+
+
+def visible_in_right(d: np.ndarray, tol_px: float = 1.0) -> np.ndarray:
+    """(H, W) bool: which pixels of the left image, at true disparity d (px, 0 at infinity), the right
+    camera sees too. On a rectified row a point at column x appears at x - d in the right image;
+    it is hidden there when a point to its right in the left image appears at or left of it in the
+    right one (that point is nearer: its ray crosses this one's): x - d > min over x' > x of
+    x' - d', by more than tol_px."""
+    r = np.arange(d.shape[1], dtype=np.float64)[None, :] - np.nan_to_num(d, nan=0.0, posinf=0.0)
+    # the smallest right-image column of everything to the right, per row (a suffix minimum)
+    right_min = np.minimum.accumulate(r[:, ::-1], axis=1)[:, ::-1]
+    after = np.concatenate([right_min[:, 1:], np.full((d.shape[0], 1), np.inf)], axis=1)
+    return r <= after + tol_px
 
 
 def default_sequence(scene: S.Scene) -> tuple[int, float]:
