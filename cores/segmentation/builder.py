@@ -120,7 +120,7 @@ def search_reach(model: camera.RectifiedModel, min_disparity: int, num_dispariti
                     f"so every list says near-unmeasured (raise num_disparities, or num_disparities auto; or "
                     f"min_range_m to {near_m:.2f} m if nothing nearer matters)")
     if far:
-        lower = "lower min_disparity" + (", or raise or unset the disparity stage's max_range_m" if gate else "")
+        lower = "lower min_disparity" + (", or raise or unset the disparity stage's max_range_m" if gated else "")
         said.append(f"nothing farther than {far_m:.2f} m is measured, though the vision range reaches {hi:g} m, "
                     f"so every list says far-unmeasured ({lower}; or the segmenter's max_range_m to {far_m:.2f} m "
                     f"if nothing farther matters)")
