@@ -26,7 +26,8 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 # 9: FrameChecks.clipped (where both cameras are washed out: the lists say washed-out).
 # 10: CameraModel.view_left / view_right (the part of the rectified picture each camera saw, alpha > 0).
 # 11: DisparityMap.gate_px (the matcher's vision range gate: what lies farther is not in the map; a gate
-#     nearer than the segmenter's range makes the lists say far-unmeasured).
+#     nearer than the segmenter's range makes the lists say far-unmeasured); FrameChecks.noise_grey (the
+#     pictures' sensor noise: dusk's gain makes the lists say noisy).
 SCHEMA_VERSION = 11
 
 MAX_OUTLINE_POINTS = 4096
@@ -167,6 +168,9 @@ class FrameChecks(BaseModel):
     clipped: ClippedTiles | None = Field(None, description="where both cameras are clipped white (None: not "
                                          "checked): over WASHED_OUT of the floor in range, each list says "
                                          "washed-out")
+    noise_grey: float | None = Field(None, ge=0.0, le=255.0, allow_inf_nan=False,
+                                     description="the noisier camera's sensor noise, grey levels (None: not "
+                                     "checked): over NOISY_GREY (low light, a high gain), each list says noisy")
 
 
 class StereoFrame(Message):
@@ -324,7 +328,7 @@ class ObstacleList(Message):
                                 "'ground-uncertain', 'range-unreachable', 'near-unmeasured', 'far-unmeasured', "
                                 "'floor-out-of-view', 'standing-not-listed', "
                                 "'mount-disagrees', 'rows-misaligned', 'cameras-swapped', 'camera-frozen', "
-                                "'view-blocked', 'nearer-than-range', 'washed-out')")
+                                "'view-blocked', 'nearer-than-range', 'washed-out', 'noisy')")
     valid_fraction: float = Field(0.0, ge=0, le=1, description="share of the image the disparity map measured "
                                   "(valid pixels within the vision range gate's search; with a confidence, only "
                                   "measured ones, not a dense matcher's fill) for this list")

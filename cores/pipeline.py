@@ -115,6 +115,7 @@ class Pipeline:
             left, right = self.rectify(left, right, names)
         near = self.checks.near_field(left, right, self.model)  # rectify's, on its frame path: timed as rectify
         clipped = self.checks.clipped(left, right)
+        noise = self.checks.noise(left, right)
         t1 = time.perf_counter()
         stamp_ns = int(round(t_s * 1e9)) if stamp_ns is None else stamp_ns
         if not stuck:  # a frozen camera's pair is of two moments: its rows say nothing of the rig
@@ -126,7 +127,7 @@ class Pipeline:
         result = self.builder.process(disparity, self.model, t_s=t_s, seq=seq, stamp_ns=stamp_ns,
                                       confidence=stage.match.confidence, odometry=odometry, image=left,
                                       search=(stage.min_disparity, stage.num_disparities), gate_px=stage.gate_px,
-                                      checks=self.checks.message(stuck, blocked, near, clipped))
+                                      checks=self.checks.message(stuck, blocked, near, clipped, noise))
         t3 = time.perf_counter()
         return PipelineFrame(seq, left, right, stage, disparity, result, (t1 - t0) * 1e3, (t2 - t1b) * 1e3,
                              (t3 - t2) * 1e3)

@@ -95,3 +95,53 @@ def test_the_street_at_dusk_never_gives_an_unflagged_empty_list(method):
     assert sum(len(o.obstacles) for o in night) < 0.5 * sum(len(o.obstacles) for o in day)  # the dark costs
     assert all({"little-measured", "no-valid-disparity"} & set(o.degraded) for o in night), \
         [(len(o.obstacles), o.valid_fraction, o.degraded) for o in night]
+
+
+def test_the_pictures_noise_is_measured_through_texture_and_edges():
+    """picture_noise: the street's own pictures, full of edges and texture, read as the 1-2 grey levels
+    of a camera in daylight; the same with a sensor noise added read as that noise, within 15 %."""
+    from cores.calibration.check import picture_noise
+
+    if not (KARLSRUHE / "calibration.yaml").exists():
+        pytest.skip("../shared/data/real/karlsruhe-0023 absent")
+    image = cv2.imread(str(sorted((KARLSRUHE / "left").glob("*.png"))[10]), cv2.IMREAD_GRAYSCALE)
+    assert picture_noise(image) < 2.5
+    rng = np.random.default_rng(1)
+    for sigma in (4.0, 8.0, 12.0):
+        noisy = np.clip(image + rng.normal(0, sigma, image.shape), 0, 255).astype(np.uint8)
+        assert picture_noise(noisy) == pytest.approx(sigma, rel=0.15), sigma
+    assert picture_noise(np.full((2, 2), 7, np.uint8)) == 0.0  # too small to tell: no noise claimed
+
+
+def test_a_list_says_noisy_when_rectify_measured_the_pictures_noisy():
+    from common.messages import FrameChecks
+    from cores.segmentation.builder import NOISY_GREY
+
+    d = box_map(160, 0)
+    for noise, said in ((None, False), (1.5, False), (NOISY_GREY - 0.1, False), (NOISY_GREY + 0.1, True)):
+        lst = ObstacleBuilder(SegmenterSettings()).process(d, MODEL, t_s=0.0, seq=0, stamp_ns=0,
+                                                           checks=FrameChecks(noise_grey=noise)).obstacles
+        assert ("noisy" in lst.degraded) == said, (noise, lst.degraded)
+
+
+@pytest.mark.skipif(not (KARLSRUHE / "calibration.yaml").exists(), reason="../shared/data/real/karlsruhe-0023 absent")
+def test_the_street_at_a_fifth_of_its_light_says_noisy_on_every_list():
+    """Dusk before little-measured: at 20 % of its light bm measured 15 % of the picture and listed
+    about 60 % of what it listed within 15 m in daylight, and half its lists said nothing. Now every
+    list says noisy (rectify's picture_noise: 7.7 grey levels); in daylight none does."""
+    from evaluation.recordings import open_recording
+
+    rec = open_recording(KARLSRUHE)
+    pairs = [(cv2.imread(str(lp), cv2.IMREAD_GRAYSCALE), cv2.imread(str(rp), cv2.IMREAD_GRAYSCALE))
+             for lp, rp in rec.pairs[:40:5]]
+    pipe = Pipeline(rec.calibration, MatcherConfig(method="bm"), SegmenterSettings(max_range_m=30.0))
+    day = [pipe.process(lf, rt, t_s=0.1 * k, seq=k).result.obstacles for k, (lf, rt) in enumerate(pairs)]
+    assert not any("noisy" in o.degraded for o in day)
+    rng = np.random.default_rng(0)
+    pipe = pipe.fork()
+    dim = [pipe.process(dusk(lf, 0.2, rng), dusk(rt, 0.2, rng), t_s=0.1 * k, seq=k).result.obstacles
+           for k, (lf, rt) in enumerate(pairs)]
+    def near(lists) -> int:
+        return sum(sum(o.distance_m <= 15 for o in lst.obstacles) for lst in lists)
+    assert near(dim) < 0.85 * near(day)  # the dusk costs what stands near
+    assert all("noisy" in o.degraded for o in dim), [(len(o.obstacles), o.degraded) for o in dim]

@@ -344,6 +344,25 @@ def clipped_tiles(left: np.ndarray, right: np.ndarray, grid: tuple[int, int] = C
     return ClippedTiles(width=grid[0], height=grid[1], data=tiles.tobytes())
 
 
+def picture_noise(image: np.ndarray) -> float:
+    """The picture's sensor noise, grey levels (the sigma of a Gaussian noise): the median absolute
+    response to a 3x3 mask that cancels every plane of grey (Immerkaer 1996: [1 -2 1; -2 4 -2;
+    1 -2 1], of norm 6 on pure noise), on every 4th pixel of every 8th row. The median, not the
+    mean: edges and texture answer too, but on few of the pixels (the Karlsruhe street and the
+    EuRoC room in daylight: 1.2-1.7). 0.2 ms at 640 x 480."""
+    g = _gray(image)
+    h, w = g.shape
+    if h < 3 or w < 3:
+        return 0.0
+
+    def at(dy: int, dx: int) -> np.ndarray:  # the sampled pixels' neighbours, widened only once sampled
+        return g[dy:h - 2 + dy:8, dx:w - 2 + dx:4].astype(np.int16)
+    a = np.abs((at(0, 0) + at(0, 2) + at(2, 0) + at(2, 2)) - 2 * (at(0, 1) + at(1, 0) + at(1, 2) + at(2, 1))
+               + 4 * at(1, 1))
+    counts = np.cumsum(np.bincount(a.ravel()))
+    return float(np.searchsorted(counts, counts[-1] / 2)) / (0.6745 * 6.0)
+
+
 class PairChecks:
     """rectify's live checks of one stream of pairs, as the rectify service and the in-process
     pipeline (cores/pipeline.py) both run them: the rows (RowMonitor), each camera's picture
@@ -375,6 +394,10 @@ class PairChecks:
         """The rectified pair's tiles clipped white in both cameras (clipped_tiles)."""
         return clipped_tiles(left, right)
 
+    def noise(self, left: np.ndarray, right: np.ndarray) -> float:
+        """The pair's sensor noise, grey levels: the noisier camera's (picture_noise)."""
+        return max(picture_noise(left), picture_noise(right))
+
     def pictures(self, left: np.ndarray, right: np.ndarray, t_s: float) -> tuple[list[Camera], list[Camera]]:
         """(the cameras whose raw picture has not changed, those whose view is blocked), for over
         frozen_after_s at t_s (s, a clock that never goes backwards)."""
@@ -383,5 +406,7 @@ class PairChecks:
         return _cameras(left_stuck, right_stuck), self._view.blocked(left, right, t_s)
 
     def message(self, frozen: list[Camera], blocked: list[Camera] | None = None,
-                near: NearField | None = None, clipped: ClippedTiles | None = None) -> FrameChecks:
-        return FrameChecks(rows=self.rows.latest, frozen=frozen, blocked=blocked or [], near=near, clipped=clipped)
+                near: NearField | None = None, clipped: ClippedTiles | None = None,
+                noise: float | None = None) -> FrameChecks:
+        return FrameChecks(rows=self.rows.latest, frozen=frozen, blocked=blocked or [], near=near, clipped=clipped,
+                           noise_grey=None if noise is None else round(min(noise, 255.0), 2))

@@ -40,6 +40,13 @@ MIN_VALID_FRACTION = 0.01
 # false). The recordings in daylight measure 27-30 % (the street, bm: sky and plain road) and more;
 # every shipped scene 48 % or more, whatever the matcher.
 LITTLE_MEASURED = 0.10
+# Dusk before that: the camera's gain brings the pictures up with their noise, and block matching's
+# texture and uniqueness tests reject more of them long before the map measures under a tenth. The street
+# at 20 % of its light (noise 7.7 grey levels, cores/calibration/check.py picture_noise): bm measured 15 %
+# and found 58 % of what it found within 15 m in daylight, half its lists saying nothing; at 15 % (9.9
+# grey levels), 36 % with 5 lists of 14 saying nothing; at 30 % (5.4), 85 %. Daylight's pictures, the
+# street's, the room's and the synthetic scenes', are at 1.2-2.0. Noisier than this: "noisy".
+NOISY_GREY = 6.0
 # A map measuring less than half of what the maps of the last 2 s measured (a covered lens, glare, a
 # broken matcher) is flagged "valid-collapse" until it is no longer a sudden change (cores/matching/disparity.py).
 COLLAPSE_FACTOR, COLLAPSE_WINDOW_S, COLLAPSE_WARMUP_FRAMES = 0.5, 2.0, 5
@@ -318,7 +325,9 @@ class ObstacleBuilder:
         the range); "washed-out": rectify's clipped tiles (`checks.clipped`) cover over
         WASHED_OUT of the floor within the range (a floor the list vouches for) with white at
         infinity in both cameras (the sun or a lamp low ahead: nothing there is measured, and what
-        stands there is in no list);
+        stands there is in no list); "noisy": rectify's estimate of the pictures' sensor noise
+        (`checks.noise_grey`) is over NOISY_GREY grey levels (low light brought up by the gain: the
+        matcher rejects more and more of what is there);
         "floor-out-of-view": the floor within the vision range is below the camera's view;
         "standing-not-listed": something standing in range, of min_area_m2 frontal area, is in no
         obstacle: seed's border clearing, area opening or Otsu threshold dropped it)."""
@@ -430,6 +439,8 @@ class ObstacleBuilder:
                                                cfg.range_for(model))
             if self.washed_out > WASHED_OUT:
                 degraded.append("washed-out")  # white in both cameras where the path lies: not seen, not clear
+        if checks is not None and checks.noise_grey is not None and checks.noise_grey > NOISY_GREY:
+            degraded.append("noisy")  # dusk's gain: the matcher misses more and more of what stands there
         out = ObstacleList(robot_id=robot_id, seq=seq, stamp_ns=stamp_ns, stages=dict(stages or {}), publish_ns=now,
                            stale=stale, degraded=degraded, valid_fraction=valid_fraction, method=cfg.method,
                            range_m=(cfg.min_range_m, cfg.range_for(model)),

@@ -336,7 +336,8 @@ def run(node: Node, settings: RectifySettings) -> None:
                 rows.offer(rl, rr, time.monotonic(), msg.stamp_ns)
             near = checks.near_field(rl, rr, rectifier.model)
             clipped = checks.clipped(rl, rr)
+            noise = checks.noise(rl, rr)
             out.put(StereoFrame(robot_id=msg.robot_id, seq=msg.seq, stamp_ns=msg.stamp_ns, stages=msg.stages,
                                 left=codec.image_from_array(rl), right=codec.image_from_array(rr),
                                 camera=rectifier.model_message, source=msg.source,
-                                checks=checks.message(stuck, blocked, near, clipped)))
+                                checks=checks.message(stuck, blocked, near, clipped, noise)))

@@ -56,6 +56,9 @@ REASON_STATUS: dict[str, str] = {
     "washed-out": "{washed} of the floor within the vision range is clipped white in both cameras, at infinity: "
                   "the sun or a lamp low ahead, glare over both lenses; what stands there is not seen (shade "
                   "the lenses with a hood, lower the exposure, or turn away from the light)",
+    "noisy": "the pictures' sensor noise is {noise} grey levels (low light brought up by the cameras' gain): "
+             "the matcher rejects more and more of what is there, and what it missed is not in the list (light "
+             "the scene, or a longer exposure if the robot moves slowly)",
     "little-measured": "the disparity map measured {measured} of the picture: too dark, fog, a plain wall "
                        "filling the view, or a matcher's texture threshold too high; what was not measured is not "
                        "in the list (light the scene, raise the cameras' exposure or gain, or try method sgbm)",
@@ -68,6 +71,11 @@ REASON_STATUS: dict[str, str] = {
                            "image border, is under its area opening or beyond its Otsu threshold; method layers "
                            "keeps them)",
 }
+
+
+def _noise(builder: ObstacleBuilder) -> str:
+    checks = builder.checks
+    return f"{checks.noise_grey:.1f}" if checks is not None and checks.noise_grey is not None else "high"
 
 
 def list_status(msg: ObstacleList, builder: ObstacleBuilder, settings: SegmenterSettings, stale: bool) -> str:
@@ -94,6 +102,7 @@ def list_status(msg: ObstacleList, builder: ObstacleBuilder, settings: Segmenter
                                                blocked=blocked, near_m=near_m, near_share=near_share,
                                                measured=f"{msg.valid_fraction:.1%}",
                                                washed=f"{builder.washed_out:.1%}",
+                                               noise=_noise(builder),
                                                min_range=f"{settings.min_range_m:g}")
     if msg.degraded:  # no-ground, ground-uncertain, valid-collapse, ...
         return f"degraded lists: {', '.join(msg.degraded)}"
