@@ -415,6 +415,8 @@ def test_the_street_at_dusk_is_said_by_every_list_and_by_status(tmp_path):
         # every list, from the first: the dark never looked like a clear way (the last three alone say little)
         assert all({"little-measured", "no-valid-disparity"} & set(m.degraded) for m in lists), \
             [(m.seq, m.valid_fraction, m.degraded) for m in lists]
+        # rectify's noise estimate of the same pictures, through the services: noisy as well
+        assert all("noisy" in m.degraded for m in lists), [(m.seq, m.degraded) for m in lists]
         code, _, seg = status_of(u)
         assert code == 3 and seg["status"].startswith("little-measured: the disparity map measured "), seg
     finally:

@@ -56,12 +56,12 @@ REASON_STATUS: dict[str, str] = {
     "washed-out": "{washed} of the floor within the vision range is clipped white in both cameras, at infinity: "
                   "the sun or a lamp low ahead, glare over both lenses; what stands there is not seen (shade "
                   "the lenses with a hood, lower the exposure, or turn away from the light)",
-    "noisy": "the pictures' sensor noise is {noise} grey levels (low light brought up by the cameras' gain): "
-             "the matcher rejects more and more of what is there, and what it missed is not in the list (light "
-             "the scene, or a longer exposure if the robot moves slowly)",
     "little-measured": "the disparity map measured {measured} of the picture: too dark, fog, a plain wall "
                        "filling the view, or a matcher's texture threshold too high; what was not measured is not "
                        "in the list (light the scene, raise the cameras' exposure or gain, or try method sgbm)",
+    "noisy": "the pictures' sensor noise is {noise} grey levels (low light brought up by the cameras' gain): "
+             "the matcher rejects more and more of what is there, and what it missed is not in the list (light "
+             "the scene, or a longer exposure if the robot moves slowly)",
     "rows-misaligned": "rectify finds the pair's rows {offset} apart: the calibration no longer fits the rig (a "
                        "knocked camera, a loose lens?); check it (`ballbot-vision calibration check`) and calibrate "
                        "again",
