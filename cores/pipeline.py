@@ -111,11 +111,11 @@ class Pipeline:
         """One pair, raw (rectified=False) or already rectified, through the three steps."""
         stuck, blocked = self.checks.pictures(left, right, t_s)
         t0 = time.perf_counter()
+        noise = self.checks.noise(left, right)  # the cameras' own pictures: the remap's interpolation smooths noise
         if not rectified:
             left, right = self.rectify(left, right, names)
         near = self.checks.near_field(left, right, self.model)  # rectify's, on its frame path: timed as rectify
         clipped = self.checks.clipped(left, right)
-        noise = self.checks.noise(left, right)
         t1 = time.perf_counter()
         stamp_ns = int(round(t_s * 1e9)) if stamp_ns is None else stamp_ns
         if not stuck:  # a frozen camera's pair is of two moments: its rows say nothing of the rig

@@ -330,13 +330,13 @@ def run(node: Node, settings: RectifySettings) -> None:
                 "finger, a sticker, glare, grease on the lens?): little or nothing there is measured; every list "
                 "says view-blocked",
                 "both cameras see the whole view again")
+            noise = checks.noise(left, right)  # the cameras' own pictures: the remap's interpolation smooths noise
             rl, rr = rectifier.rectify(left, right)
             holder.mark_used()
             if not stuck:  # a frozen camera's pair is of two moments: its rows say nothing of the rig
                 rows.offer(rl, rr, time.monotonic(), msg.stamp_ns)
             near = checks.near_field(rl, rr, rectifier.model)
             clipped = checks.clipped(rl, rr)
-            noise = checks.noise(rl, rr)
             out.put(StereoFrame(robot_id=msg.robot_id, seq=msg.seq, stamp_ns=msg.stamp_ns, stages=msg.stages,
                                 left=codec.image_from_array(rl), right=codec.image_from_array(rr),
                                 camera=rectifier.model_message, source=msg.source,
