@@ -110,6 +110,8 @@ def test_the_pictures_noise_is_measured_through_texture_and_edges():
     for sigma in (4.0, 8.0, 12.0):
         noisy = np.clip(image + rng.normal(0, sigma, image.shape), 0, 255).astype(np.uint8)
         assert picture_noise(noisy) == pytest.approx(sigma, rel=0.15), sigma
+    # a 16-bit camera's picture reads in 8-bit grey levels too (int16 arithmetic on it had wrapped round)
+    assert picture_noise(noisy.astype(np.uint16) * 257) == picture_noise(noisy)
     assert picture_noise(np.full((2, 2), 7, np.uint8)) == 0.0  # too small to tell: no noise claimed
 
 

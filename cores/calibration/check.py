@@ -351,6 +351,9 @@ def picture_noise(image: np.ndarray) -> float:
     mean: edges and texture answer too, but on few of the pixels (the Karlsruhe street and the
     EuRoC room in daylight: 1.2-1.7). 0.2 ms at 640 x 480."""
     g = _gray(image)
+    if g.dtype != np.uint8:  # in grey levels of 8 bits, whatever the camera gives (a 16-bit one: / 257)
+        scale = 255.0 / 65535.0 if g.dtype == np.uint16 else 1.0
+        g = np.clip(np.nan_to_num(g.astype(np.float32) * scale), 0, 255).astype(np.uint8)
     h, w = g.shape
     if h < 3 or w < 3:
         return 0.0
