@@ -24,8 +24,7 @@ function unpack(buffer) {
   return {doc, blobs};
 }
 
-async function drawPicture(canvas, blob) {
-  const bitmap = await createImageBitmap(blob);
+function paint(canvas, bitmap) {
   canvas.parentElement.classList.toggle("panorama", bitmap.width > 2 * bitmap.height);
   if (canvas.width !== bitmap.width || canvas.height !== bitmap.height) {
     canvas.width = bitmap.width;
@@ -33,7 +32,6 @@ async function drawPicture(canvas, blob) {
   }
   const ctx = canvas.getContext("2d");
   ctx.drawImage(bitmap, 0, 0);
-  bitmap.close();
   return ctx;
 }
 
@@ -213,18 +211,16 @@ function drawInfo(doc) {
 }
 
 async function render(doc, blobs) {
-  // window.viewer changes only at the end, all at once: a reader between the awaits below (a test,
-  // the console) never sees this update's boxes beside the last update's document, or none
+  // Every picture is decoded first and then all is drawn in one go, and window.viewer changes with it:
+  // a reader between the awaits (a test, the console, the screen) never sees this update's picture
+  // with the last update's boxes, or this update's boxes beside the last update's document.
+  const decode = (blob) => (blob ? createImageBitmap(blob) : null);
+  const [left, disparity, fs] = await Promise.all([decode(blobs.left), decode(blobs.disparity), decode(blobs.freespace)]);
   let drawn = null;
-  if (blobs.left) {
-    const ctx = await drawPicture($("image"), blobs.left);
-    drawn = drawBoxes(ctx, doc);
-  }
-  if (blobs.disparity) await drawPicture($("disparity"), blobs.disparity);
-  let fs = null;
-  if (blobs.freespace) fs = await createImageBitmap(blobs.freespace);
+  if (left) drawn = drawBoxes(paint($("image"), left), doc);
+  if (disparity) paint($("disparity"), disparity);
   drawMap(doc, fs);
-  if (fs) fs.close();
+  for (const bitmap of [left, disparity, fs]) if (bitmap) bitmap.close();
   drawInfo(doc);
   const stamp = doc.obstacles && doc.image && doc.image.matched ? doc.obstacles.stamp_ns : (doc.image ? doc.image.stamp_ns : null);
   if (stamp !== null) {
