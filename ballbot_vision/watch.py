@@ -14,7 +14,7 @@ from common.zenoh_session import DEFAULT_ROUTER, ZenohOptions, open_session
 
 def format_table(msg: ObstacleList) -> str:
     age_ms = (time.time_ns() - msg.stamp_ns) / 1e6
-    looked = "" if msg.range_m is None else f" at {msg.range_m[0]:g}-{msg.range_m[1]:.1f} m"
+    looked = "" if msg.range_m is None else f" at {msg.range_m[0]:.3g}-{msg.range_m[1]:.1f} m"
     if msg.bearing_deg is not None:
         looked += f", {msg.bearing_deg[0]:+.0f}..{msg.bearing_deg[1]:+.0f} deg"
     head = (f"robot {msg.robot_id}  seq {msg.seq}  age {age_ms:6.1f} ms  {len(msg.obstacles)} obstacle(s){looked}"

@@ -333,9 +333,10 @@ class ObstacleList(Message):
                                   "(valid pixels within the vision range gate's search; with a confidence, only "
                                   "measured ones, not a dense matcher's fill) for this list")
     range_m: tuple[Metres, Metres] | None = Field(None, description="the distances this list looked at, m: "
-                                                  "[nearest, farthest] of the vision range. What is nearer or "
-                                                  "farther is not in the list, however clear it looks (None: not "
-                                                  "said)")
+                                                  "[nearest, farthest] of the vision range, or of the part of it "
+                                                  "the disparity search measures where the list says near- or "
+                                                  "far-unmeasured. What is nearer or farther is not in the list, "
+                                                  "however clear it looks (None: not said)")
     bearing_deg: tuple[Degrees90, Degrees90] | None = Field(
         None, description="the bearings this list looked at, deg from the optical axis, positive to the right "
         "(camera x): [leftmost, rightmost] image column the disparity search measures at every distance of "

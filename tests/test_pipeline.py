@@ -81,6 +81,7 @@ def test_a_matcher_gated_nearer_than_the_range_says_so_on_every_list(pairs):
             served = builder.process_message(wire, t_s=k / 30.0).obstacles
             for lst in (frame.result.obstacles, served):
                 assert ("far-unmeasured" in lst.degraded) == said, (gate_m, lst.degraded)
+                assert lst.range_m == pytest.approx((1.0, gate_m if said else range_m)), lst.range_m
         if said:
             assert f"nothing farther than {gate_m:.2f} m is measured" in builder.reach.message
             assert "max_range_m" in builder.reach.message and builder.reach.far_unmeasured

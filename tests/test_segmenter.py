@@ -909,6 +909,9 @@ def test_lists_say_when_the_search_or_its_gate_cannot_reach_the_far_part_of_the_
         assert lst.degraded == ["far-unmeasured"] and not b.reach.unreachable, lst.degraded
         dist = [round(o.distance_m, 1) for o in lst.obstacles]
         assert 1.5 in dist and max(dist) <= round(FB / 32, 1), dist  # the box at 3 m is in no list
+        # and the distances the list says it looked at end where the search does ("looked and saw
+        # nothing" up to 4.5 m was the lie)
+        assert lst.range_m == pytest.approx((1.0, FB / 32)), lst.range_m
     assert f"nothing farther than {FB / 32:.2f} m is measured" in b.reach.message
     assert "far-unmeasured" in b.reach.message and "lower min_disparity" in b.reach.message
     # the same through the disparity stage's gate (max_range_m 2 m), and both ends missed at once
@@ -919,12 +922,14 @@ def test_lists_say_when_the_search_or_its_gate_cannot_reach_the_far_part_of_the_
     both = ObstacleBuilder(SegmenterSettings())
     lst = both.process(gated, MODEL, t_s=0.0, seq=0, stamp_ns=0, search=(0, 32), gate_px=FB / 2.0).obstacles
     assert lst.degraded == ["near-unmeasured", "far-unmeasured"], lst.degraded
+    assert lst.range_m == pytest.approx((FB / 31, 2.0)), lst.range_m
     assert "nothing nearer than" in both.reach.message and "the disparity stage's max_range_m" in both.reach.message
     # the search reaching 4.4 m of a 4.5 m range: no news; an unreachable range is still said as such
     for search, gate, said in (((15, 144), 0.0, []), ((0, 144), FB / 4.4, []), ((0, 144), FB / 0.5, None)):
         lst = ObstacleBuilder(SegmenterSettings()).process(d, MODEL, t_s=0.0, seq=0, stamp_ns=0, search=search,
                                                            gate_px=gate).obstacles
         assert ("range-unreachable" in lst.degraded) if said is None else lst.degraded == said, (search, gate)
+        assert lst.range_m == (1.0, 4.5), (search, gate, lst.range_m)  # no reason said: the whole range
 
 
 @pytest.mark.parametrize("method", ["layers", "seed"])
@@ -936,7 +941,9 @@ def test_a_vision_range_from_zero_keeps_everything_near_and_says_the_search_cann
     b = ObstacleBuilder(SegmenterSettings(method=method, min_range_m=0.0, floor_removal=True))
     for k in range(2):
         lst = b.process(d, MODEL, t_s=k / 15, seq=k, stamp_ns=0, search=(0, 144)).obstacles
-        assert "near-unmeasured" in lst.degraded and lst.range_m == (0.0, 4.5 if method == "layers" else 3.0)
+        # (the list looked at what the search measures: from f*B/143 px)
+        assert "near-unmeasured" in lst.degraded
+        assert lst.range_m == pytest.approx((FB / 143, 4.5 if method == "layers" else 3.0)), lst.range_m
     if method == "layers":
         assert _depths([type("D", (), {"position_m": o.position_m})() for o in lst.obstacles]) == [2.0]
 

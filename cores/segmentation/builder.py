@@ -79,6 +79,17 @@ class Reach:
     message: str
     near_unmeasured: bool = False
     far_unmeasured: bool = False
+    near_m: float = 0.0  # the nearest and farthest depth the search measures, m
+    far_m: float = math.inf
+
+    def looked_at(self, lo: float, hi: float) -> tuple[float, float]:
+        """The part of the vision range lo..hi (m) a list from such a map looked at: where it says
+        near- or far-unmeasured, what the search measures of it ("looked and saw nothing" covers no
+        more); else lo..hi (a few centimetres short is no news)."""
+        if self.unreachable:
+            return lo, hi
+        return (max(lo, self.near_m) if self.near_unmeasured else lo,
+                min(hi, self.far_m) if self.far_unmeasured else hi)
 
 
 def view_bearings(model: camera.RectifiedModel, min_disparity: int, num_disparities: int) -> tuple[float, float]:
@@ -132,8 +143,9 @@ def search_reach(model: camera.RectifiedModel, min_disparity: int, num_dispariti
                     f"so every list says far-unmeasured ({lower}; or the segmenter's max_range_m to {far_m:.2f} m "
                     f"if nothing farther matters)")
     if said:
-        return Reach(False, f"{search}: " + "; and ".join(said), near_unmeasured=near, far_unmeasured=far)
-    return Reach(False, "")
+        return Reach(False, f"{search}: " + "; and ".join(said), near_unmeasured=near, far_unmeasured=far,
+                     near_m=near_m, far_m=far_m)
+    return Reach(False, "", near_m=near_m, far_m=far_m)
 
 
 def floor_in_view(floor: FloorPlane, model: camera.RectifiedModel, range_m: float) -> bool:
@@ -443,7 +455,7 @@ class ObstacleBuilder:
             degraded.append("noisy")  # dusk's gain: the matcher misses more and more of what stands there
         out = ObstacleList(robot_id=robot_id, seq=seq, stamp_ns=stamp_ns, stages=dict(stages or {}), publish_ns=now,
                            stale=stale, degraded=degraded, valid_fraction=valid_fraction, method=cfg.method,
-                           range_m=(cfg.min_range_m, cfg.range_for(model)),
+                           range_m=reach.looked_at(cfg.min_range_m, cfg.range_for(model)),
                            bearing_deg=None if search is None else view_bearings(model, *search),
                            obstacles=obstacles, ground=frame.ground,
                            mount=None if mount is None else mount.message(mount_source),
