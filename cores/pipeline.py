@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.messages import Odometry
+from common.messages import FrameChecks, Odometry
 from common.settings import MountSettings
 from cores import camera
 from cores.calibration.check import PairChecks
@@ -29,6 +29,20 @@ from cores.matching.config import MatcherConfig
 from cores.matching.stage import MatchStage, StageResult
 from cores.segmentation.builder import FrameResult, ObstacleBuilder
 from cores.segmentation.settings import SegmenterSettings
+
+
+@dataclass
+class MatchedPair:
+    """One pair through rectify and the disparity stage, as their services hand it on: the rectified
+    pair, the stage's result, rectify's checks of the pair (FrameChecks, which the map carries to the
+    segmenter), and the time each step took."""
+
+    left: np.ndarray
+    right: np.ndarray
+    stage: StageResult
+    checks: FrameChecks
+    rectify_ms: float
+    match_ms: float
 
 
 @dataclass
@@ -90,9 +104,9 @@ class Pipeline:
 
     def segment(self, stage: StageResult | np.ndarray, *, t_s: float, seq: int = 0, stamp_ns: int | None = None,
                 odometry: Odometry | None = None, image: np.ndarray | None = None,
-                confidence: np.ndarray | None = None) -> FrameResult:
+                confidence: np.ndarray | None = None, checks: FrameChecks | None = None) -> FrameResult:
         """A disparity (the stage's result, or a float px map with NaN invalid) -> the segmenter's
-        FrameResult. t_s: the pair's time (s, never going backwards)."""
+        FrameResult. t_s: the pair's time (s, never going backwards); checks: rectify's of the pair."""
         search = None
         if isinstance(stage, StageResult):
             disparity, confidence = stage.disparity_px(), stage.match.confidence
@@ -103,12 +117,13 @@ class Pipeline:
         return self.builder.process(disparity, self.model, t_s=t_s, seq=seq,
                                     stamp_ns=int(round(t_s * 1e9)) if stamp_ns is None else stamp_ns,
                                     confidence=confidence, odometry=odometry, image=image, search=search,
-                                    gate_px=gate_px)
+                                    gate_px=gate_px, checks=checks)
 
-    def process(self, left: np.ndarray, right: np.ndarray, *, t_s: float, seq: int = 0, stamp_ns: int | None = None,
-                odometry: Odometry | None = None, names: tuple[str, str] = ("left", "right"),
-                rectified: bool = False) -> PipelineFrame:
-        """One pair, raw (rectified=False) or already rectified, through the three steps."""
+    def front(self, left: np.ndarray, right: np.ndarray, *, t_s: float, stamp_ns: int | None = None,
+              names: tuple[str, str] = ("left", "right"), rectified: bool = False) -> MatchedPair:
+        """One pair, raw (rectified=False) or already rectified, through rectify (with its checks) and
+        the disparity stage: what the segmenter is handed. Stateful (rectify's checks watch the
+        stream's time): one stream in order."""
         stuck, blocked = self.checks.pictures(left, right, t_s)
         t0 = time.perf_counter()
         noise = self.checks.noise(left, right)  # the cameras' own pictures: the remap's interpolation smooths noise
@@ -123,11 +138,21 @@ class Pipeline:
         t1b = time.perf_counter()
         stage = self.match(left, right)
         t2 = time.perf_counter()
-        disparity = stage.disparity_px()
+        return MatchedPair(left, right, stage, self.checks.message(stuck, blocked, near, clipped, noise),
+                           (t1 - t0) * 1e3, (t2 - t1b) * 1e3)
+
+    def process(self, left: np.ndarray, right: np.ndarray, *, t_s: float, seq: int = 0, stamp_ns: int | None = None,
+                odometry: Odometry | None = None, names: tuple[str, str] = ("left", "right"),
+                rectified: bool = False) -> PipelineFrame:
+        """One pair, raw (rectified=False) or already rectified, through the three steps."""
+        stamp_ns = int(round(t_s * 1e9)) if stamp_ns is None else stamp_ns
+        m = self.front(left, right, t_s=t_s, stamp_ns=stamp_ns, names=names, rectified=rectified)
+        t2 = time.perf_counter()
+        disparity = m.stage.disparity_px()
         result = self.builder.process(disparity, self.model, t_s=t_s, seq=seq, stamp_ns=stamp_ns,
-                                      confidence=stage.match.confidence, odometry=odometry, image=left,
-                                      search=(stage.min_disparity, stage.num_disparities), gate_px=stage.gate_px,
-                                      checks=self.checks.message(stuck, blocked, near, clipped, noise))
+                                      confidence=m.stage.match.confidence, odometry=odometry, image=m.left,
+                                      search=(m.stage.min_disparity, m.stage.num_disparities),
+                                      gate_px=m.stage.gate_px, checks=m.checks)
         t3 = time.perf_counter()
-        return PipelineFrame(seq, left, right, stage, disparity, result, (t1 - t0) * 1e3, (t2 - t1b) * 1e3,
+        return PipelineFrame(seq, m.left, m.right, m.stage, disparity, result, m.rectify_ms, m.match_ms,
                              (t3 - t2) * 1e3)

@@ -59,7 +59,7 @@ import numpy as np
 
 import sim as S
 from common.files import output_folder, write_image
-from common.messages import GroundEstimate, Odometry
+from common.messages import FrameChecks, GroundEstimate, Odometry
 from common.settings import MountSettings
 from cores import camera
 from cores.matching.matchers import MatcherConfig
@@ -95,6 +95,8 @@ class EvalFrame:
     # num_disparities) the segmenter checks the vision range against
     confidence: np.ndarray | None = None
     search: tuple[int, int] | None = None
+    gate_px: float = 0.0  # the matcher's vision range gate (DisparityMap.gate_px; 0: none)
+    checks: FrameChecks | None = None  # rectify's checks of the pair (the noise, the near field, ...)
     # per truth: the ground outlines ((4, 2) base-frame (x, y), m) of its parts between STANDS_FROM_M and
     # STANDS_TO_M above the floor (SyntheticWorld.footprints): where it stands, which free space must never call free
     stands: list = field(default_factory=list)
@@ -216,15 +218,16 @@ def render_scenario(name: str | S.Scene, frames: int | None = None, fps: float |
     static = _truth_maps(world, 0.0, x_valid, band) if scene.is_static() else None
     for k in range(frames):
         t = k / fps
-        left, right = pipe.rectify(*world.render(t))
-        stage = pipe.match(left, right)
+        m = pipe.front(*world.render(t), t_s=t)  # rectify, with its checks, and match: as the services do
+        stage = m.stage
         kind, seen = static if static is not None else _truth_maps(world, t, x_valid, band)
         n = len(scene.boxes)
-        out.append(EvalFrame(t, left, stage.disparity_px(), world.truth(t), kind, [seen[i][:2] for i in range(n)],
+        out.append(EvalFrame(t, m.left, stage.disparity_px(), world.truth(t), kind, [seen[i][:2] for i in range(n)],
                              [seen[i][2] for i in range(n)], world.T_base_rect(t),
                              world.odometry(t) if scene.camera_moves() else None, stage.match.confidence,
                              (stage.min_disparity, stage.num_disparities),
-                             world.footprints(t, STANDS_FROM_M, STANDS_TO_M)))
+                             stands=world.footprints(t, STANDS_FROM_M, STANDS_TO_M), gate_px=stage.gate_px,
+                             checks=m.checks))
     return ScenarioData(scene.name, scene, pipe.model, mount_from_world(world), out, time.perf_counter() - t0)
 
 
@@ -418,7 +421,8 @@ def score_method(data: ScenarioData, method: str, overrides: dict | None = None,
                            angular_radps=_vec3(fr.odometry[1]), source="synthetic")
         t0 = time.perf_counter()
         res = builder.process(fr.disparity, data.model, t_s=fr.t_s, seq=k, stamp_ns=int(fr.t_s * 1e9), image=fr.left,
-                              odometry=odo, confidence=fr.confidence, search=fr.search)
+                              odometry=odo, confidence=fr.confidence, search=fr.search, gate_px=fr.gate_px,
+                              checks=fr.checks)
         sc._ms.append((time.perf_counter() - t0) * 1e3)
         obs = res.obstacles.obstacles
         g = res.obstacles.ground

@@ -164,6 +164,32 @@ def test_the_eval_segments_what_the_disparity_stage_hands_on():
     assert s.matched < s.truths and s.flagged_frames == s.frames and s.silent_misses == 0, s.to_dict()
 
 
+def test_the_eval_segments_with_the_gate_and_rectify_s_checks_the_services_hand_on():
+    """The rest of what the services hand the segmenter with a map: the disparity stage's vision range
+    gate (DisparityMap.gate_px) and rectify's checks of the pair (FrameChecks). The eval had dropped
+    both: a matcher gated at 1 m, nothing beyond measured, gave lists that said nothing; and a list
+    could never say what rectify finds (a noisy pair, what stands nearer than the range)."""
+    import dataclasses
+
+    from common.messages import FrameChecks
+    from cores.matching.matchers import MatcherConfig
+
+    data = E.render_scenario("toolbox", frames=2, matcher=MatcherConfig(max_range_m=1.0))
+    fB = data.model.focal_px * data.model.baseline_m
+    assert data.frames[0].gate_px == pytest.approx(fB / 1.0)
+    s = E.evaluate(["toolbox"], ["layers"], data={"toolbox": data})["overall"]["layers"]
+    assert s.flagged_frames == s.frames and s.silent_misses == 0, s.to_dict()
+    # rectify's checks measured each pair (the renderer's sensor noise: a daylight camera's)...
+    data = E.render_scenario("toolbox", frames=2)
+    checks = [f.checks for f in data.frames]
+    assert all(c is not None and 0.5 < c.noise_grey < 3.0 and c.near is not None for c in checks), checks
+    assert E.evaluate(["toolbox"], ["layers"], data={"toolbox": data})["overall"]["layers"].flagged_frames == 0
+    # ... and what they say reaches the lists the eval scores
+    data.frames[:] = [dataclasses.replace(f, checks=FrameChecks(noise_grey=9.0)) for f in data.frames]
+    s = E.evaluate(["toolbox"], ["layers"], data={"toolbox": data})["overall"]["layers"]
+    assert s.flagged_frames == s.frames, s.to_dict()
+
+
 # --- people close to a low camera (10 m range) ------------------------------------------------------
 
 PEOPLE = ["people-side", "people-side-far", "people-queue", "people-queue-far", "people-border"]
