@@ -160,8 +160,8 @@ class FrameChecks(BaseModel):
         "says camera-frozen. One frozen camera of two leaves the maps changing, so input-frozen cannot tell")
     blocked: list[Literal["left", "right"]] = Field(
         default_factory=list, max_length=2, description="cameras with a part of their view blocked (a finger, a "
-        "sticker, glare, grease: flat or blurred where the other camera sees texture) for over rectify's "
-        "frozen_after_s: each list says view-blocked; little or nothing standing there is measured")
+        "sticker, glare, grease: flat or blurred where the other camera sees texture), from the first pair "
+        "rectify sees it in: each list says view-blocked; little or nothing standing there is measured")
     near: NearField | None = Field(None, description="the pair's coarse wide disparity map (None: not checked): "
                                    "what stands nearer than the vision range shows here; each list says "
                                    "nearer-than-range")

@@ -77,9 +77,8 @@ class RectifySettings(ServiceSettings):
     frozen_after_s: float = Field(0.5, gt=0.0, le=3600.0, description="a camera whose picture has not changed, "
                                   "bit for bit, for this long while its stamps go on is frozen (a hung driver "
                                   "repeating its last buffer; a live camera's noise never repeats): every list says "
-                                  "camera-frozen; and one whose view has been partly blocked this long (flat where the "
-                                  "other camera sees texture: a finger on the lens) is blocked: every list says "
-                                  "view-blocked")
+                                  "camera-frozen (a view partly blocked, flat where the other camera sees texture, "
+                                  "is said at once: view-blocked)")
     near_check: bool = Field(True, description="match each rectified pair coarsely (a quarter of the resolution, from "
                              "each image) "
                              "over half the picture's width of disparity, so that what stands nearer than the vision "
