@@ -75,8 +75,9 @@ def matcher_alone(pairs: list, method: str, threads: int, seconds: float, model=
 
 def in_process_compute(frames: Frames, method: str, seconds: float) -> dict:
     """The pipeline's cores serially in this process, no messaging (cores/pipeline.py, with the
-    services' default settings but the method): rectify, disparity (OpenCV's default threads),
-    segmenter and tracking. -> per-stage median ms and their sum, the per-frame compute."""
+    services' default settings but the method): rectify with the checks on its frame path, disparity
+    (OpenCV's default threads), segmenter and tracking. -> per-stage median ms and their sum, the
+    per-frame compute."""
     from cores.matching.matchers import MatcherConfig
     from cores.pipeline import Pipeline
 
@@ -90,16 +91,13 @@ def in_process_compute(frames: Frames, method: str, seconds: float) -> dict:
     n = 0
     while time.perf_counter() < t_end or n < 5:
         left, right = frames.raw[n % len(frames.raw)]
-        marks = [(time.perf_counter(), time.process_time())]
-        l, r = pipe.rectify(left, right)
-        marks.append((time.perf_counter(), time.process_time()))
-        stage = pipe.match(l, r)
-        marks.append((time.perf_counter(), time.process_time()))
-        pipe.segment(stage, t_s=n / 30.0, seq=n, stamp_ns=0)
-        marks.append((time.perf_counter(), time.process_time()))
-        for s, (a, b) in zip(stages, zip(marks, marks[1:])):
-            times[s].append((b[0] - a[0]) * 1e3)
-            cpu[s] += (b[1] - a[1]) * 1e3
+        m = pipe.front(left, right, t_s=n / 30.0, stamp_ns=0)
+        t0, c0 = time.perf_counter(), time.process_time()
+        pipe.segment(m.stage, t_s=n / 30.0, seq=n, stamp_ns=0, image=m.left, checks=m.checks)
+        for s, ms, cpu_ms in (("rectify", m.rectify_ms, m.rectify_cpu_ms), ("disparity", m.match_ms, m.match_cpu_ms),
+                              ("segmenter", (time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3)):
+            times[s].append(ms)
+            cpu[s] += cpu_ms
         n += 1
     per_stage = {k: float(np.median(v)) for k, v in times.items()}
     total = sum(per_stage.values())
