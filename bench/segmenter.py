@@ -42,24 +42,34 @@ def _timed(run: Callable[[int], object], repeat: int) -> dict:
             "runs": repeat}
 
 
-def time_methods(disparities: list[np.ndarray], model, settings_for: Callable[[str], tuple],
+def segmenter_input(disparity: np.ndarray, stage, checks) -> tuple[np.ndarray, dict]:
+    """What the segmenter service is handed with a map (the DisparityMap message): the matcher's
+    confidence, its search and vision range gate (a StageResult's), rectify's checks of the pair."""
+    return disparity, {"confidence": stage.match.confidence, "search": (stage.min_disparity, stage.num_disparities),
+                       "gate_px": stage.gate_px, "checks": checks}
+
+
+def time_methods(inputs: list[tuple[np.ndarray, dict]], model, settings_for: Callable[[str], tuple],
                  matcher_ms: float, methods: list[str] | None, repeat: int) -> dict:
     """The segmenter's step of the pipeline as the service runs it (ObstacleBuilder.process: the
-    ground carried from frame to frame, tracks, free space) on the disparity maps in turn, one
-    stream per method (settings_for(method) -> (segmenter settings, mount settings)) -> per method
-    the time, its ratio to the matcher's (x_matcher) and the obstacles on the first map."""
+    ground carried from frame to frame, tracks, free space) on the maps in turn, each with what the
+    service is handed with it (segmenter_input), one stream per method (settings_for(method) ->
+    (segmenter settings, mount settings)) -> per method the time, its ratio to the matcher's
+    (x_matcher) and the obstacles on the first map."""
     from cores.segmentation.builder import ObstacleBuilder
 
     out = {}
     for method in methods or segmenter_methods():
-        first = ObstacleBuilder(*settings_for(method)).process(disparities[0], model, t_s=0.0, seq=0, stamp_ns=0)
+        first = ObstacleBuilder(*settings_for(method)).process(inputs[0][0], model, t_s=0.0, seq=0, stamp_ns=0,
+                                                                **inputs[0][1])
         builder = ObstacleBuilder(*settings_for(method))
         frame = iter(range(1 << 30))  # the stream's own frame count: its time never goes back
 
         # _timed calls step within this iteration only; the defaults bind this iteration's pair plainly
         def step(k: int, frame: Iterator[int] = frame, builder: ObstacleBuilder = builder) -> None:
             n = next(frame)
-            builder.process(disparities[k % len(disparities)], model, t_s=n / 15.0, seq=n, stamp_ns=0)
+            disparity, handed = inputs[k % len(inputs)]
+            builder.process(disparity, model, t_s=n / 15.0, seq=n, stamp_ns=0, **handed)
         r = _timed(step, repeat)
         r["x_matcher"] = r["ms_median"] / matcher_ms
         r["detections"] = len(first.obstacles.obstacles)
@@ -92,7 +102,9 @@ def bench_synthetic(scenario: str, methods: list[str] | None, repeat: int, frame
     return {"data": f"synthetic {scenario}", "image": f"{data.model.width}x{data.model.height}", "pairs": frames,
             "mount": f"exact ({mount.height_m:.2f} m, pitch {mount.pitch_deg:.1f} deg)",
             "matcher": {"method": cfg.method, "ms_median": matcher_ms},
-            "methods": time_methods([f.disparity for f in data.frames], data.model,
+            "methods": time_methods([(f.disparity, {"confidence": f.confidence, "search": f.search,
+                                                    "gate_px": f.gate_px, "checks": f.checks}) for f in data.frames],
+                                    data.model,
                                     lambda method: (SegmenterSettings(method=method),
                                                     MountSettings(height_m=mount.height_m,
                                                                   pitch_deg=mount.pitch_deg)),
@@ -121,8 +133,11 @@ def bench_real(folder: str | Path, methods: list[str] | None, repeat: int, pairs
     pipe = Pipeline(camera.load_calibration(cal_file), MatcherConfig())  # rectify and match as the services do
     files = pair_images(list_images(str(root / "left"), "--real DIR/left"),
                         list_images(str(root / "right"), "--real DIR/right"))[:max(1, pairs)]
-    rectified = [pipe.rectify(read_image(lp), read_image(rp), (str(lp), str(rp))) for lp, rp in files]
-    disparities = [pipe.match(left, right).disparity_px() for left, right in rectified]
+    # rectified, checked and matched as the services do (each pair a moment later on the stream's clock)
+    matched = [pipe.front(read_image(lp), read_image(rp), t_s=k / 10.0, names=(str(lp), str(rp)))
+               for k, (lp, rp) in enumerate(files)]
+    rectified = [(m.left, m.right) for m in matched]
+    inputs = [segmenter_input(m.stage.disparity_px(), m.stage, m.checks) for m in matched]
     model = pipe.model
     cfg = pipe.matching.config
     matcher_ms = _matcher_ms(pipe.matching.matcher(model.focal_px, model.baseline_m, model.width), rectified, repeat)
@@ -130,7 +145,7 @@ def bench_real(folder: str | Path, methods: list[str] | None, repeat: int, pairs
             "folder": str(root), "image": f"{model.width}x{model.height}", "pairs": len(files),
             "mount": "unknown (none configured: the floor is fitted without a prior)", "max_range_m": max_range_m,
             "matcher": {"method": cfg.method, "ms_median": matcher_ms},
-            "methods": time_methods(disparities, model,
+            "methods": time_methods(inputs, model,
                                     lambda method: (SegmenterSettings(method=method, max_range_m=max_range_m),
                                                     MountSettings()),
                                     matcher_ms, methods, repeat)}
