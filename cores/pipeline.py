@@ -126,22 +126,22 @@ class Pipeline:
         """One pair, raw (rectified=False) or already rectified, through rectify (with its checks) and
         the disparity stage: what the segmenter is handed. Stateful (rectify's checks watch the
         stream's time): one stream in order."""
+        stamp = int(round(t_s * 1e9)) if stamp_ns is None else stamp_ns
+
+        def rows(lf: np.ndarray, rt: np.ndarray) -> None:
+            # on stream time, in line: the service runs it in a thread of the same process (its wall time
+            # is off the frame path there, its CPU is not: timed here as rectify's, once a row_check_s)
+            self.checks.rows.observe(lf, rt, t_s, stamp)
+
         t0, c0 = time.perf_counter(), time.process_time()
-        stuck, blocked = self.checks.pictures(left, right, t_s)
-        noise = self.checks.noise(left, right)  # the cameras' own pictures: the remap's interpolation smooths noise
-        if not rectified:
-            left, right = self.rectify(left, right, names)
-        near = self.checks.near_field(left, right, self.model)  # rectify's, on its frame path: timed as rectify
-        clipped = self.checks.clipped(left, right)
+        left, right, checks = self.checks.frame(
+            left, right, t_s, (lambda lf, rt: (lf, rt)) if rectified else (lambda lf, rt: self.rectify(lf, rt, names)),
+            self.model, rows)
         t1, c1 = time.perf_counter(), time.process_time()
-        stamp_ns = int(round(t_s * 1e9)) if stamp_ns is None else stamp_ns
-        if not stuck:  # a frozen camera's pair is of two moments: its rows say nothing of the rig
-            self.checks.rows.observe(left, right, t_s, stamp_ns)  # rectify checks off its frame path: not timed
-        t1b, c1b = time.perf_counter(), time.process_time()
         stage = self.match(left, right)
         t2, c2 = time.perf_counter(), time.process_time()
-        return MatchedPair(left, right, stage, self.checks.message(stuck, blocked, near, clipped, noise),
-                           (t1 - t0) * 1e3, (t2 - t1b) * 1e3, (c1 - c0) * 1e3, (c2 - c1b) * 1e3)
+        return MatchedPair(left, right, stage, checks, (t1 - t0) * 1e3, (t2 - t1) * 1e3, (c1 - c0) * 1e3,
+                           (c2 - c1) * 1e3)
 
     def process(self, left: np.ndarray, right: np.ndarray, *, t_s: float, seq: int = 0, stamp_ns: int | None = None,
                 odometry: Odometry | None = None, names: tuple[str, str] = ("left", "right"),

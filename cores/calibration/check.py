@@ -6,6 +6,7 @@ better than the second best (Lowe's ratio test). No CLI and no Zenoh here.
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
 
@@ -408,6 +409,24 @@ class PairChecks:
         left_stuck = self._pictures[0].frozen(left, t_s)  # both look at every pair: each keeps its history
         right_stuck = self._pictures[1].frozen(right, t_s)
         return _cameras(left_stuck, right_stuck), self._view.blocked(left, right, t_s)
+
+    def frame(self, left: np.ndarray, right: np.ndarray, t_s: float,
+              rectify: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]],
+              view: camera.RectifiedModel, rows: Callable[[np.ndarray, np.ndarray], None]
+              ) -> tuple[np.ndarray, np.ndarray, FrameChecks]:
+        """rectify's frame path, as the rectify service and the in-process pipeline both run it: the
+        raw pair's checks (frozen, blocked: on the stream's clock t_s; the sensor noise: the remap's
+        interpolation smooths it, by up to 3x), `rectify` (raw -> rectified pair of the camera
+        `view`), the rectified pair handed to `rows` (the row check, which each runs off its frame
+        path; not for a frozen camera's pair, which is of two moments), its near field and clipped
+        tiles. -> (rectified left, right, the FrameChecks the pair and its map carry)."""
+        stuck, blocked = self.pictures(left, right, t_s)
+        noise = self.noise(left, right)
+        left, right = rectify(left, right)
+        if not stuck:
+            rows(left, right)
+        near = self.near_field(left, right, view)
+        return left, right, self.message(stuck, blocked, near, self.clipped(left, right), noise)
 
     def message(self, frozen: list[Camera], blocked: list[Camera] | None = None,
                 near: NearField | None = None, clipped: ClippedTiles | None = None,

@@ -316,27 +316,23 @@ def run(node: Node, settings: RectifySettings) -> None:
                 rows_generation = holder.generation
             left = codec.array_from_image(msg.left, "left")
             right = codec.array_from_image(msg.right, "right")
-            now = time.monotonic()
-            stuck, blocked = checks.pictures(left, right, now)
+            def offer(lf: np.ndarray, rt: np.ndarray, stamp_ns: int = msg.stamp_ns) -> None:
+                rows.offer(lf, rt, time.monotonic(), stamp_ns)  # checked off the frame path
+            rl, rr, pair_checks = checks.frame(left, right, time.monotonic(), rectifier.rectify, rectifier.model,
+                                               offer)
+            holder.mark_used()
             said_frozen = _say_cameras(
-                node, "frozen", stuck, said_frozen,
+                node, "frozen", pair_checks.frozen, said_frozen,
                 f"the {{cameras}} camera's picture has not changed for over {settings.frozen_after_s:g} s while its "
                 f"stamps go on: its driver repeats one buffer; every list says camera-frozen",
                 "both cameras' pictures change again")
             said_blocked = _say_cameras(
-                node, "blocked", blocked, said_blocked,
+                node, "blocked", pair_checks.blocked, said_blocked,
                 "part of the {cameras} camera's view is flat or blurred where the other camera sees texture (a "
                 "finger, a sticker, glare, grease on the lens?): little or nothing there is measured; every list "
                 "says view-blocked",
                 "both cameras see the whole view again")
-            noise = checks.noise(left, right)  # the cameras' own pictures: the remap's interpolation smooths noise
-            rl, rr = rectifier.rectify(left, right)
-            holder.mark_used()
-            if not stuck:  # a frozen camera's pair is of two moments: its rows say nothing of the rig
-                rows.offer(rl, rr, time.monotonic(), msg.stamp_ns)
-            near = checks.near_field(rl, rr, rectifier.model)
-            clipped = checks.clipped(rl, rr)
             out.put(StereoFrame(robot_id=msg.robot_id, seq=msg.seq, stamp_ns=msg.stamp_ns, stages=msg.stages,
                                 left=codec.image_from_array(rl), right=codec.image_from_array(rr),
                                 camera=rectifier.model_message, source=msg.source,
-                                checks=checks.message(stuck, blocked, near, clipped, noise)))
+                                checks=pair_checks))
