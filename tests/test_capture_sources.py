@@ -508,3 +508,20 @@ def test_run_capture_images_publishes_pairs_over_zenoh_then_idles_at_end_of_stre
             if p.poll() is None:
                 p.kill()
                 p.wait()
+
+
+def test_a_looped_synthetic_preload_never_repeats_a_picture_bit_for_bit():
+    """`--preload N` loops N rendered pairs. A stage that, under load, sees only every N-th pair (the
+    bench offering 40-100 pairs/s) saw one picture again and again, and rectify's frozen-camera check
+    said camera-frozen on a live source. Each lap is stamped into the pictures: no two pairs are equal,
+    and the check, fed every 4th pair of a 4-pair loop for 2 s, never says frozen."""
+    from cores.calibration.check import PairChecks
+    from services.capture.sources import SyntheticSource
+
+    src = SyntheticSource("two-boxes", "lifecam-studio", 30.0, preload=4)
+    pairs = [src.read() for _ in range(48)]
+    assert not any(np.array_equal(pairs[0].left, pairs[k].left) for k in range(4, 48, 4))
+    assert np.count_nonzero(pairs[0].left != pairs[4].left) <= 4  # four bytes of the top-left corner
+    checks = PairChecks(frozen_after_s=0.5)
+    said = [checks.pictures(p.left, p.right, t_s=k / 6.0)[0] for k, p in enumerate(pairs[::4])]
+    assert not any(said), said
