@@ -251,8 +251,9 @@ class BlockedView:
     tile with the right's and the one to its left), and a near thing seen in different tiles by the
     two cameras does not count. A camera whose blocked tiles cover SHARE of its picture is blocked,
     from the first pair it is seen in: a finger on the lens when the robot starts, or a splash, hides
-    what stands there from that pair on (the verdict had waited frozen_after_s, 0.5 s: seven lists of
-    the street with a finger over a third of the left picture missed what it hid and said nothing;
+    what stands there from that pair on (the verdict had waited frozen_after_s, 0.5 s: the street's
+    first six lists, at 10 pairs/s, with a finger over a third of the left picture missed what it hid
+    and said nothing;
     no pair of either recording comes near SHARE, so the wait guarded against nothing). Measured on
     the recordings: at most 4.2 % of the tiles (karlsruhe) and 5.2 %
     (euroc: its window saturates in one camera only) by what one camera sees and the other does not;
