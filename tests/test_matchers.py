@@ -213,14 +213,18 @@ def test_exposure_maps_a_brighter_right_image_onto_the_left_and_leaves_a_matched
 
 
 @pytest.mark.parametrize("method", ["sgbm", "dense"])
-def test_a_brighter_right_camera_costs_the_stage_almost_nothing(scene, method):
+@pytest.mark.parametrize("gain, offset", [(1.6, 10.0), (0.25, 0.0)])
+def test_a_brighter_right_camera_costs_the_stage_almost_nothing(scene, method, gain, offset):
     """Semi-global matching costs see grey levels: with the right image 1.6 times brighter (+10) sgbm
     measured a third of the street (karlsruhe) and put a phantom on the road, unflagged. Through the
     stage the pair is matched after the right image is brought to the left's levels: it measures
-    within a few percent of what the matched pair gives, and as accurately."""
+    within a few percent of what the matched pair gives, and as accurately. Also with the right
+    camera two stops darker (a quarter: its auto exposure facing a window), which had been left alone
+    as no exposure's: on the street sgbm then listed half as many again, kept 71 % of what it lists
+    in daylight, and 11 of 14 lists said nothing."""
     left, right, gt, model = scene
     stage = MatchStage(MatcherConfig(method=method))
-    bright = np.clip(right.astype(np.float32) * 1.6 + 10, 0, 255).astype(np.uint8)
+    bright = np.clip(right.astype(np.float32) * gain + offset, 0, 255).astype(np.uint8)
 
     def measured(r):
         res = stage.compute(left, r, model.focal_px, model.baseline_m)
