@@ -42,18 +42,12 @@ def _timed(run: Callable[[int], object], repeat: int) -> dict:
             "runs": repeat}
 
 
-def segmenter_input(disparity: np.ndarray, stage, checks) -> tuple[np.ndarray, dict]:
-    """What the segmenter service is handed with a map (the DisparityMap message): the matcher's
-    confidence, its search and vision range gate (a StageResult's), rectify's checks of the pair."""
-    return disparity, {"confidence": stage.match.confidence, "search": (stage.min_disparity, stage.num_disparities),
-                       "gate_px": stage.gate_px, "checks": checks}
-
-
 def time_methods(inputs: list[tuple[np.ndarray, dict]], model, settings_for: Callable[[str], tuple],
                  matcher_ms: float, methods: list[str] | None, repeat: int) -> dict:
     """The segmenter's step of the pipeline as the service runs it (ObstacleBuilder.process: the
     ground carried from frame to frame, tracks, free space) on the maps in turn, each with what the
-    service is handed with it (segmenter_input), one stream per method (settings_for(method) ->
+    service is handed with it (the DisparityMap's confidence, search, gate and rectify's checks: as
+    ObstacleBuilder.process takes them), one stream per method (settings_for(method) ->
     (segmenter settings, mount settings)) -> per method the time, its ratio to the matcher's
     (x_matcher) and the obstacles on the first map."""
     from cores.segmentation.builder import ObstacleBuilder
@@ -102,9 +96,7 @@ def bench_synthetic(scenario: str, methods: list[str] | None, repeat: int, frame
     return {"data": f"synthetic {scenario}", "image": f"{data.model.width}x{data.model.height}", "pairs": frames,
             "mount": f"exact ({mount.height_m:.2f} m, pitch {mount.pitch_deg:.1f} deg)",
             "matcher": {"method": cfg.method, "ms_median": matcher_ms},
-            "methods": time_methods([(f.disparity, {"confidence": f.confidence, "search": f.search,
-                                                    "gate_px": f.gate_px, "checks": f.checks}) for f in data.frames],
-                                    data.model,
+            "methods": time_methods([(f.disparity, f.handed()) for f in data.frames], data.model,
                                     lambda method: (SegmenterSettings(method=method),
                                                     MountSettings(height_m=mount.height_m,
                                                                   pitch_deg=mount.pitch_deg)),
@@ -137,7 +129,7 @@ def bench_real(folder: str | Path, methods: list[str] | None, repeat: int, pairs
     matched = [pipe.front(read_image(lp), read_image(rp), t_s=k / 10.0, names=(str(lp), str(rp)))
                for k, (lp, rp) in enumerate(files)]
     rectified = [(m.left, m.right) for m in matched]
-    inputs = [segmenter_input(m.stage.disparity_px(), m.stage, m.checks) for m in matched]
+    inputs = [(m.stage.disparity_px(), {**m.stage.handed(), "checks": m.checks}) for m in matched]
     model = pipe.model
     cfg = pipe.matching.config
     matcher_ms = _matcher_ms(pipe.matching.matcher(model.focal_px, model.baseline_m, model.width), rectified, repeat)

@@ -109,17 +109,13 @@ class Pipeline:
                 confidence: np.ndarray | None = None, checks: FrameChecks | None = None) -> FrameResult:
         """A disparity (the stage's result, or a float px map with NaN invalid) -> the segmenter's
         FrameResult. t_s: the pair's time (s, never going backwards); checks: rectify's of the pair."""
-        search = None
         if isinstance(stage, StageResult):
-            disparity, confidence = stage.disparity_px(), stage.match.confidence
-            search = (stage.min_disparity, stage.num_disparities)
-            gate_px = stage.gate_px
+            disparity, handed = stage.disparity_px(), stage.handed()
         else:
-            disparity, gate_px = stage, 0.0
+            disparity, handed = stage, {"confidence": confidence}
         return self.builder.process(disparity, self.model, t_s=t_s, seq=seq,
                                     stamp_ns=int(round(t_s * 1e9)) if stamp_ns is None else stamp_ns,
-                                    confidence=confidence, odometry=odometry, image=image, search=search,
-                                    gate_px=gate_px, checks=checks)
+                                    odometry=odometry, image=image, checks=checks, **handed)
 
     def front(self, left: np.ndarray, right: np.ndarray, *, t_s: float, stamp_ns: int | None = None,
               names: tuple[str, str] = ("left", "right"), rectified: bool = False) -> MatchedPair:
@@ -151,10 +147,8 @@ class Pipeline:
         m = self.front(left, right, t_s=t_s, stamp_ns=stamp_ns, names=names, rectified=rectified)
         t2 = time.perf_counter()
         disparity = m.stage.disparity_px()
-        result = self.builder.process(disparity, self.model, t_s=t_s, seq=seq, stamp_ns=stamp_ns,
-                                      confidence=m.stage.match.confidence, odometry=odometry, image=m.left,
-                                      search=(m.stage.min_disparity, m.stage.num_disparities),
-                                      gate_px=m.stage.gate_px, checks=m.checks)
+        result = self.builder.process(disparity, self.model, t_s=t_s, seq=seq, stamp_ns=stamp_ns, odometry=odometry,
+                                      image=m.left, checks=m.checks, **m.stage.handed())
         t3 = time.perf_counter()
         return PipelineFrame(seq, m.left, m.right, m.stage, disparity, result, m.rectify_ms, m.match_ms,
                              (t3 - t2) * 1e3)

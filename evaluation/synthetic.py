@@ -101,6 +101,10 @@ class EvalFrame:
     # STANDS_TO_M above the floor (SyntheticWorld.footprints): where it stands, which free space must never call free
     stands: list = field(default_factory=list)
 
+    def handed(self) -> dict:
+        """What the services hand the segmenter with the map, as ObstacleBuilder.process takes it."""
+        return {"confidence": self.confidence, "search": self.search, "gate_px": self.gate_px, "checks": self.checks}
+
     @property
     def mount(self) -> Mount:
         """The camera's true mount at this frame (height, pitch, roll of the swaying camera)."""
@@ -421,8 +425,7 @@ def score_method(data: ScenarioData, method: str, overrides: dict | None = None,
                            angular_radps=_vec3(fr.odometry[1]), source="synthetic")
         t0 = time.perf_counter()
         res = builder.process(fr.disparity, data.model, t_s=fr.t_s, seq=k, stamp_ns=int(fr.t_s * 1e9), image=fr.left,
-                              odometry=odo, confidence=fr.confidence, search=fr.search, gate_px=fr.gate_px,
-                              checks=fr.checks)
+                              odometry=odo, **fr.handed())
         sc._ms.append((time.perf_counter() - t0) * 1e3)
         obs = res.obstacles.obstacles
         g = res.obstacles.ground

@@ -38,6 +38,12 @@ class StageResult:
     def invalid_value(self) -> int:
         return self.config.invalid_value
 
+    def handed(self) -> dict[str, Any]:
+        """What the disparity message carries to the segmenter beside the map (DisparityMap's
+        confidence, search and gate_px), as ObstacleBuilder.process takes it."""
+        return {"confidence": self.match.confidence, "search": (self.min_disparity, self.num_disparities),
+                "gate_px": self.gate_px}
+
     def disparity_px(self) -> np.ndarray:
         """(H, W) float32 px, NaN where invalid or outside the stated range: what a consumer of the
         DisparityMap gets (cores/segmentation/builder.py decodes it the same way)."""
