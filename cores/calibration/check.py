@@ -253,9 +253,8 @@ class BlockedView:
     from the first pair it is seen in: a finger on the lens when the robot starts, or a splash, hides
     what stands there from that pair on (the verdict had waited frozen_after_s, 0.5 s: the street's
     first six lists, at 10 pairs/s, with a finger over a third of the left picture missed what it hid
-    and said nothing;
-    no pair of either recording comes near SHARE, so the wait guarded against nothing). Measured on
-    the recordings: at most 4.2 % of the tiles (karlsruhe) and 5.2 %
+    and said nothing; no pair of either recording comes near SHARE, so the wait guarded against
+    nothing). Measured on the recordings: at most 4.2 % of the tiles (karlsruhe) and 5.2 %
     (euroc: its window saturates in one camera only) by what one camera sees and the other does not;
     none on the synthetic scenes; the blob above, 13.5-15.6 %. A blurred patch (a smudge of grease)
     keeps too much of that texture to be told this way, yet the matcher loses what is behind it
