@@ -214,13 +214,21 @@ async function render(doc, blobs) {
   // Every picture is decoded first and then all is drawn in one go, and window.viewer changes with it:
   // a reader between the awaits (a test, the console, the screen) never sees this update's picture
   // with the last update's boxes, or this update's boxes beside the last update's document.
+  // A bitmap holds decoded pixels outside the JavaScript heap until closed: each is closed whatever
+  // happens, also when another picture of the update would not decode or drawing throws.
   const decode = (blob) => (blob ? createImageBitmap(blob) : null);
-  const [left, disparity, fs] = await Promise.all([decode(blobs.left), decode(blobs.disparity), decode(blobs.freespace)]);
+  const settled = await Promise.allSettled([decode(blobs.left), decode(blobs.disparity), decode(blobs.freespace)]);
+  const [left, disparity, fs] = settled.map((r) => (r.status === "fulfilled" ? r.value : null));
   let drawn = null;
-  if (left) drawn = drawBoxes(paint($("image"), left), doc);
-  if (disparity) paint($("disparity"), disparity);
-  drawMap(doc, fs);
-  for (const bitmap of [left, disparity, fs]) if (bitmap) bitmap.close();
+  try {
+    const broken = settled.find((r) => r.status === "rejected");
+    if (broken) throw broken.reason;
+    if (left) drawn = drawBoxes(paint($("image"), left), doc);
+    if (disparity) paint($("disparity"), disparity);
+    drawMap(doc, fs);
+  } finally {
+    for (const bitmap of [left, disparity, fs]) if (bitmap) bitmap.close();
+  }
   drawInfo(doc);
   const stamp = doc.obstacles && doc.image && doc.image.matched ? doc.obstacles.stamp_ns : (doc.image ? doc.image.stamp_ns : null);
   if (stamp !== null) {
