@@ -69,9 +69,10 @@ class MountSettings(ServiceSettings):
     y_m: float = Field(0.0, ge=-10, le=10, description="camera position left of the base origin, m")
     pivot_height_m: float | None = Field(None, ge=0, le=20, description="a balancing robot leans about this "
                                          "point on the base z axis (a ballbot's ball centre), m: the lean the "
-                                         "ground shows (its pitch and roll against the ones above) carries the "
-                                         "camera over the floor, by (height - pivot) sin(lean); null: the "
-                                         "camera turns on the spot. Needs height_m")
+                                         "ground shows carries the camera over the floor, by (height - pivot) "
+                                         "sin(lean), the lean measured from the robot's upright: the ground's "
+                                         "average over the last seconds, starting at the height, pitch and roll "
+                                         "above; null: the camera turns on the spot")
 
 
 # A setting that moved: (section, old field) -> where it is now. Named in the error, not ignored.

@@ -20,7 +20,7 @@ from cores.calibration.check import SWAPPED_SHARE
 from cores.matching.disparity import FrozenInput, RecentValid, searched_range, to_float
 from cores.segmentation import freespace, layers, seed, stats
 from cores.segmentation.blank import MEASURED
-from cores.segmentation.ground import TRUSTED, GroundEstimator, frame_mount
+from cores.segmentation.ground import TRUSTED, GroundEstimator, Upright, frame_mount
 from cores.segmentation.mount import FloorPlane, Mount
 from cores.segmentation.near import NearStanding, near_standing
 from cores.segmentation.seed import Detection
@@ -184,6 +184,8 @@ class ObstacleBuilder:
         self.configured = mount or MountSettings()
         self.mount = Mount.of(self.configured)
         self.ground = GroundEstimator(settings, self.mount)
+        # a balancing robot (a pivot configured): the upright mount its lean is measured from, from the data
+        self.upright = Upright(self.mount) if self.configured.pivot_height_m is not None else None
         self.tracker = Tracker(settings.track_gate_m, settings.track_timeout_s,
                                max_speed_mps=settings.track_max_speed_mps, confirm_m=settings.track_confirm_m,
                                confirm_n=settings.track_confirm_n)
@@ -350,7 +352,10 @@ class ObstacleBuilder:
             if inf.any():  # an infinite disparity is no measurement (nor a point at zero distance)
                 disparity = np.where(inf, np.float32(np.nan), disparity)
         frame = self.segment(disparity, model, confidence, image)
-        mount, mount_source = frame_mount(frame.ground, self.configured)
+        if self.upright is not None:
+            self.upright.update(frame.ground, t_s)
+        mount, mount_source = frame_mount(frame.ground, self.configured,
+                                          None if self.upright is None else self.upright.mount(self.configured))
         track_frame = "base" if mount is not None else "camera"
         if track_frame != self._track_frame:
             self.tracker.clear()  # positions of one frame mean nothing in the other

@@ -35,6 +35,7 @@ vision range says so (prior_agrees false, low confidence: the list is degraded "
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -131,14 +132,67 @@ def plane_from_mount(mount: Mount, model: camera.RectifiedModel) -> FloorPlane:
                                   model.baseline_m)
 
 
-def frame_mount(ground: GroundEstimate | None, configured: MountSettings) -> tuple[Mount | None, str]:
+UPRIGHT_TAU_S = 5.0  # time constant of the upright mount's average: a lean at 0.5 Hz ripples it by 1/16 of itself
+UPRIGHT_OFF_DEG = 3.0  # an upright this far from the configured mount's pitch or roll is said, once
+
+
+class Upright:
+    """Where a balancing robot's camera sits when the robot stands upright, from the data. It leans
+    all the time, but about upright: the ground's height, pitch and roll averaged over time (an
+    exponential average with time constant UPRIGHT_TAU_S, of the frames with a fitted ground) are
+    the upright mount's. The average starts at the configured mount (none configured: at the first
+    fitted ground) and moves to the data's, so a mount guessed a few degrees off stops placing the
+    camera by a wrong lean: 8 deg about a ball 0.15 m up put a camera 0.9 m high 10 cm off over the
+    floor, and the free space under what stood there."""
+
+    def __init__(self, configured: Mount | None, tau_s: float = UPRIGHT_TAU_S):
+        self.configured, self.tau_s = configured, tau_s
+        self.value = None if configured is None else \
+            np.array([configured.height_m, configured.pitch_deg, configured.roll_deg], float)
+        self._t: float | None = None  # the last fitted frame's time
+        self._span_s = 0.0  # the time the data have been averaged over
+        self._logged = False
+
+    def update(self, ground: GroundEstimate | None, t_s: float) -> None:
+        """One frame's ground estimate at t_s (s, a clock that never goes backwards)."""
+        if ground is None or ground.source != "fitted":
+            return
+        x = np.array([ground.height_m, ground.pitch_deg, ground.roll_deg], float)
+        if self.value is None:
+            self.value = x
+        elif self._t is not None:
+            dt = max(0.0, t_s - self._t)
+            self.value = self.value + (1.0 - math.exp(-dt / self.tau_s)) * (x - self.value)
+            self._span_s += dt
+        self._t = t_s
+        c = self.configured
+        if c is not None and not self._logged and self._span_s >= self.tau_s and \
+                max(abs(self.value[1] - c.pitch_deg), abs(self.value[2] - c.roll_deg)) > UPRIGHT_OFF_DEG:
+            self._logged = True
+            log.warning("segmenter: the robot leans about pitch %+.1f deg, roll %+.1f deg on average, the configured "
+                        "mount says %+.1f, %+.1f: the camera is placed by its lean from the average (measure the "
+                        "mount, e.g. `ballbot-vision mount estimate --write`)", self.value[1], self.value[2],
+                        c.pitch_deg, c.roll_deg)
+
+    def mount(self, configured: MountSettings) -> Mount | None:
+        """The upright mount: the average's height, pitch and roll, the configured yaw and offsets
+        (None before any estimate)."""
+        if self.value is None:
+            return None
+        h, p, r = (float(v) for v in self.value)
+        return Mount(h, p, configured.yaw_deg, r, configured.x_m, configured.y_m)
+
+
+def frame_mount(ground: GroundEstimate | None, configured: MountSettings,
+                upright: Mount | None = None) -> tuple[Mount | None, str]:
     """Where the camera sat on the robot for one frame, and whence: the height, pitch and roll of the
     frame's ground estimate with the configured yaw and offsets (which the ground cannot tell; with a
-    pivot_height_m, the offsets the lean about it carries the camera to): "ground"; without an
+    pivot_height_m, the offsets the lean about it carries the camera to, the lean measured from
+    `upright`, the robot's upright mount: Upright's, else the configured one): "ground"; without an
     estimate, the configured mount: "configured" (None: unknown). The segmenter's base frame comes
     from here and travels with its list (ObstacleList.mount)."""
     if ground is not None and ground.source != "none":
-        upright, pivot = Mount.of(configured), configured.pivot_height_m
+        upright, pivot = upright or Mount.of(configured), configured.pivot_height_m
         if upright is not None and pivot is not None:  # a lean about the pivot moves the camera too
             return upright.leaned(ground.height_m, ground.pitch_deg, ground.roll_deg, pivot), "ground"
         return Mount(ground.height_m, ground.pitch_deg, configured.yaw_deg, ground.roll_deg, configured.x_m,
