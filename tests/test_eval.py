@@ -220,6 +220,16 @@ def test_people_one_behind_another_are_separate_obstacles(people):
     assert far.precision == 1.0
 
 
+def test_people_side_by_side_stay_apart_with_the_wall_behind_them_in_range():
+    """The far pairs with a 20 m range (the scene's is 10 m): the wall at 12 m, seen between the two
+    of a pair one disparity bin farther, joins them on the column-disparity grid; the depth split
+    takes the wall off, and each layer is cut again into the things it holds apart. Before, each
+    pair was one obstacle matched to one of them: 3 of 12 people in no list, nothing said."""
+    data = E.render_scenario("people-side-far", frames=2)
+    s = E.score_method(data, "layers", {"max_range_m": 20.0}, eval_range_m=10.0)
+    assert s.matched == s.truths == 8 and s.silent_misses == 0, s.to_dict()
+
+
 @pytest.mark.xfail(strict=True, reason="9 m from the lifecam rig (f B = 64 px m) 0.55 m of depth is 0.43 px of "
                    "disparity, within block matching's noise on a person (their disparities spread over ~0.5 px): "
                    "the two are one obstacle")
