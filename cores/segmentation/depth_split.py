@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 
 from cores import camera
+from cores.segmentation.cells import LOW_M
 from cores.segmentation.settings import SegmenterSettings
 
 _LAYER_BIN_PX = 1.0 / 16.0  # disparity histogram bins of the layer split: the matchers' sub-pixel step
@@ -142,7 +143,7 @@ def split_layers(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, lab: np.ndarray
             next_label += 1
             todo += [(far, level + 1), (near, level + 1)]
     if family:
-        apart(ys, xs, dv, out, family, cfg, model, step, next_label)
+        apart(ys, xs, dv, out, family, cfg, model, step, next_label, heights)
     return out, family
 
 
@@ -150,11 +151,14 @@ _SQUARE = np.ones((3, 3), np.uint8)
 
 
 def apart(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, out: np.ndarray, family: dict[int, int],
-          cfg: SegmenterSettings, model: camera.RectifiedModel, step: int, next_label: int) -> int:
+          cfg: SegmenterSettings, model: camera.RectifiedModel, step: int, next_label: int,
+          heights: np.ndarray | None = None) -> int:
     """Each layer of a split group, in place in `out` (labels) and `family`, as the things it holds
     apart: its occupied cells of the column-disparity grid grouped again as _group groups them
-    (cells that touch, one cell of slack), each group holding layer_min_area_m2 of surface a label
-    of its own in the same family (the rest stays with the largest). Before the split the farther
+    (cells that touch, one cell of slack), each group holding layer_min_area_m2 of surface and
+    standing up past LOW_M (heights: above the floor; a kerb's or a snow bank's stretch stays where
+    it was, as cells.py keeps low things with what they touch) a label of its own in the same family
+    (the rest stays with the largest). Before the split the farther
     layer joined the nearer things across itself: two people side by side 7 m from a low camera, the
     wall at 12 m seen between them one disparity bin farther, were one group and, the wall split
     off, one obstacle (people-side-far with a 20 m range: 3 of 12 people in no list, nothing said).
@@ -179,7 +183,7 @@ def apart(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, out: np.ndarray, famil
         area[0] = 0.0
         largest = int(np.argmax(area))
         for c in np.flatnonzero(area >= cfg.layer_min_area_m2).tolist():
-            if c != largest:
+            if c != largest and (heights is None or float(np.percentile(heights[idx[comp == c]], 95)) >= LOW_M):
                 out[idx[comp == c]] = next_label
                 family[next_label] = family[label]
                 next_label += 1
