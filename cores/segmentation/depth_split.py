@@ -4,11 +4,10 @@ draws across an occlusion is two things one behind the other (split_layers has t
 """
 from __future__ import annotations
 
-import cv2
 import numpy as np
 
 from cores import camera
-from cores.segmentation.cells import LOW_M
+from cores.segmentation.cells import LOW_M, group_cells
 from cores.segmentation.settings import SegmenterSettings
 
 _LAYER_BIN_PX = 1.0 / 16.0  # disparity histogram bins of the layer split: the matchers' sub-pixel step
@@ -147,12 +146,9 @@ def split_layers(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, lab: np.ndarray
     return out, family
 
 
-_SQUARE = np.ones((3, 3), np.uint8)
-
-
 def apart(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, out: np.ndarray, family: dict[int, int],
           cfg: SegmenterSettings, model: camera.RectifiedModel, step: int, next_label: int,
-          heights: np.ndarray | None = None) -> int:
+          heights: np.ndarray | None = None) -> None:
     """Each layer of a split group, in place in `out` (labels) and `family`, as the things it holds
     apart: its occupied cells of the column-disparity grid grouped again as _group groups them
     (cells that touch, one cell of slack), each group holding layer_min_area_m2 of surface and
@@ -162,7 +158,7 @@ def apart(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, out: np.ndarray, famil
     layer joined the nearer things across itself: two people side by side 7 m from a low camera, the
     wall at 12 m seen between them one disparity bin farther, were one group and, the wall split
     off, one obstacle (people-side-far with a 20 m range: 3 of 12 people in no list, nothing said).
-    -> the next free label."""
+    New labels from next_label."""
     height = np.float32(step * model.baseline_m) / dv  # metres one working pixel covers at its depth
     for label in list(family):
         idx = np.flatnonzero(out == label)
@@ -175,11 +171,11 @@ def apart(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, out: np.ndarray, famil
         cell = (bins - b0) * shape[1] + (x - x0)
         h = height[idx]
         cells = (np.bincount(cell, weights=h, minlength=shape[0] * shape[1]) >= cfg.min_cell_height_m).astype(np.uint8)
-        n, cc = cv2.connectedComponents(cv2.dilate(cells.reshape(shape), _SQUARE), connectivity=8)
-        if n <= 2:
+        cc = group_cells(cells.reshape(shape), None)[0]  # _group's touching cells, no low-bridge cut here
+        if int(cc.max()) < 2:
             continue
         comp = (cc.ravel() * cells)[cell]
-        area = np.bincount(comp, weights=h * h, minlength=n)
+        area = np.bincount(comp, weights=h * h)
         area[0] = 0.0
         largest = int(np.argmax(area))
         for c in np.flatnonzero(area >= cfg.layer_min_area_m2).tolist():
@@ -187,7 +183,6 @@ def apart(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, out: np.ndarray, famil
                 out[idx[comp == c]] = next_label
                 family[next_label] = family[label]
                 next_label += 1
-    return next_label
 
 
 def rests_on(ys: np.ndarray, xs: np.ndarray, heights: np.ndarray, band: np.ndarray, far: np.ndarray) -> bool:
