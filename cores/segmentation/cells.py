@@ -22,6 +22,16 @@ MIN_CORE_CELLS = 12
 _SQUARE = np.ones((3, 3), np.uint8)
 
 
+def occupied(bins: np.ndarray, cols: np.ndarray, height: np.ndarray, shape: tuple[int, int],
+             min_height_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """The column-disparity grid of standing pixels: bins, cols their cell's row (disparity bin) and
+    column from 0, height the metres of height each pixel covers; shape (bins, columns). -> (each
+    pixel's flat cell index, cells (uint8, 1 = occupied: its pixels cover min_height_m of height))."""
+    cell = bins * shape[1] + cols
+    occ = np.bincount(cell, weights=height, minlength=shape[0] * shape[1]).reshape(shape)
+    return cell, (occ >= min_height_m).astype(np.uint8)
+
+
 def group_cells(cells: np.ndarray, tall: np.ndarray | None) -> tuple[np.ndarray, dict[int, int]]:
     """cells: (bins, columns) uint8, 1 = occupied; tall: the occupied cells with something standing
     above LOW_M (None: heights unknown, every cell counts as tall). -> (int32 labels per cell, 0 =

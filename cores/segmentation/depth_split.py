@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from cores import camera
-from cores.segmentation.cells import LOW_M, group_cells
+from cores.segmentation.cells import LOW_M, group_cells, occupied
 from cores.segmentation.settings import SegmenterSettings
 
 _LAYER_BIN_PX = 1.0 / 16.0  # disparity histogram bins of the layer split: the matchers' sub-pixel step
@@ -168,13 +168,12 @@ def apart(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, out: np.ndarray, famil
         x = xs[idx].astype(np.int32)
         b0, x0 = int(bins.min()), int(x.min())
         shape = (int(bins.max()) - b0 + 1, int(x.max()) - x0 + 1)
-        cell = (bins - b0) * shape[1] + (x - x0)
         h = height[idx]
-        cells = (np.bincount(cell, weights=h, minlength=shape[0] * shape[1]) >= cfg.min_cell_height_m).astype(np.uint8)
-        cc = group_cells(cells.reshape(shape), None)[0]  # _group's touching cells, no low-bridge cut here
+        cell, cells = occupied(bins - b0, x - x0, h, shape, cfg.min_cell_height_m)
+        cc = group_cells(cells, None)[0]  # _group's touching cells, no low-bridge cut here
         if int(cc.max()) < 2:
             continue
-        comp = (cc.ravel() * cells)[cell]
+        comp = (cc * cells).ravel()[cell]
         area = np.bincount(comp, weights=h * h)
         area[0] = 0.0
         largest = int(np.argmax(area))

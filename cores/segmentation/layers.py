@@ -61,7 +61,7 @@ import numpy as np
 from common.messages import GroundEstimate
 from cores import camera
 from cores.segmentation import blank, depth_split, drops, freespace, regions, stats
-from cores.segmentation.cells import LOW_M, group_cells
+from cores.segmentation.cells import LOW_M, group_cells, occupied
 from cores.segmentation.ground import GroundEstimator, grid
 from cores.segmentation.mount import FloorPlane, Mount
 from cores.segmentation.seed import Detection
@@ -218,9 +218,7 @@ def _group(dm: np.ndarray, stand: np.ndarray, cfg: SegmenterSettings, model: cam
     bins = (dv / np.float32(cfg.group_bin_px)).astype(np.int32)
     nb = int(bins.max()) + 2 if bins.size else 1
     height = np.float32(step * model.baseline_m) / dv  # metres of height one working pixel covers
-    cell = bins * w + xs
-    occ = np.bincount(cell, weights=height, minlength=nb * w).reshape(nb, w)
-    cells = (occ >= cfg.min_cell_height_m).astype(np.uint8)
+    cell, cells = occupied(bins, xs, height, (nb, w), cfg.min_cell_height_m)
     tall, hv = None, None
     if above is not None:  # only low things between two objects do not join them (cells.py)
         hv = above.ravel().take(flat)
