@@ -28,7 +28,8 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 # 11: DisparityMap.gate_px (the matcher's vision range gate: what lies farther is not in the map; a gate
 #     nearer than the segmenter's range makes the lists say far-unmeasured); FrameChecks.noise_grey (the
 #     pictures' sensor noise: dusk's gain makes the lists say noisy).
-SCHEMA_VERSION = 11
+# 12: DisparityMap.flat (sgbm's windows too plain to decide their match: no floor seen there for the free space).
+SCHEMA_VERSION = 12
 
 MAX_OUTLINE_POINTS = 4096
 Pixel = Annotated[float, Field(ge=-65536.0, le=65536.0)]  # an image coordinate, px (fits fillPoly's fixed point)
@@ -200,6 +201,9 @@ class DisparityMap(Message):
     worker: str = ""
     confidence: Image | None = Field(None, description="per-pixel confidence of the disparity, uint8, same size: "
                                      "0 = no measurement, 255 = certain (None: the method gives none)")
+    flat: Image | None = Field(None, description="uint8 png, same size: 255 where the matching window held too little "
+                               "texture to decide its own match (semi-global matching carries the disparities around "
+                               "it in: no evidence of floor there), 0 elsewhere (None: the method says nothing of it)")
     checks: FrameChecks | None = Field(None, description="the frame's StereoFrame.checks: rectify's live checks")
 
 

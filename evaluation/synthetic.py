@@ -100,10 +100,12 @@ class EvalFrame:
     # per truth: the ground outlines ((4, 2) base-frame (x, y), m) of its parts between STANDS_FROM_M and
     # STANDS_TO_M above the floor (SyntheticWorld.footprints): where it stands, which free space must never call free
     stands: list = field(default_factory=list)
+    flat: np.ndarray | None = None  # the matcher's Match.flat (windows too plain to decide their match), if it says
 
     def handed(self) -> dict:
         """What the services hand the segmenter with the map, as ObstacleBuilder.process takes it."""
-        return {"confidence": self.confidence, "search": self.search, "gate_px": self.gate_px, "checks": self.checks}
+        return {"confidence": self.confidence, "search": self.search, "gate_px": self.gate_px, "checks": self.checks,
+                "flat": self.flat}
 
     @property
     def mount(self) -> Mount:
@@ -231,7 +233,7 @@ def render_scenario(name: str | S.Scene, frames: int | None = None, fps: float |
                              world.odometry(t) if scene.camera_moves() else None, stage.match.confidence,
                              (stage.min_disparity, stage.num_disparities),
                              stands=world.footprints(t, STANDS_FROM_M, STANDS_TO_M), gate_px=stage.gate_px,
-                             checks=m.checks))
+                             checks=m.checks, flat=stage.match.flat))
     return ScenarioData(scene.name, scene, pipe.model, mount_from_world(world), out, time.perf_counter() - t0)
 
 

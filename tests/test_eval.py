@@ -331,12 +331,11 @@ def test_a_plain_cabinet_lower_than_the_camera_is_an_obstacle_with_every_matcher
     assert s.floor_fp == 0 and s.wall_fp == 0
 
 
-@pytest.mark.parametrize("method", [
-    "bm", "dense",
-    pytest.param("sgbm", marks=pytest.mark.xfail(
-        strict=True, reason="semi-global matching carries the floor's disparities into a plain face, along its foot "
-        "and sides: that floor lies where the crate stands, and the free space reaches under it (docs/disparity.md)"))])
+@pytest.mark.parametrize("method", ["bm", "sgbm", "dense"])
 def test_the_free_space_never_reaches_under_a_plain_crate_or_cabinet(method, low_faces):
+    """sgbm carries the floor's disparities beside a plain face into it, row by row: taken for floor
+    seen, they made free space under the crate in 8 of 24 sightings (12 frames). Its windows too
+    plain to decide their match (Match.flat) are no floor seen."""
     assert low_faces(method).free_under == 0, method
 
 

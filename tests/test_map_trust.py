@@ -207,7 +207,8 @@ def test_a_map_that_is_not_what_its_header_said_or_not_for_the_frame_is_refused(
              (m.model_copy(update={"stamp_ns": m.stamp_ns + 1}), "not the item's"),
              (m.model_copy(update={"image": m.image.model_copy(update={"data": m.image.data[:-2]})}), "bytes for"),
              (m.model_copy(update={"confidence": m.image}), "not what its header said"),
-             (m.model_copy(update={"method": "dense"}), "says dense and carries no confidence")]
+             (m.model_copy(update={"method": "dense"}), "says dense and carries no confidence"),
+             (m.model_copy(update={"method": "sgbm@0.5"}), "says sgbm and carries no flat mask")]
     for bad, expect in wrong:
         why, check = vet_map(bad, header, t)
         assert expect in why and check is None, (expect, why)
@@ -216,6 +217,30 @@ def test_a_map_that_is_not_what_its_header_said_or_not_for_the_frame_is_refused(
     m2, h2 = answer(t, garbage)
     why, _ = vet_map(m2, parse_header(h2), t)
     assert "outside its search range" in why
+
+
+def test_an_sgbm_answer_carries_its_flat_mask_of_the_map_s_size():
+    """sgbm's windows too plain to decide their match (the floor's disparities carried into a plain
+    face) travel as a uint8 mask; a worker's map of sgbm without one, or with one of another size, is
+    refused: the segmenter would take what sgbm carried in for floor seen."""
+    t = Ticket.for_frame(frame())
+    flat = np.zeros((t.height, t.width), np.uint8)
+    flat[100:200, 50:150] = 255
+    m, h = answer(t, method="sgbm", flat=codec.image_from_array(flat, "png", bilevel=True))
+    payload = codec.encode(m)
+    assert vet_header(parse_header(h), t, len(payload)) == ""
+    why, check = vet_map(codec.decode(payload, DisparityMap), parse_header(h), t)
+    assert why == "" and check.valid_fraction == 1.0
+    small = codec.image_from_array(flat[:, :-8], "png", bilevel=True)
+    why, check = vet_map(m.model_copy(update={"flat": small}), parse_header(h), t)
+    assert f"its flat mask is {t.width - 8}x{t.height}x1" in why and check is None
+    why, _ = vet_map(m.model_copy(update={"flat": codec.image_from_array(flat)}), parse_header(h), t)
+    assert f"uint8 raw, expected {t.width}x{t.height} uint8 png" in why  # a mask travels as one bit a pixel
+    why, _ = vet_map(m.model_copy(update={"flat": None}), parse_header(h), t)
+    assert "not what its header said" in why  # the header said it carries one
+    m2, h2 = answer(t, method="sgbm")
+    why, _ = vet_map(m2, parse_header(h2), t)
+    assert "says sgbm and carries no flat mask" in why
 
 
 def test_a_dense_answer_counts_what_it_measured_not_its_fill():

@@ -255,3 +255,20 @@ def test_a_nan_bound_has_no_integer_and_says_so():
     for bound in (raw_at_least, raw_at_most):
         with pytest.raises(ValueError, match="NaN bound"):
             bound(float("nan"))
+
+
+def test_sgbm_says_which_windows_were_too_plain_to_decide_their_match(scene):
+    """sgbm answers in a plain window too, with the disparities around it: it says which those are
+    (Match.flat), at full and half resolution; bm, which leaves them unmatched, says nothing."""
+    left, right, _, _ = scene
+    plain_l, plain_r = left.copy(), right.copy()
+    plain_l[200:300, 300:420] = 128  # a plain face, the same in both views
+    plain_r[200:300, 280:400] = 128
+    cfg = MatcherConfig(method="sgbm", num_disparities=64)
+    m = StereoMatcher(cfg).match(plain_l, plain_r)
+    assert m.flat is not None and m.flat.shape == left.shape[:2] and m.flat.dtype == bool
+    assert m.flat[210:290, 310:410].all()  # inside the face
+    assert m.flat.mean() < 0.1  # the synthetic world's textures decide their own matches
+    half = HalfResolutionMatcher(cfg).match(plain_l, plain_r)
+    assert half.flat is not None and half.flat.shape == left.shape[:2] and half.flat[220:280, 320:400].all()
+    assert StereoMatcher(MatcherConfig(method="bm", num_disparities=64)).match(plain_l, plain_r).flat is None

@@ -8,6 +8,7 @@ import time
 import numpy as np
 import pytest
 
+from common import codec
 from common.errors import DecodeError
 from common.messages import CameraModel, DisparityMap, GroundEstimate, Image
 from common.settings import MountSettings
@@ -553,6 +554,13 @@ def test_builder_on_bad_maps():
     bad = _message(np.zeros((MODEL.height, MODEL.width - 10), np.float32))
     with pytest.raises(DecodeError, match="camera model"):
         b.decode(bad)
+    small = codec.image_from_array(np.zeros((MODEL.height, MODEL.width - 2), np.uint8))
+    with pytest.raises(DecodeError, match="flat mask is"):
+        b.decode(msg.model_copy(update={"flat": small}))
+    flat = np.zeros((MODEL.height, MODEL.width), np.uint8)
+    flat[:, :7] = 255
+    got = b.decode(msg.model_copy(update={"flat": codec.image_from_array(flat)}))[3]
+    assert got.dtype == bool and got[:, :7].all() and not got[:, 7:].any()
 
 
 # --- the offline command -----------------------------------------------------------------------

@@ -26,7 +26,7 @@ from scipy.linalg import solveh_banded
 from common.errors import BallbotError
 from cores.matching.config import SCALE, MatcherConfig
 from cores.matching.disparity import MEASURED_CONFIDENCE, raw_at_least
-from cores.matching.opencv import Match, create_sgbm, gray, saturated_share
+from cores.matching.opencv import Match, create_sgbm, gray, saturated_share, texture
 
 FILL_SCALE = 0.5  # the smoother runs at this fraction of the image size
 # One row+column pass of the smoother (lambda_1 = lambda / 2 in Min et al.'s schedule): on the
@@ -108,13 +108,6 @@ def local_agreement(d: np.ndarray, c: np.ndarray) -> np.ndarray:
     mean = m1 / np.maximum(n, 1e-6)
     spread = np.sqrt(np.maximum(m2 / np.maximum(n, 1e-6) - mean * mean, 0))
     return n * np.exp(spread * np.float32(-1.0 / AGREE_PX))
-
-
-def texture(gray_image: np.ndarray, window: int) -> np.ndarray:
-    """(H, W) uint8 -> (H, W) float32: mean |d/dx| over a window x window square, grey levels / px.
-    Matching lives on horizontal gradients; where there are none, any disparity fits equally well."""
-    gx = np.abs(cv2.Sobel(gray_image, cv2.CV_32F, 1, 0, ksize=3)) * np.float32(0.25)
-    return cv2.boxFilter(gx, -1, (window, window))
 
 
 def fill_and_confidence(disparity: np.ndarray, valid: np.ndarray, guide: np.ndarray, lam: float,

@@ -20,11 +20,14 @@ class Match:
     """One pair's result. disparity: (H, W) int16, px * 16, config.invalid_value where invalid;
     confidence: (H, W) uint8 (0 = no measurement, 255 = certain) or None if the method gives none;
     saturated: share of the measured pixels within TOP_BAND_PX of the largest disparity searched
-    (above SATURATION_WARN: nearer things exist than the range covers)."""
+    (above SATURATION_WARN: nearer things exist than the range covers); flat: (H, W) bool, the
+    pixels whose window holds too little texture to have decided their own match (sgbm, which
+    carries disparities into them from around them; None: the method says nothing of it)."""
 
     disparity: np.ndarray
     confidence: np.ndarray | None
     saturated: float
+    flat: np.ndarray | None = None
 
     @property
     def range_warning(self) -> str:
@@ -50,6 +53,14 @@ def gray(image: np.ndarray) -> np.ndarray:
     if image.ndim == 3:
         return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
     return image
+
+
+def texture(gray_image: np.ndarray, window: int) -> np.ndarray:
+    """(H, W) uint8 -> (H, W) float32: the horizontal gradient (3x3 Sobel / 4: twice the grey levels a
+    pixel of a ramp) averaged over a window x window square. Matching lives on horizontal gradients;
+    where there are none, any disparity fits equally well."""
+    gx = np.abs(cv2.Sobel(gray_image, cv2.CV_32F, 1, 0, ksize=3)) * np.float32(0.25)
+    return cv2.boxFilter(gx, -1, (window, window))
 
 
 def create_sgbm(c: MatcherConfig):

@@ -40,9 +40,9 @@ class StageResult:
 
     def handed(self) -> dict[str, Any]:
         """What the disparity message carries to the segmenter beside the map (DisparityMap's
-        confidence, search and gate_px), as ObstacleBuilder.process takes it."""
-        return {"confidence": self.match.confidence, "search": (self.min_disparity, self.num_disparities),
-                "gate_px": self.gate_px}
+        confidence, flat, search and gate_px), as ObstacleBuilder.process takes it."""
+        return {"confidence": self.match.confidence, "flat": self.match.flat,
+                "search": (self.min_disparity, self.num_disparities), "gate_px": self.gate_px}
 
     def disparity_px(self) -> np.ndarray:
         """(H, W) float32 px, NaN where invalid or outside the stated range: what a consumer of the
@@ -117,4 +117,4 @@ def drop_unseen(match: Match, seen_left: np.ndarray, seen_right: np.ndarray, inv
         return match
     conf = match.confidence
     return Match(np.where(drop, np.int16(invalid), d), None if conf is None else np.where(drop, np.uint8(0), conf),
-                 match.saturated)
+                 match.saturated, match.flat)

@@ -211,25 +211,31 @@ class ObstacleBuilder:
         self.reach = reach
         return reach
 
-    def decode(self, msg: DisparityMap) -> tuple[np.ndarray, camera.RectifiedModel, np.ndarray | None]:
-        """A disparity message -> (disparity px float32 with NaN invalid, camera model, confidence).
-        Values outside the range the map says was searched, NaN and inf are invalid, never depth."""
+    def decode(self, msg: DisparityMap
+               ) -> tuple[np.ndarray, camera.RectifiedModel, np.ndarray | None, np.ndarray | None]:
+        """A disparity message -> (disparity px float32 with NaN invalid, camera model, confidence,
+        flat (bool)). Values outside the range the map says was searched, NaN and inf are invalid,
+        never depth."""
         if (msg.image.width, msg.image.height) != (msg.camera.width, msg.camera.height):
             raise DecodeError(f"disparity image is {msg.image.width}x{msg.image.height}, its camera model "
                               f"{msg.camera.width}x{msg.camera.height}")
         raw = codec.array_from_image(msg.image, "disparity")
-        confidence = None
-        if msg.confidence is not None:
-            confidence = codec.array_from_image(msg.confidence, "disparity confidence")
-            if confidence.shape != raw.shape[:2] or confidence.dtype != np.uint8:
-                raise DecodeError(f"disparity confidence is {msg.confidence.width}x{msg.confidence.height} "
-                                  f"{confidence.dtype}, the map {msg.image.width}x{msg.image.height}: expected uint8 "
-                                  f"of the same size")
+        side: list[np.ndarray | None] = []
+        for name, img in (("confidence", msg.confidence), ("flat mask", msg.flat)):
+            if img is None:
+                side.append(None)
+                continue
+            a = codec.array_from_image(img, f"disparity {name}")
+            if a.shape != raw.shape[:2] or a.dtype != np.uint8:
+                raise DecodeError(f"disparity {name} is {img.width}x{img.height} {a.dtype}, the map "
+                                  f"{msg.image.width}x{msg.image.height}: expected uint8 of the same size")
+            side.append(a)
+        confidence, flat = side
         d = to_float(raw, msg.scale, msg.invalid_value, searched_range(msg.min_disparity, msg.num_disparities))
-        return d, camera.model_of(msg.camera), confidence
+        return d, camera.model_of(msg.camera), confidence, None if flat is None else flat > 0
 
     def segment(self, disparity: np.ndarray, model: camera.RectifiedModel, confidence: np.ndarray | None = None,
-                image: np.ndarray | None = None) -> layers.LayersFrame:
+                image: np.ndarray | None = None, flat: np.ndarray | None = None) -> layers.LayersFrame:
         cfg = self.settings
         if disparity.size == 0:
             return layers.LayersFrame([], [], None, None, np.zeros((0, 3)))
@@ -240,7 +246,8 @@ class ObstacleBuilder:
                                if cfg.floor_removal else (None, None))
             dets, unlisted = seed.segment_frame(disparity, model, cfg, floor)
             return layers.LayersFrame(dets, [], floor, estimate, np.zeros((0, 3)), unlisted)
-        return layers.segment_frame(disparity, model, cfg, ground=self.ground, confidence=confidence, image=image)
+        return layers.segment_frame(disparity, model, cfg, ground=self.ground, confidence=confidence, image=image,
+                                    flat=flat)
 
     def _ego_motion(self, odometry: Odometry | None, t_s: float) -> bool:
         """Carry the tracks into this frame's base frame by the robot's own motion since the last
@@ -307,10 +314,11 @@ class ObstacleBuilder:
                 robot_id: str = "offline", confidence: np.ndarray | None = None, odometry: Odometry | None = None,
                 image: np.ndarray | None = None, stale: bool = False,
                 stages: dict[str, int] | None = None, search: tuple[int, int] | None = None,
-                checks: FrameChecks | None = None, gate_px: float = 0.0) -> FrameResult:
+                checks: FrameChecks | None = None, gate_px: float = 0.0, flat: np.ndarray | None = None) -> FrameResult:
         """disparity: (H, W) float32 px, NaN = invalid, matching `model`; t_s: the frame's time on a
         clock that never goes backwards (the service: Node.frame_time_s; offline: the capture time);
-        odometry: the robot's motion at this frame, if known (velocities are then over the ground).
+        odometry: the robot's motion at this frame, if known (velocities are then over the ground);
+        flat: (H, W) bool, where the matcher's window was too plain to decide its match (Match.flat).
 
         The list says how far it can be trusted: valid_fraction is the share of the image with a
         measurement; degraded names why an empty list would not mean "nothing there"
@@ -351,7 +359,7 @@ class ObstacleBuilder:
             inf = np.isinf(disparity)
             if inf.any():  # an infinite disparity is no measurement (nor a point at zero distance)
                 disparity = np.where(inf, np.float32(np.nan), disparity)
-        frame = self.segment(disparity, model, confidence, image)
+        frame = self.segment(disparity, model, confidence, image, flat)
         if self.upright is not None:
             self.upright.update(frame.ground, t_s)
         mount, mount_source = frame_mount(frame.ground, self.configured,
@@ -483,11 +491,11 @@ class ObstacleBuilder:
     def process_message(self, msg: DisparityMap, *, stale: bool = False, t_s: float | None = None,
                         odometry: Odometry | None = None) -> FrameResult:
         """A disparity message -> its FrameResult (t_s: None takes the capture stamp)."""
-        disparity, model, confidence = self.decode(msg)
+        disparity, model, confidence, flat = self.decode(msg)
         return self.process(disparity, model, t_s=msg.stamp_ns / 1e9 if t_s is None else t_s, seq=msg.seq,
                             stamp_ns=msg.stamp_ns, robot_id=msg.robot_id, confidence=confidence, odometry=odometry,
                             stale=stale, stages=msg.stages, search=(msg.min_disparity, msg.num_disparities),
-                            checks=msg.checks, gate_px=msg.gate_px)
+                            checks=msg.checks, gate_px=msg.gate_px, flat=flat)
 
 
 def _footprint(mount: Mount, points_camera: np.ndarray) -> np.ndarray:

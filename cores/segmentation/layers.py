@@ -233,17 +233,22 @@ def _group(dm: np.ndarray, stand: np.ndarray, cfg: SegmenterSettings, model: cam
 
 def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: SegmenterSettings | None = None,
                   ground: GroundEstimator | None = None, confidence: np.ndarray | None = None,
-                  image: np.ndarray | None = None) -> LayersFrame:
+                  image: np.ndarray | None = None, flat: np.ndarray | None = None) -> LayersFrame:
     """disparity: (H, W) float32 px, NaN = invalid, rectified left camera `model`. ground: the
     estimator that carries the ground from frame to frame (None: a fresh one, this frame alone).
     confidence: (H, W) uint8 from the matcher, if it gives one. image: the rectified left image,
-    only for edge_refine."""
+    only for edge_refine. flat: (H, W) bool, the pixels whose window was too plain to decide their
+    match (Match.flat: sgbm carries into a plain face the floor's disparities beside it, row by row,
+    and the free space reached under a plain crate): no floor is seen there; they stand as before."""
     cfg = cfg or SegmenterSettings()
     if disparity.shape != (model.height, model.width):
         raise ValueError(f"disparity is {disparity.shape[1]}x{disparity.shape[0]}, camera model is "
                          f"{model.width}x{model.height}")
     if confidence is not None and confidence.shape != disparity.shape:
         raise ValueError(f"confidence is {confidence.shape[1]}x{confidence.shape[0]}, disparity "
+                         f"{disparity.shape[1]}x{disparity.shape[0]}")
+    if flat is not None and flat.shape != disparity.shape:
+        raise ValueError(f"flat is {flat.shape[1]}x{flat.shape[0]}, disparity "
                          f"{disparity.shape[1]}x{disparity.shape[0]}")
     step = max(1, int(cfg.downsample))
     d0, dm, doubtful = _working_disparity(disparity, cfg, confidence, step)
@@ -279,6 +284,8 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
             above = np.float32(floor.height_m) * (1 - df / dk)  # height above the floor, m
         stand = keep & ~on_floor & (above <= cfg.robot_height_m)
         seen_floor = keep & on_floor & (above > -4 * cfg.floor_margin_m - 0.1)
+        if flat is not None:  # what the matcher carried into a plain window is no floor seen (Match.flat)
+            seen_floor &= ~flat[::step, ::step]
         drop = drops.mask(dk, df, above, floor, cfg, fB, doubt)
         if drop is not None:
             seen_floor &= ~drop  # the floor beyond a curb down is no floor to drive on

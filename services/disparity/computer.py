@@ -22,7 +22,8 @@ class FrameComputer:
     """StereoFrame -> DisparityMap with one matcher. result_encoding 'raw': int16, invalid
     (min_disparity-1)*16; 'png': lossless uint16 for narrow links, invalid 0 (a disparity of exactly
     0, a point at infinity, is then invalid too; needs min_disparity >= 0). A method with a confidence
-    (dense) sends it along, uint8, in the same encoding. num_disparities auto is resolved per camera
+    (dense) sends it along, uint8, in the same encoding; one that says which windows were too plain to
+    decide their match (sgbm) sends that mask as a one-bit png. num_disparities auto is resolved per camera
     model; `saturated` / `range_warning` tell about the last frame's search range (see report)."""
 
     def __init__(self, config: MatcherConfig, scale: float = 1.0, result_encoding: str = "raw", label: str = ""):
@@ -59,14 +60,16 @@ class FrameComputer:
         else:
             invalid = float(out.invalid_value)
             image = codec.image_from_array(disp)
-        confidence = None
+        confidence = flat = None
         if result.confidence is not None:
             confidence = codec.image_from_array(result.confidence, self.result_encoding)
+        if result.flat is not None:  # a mask: one bit a pixel in any encoding (raw would add half the map's bytes)
+            flat = codec.image_from_array(result.flat.view(np.uint8) * np.uint8(255), "png", bilevel=True)
         # the range its values span (consumers treat anything outside it as invalid)
         return DisparityMap(robot_id=msg.robot_id, seq=msg.seq, stamp_ns=msg.stamp_ns, stages=msg.stages,
                             image=image, scale=SCALE, invalid_value=invalid, min_disparity=out.min_disparity,
                             num_disparities=out.num_disparities, gate_px=out.gate_px, camera=msg.camera,
-                            method=self.method, worker=worker, confidence=confidence, checks=msg.checks)
+                            method=self.method, worker=worker, confidence=confidence, flat=flat, checks=msg.checks)
 
     def answer(self, node: Node, msg: StereoFrame, worker: str, nonce: bytes, put: Callable[..., Any],
                rates: Rates) -> bool:

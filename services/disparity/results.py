@@ -90,6 +90,7 @@ class ResultHeader(BaseModel):
     min_disparity: int
     num_disparities: int
     confidence: bool
+    flat: bool = False
 
 
 def result_header(m: DisparityMap, nonce: bytes) -> bytes:
@@ -98,7 +99,7 @@ def result_header(m: DisparityMap, nonce: bytes) -> bytes:
                           "height": m.image.height, "encoding": m.image.encoding, "dtype": m.image.dtype,
                           "scale": float(m.scale), "invalid_value": float(m.invalid_value),
                           "min_disparity": m.min_disparity, "num_disparities": m.num_disparities,
-                          "confidence": m.confidence is not None}, use_bin_type=True)
+                          "confidence": m.confidence is not None, "flat": m.flat is not None}, use_bin_type=True)
 
 
 def parse_header(raw: bytes | None) -> ResultHeader:
@@ -120,14 +121,13 @@ def parse_header(raw: bytes | None) -> ResultHeader:
         raise DecodeError(f"work result header.{'.'.join(str(p) for p in first['loc'])}: {first['msg']}") from None
 
 
-def max_payload_bytes(width: int, height: int, confidence: bool) -> int:
+def max_payload_bytes(width: int, height: int, confidence: bool, flat: bool = False) -> int:
     """Largest honest payload for a map of this size: 2 bytes a pixel (a png of noise is a little
-    larger than its pixels: 1 % slack), plus a uint8 confidence of the same size if there is one,
-    plus the message's small fields."""
+    larger than its pixels: 1 % slack), plus a uint8 confidence and a uint8 flat mask of the same
+    size if there are, plus the message's small fields."""
     px = width * height
     n = 2 * px + 2 * px // 100 + 4096
-    if confidence:
-        n += px + px // 100 + 4096
+    n += (int(confidence) + int(flat)) * (px + px // 100 + 4096)
     return n + (64 << 10)
 
 
@@ -149,7 +149,7 @@ def vet_header(h: ResultHeader, t: Ticket, payload_len: int) -> str:
     invalid = 0.0 if h.encoding == "png" else float((h.min_disparity - 1) * int(SCALE))
     if h.invalid_value != invalid or (h.encoding == "png" and h.min_disparity < 0):
         return f"invalid value {h.invalid_value:g} for {h.encoding} from min_disparity {h.min_disparity}"
-    limit = max_payload_bytes(t.width, t.height, h.confidence)
+    limit = max_payload_bytes(t.width, t.height, h.confidence, h.flat)
     if payload_len > limit:
         return f"{payload_len} bytes for a {t.width}x{t.height} map (at most {limit})"
     return ""
@@ -187,9 +187,9 @@ def vet_map(m: DisparityMap, h: ResultHeader, t: Ticket) -> tuple[str, MapCheck 
     if (m.robot_id, m.seq, m.stamp_ns) != (t.robot_id, t.seq, t.stamp_ns):
         return f"the map is for {m.robot_id} seq {m.seq} stamp {m.stamp_ns}, not the item's", None
     said = (h.width, h.height, 1, h.encoding, h.dtype, h.scale, h.invalid_value, h.min_disparity,
-            h.num_disparities, h.confidence)
+            h.num_disparities, h.confidence, h.flat)
     has = (img.width, img.height, img.channels, img.encoding, img.dtype, m.scale, m.invalid_value,
-           m.min_disparity, m.num_disparities, m.confidence is not None)
+           m.min_disparity, m.num_disparities, m.confidence is not None, m.flat is not None)
     if said != has:
         return f"the map is not what its header said (header {said}, map {has})", None
     if m.camera != t.camera:
@@ -198,16 +198,23 @@ def vet_map(m: DisparityMap, h: ResultHeader, t: Ticket) -> tuple[str, MapCheck 
         # dense fills every pixel its measurements reach: without the confidence that tells them apart the
         # segmenter would take the fill for measurement, and a dark or blank view for a full one
         return "it says dense and carries no confidence (its fill cannot be told from what it measured)", None
+    if m.method.split("@")[0].split("/")[0] == "sgbm" and m.flat is None:
+        # the disparities sgbm carries into a plain face from the floor beside it would pass for floor
+        # seen, and the free space would reach under the face
+        return ("it says sgbm and carries no flat mask (what it carried into plain windows would pass for "
+                "measured)"), None
     try:
         raw = codec.array_from_image(img, "disparity")
         conf = None
-        if m.confidence is not None:
-            c = m.confidence
-            if (c.width, c.height, c.channels, c.dtype, c.encoding) != (img.width, img.height, 1, "uint8",
-                                                                          img.encoding):
-                return (f"its confidence is {c.width}x{c.height}x{c.channels} {c.dtype} {c.encoding}, expected "
-                        f"{img.width}x{img.height} uint8 {img.encoding}"), None
-            conf = codec.array_from_image(c, "disparity confidence")
+        for name, c, encoding in (("confidence", m.confidence, img.encoding), ("flat mask", m.flat, "png")):
+            if c is None:
+                continue
+            if (c.width, c.height, c.channels, c.dtype, c.encoding) != (img.width, img.height, 1, "uint8", encoding):
+                return (f"its {name} is {c.width}x{c.height}x{c.channels} {c.dtype} {c.encoding}, expected "
+                        f"{img.width}x{img.height} uint8 {encoding}"), None
+            a = codec.array_from_image(c, f"disparity {name}")
+            if c is m.confidence:
+                conf = a
     except DecodeError as e:
         return str(e), None
     check = measure(raw, m.invalid_value, m.scale, m.min_disparity, m.num_disparities, conf)
