@@ -45,6 +45,13 @@ def test_the_pipeline_computes_what_the_services_compute(pairs, method):
         for x, y in zip(a.obstacles, b.obstacles):
             assert x.position_m == y.position_m and x.bbox_px == y.bbox_px and x.id == y.id
         assert a.ground == b.ground and a.degraded == b.degraded and a.valid_fraction == b.valid_fraction
+        # sgbm's plain windows (no floor seen there) cross the wire bit for bit, and both free spaces heed them
+        flat = builder.decode(wire)[3]
+        if method == "sgbm":
+            np.testing.assert_array_equal(flat, frame.stage.match.flat)
+        else:
+            assert flat is None and frame.stage.match.flat is None
+        assert served.freespace is not None and served.freespace.cells == frame.result.freespace.cells
 
 
 def served_disparity(builder: ObstacleBuilder, wire: DisparityMap) -> np.ndarray:
