@@ -259,7 +259,9 @@ class Obstacle(BaseModel):
     bbox_px: tuple[int, int, int, int] = Field(description="x0, y0, x1, y1 in the rectified left image")
     area_px: int = Field(ge=0)
     disparity_px: float = Field(description="robust (mode) disparity of the region")
-    confidence: float = Field(ge=0, le=1, description="fraction of the region with valid disparity")
+    confidence: float = Field(ge=0, le=1, description="fraction of the region the matcher measured (a valid "
+                              "disparity it decided itself: not a dense fill, not what sgbm carried into a plain "
+                              "window)")
     position_base_m: Vec3 | None = Field(default=None, description="3D centroid in the robot base frame, if mounted")
     velocity_base_mps: Vec3 | None = Field(default=None, description="velocity in the robot base frame, if mounted "
                                            "(relative to what ObstacleList.velocity_reference says)")

@@ -52,15 +52,20 @@ NOISY_GREY = 6.0
 COLLAPSE_FACTOR, COLLAPSE_WINDOW_S, COLLAPSE_WARMUP_FRAMES = 0.5, 2.0, 5
 
 
-def measured_share(disparity: np.ndarray, confidence: np.ndarray | None, min_confidence: int = MEASURED) -> float:
+def measured_share(disparity: np.ndarray, confidence: np.ndarray | None, min_confidence: int = MEASURED,
+                   flat: np.ndarray | None = None) -> float:
     """The share of the picture the matcher measured and the segmenter uses: a valid disparity, and
     where the matcher gives a confidence, at least min_confidence (the segmenter's, never below
-    blank.MEASURED). `dense` fills every pixel its measurements reach, so its valid share stays near 1
-    in the dark as in daylight, and only its confidence tells what it saw: the street in daylight
-    0.41-0.44 of the picture at 200 (the segmenter's default), at 4 % of the light 0.05."""
+    blank.MEASURED), and where it says which windows were too plain to decide their match (flat:
+    sgbm carries a disparity into them from around them), not those. `dense` fills every pixel its
+    measurements reach, so its valid share stays near 1 in the dark as in daylight, and only its
+    confidence tells what it saw: the street in daylight 0.41-0.44 of the picture at 200 (the
+    segmenter's default), at 4 % of the light 0.05."""
     valid = disparity > 0  # NaN compares false
     if confidence is not None and confidence.shape == disparity.shape:
         valid &= confidence >= max(MEASURED, min_confidence)
+    if flat is not None and flat.shape == disparity.shape:
+        valid &= ~flat
     return float(np.count_nonzero(valid)) / max(1, disparity.size)
 
 
@@ -401,7 +406,7 @@ class ObstacleBuilder:
                 confirmed=tr.confirmed, track_frames=tr.hits, truncated=det.truncated))
         obstacles.sort(key=lambda o: o.distance_m)
         now = time.time_ns()
-        valid_fraction = measured_share(disparity, confidence, cfg.min_confidence)
+        valid_fraction = measured_share(disparity, confidence, cfg.min_confidence, flat)
         degraded = []
         if self.frozen_input.frozen(disparity, t_s):
             degraded.append("input-frozen")  # fresh stamps on an old picture: the world it shows is not now's

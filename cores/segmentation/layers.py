@@ -368,8 +368,10 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
                 cfg.min_height_m + _floor_doubt(floor, med, fB, doubt_deg):
             continue  # nothing of it stands up: a marking, a shadow, a mat
         pts = _points(gy, gx, gd, model, step)
-        valid = (int(np.count_nonzero(g0)) if confidence is None
-                 else float(confidence[gy * step, gx * step].astype(np.float32).sum() / 255.0))
+        if confidence is not None:
+            valid: float = float(confidence[gy * step, gx * step].astype(np.float32).sum() / 255.0)
+        else:  # what the matcher decided itself: not what it carried into a plain window (flat)
+            valid = int(np.count_nonzero(g0 if flat is None else g0 * ~flat[gy * step, gx * step]))
         filled = 0
         if floor is not None and cfg.fill_to_floor:
             mask = np.zeros((y1 - y0, x1 - x0), bool)
