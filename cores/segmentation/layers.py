@@ -239,7 +239,8 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
     confidence: (H, W) uint8 from the matcher, if it gives one. image: the rectified left image,
     only for edge_refine. flat: (H, W) bool, the pixels whose window was too plain to decide their
     match (Match.flat: sgbm carries into a plain face the floor's disparities beside it, row by row,
-    and the free space reached under a plain crate): no floor is seen there; they stand as before."""
+    and the free space reached under a plain crate): no floor is seen there, they count as unmeasured
+    where blank faces are looked for, and otherwise stand as before."""
     cfg = cfg or SegmenterSettings()
     if disparity.shape != (model.height, model.width):
         raise ValueError(f"disparity is {disparity.shape[1]}x{disparity.shape[0]}, camera model is "
@@ -252,6 +253,7 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
                          f"{disparity.shape[1]}x{disparity.shape[0]}")
     step = max(1, int(cfg.downsample))
     d0, dm, doubtful = _working_disparity(disparity, cfg, confidence, step)
+    fw = None if flat is None else flat[::step, ::step]  # on the working grid
     h, w = dm.shape
     f, B = model.focal_px, model.baseline_m
     fB = f * B
@@ -284,13 +286,16 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
             above = np.float32(floor.height_m) * (1 - df / dk)  # height above the floor, m
         stand = keep & ~on_floor & (above <= cfg.robot_height_m)
         seen_floor = keep & on_floor & (above > -4 * cfg.floor_margin_m - 0.1)
-        if flat is not None:  # what the matcher carried into a plain window is no floor seen (Match.flat)
-            seen_floor &= ~flat[::step, ::step]
+        if fw is not None:  # what the matcher carried into a plain window is no floor seen (Match.flat)
+            seen_floor &= ~fw
         drop = drops.mask(dk, df, above, floor, cfg, fB, doubt)
         if drop is not None:
             seen_floor &= ~drop  # the floor beyond a curb down is no floor to drive on
         gaps = freespace.floor_gaps(seen_floor, df, model.baseline_m, cfg.min_height_m, step)
-        faces = blank.find(dm, df, seen_floor, stand, floor, model, step, range_m, cfg.near_field_m,
+        # a plain face is looked for where nothing was measured: what sgbm carried into it is not (flat),
+        # and a face found takes those pixels at its own depth
+        faces = blank.find(dm if fw is None else np.where(fw, np.float32(0), dm), df, seen_floor,
+                           stand if fw is None else stand & ~fw, floor, model, step, range_m, cfg.near_field_m,
                            cfg.robot_height_m, cfg.min_height_m, doubtful, gaps)
         not_floor = keep & ~on_floor
         if faces is not None:  # a plain face the matcher could not measure stands at the floor's end
@@ -371,7 +376,7 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
         if confidence is not None:
             valid: float = float(confidence[gy * step, gx * step].astype(np.float32).sum() / 255.0)
         else:  # what the matcher decided itself: not what it carried into a plain window (flat)
-            valid = int(np.count_nonzero(g0 if flat is None else g0 * ~flat[gy * step, gx * step]))
+            valid = int(np.count_nonzero(g0 if fw is None else g0 * ~fw[gy, gx]))
         filled = 0
         if floor is not None and cfg.fill_to_floor:
             mask = np.zeros((y1 - y0, x1 - x0), bool)
