@@ -116,6 +116,13 @@ def test_what_sgbm_carried_into_plain_windows_is_not_a_measurement():
     assert seen.obstacles[0].confidence > 0.9 and plain.obstacles[0].confidence == pytest.approx(
         seen.obstacles[0].confidence / 2, abs=0.05)
     assert plain.valid_fraction == pytest.approx(seen.valid_fraction / 2, rel=0.02)
+    # a mask over the whole picture (a worker's sgbm saw nothing it could match, or says so): no list
+    # vouches for the view
+    b = ObstacleBuilder(SegmenterSettings(fit_floor=False), MountSettings(height_m=1.0, pitch_deg=5.0))
+    every = np.ones(d.shape, bool)
+    blind = [b.process(d, MODEL, t_s=i / 10, seq=i, stamp_ns=i, flat=every).obstacles for i in range(6)]
+    assert all({"little-measured", "no-valid-disparity"} & set(o.degraded) for o in blind), \
+        [(o.valid_fraction, o.degraded) for o in blind]
 
 
 def test_the_pictures_noise_is_measured_through_texture_and_edges():
