@@ -208,6 +208,7 @@ def test_a_map_that_is_not_what_its_header_said_or_not_for_the_frame_is_refused(
              (m.model_copy(update={"image": m.image.model_copy(update={"data": m.image.data[:-2]})}), "bytes for"),
              (m.model_copy(update={"confidence": m.image}), "not what its header said"),
              (m.model_copy(update={"method": "dense"}), "says dense and carries no confidence"),
+             (m.model_copy(update={"method": "dense@0.5/offboard"}), "says dense and carries no confidence"),
              (m.model_copy(update={"method": "sgbm@0.5"}), "says sgbm and carries no flat mask")]
     for bad, expect in wrong:
         why, check = vet_map(bad, header, t)

@@ -180,6 +180,13 @@ def measure(raw: np.ndarray, invalid_value: float, scale: float, min_disparity: 
     return MapCheck(measured / n, outside / n)
 
 
+def matcher_of(method: str) -> str:
+    """The matcher a map's method names: a half-resolution or labelled worker says `sgbm@0.5`,
+    `dense/x` (computer.DisparityComputer.method); what each matcher must send beside its map
+    does not change with the resolution or the label."""
+    return method.split("@")[0].split("/")[0]
+
+
 def vet_map(m: DisparityMap, h: ResultHeader, t: Ticket) -> tuple[str, MapCheck | None]:
     """The decoded message against its header and the item, then its pixels. -> ("", check) or
     (why it is refused, None)."""
@@ -194,11 +201,12 @@ def vet_map(m: DisparityMap, h: ResultHeader, t: Ticket) -> tuple[str, MapCheck 
         return f"the map is not what its header said (header {said}, map {has})", None
     if m.camera != t.camera:
         return "the map carries another camera model than the frame's", None
-    if m.method == "dense" and m.confidence is None:
+    matcher = matcher_of(m.method)
+    if matcher == "dense" and m.confidence is None:
         # dense fills every pixel its measurements reach: without the confidence that tells them apart the
         # segmenter would take the fill for measurement, and a dark or blank view for a full one
         return "it says dense and carries no confidence (its fill cannot be told from what it measured)", None
-    if m.method.split("@")[0].split("/")[0] == "sgbm" and m.flat is None:
+    if matcher == "sgbm" and m.flat is None:
         # the disparities sgbm carries into a plain face from the floor beside it would pass for floor
         # seen, and the free space would reach under the face
         return ("it says sgbm and carries no flat mask (what it carried into plain windows would pass for "
