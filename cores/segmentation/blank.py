@@ -83,7 +83,10 @@ def find(dm: np.ndarray, df: np.ndarray, seen_floor: np.ndarray, standing: np.nd
     """dm: working disparity (0 = unmeasured, not range-gated); df: the floor's disparity on the
     working grid; seen_floor / standing: the floor and standing pixels in range (bool, working grid);
     doubtful: the disparity of pixels measured but set aside for their low confidence (0 elsewhere);
-    gaps: freespace.floor_gaps of seen_floor (None: computed here). -> the blank faces' pixels, or None."""
+    gaps: freespace.floor_gaps of the floor seen, beyond the vision range too (None: of seen_floor,
+    computed here): rules 2 and 3 read where the floor shows again above a face lower than the camera,
+    which may be beyond the range (the crate 1.6 m ahead on low-faces hides the floor out to 3.1 m).
+    -> the blank faces' pixels, or None."""
     h, w = dm.shape
     if floor.b <= 0 or within_m <= 0:
         return None

@@ -292,11 +292,24 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
         if drop is not None:
             seen_floor &= ~drop  # the floor beyond a curb down is no floor to drive on
         gaps = freespace.floor_gaps(seen_floor, df, model.baseline_m, cfg.min_height_m, step)
+        # The floor measured beyond the vision range is no free space, but it is floor seen: where it
+        # shows again above a plain face, the face is low. Without it a vision range shorter than where
+        # the floor shows again (low-faces, dense, range 3 m or less: the crate's top hides the floor out
+        # to 3.1 m) left the plain crate in no list, nothing said.
+        with np.errstate(divide="ignore", invalid="ignore"):
+            floor_top = np.maximum(df * np.float32(k), df + np.float32(cfg.ground_noise_px))  # as on_floor
+            beyond = ((dm > 0) & (dm < np.float32(fB / range_m)) & (dm <= floor_top)
+                      & (dm * np.float32(1 + (4 * cfg.floor_margin_m + 0.1) / floor.height_m) > df))
+        if fw is not None:
+            beyond &= ~fw
+        face_gaps = gaps  # where the floor seen stops and shows again, for the faces lower than the camera
+        if beyond.any():
+            face_gaps = freespace.floor_gaps(seen_floor | beyond, df, model.baseline_m, cfg.min_height_m, step)
         # a plain face is looked for where nothing was measured: what sgbm carried into it is not (flat),
         # and a face found takes those pixels at its own depth
         faces = blank.find(dm if fw is None else np.where(fw, np.float32(0), dm), df, seen_floor,
                            stand if fw is None else stand & ~fw, floor, model, step, range_m, cfg.near_field_m,
-                           cfg.robot_height_m, cfg.min_height_m, doubtful, gaps)
+                           cfg.robot_height_m, cfg.min_height_m, doubtful, face_gaps)
         not_floor = keep & ~on_floor
         if faces is not None:  # a plain face the matcher could not measure stands at the floor's end
             dm = np.where(faces.mask, faces.disparity, dm)
