@@ -302,14 +302,14 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
                       & (dm * np.float32(1 + (4 * cfg.floor_margin_m + 0.1) / floor.height_m) > df))
         if fw is not None:
             beyond &= ~fw
-        face_gaps = gaps  # where the floor seen stops and shows again, for the faces lower than the camera
+        gaps_beyond = None
         if beyond.any():
-            face_gaps = freespace.floor_gaps(seen_floor | beyond, df, model.baseline_m, cfg.min_height_m, step)
+            gaps_beyond = freespace.floor_gaps(seen_floor | beyond, df, model.baseline_m, cfg.min_height_m, step)
         # a plain face is looked for where nothing was measured: what sgbm carried into it is not (flat),
         # and a face found takes those pixels at its own depth
         faces = blank.find(dm if fw is None else np.where(fw, np.float32(0), dm), df, seen_floor,
                            stand if fw is None else stand & ~fw, floor, model, step, range_m, cfg.near_field_m,
-                           cfg.robot_height_m, cfg.min_height_m, doubtful, face_gaps)
+                           cfg.robot_height_m, cfg.min_height_m, doubtful, gaps, gaps_beyond)
         not_floor = keep & ~on_floor
         if faces is not None:  # a plain face the matcher could not measure stands at the floor's end
             dm = np.where(faces.mask, faces.disparity, dm)
