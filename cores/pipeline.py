@@ -69,15 +69,17 @@ class Pipeline:
     mount: the camera on the robot (the `mount:` section every service reads); rows: rectify's live
     row check (row_check_s, max_row_offset_px; run in line here, on stream time); frozen_after_s:
     rectify's, for a camera whose picture stopped changing; near_check: rectify's coarse wide search
-    for what stands nearer than the vision range."""
+    for what stands nearer than the vision range; match_scale: the matcher's resolution (0.5: the
+    dispatcher's onboard `fallback: half`)."""
 
     def __init__(self, calibration: camera.Calibration, matcher: MatcherConfig | None = None,
                  segmenter: SegmenterSettings | None = None, alpha: float = 0.0, mount: MountSettings | None = None,
-                 rows: tuple[float, float] = (1.0, 0.5), frozen_after_s: float = 0.5, near_check: bool = True):
+                 rows: tuple[float, float] = (1.0, 0.5), frozen_after_s: float = 0.5, near_check: bool = True,
+                 match_scale: float = 1.0):
         self.rectifier = Rectifier(calibration, alpha)
         self.checks = PairChecks(*rows, frozen_after_s, near_check)
         self.model: camera.RectifiedModel = self.rectifier.model
-        self.matching = MatchStage(matcher or MatcherConfig())
+        self.matching = MatchStage(matcher or MatcherConfig(), match_scale)
         self.segmenter_settings = segmenter or SegmenterSettings()
         self.mount = mount or MountSettings()
         self.builder = ObstacleBuilder(self.segmenter_settings, self.mount)

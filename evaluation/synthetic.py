@@ -204,13 +204,14 @@ def default_sequence(scene: S.Scene) -> tuple[int, float]:
 
 
 def render_scenario(name: str | S.Scene, frames: int | None = None, fps: float | None = None, seed: int = 0,
-                    calibration: str = "lifecam-studio", matcher: MatcherConfig | None = None) -> ScenarioData:
+                    calibration: str = "lifecam-studio", matcher: MatcherConfig | None = None,
+                    match_scale: float = 1.0) -> ScenarioData:
     """Render `frames` pairs at `fps` (scene time) of a built-in scenario (by name) or a Scene,
-    rectify and match them."""
+    rectify and match them (match_scale 0.5: at half resolution, as the onboard `fallback: half`)."""
     t0 = time.perf_counter()
     scene = name if isinstance(name, S.Scene) else S.Scene.builtin(name)
     rig = camera.load_raw_rig(calibration)  # the world renders through the lenses
-    pipe = Pipeline(rig, matcher or MatcherConfig())  # rectify and match as the services do; each method segments apart
+    pipe = Pipeline(rig, matcher or MatcherConfig(), match_scale=match_scale)  # rectify and match as the services do
     assert pipe.rectifier.rectification is not None  # a raw rig is rectified
     world = S.SyntheticWorld(scene, rig, pipe.rectifier.rectification, seed=seed)
     n_def, fps_def = default_sequence(scene)
