@@ -358,6 +358,22 @@ def test_a_plain_crate_is_an_obstacle_with_a_vision_range_short_of_the_floor_bey
         assert s.free_under == 0 and s.floor_fp == 0
 
 
+@pytest.mark.xfail(strict=True, reason="with a 20 cm baseline bm measures the plain cabinet's side 2-4 px wide "
+                   "(its half-occluded band is twice the thesis rig's): the 5 px median filter on the working grid "
+                   "wipes it, and a low plain face with nothing measured at its depth is not found (both boxes in "
+                   "no list in any frame; the free space leaves them unknown but for a cell at an edge)")
+def test_plain_low_faces_are_obstacles_on_a_rig_with_twice_the_baseline(tmp_path):
+    from cores import camera
+
+    base = camera.load_raw_rig("lifecam-studio")
+    wide = camera.RawRig(image_size=base.image_size, left=base.left, right=base.right, R=base.R, T=base.T * 2.0,
+                         name="wide")
+    camera.save_calibration(wide, tmp_path / "wide.yaml")
+    data = E.render_scenario("low-faces", frames=3, calibration=str(tmp_path / "wide.yaml"))
+    s = E.score_method(data, "layers")
+    assert s.matched == s.truths and s.silent_misses == 0 and s.free_under == 0, s.to_dict()
+
+
 @pytest.mark.parametrize("scene", ["low-faces", "blank-faces"])
 def test_the_half_resolution_fallback_leaves_no_free_space_under_a_plain_face(scene):
     """The dispatcher's onboard `fallback: half` matches at half resolution. Its speckle filter was
