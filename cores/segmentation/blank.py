@@ -79,13 +79,14 @@ class BlankFaces:
 def find(dm: np.ndarray, df: np.ndarray, seen_floor: np.ndarray, standing: np.ndarray, floor: FloorPlane,
          model: camera.RectifiedModel, step: int, range_m: float, within_m: float,
          robot_height_m: float, min_height_m: float = 0.2, doubtful: np.ndarray | None = None,
-         gaps: freespace.Gaps | None = None, gaps_beyond: freespace.Gaps | None = None) -> BlankFaces | None:
+         gaps: freespace.Gaps | None = None, bottom_start: np.ndarray | None = None) -> BlankFaces | None:
     """dm: working disparity (0 = unmeasured, not range-gated); df: the floor's disparity on the
     working grid; seen_floor / standing: the floor and standing pixels in range (bool, working grid);
     doubtful: the disparity of pixels measured but set aside for their low confidence (0 elsewhere);
-    gaps: freespace.floor_gaps of seen_floor (None: computed here); gaps_beyond: of the floor seen
-    beyond the vision range too (None: gaps), where rule 3 reads how far up the image a plain stretch
-    from the bottom edge goes (the crate 1.6 m ahead on low-faces hides the floor out to 3.1 m).
+    gaps: freespace.floor_gaps of seen_floor (None: computed here); bottom_start: per column, where the
+    stretch without floor from the bottom edge starts (-1: none) counting the floor seen beyond the
+    vision range too (None: gaps'), rule 3's: how far up a plain stretch from the bottom edge goes
+    (the crate 1.6 m ahead on low-faces hides the floor out to 3.1 m).
     -> the blank faces' pixels, or None."""
     h, w = dm.shape
     if floor.b <= 0 or within_m <= 0:
@@ -115,7 +116,7 @@ def find(dm: np.ndarray, df: np.ndarray, seen_floor: np.ndarray, standing: np.nd
     low = gaps.nearest_end
     d_low = np.where(low >= 0, df[np.maximum(low, 0), cols], 0.0)
     stops = (low >= 0) & (d_low > fB / limit)
-    bottom_start = (gaps_beyond or gaps).bottom_start
+    bottom_start = gaps.bottom_start if bottom_start is None else bottom_start
     bottom = (bottom_start >= 0) & (df[h - 1] > fB / limit)  # 3's columns
     # unmeasured pixels above each row of the columns the rules look at (a running count: one pass)
     need = np.flatnonzero(cand | stops | bottom)
