@@ -281,11 +281,13 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
             k = 1.0 / np.maximum(np.float32(1e-3), 1.0 - margin / np.float32(floor.height_m))
         else:
             k = np.float32(1.0 / max(1e-3, 1.0 - cfg.floor_margin_m / floor.height_m))
-        on_floor = dk <= np.maximum(df * k, df + np.float32(cfg.ground_noise_px))
+        floor_top = np.maximum(df * k, df + np.float32(cfg.ground_noise_px))  # the floor's largest disparity
+        under_m = -4 * cfg.floor_margin_m - 0.1  # how far below the floor a pixel of it may seem to lie
+        on_floor = dk <= floor_top
         with np.errstate(divide="ignore", invalid="ignore"):
             above = np.float32(floor.height_m) * (1 - df / dk)  # height above the floor, m
         stand = keep & ~on_floor & (above <= cfg.robot_height_m)
-        seen_floor = keep & on_floor & (above > -4 * cfg.floor_margin_m - 0.1)
+        seen_floor = keep & on_floor & (above > under_m)
         if fw is not None:  # what the matcher carried into a plain window is no floor seen (Match.flat)
             seen_floor &= ~fw
         drop = drops.mask(dk, df, above, floor, cfg, fB, doubt)
@@ -302,11 +304,9 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
         c = np.flatnonzero(bottom_start >= 0)
         if c.size:
             dmc, dfc = dm[:, c], df[:, c]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                top = np.maximum(dfc * np.float32(k) if np.ndim(k) == 0 else dfc * k[:, c],
-                                 dfc + np.float32(cfg.ground_noise_px))  # as on_floor
-                beyond = ((dmc > 0) & (dmc < np.float32(fB / range_m)) & (dmc <= top)
-                          & (dmc * np.float32(1 + (4 * cfg.floor_margin_m + 0.1) / floor.height_m) > dfc))
+            with np.errstate(divide="ignore", invalid="ignore"):  # seen_floor's tests, out of range
+                beyond = ((dmc > 0) & (dmc < np.float32(fB / range_m)) & (dmc <= floor_top[:, c])
+                          & (np.float32(floor.height_m) * (1 - dfc / dmc) > under_m))
             if fw is not None:
                 beyond &= ~fw[:, c]
             if beyond.any():

@@ -182,7 +182,7 @@ def measure(raw: np.ndarray, invalid_value: float, scale: float, min_disparity: 
 
 def matcher_of(method: str) -> str:
     """The matcher a map's method names: a half-resolution or labelled worker says `sgbm@0.5`,
-    `dense/x` (computer.DisparityComputer.method); what each matcher must send beside its map
+    `dense/x` (computer.FrameComputer.method); what each matcher must send beside its map
     does not change with the resolution or the label."""
     return method.split("@")[0].split("/")[0]
 
