@@ -8,7 +8,7 @@ import msgpack
 from pydantic import BaseModel, ValidationError
 
 from common.errors import DecodeError
-from common.messages import SCHEMA_VERSION, Image
+from common.messages import SCHEMA_VERSION, DisparityMap, Image
 
 if TYPE_CHECKING:  # numpy is imported where images are handled: `run router` and healthcheck never need it
     import numpy as np
@@ -88,3 +88,22 @@ def array_from_image(img: Image, name: str = "image") -> np.ndarray:
     if a.shape != shape or a.dtype != dtype:
         raise DecodeError(f"{name}: decoded {a.shape} {a.dtype}, message states {shape} {img.dtype}")
     return a
+
+
+def side_images(m: DisparityMap, encodings: dict[str, str] | None = None) -> dict[str, np.ndarray]:
+    """The uint8 images a disparity map carries beside it, decoded, by name ("confidence", "flat
+    mask"; those it carries). Each must be one channel of uint8 of the map's size, and in
+    encodings[name] where given: else a DecodeError that names it and says what it is. One check for
+    the dispatcher, which vets a worker's map (and asks for each image's encoding), and the
+    segmenter, which reads the map."""
+    img = m.image
+    out = {}
+    for name, c in (("confidence", m.confidence), ("flat mask", m.flat)):
+        if c is None:
+            continue
+        encoding = (encodings or {}).get(name, c.encoding)
+        if (c.width, c.height, c.channels, c.dtype, c.encoding) != (img.width, img.height, 1, "uint8", encoding):
+            raise DecodeError(f"its {name} is {c.width}x{c.height}x{c.channels} {c.dtype} {c.encoding}, expected "
+                              f"{img.width}x{img.height} uint8 {encoding}")
+        out[name] = array_from_image(c, f"disparity {name}")
+    return out

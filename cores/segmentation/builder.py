@@ -225,17 +225,8 @@ class ObstacleBuilder:
             raise DecodeError(f"disparity image is {msg.image.width}x{msg.image.height}, its camera model "
                               f"{msg.camera.width}x{msg.camera.height}")
         raw = codec.array_from_image(msg.image, "disparity")
-        side: list[np.ndarray | None] = []
-        for name, img in (("confidence", msg.confidence), ("flat mask", msg.flat)):
-            if img is None:
-                side.append(None)
-                continue
-            a = codec.array_from_image(img, f"disparity {name}")
-            if a.shape != raw.shape[:2] or a.dtype != np.uint8:
-                raise DecodeError(f"disparity {name} is {img.width}x{img.height} {a.dtype}, the map "
-                                  f"{msg.image.width}x{msg.image.height}: expected uint8 of the same size")
-            side.append(a)
-        confidence, flat = side
+        side = codec.side_images(msg)
+        confidence, flat = side.get("confidence"), side.get("flat mask")
         d = to_float(raw, msg.scale, msg.invalid_value, searched_range(msg.min_disparity, msg.num_disparities))
         return d, camera.model_of(msg.camera), confidence, None if flat is None else flat > 0
 

@@ -213,15 +213,9 @@ def vet_map(m: DisparityMap, h: ResultHeader, t: Ticket) -> tuple[str, MapCheck 
                 "measured)"), None
     try:
         raw = codec.array_from_image(img, "disparity")
-        side: dict[str, np.ndarray] = {}  # the uint8 images beside the map, decoded (the flat mask: that it decodes)
-        for name, c, encoding in (("confidence", m.confidence, img.encoding), ("flat mask", m.flat, "png")):
-            if c is None:
-                continue
-            if (c.width, c.height, c.channels, c.dtype, c.encoding) != (img.width, img.height, 1, "uint8", encoding):
-                return (f"its {name} is {c.width}x{c.height}x{c.channels} {c.dtype} {c.encoding}, expected "
-                        f"{img.width}x{img.height} uint8 {encoding}"), None
-            side[name] = codec.array_from_image(c, f"disparity {name}")
-        conf = side.get("confidence")
+        # the confidence travels as the map does, the flat mask as one bit a pixel (it is decoded only to
+        # see that it decodes)
+        conf = codec.side_images(m, {"confidence": img.encoding, "flat mask": "png"}).get("confidence")
     except DecodeError as e:
         return str(e), None
     check = measure(raw, m.invalid_value, m.scale, m.min_disparity, m.num_disparities, conf)
