@@ -389,6 +389,20 @@ def test_the_half_resolution_fallback_leaves_no_free_space_under_a_plain_face(sc
     assert s.free_under == 0 and s.silent_misses == 0 and s.matched == s.truths, s.to_dict()
 
 
+def test_a_face_s_lowest_rows_passing_for_floor_take_the_free_space_no_further_than_the_face():
+    """A face's rows within floor_margin_m of the floor pass for floor. Taken where the floor plane
+    puts their rays, they vouched for floor behind the face: with the segmenter working on every
+    pixel (downsample 1) or every 4th, the free space reached under the low-faces cabinet in its 5th
+    frame (8 cm inside it; the same on a 1280x720 rig). A floor pixel now counts out to the nearer of
+    where it was measured and where the plane puts it."""
+    from cores.matching.config import MatcherConfig
+
+    data = E.render_scenario("low-faces", frames=6, matcher=MatcherConfig(method="bm"))
+    for downsample in (1, 4):
+        s = E.score_method(data, "layers", {"downsample": downsample})
+        assert s.free_under == 0, (downsample, s.to_dict())
+
+
 @pytest.mark.parametrize("method", ["bm", "sgbm", "dense"])
 def test_the_free_space_never_reaches_under_a_plain_crate_or_cabinet(method, low_faces):
     """sgbm carries the floor's disparities beside a plain face into it, row by row: taken for floor
