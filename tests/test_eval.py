@@ -430,6 +430,23 @@ def test_plain_faces_nothing_can_be_matched_in_are_obstacles_with_every_matcher(
     assert s.split_fp == 0 and s.base_wobble_p95_m < 0.05, (method, s.split_fp, s.base_wobble_p95_m)
 
 
+@pytest.mark.parametrize("height_m,pitch_deg", [(0.5, 5.0), (0.7, 8.0)])
+def test_the_scenes_seen_from_a_ballbot_height_camera(height_m, pitch_deg):
+    """The scenes were made for their own mounts (most 1 m high, 15 deg down). Seen from a camera as
+    low as a ballbot's (0.5-0.7 m, 5-8 deg down: the plain cabinet is taller than the camera, the floor
+    between two people's legs shows under their torsos), with bm: every obstacle in every frame, none
+    missed silently, no free cell under anything."""
+    import dataclasses
+
+    from sim import scene as S
+
+    for name in ("two-boxes", "occlusion", "touching", "toolbox", "people-side", "person-walking",
+                 "blank-faces", "low-faces"):
+        scene = dataclasses.replace(S.Scene.builtin(name), camera_height_m=height_m, camera_pitch_deg=pitch_deg)
+        s = E.score_method(E.render_scenario(scene, frames=4), "layers")
+        assert s.matched == s.truths and s.silent_misses == 0 and s.free_under == 0, (name, s.to_dict())
+
+
 PLAIN_WALL = """name: plain-wall
 description: A plain wall across the whole view 2 m ahead.
 camera_height_m: 1.0
