@@ -447,6 +447,25 @@ def test_the_scenes_seen_from_a_ballbot_height_camera(height_m, pitch_deg):
         assert s.matched == s.truths and s.silent_misses == 0 and s.free_under == 0, (name, s.to_dict())
 
 
+@pytest.mark.xfail(strict=True, reason="from 0.5 m up dense's doubted matches on the crate's plain face stray 8-9 "
+                   "px off its depth in most columns (streaks along its paths): its face is found in pieces, each "
+                   "narrower than MIN_WIDTH_M, and the crate is in no list in 3 of 4 frames (the free space leaves it "
+                   "unknown). Joining pieces at one depth along the floor's end found it in 4 of 4 but also joined "
+                   "the by-chance pieces of a plain stretch with no top edge (test_segmenter's no-low-face cases)")
+def test_a_plain_crate_seen_from_a_ballbot_height_camera_is_an_obstacle_with_dense():
+    """From a camera 0.5 m high the low-faces crate (0.35 m) is seen nearly edge-on; with dense it must
+    still be in every list."""
+    import dataclasses
+
+    from cores.matching.config import MatcherConfig
+    from sim import scene as S
+
+    scene = dataclasses.replace(S.Scene.builtin("low-faces"), camera_height_m=0.5, camera_pitch_deg=5.0)
+    s = E.score_method(E.render_scenario(scene, frames=4, matcher=MatcherConfig(method="dense")), "layers")
+    t = s.per_truth["crate"]
+    assert t["matched"] == t["seen"] == 4 and s.silent_misses == 0 and s.free_under == 0, (t, s.to_dict())
+
+
 PLAIN_WALL = """name: plain-wall
 description: A plain wall across the whole view 2 m ahead.
 camera_height_m: 1.0
