@@ -403,6 +403,21 @@ def test_a_face_s_lowest_rows_passing_for_floor_take_the_free_space_no_further_t
         assert s.free_under == 0, (downsample, s.to_dict())
 
 
+def test_the_free_space_stops_short_of_the_floor_s_end_by_its_noise(tmp_path):
+    """On a 640x360 rig with a 85 deg field of view (f 350 px, 12 cm: half a pixel is 10 cm at 3 m)
+    the floor seen beside the low-faces cabinet's plain side ended 5-8 cm inside it, and the free space
+    reached that far in from the 3rd frame on. The free space now stops half a pixel of disparity
+    short of where the floor seen ends."""
+    from cores import camera
+
+    intr = camera.Intrinsics(350.0, 350.0, 319.5, 179.5, 0.0, (0.0, 0.0, 0.0, 0.0, 0.0))
+    rig = camera.RawRig(image_size=(640, 360), left=intr, right=intr, R=np.eye(3), T=np.array([-0.12, 0.0, 0.0]),
+                        name="wide-view")
+    camera.save_calibration(rig, tmp_path / "wide-view.yaml")
+    data = E.render_scenario("low-faces", frames=4, calibration=str(tmp_path / "wide-view.yaml"))
+    assert E.score_method(data, "layers").free_under == 0
+
+
 @pytest.mark.parametrize("method", ["bm", "sgbm", "dense"])
 def test_the_free_space_never_reaches_under_a_plain_crate_or_cabinet(method, low_faces):
     """sgbm carries the floor's disparities beside a plain face into it, row by row: taken for floor
