@@ -404,7 +404,7 @@ def test_a_face_s_lowest_rows_passing_for_floor_take_the_free_space_no_further_t
 
 
 def test_the_free_space_stops_short_of_the_floor_s_end_by_its_noise(tmp_path):
-    """On a 640x360 rig with a 85 deg field of view (f 350 px, 12 cm: half a pixel is 10 cm at 3 m)
+    """On a 640x360 rig with an 85 deg field of view (f 350 px, 12 cm: half a pixel is 10 cm at 3 m)
     the floor seen beside the low-faces cabinet's plain side ended 5-8 cm inside it, and the free space
     reached that far in from the 3rd frame on. The free space now stops half a pixel of disparity
     short of where the floor seen ends."""

@@ -97,7 +97,7 @@ def drivable(floor: FloorPlane, df: np.ndarray, seen_floor: np.ndarray, standing
     # puts its ray: a face's lowest rows, within floor_margin_m of the floor, pass for floor, and the plane
     # carries their rays on past the face (by Z h / (H - h): 8 cm at 3 m for a 3 cm row from a 1 m high
     # camera): the free space reached under the low-faces cabinet with downsample 1 or 4, or a 1280x720 rig.
-    # And only to within its noise: half a pixel of disparity nearer (on a 640x360 rig with a 85 deg field of
+    # And only to within its noise: half a pixel of disparity nearer (on a 640x360 rig with an 85 deg field of
     # view, 10 cm at 3 m, the floor seen beside the low-faces cabinet's side was free 5-8 cm inside it)
     far = depth(np.minimum.reduce(np.maximum(df, dk), axis=0, where=seen_floor, initial=np.inf)
                 + np.float32(END_NOISE_PX))
