@@ -418,6 +418,19 @@ def test_the_free_space_stops_short_of_the_floor_s_end_by_its_noise(tmp_path):
     assert E.score_method(data, "layers").free_under == 0
 
 
+def test_the_floor_seen_just_past_a_thing_s_side_frees_nothing_behind_it():
+    """sway-pivot with dense, frame 16: the crate's first standing column lay 2 working columns right
+    of its side (dense's window carries the floor's depth into it), and the floor seen in the column
+    beside it reached 1.5 cm inside the crate's back corner, which freed a 10 cm cell three quarters
+    of which lies in the crate. A thing standing now stops the columns beside it, within the median
+    filter's reach."""
+    from cores.matching.config import MatcherConfig
+
+    data = E.render_scenario("sway-pivot", frames=17, matcher=MatcherConfig(method="dense"))
+    s = E.score_method(data, "layers")
+    assert s.free_under == 0 and s.silent_misses == 0, s.to_dict()
+
+
 @pytest.mark.parametrize("method", ["bm", "sgbm", "dense"])
 def test_the_free_space_never_reaches_under_a_plain_crate_or_cabinet(method, low_faces):
     """sgbm carries the floor's disparities beside a plain face into it, row by row: taken for floor
@@ -602,12 +615,18 @@ def test_a_rolled_camera_sees_no_free_floor_under_a_table_top_beside_the_column(
     assert s.recall == 1.0 and s.free_under == 0, s.to_dict()
     # the columns alone, as before: the floor under the top's edge is free
     monkeypatch.setattr(freespace, "vertical_point", _columns)
+    monkeypatch.setattr(freespace, "spread_sides", _unspread)
     assert E.score_method(data, "layers").free_under == 1
 
 
 def _columns(floor, model, step):
     """vertical_point of a camera that neither rolls nor pitches: verticals are image columns."""
     return np.array([0.0, 1.0, 0.0])
+
+
+def _unspread(stand_d, reach):
+    """freespace.spread_sides before it: a thing standing stops its own columns only."""
+    return stand_d
 
 
 def test_a_pitched_camera_sees_no_free_floor_under_a_table_top_at_the_image_side(monkeypatch):
@@ -628,4 +647,5 @@ def test_a_pitched_camera_sees_no_free_floor_under_a_table_top_at_the_image_side
     s = E.score_method(data, "layers")
     assert s.recall == 1.0 and s.free_under == 0, s.to_dict()
     monkeypatch.setattr(freespace, "vertical_point", _columns)  # the columns alone, as before
+    monkeypatch.setattr(freespace, "spread_sides", _unspread)
     assert E.score_method(data, "layers").free_under == 1

@@ -78,7 +78,8 @@ def drivable(floor: FloorPlane, df: np.ndarray, seen_floor: np.ndarray, standing
     """Points of the floor plane the robot may drive on, camera frame: along each image column (a
     ray on the ground), the floor from the image's bottom edge out to the farthest floor point seen
     in that column (each at the nearer of its measured depth and the plane's along its ray), but not
-    beyond anything standing in it (any pixel above the floor margin, obstacle or not), nor where
+    beyond anything standing in it (any pixel above the floor margin, obstacle or not) or, for a thing
+    3 columns wide or more, within the median filter's reach beside it (spread_sides), nor where
     anything standing is nearer on its vertical, which leaves the column when the camera rolls or
     pitches (_open_above), nor beyond the vision range. Block matching sees little of a smooth road,
     so the floor between seen points counts as seen; within near_field_m only where the rows between
@@ -101,7 +102,14 @@ def drivable(floor: FloorPlane, df: np.ndarray, seen_floor: np.ndarray, standing
     # view, 10 cm at 3 m, the floor seen beside the low-faces cabinet's side was free 5-8 cm inside it)
     far = depth(np.minimum.reduce(np.maximum(df, dk), axis=0, where=seen_floor, initial=np.inf)
                 + np.float32(END_NOISE_PX))
-    near_standing = depth(np.maximum.reduce(dk, axis=0, where=standing, initial=0))
+    # The nearest thing standing stops its column and the columns beside it within the median filter's
+    # reach: where a thing's side ends in the image is known to no better (dense's and bm's windows carry
+    # the floor's depth a column or two into a side), and the floor seen in a column just past a side
+    # lies behind the thing's face (sway-pivot, dense: the crate's first standing column was 2 right of
+    # its side; the floor seen there, 1.5 cm inside the crate's back corner, made free a cell three
+    # quarters of which lies in it)
+    near_standing = depth(spread_sides(np.maximum.reduce(dk, axis=0, where=standing, initial=0),
+                                       cfg.median_ksize // 2))
     limit = np.minimum(np.minimum(far, near_standing), cfg.range_for(model))
     near = depth(df[-1])  # the floor at the image's bottom edge
     cols = np.nonzero(np.isfinite(near) & (limit > near))[0]
@@ -130,6 +138,17 @@ def drivable(floor: FloorPlane, df: np.ndarray, seen_floor: np.ndarray, standing
     keep &= _open_above(uw, v / step, d, standing, dk, vertical_point(floor, model, step))
     z, u, v = z[keep], u[keep], v[keep]
     return np.stack([(u - model.cx) * z / f, (v - model.cy) * z / f, z], 1)
+
+
+def spread_sides(stand_d: np.ndarray, reach: int) -> np.ndarray:
+    """Per column the disparity of the nearest thing standing in it (0: none) -> the same with each
+    thing's sides carried `reach` columns out. Only a thing's (3 columns wide or more): a speck of the
+    matcher's noise on a road stops its own column alone."""
+    if reach <= 0:
+        return stand_d
+    row = stand_d[None, :]
+    sides = cv2.dilate(cv2.erode(row, np.ones((1, 3), np.uint8)), np.ones((1, 2 * reach + 3), np.uint8))
+    return np.maximum(row, sides)[0]
 
 
 def vertical_point(floor: FloorPlane, model: camera.RectifiedModel, step: int) -> np.ndarray:
