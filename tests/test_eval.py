@@ -439,19 +439,16 @@ def test_the_free_space_never_reaches_under_a_plain_crate_or_cabinet(method, low
     assert low_faces(method).free_under == 0, method
 
 
-@pytest.mark.xfail(strict=True, reason="two regions whose boxes come close are joined whether or not their "
-                   "points do; joining only where they touch splits the street's walls seen obliquely")
 def test_a_person_behind_another_seen_from_a_tall_camera_looking_down_is_an_obstacle_of_their_own():
     """people-queue from 1.2 m at 20 deg down: the person 0.5 m behind the nearer one at 2 m, side by
-    side with them in the image (their heads cut by its top), are two regions whose boxes come
-    within 7 cm in depth (each reaches into the other's depths by the ramp between them), the
-    nearest points 0.4 m apart: merge_close joins them by their boxes, one obstacle, the person
-    behind in no list (bm, sgbm, dense: 7-8 of 16 people missed in 4 frames, the free space
-    leaving them unknown). Tried: two regions each as wide as a person (0.25 m) joined only where
-    their points come within 25 cm: this pair apart, the 15 scenes and the sway unchanged, but on
-    the street (bm, 30 m) a facade seen obliquely fell into 6 pieces and parked cars joined a van
-    (23 more obstacles in 40 frames, near sightings in long tracks 68.8 -> 64.2 %). Not kept. (The
-    pair at 4.3 and 4.9 m is one cell group whose depth valley is just too shallow to split.)"""
+    side with them in the image (their heads cut by its top), were two regions whose boxes came
+    within 7 cm in depth (each reached into the other's depths by the ramp between them), the
+    nearest points 0.4 m apart: merge_close joined them by their boxes, one obstacle, the person
+    behind in no list (bm, sgbm, dense: 7-8 of 16 people missed in 4 frames). Two regions each as
+    wide as a person that meet side by side in the image are now joined only where their points
+    touch. Without "side by side in the image" a facade seen obliquely on the street, its pieces
+    apart in the image, fell into 6 obstacles (bm 30 m: long tracks 68.8 -> 64.2 %). (The pair at
+    4.3 and 4.9 m is one cell group whose depth valley is just too shallow to split: still one.)"""
     import dataclasses
 
     import sim as S
