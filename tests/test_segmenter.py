@@ -177,27 +177,6 @@ def test_the_depth_layer_split_keeps_a_table_s_legs_below_its_top_with_a_person_
     assert np.all(out[(dv < 35.0) & (dv > 24.0)] == 0)  # the ramp: dropped
 
 
-def test_the_depth_layer_split_keeps_the_near_part_of_a_side_seen_obliquely_with_the_near_thing():
-    """A table 1.9 m away (front d 35.5) with a person 0.7 m behind it (d 25) in one group: the
-    ramp down the table's front leg (3 px a row) and the table's side seen obliquely, 25 rows of
-    28 px receding from d 34.4 to 28. The side lies in the valley between the two, in the near
-    side's rows, but no ramp is 28 px wide: the part of it nearer than halfway (in disparity) is the
-    table's (the sway: dropped as the ramp, the table's centroid jumped by 10 cm from one frame to
-    the next); the ramp and the side's far part, which reaches to the person, are dropped."""
-    front = (np.arange(60, 201), np.arange(250, 316), 35.5)
-    person = (np.arange(0, 181), np.arange(180, 221), 25.0)
-    side = [(np.arange(75, 100), [222 + k], 28.0 + 6.4 * k / 27) for k in range(28)]
-    ramp = [(np.arange(100, 201), [247 + k], 27.0 + 3.0 * k) for k in range(3)]
-    ys, xs, dv, lab = _grouped(front, person, *side, *ramp)
-    out = depth_split.split_layers(ys, xs, dv, lab, SegmenterSettings(max_range_m=10.0), MODEL, 2)[0]
-    table, behind = out[dv == 35.5], out[dv == 25.0]
-    assert np.unique(table).size == 1 and np.unique(behind).size == 1 and table[0] != behind[0] > 0
-    on_side = (ys >= 75) & (ys < 100) & (xs >= 222) & (xs < 250)
-    assert np.all(out[on_side & (dv > 30.5)] == table[0])
-    assert np.all(out[on_side & (dv < 30.0)] == 0)
-    assert np.all(out[ys >= 100][(dv[ys >= 100] > 25.0) & (dv[ys >= 100] < 35.5)] == 0)  # the ramp: dropped
-
-
 def test_depth_layers_of_one_group_are_not_joined_again_but_a_fence_s_stretches_are():
     """Regions whose extents come within merge_gap_depth_m along the view join (the stretches of a
     fence the matcher left out), unless the depth-layer split made them two (one behind the other)."""

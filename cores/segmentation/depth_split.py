@@ -42,9 +42,7 @@ def split_layers(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, lab: np.ndarray
       whole; a rail reaching back in a few rows beside a ramp along a person's whole side does not;
     - the far side is within layer_split_range_m (a far street's facades and shelters would fall
       apart into panels).
-    The valley's pixels (the ramp: phantom depths) are dropped, but for a surface seen obliquely
-    (a run wider than layer_bridge_px along a row: its nearer half is the near side's) and what
-    lies beyond the ramp's rows (by depth to either side); each side may be split again, and
+    The valley's pixels (the ramp: phantom depths) are dropped; each side may be split again, and
     each layer is then cut into the things it holds apart on the grid (apart)."""
     family: dict[int, int] = {}
     if cfg.layer_valley_ratio <= 0 or lab.size == 0:
@@ -132,16 +130,8 @@ def split_layers(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, lab: np.ndarray
             band = idx[in_band]
             yb, yn = ys[band], ys[near]
             ramp = (yb >= yn.min() - bridge) & (yb <= yn.max() + bridge)
-            # and a ramp is a few pixels wide in each row it crosses: a run of the valley wider than
-            # layer_bridge_px along a row is a surface seen obliquely, and its part nearer than halfway
-            # is the near thing's (the sway's table, before a person walking behind it, lost its whole
-            # side as the ramp: its centroid jumped by 10 cm from one frame to the next, the wobble a
-            # swaying camera must not put on what stands still). Its far part stays dropped: it reaches
-            # to the thing behind, and given to either side it joined the two again (merge_close)
-            d_split = 0.5 * fB * (1.0 / z_far + 1.0 / z_near)
-            run, width = row_runs(ys[band], xs[band])
-            ramp &= (width[run] <= bridge) | (dv[band] < d_split)
             if not ramp.all():
+                d_split = 0.5 * fB * (1.0 / z_far + 1.0 / z_near)
                 kept = band[~ramp]
                 to_near = dv[kept] >= d_split
                 far, near = np.concatenate([far, kept[~to_near]]), np.concatenate([near, kept[to_near]])
@@ -192,22 +182,6 @@ def apart(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, out: np.ndarray, famil
                 out[idx[comp == c]] = next_label
                 family[next_label] = family[label]
                 next_label += 1
-
-
-def row_runs(ys: np.ndarray, xs: np.ndarray, slack: int = 2) -> tuple[np.ndarray, np.ndarray]:
-    """The pixels (ys, xs) cut into runs along image rows (a gap of more than `slack` columns
-    ends a run): (each pixel's run index, each run's width in columns)."""
-    if ys.size == 0:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    order = np.lexsort((xs, ys))
-    y, x = ys[order].astype(np.int64), xs[order].astype(np.int64)
-    start = np.concatenate([[True], (y[1:] != y[:-1]) | (x[1:] - x[:-1] > slack)])
-    ids = np.cumsum(start) - 1
-    first = np.flatnonzero(start)
-    last = np.concatenate([first[1:], [y.size]]) - 1
-    run = np.empty(ys.size, np.int64)
-    run[order] = ids
-    return run, x[last] - x[first] + 1
 
 
 def rests_on(ys: np.ndarray, xs: np.ndarray, heights: np.ndarray, band: np.ndarray, far: np.ndarray) -> bool:
