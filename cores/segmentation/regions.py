@@ -1,8 +1,9 @@
 """The regions the default segmenter (layers.py) finds, and how they become objects: regions whose 3D
 extents come close are one (the parts of one object the image shows apart: a chair's back leg seen
 between its front legs, the stretches of a fence), except the depth layers and the low-bridge
-pieces a group was cut into; a small region mostly inside a larger one's box is part of it, seen
-through it, or in front of it (absorb_contained).
+pieces a group was cut into, and things whose extents come close but whose points do not
+(merge_close); a small region mostly inside a larger one's box is part of it, seen through it, or
+in front of it (absorb_contained).
 """
 from __future__ import annotations
 
@@ -36,7 +37,10 @@ def merge_close(regions: list[Region], gap_m: float, depth_gap_m: float = 0.0) -
     """Merge regions whose 3D extents come within gap_m of each other across the view (x, y) and
     within max(gap_m, depth_gap_m) along it (z): the parts of one object that the image shows
     apart (a chair's back leg seen between its front legs; a fence or a wall along the road seen
-    obliquely, whose texture-poor stretches the matcher leaves out)."""
+    obliquely, whose texture-poor stretches the matcher leaves out). Where the extents say little of
+    how close the things come, their points must touch: two depth layers of one split group, boxes
+    sharing image columns (one in front of the other), and two things each as wide as a person
+    side by side in the image (abut: only depth parts them)."""
     if len(regions) < 2 or gap_m <= 0:
         return regions
     parent = list(range(len(regions)))
