@@ -65,23 +65,28 @@ def merge_close(regions: list[Region], gap_m: float, depth_gap_m: float = 0.0) -
         # just their boxes (a person walking past a table's back corner)
         if a == b or cut[a] & cut[b]:
             continue  # two pieces of a group cut between two things (cells.py) touch by construction
-        if (held[a] & held[b] and (gap[i, j, 2] > gap_m or not touch(regions[i], regions[j], gap_m))):
-            continue
+        layers = bool(held[a] & held[b])
         # boxes that share image columns are apart along the view only: one stands in front of the
         # other, and how close the boxes come says little of how close the things do (a table's
         # top reaches back over the floor where a person walks behind it). The slack along the view
         # is for one surface receding from the camera (a fence, a wall seen obliquely), whose
         # stretches lie side by side in the image: these two are joined only where their points touch
-        if share_columns(regions[i], regions[j]) and \
-                (gap[i, j, 2] > gap_m or not touch(regions[i], regions[j], gap_m)):
+        in_front = share_columns(regions[i], regions[j])
+        if (layers or in_front) and gap[i, j, 2] > gap_m:
             continue
         # two things each as wide as a person that meet side by side in the image, where only the depth
-        # parts them, are joined only where their points touch: a person and one 0.5 m behind seen from
-        # 1.2 m at 20 deg down came within 7 cm by their boxes (each reaching into the other's depths by
-        # the ramp between them), 0.4 m apart by their points, and the one behind was in no list. Pieces
-        # apart in the image (a facade seen obliquely, its stretches left out between them) still join
-        if wide[i] and wide[j] and abut(regions[i], regions[j]) and \
-                not touch(regions[i], regions[j], max(gap_m, depth_gap_m)):
+        # parts them, are joined only where their points touch too, within the slack along the view: a
+        # person and one 0.5 m behind seen from 1.2 m at 20 deg down came within 7 cm by their boxes
+        # (each reaching into the other's depths by the ramp between them), 0.4 m apart by their points,
+        # and the one behind was in no list. Pieces apart in the image (a facade seen obliquely, its
+        # stretches left out between them) still join by their boxes
+        if layers or in_front:
+            within = gap_m
+        elif wide[i] and wide[j] and abut(regions[i], regions[j]):
+            within = max(gap_m, depth_gap_m)
+        else:
+            within = None
+        if within is not None and not touch(regions[i], regions[j], within):  # one point search a pair
             continue
         parent[a] = b
         held[b] |= held[a]
@@ -98,16 +103,22 @@ def merge_close(regions: list[Region], gap_m: float, depth_gap_m: float = 0.0) -
     return out
 
 
+def overlap(p: Region, q: Region) -> tuple[int, int]:
+    """How far p's and q's image boxes overlap: (columns, rows), negative where they lie apart."""
+    return (min(p.bbox[2], q.bbox[2]) - max(p.bbox[0], q.bbox[0]),
+            min(p.bbox[3], q.bbox[3]) - max(p.bbox[1], q.bbox[1]))
+
+
 def abut(p: Region, q: Region) -> bool:
     """Whether p's and q's image boxes meet side by side: their columns overlap or touch, and their rows overlap."""
-    return (min(p.bbox[2], q.bbox[2]) >= max(p.bbox[0], q.bbox[0])
-            and min(p.bbox[3], q.bbox[3]) > max(p.bbox[1], q.bbox[1]))
+    cols, rows = overlap(p, q)
+    return cols >= 0 and rows > 0
 
 
 def share_columns(p: Region, q: Region, share: float = 0.25) -> bool:
     """Whether p's and q's image boxes overlap in columns by at least `share` of the narrower one's width."""
-    overlap = min(p.bbox[2], q.bbox[2]) - max(p.bbox[0], q.bbox[0])
-    return overlap >= share * min(p.bbox[2] - p.bbox[0], q.bbox[2] - q.bbox[0])
+    cols = overlap(p, q)[0]
+    return cols >= share * min(p.bbox[2] - p.bbox[0], q.bbox[2] - q.bbox[0])
 
 
 def touch(p: Region, q: Region, gap_m: float, samples: int = 400) -> bool:
@@ -136,8 +147,7 @@ def absorb_contained(regions: list[Region], gap_m: float, model: camera.Rectifie
             r = regions[ri]
             if ri == ci or not alive[ri] or r.area >= c.area:
                 continue
-            ix = max(0, min(r.bbox[2], c.bbox[2]) - max(r.bbox[0], c.bbox[0]))
-            iy = max(0, min(r.bbox[3], c.bbox[3]) - max(r.bbox[1], c.bbox[1]))
+            ix, iy = (max(0, k) for k in overlap(r, c))
             own = (r.bbox[2] - r.bbox[0]) * (r.bbox[3] - r.bbox[1])
             if ix * iy < inside * own:
                 continue
