@@ -1,5 +1,5 @@
 """`ballbot-vision bench segmenter --profile`: where the segmenter service's time per frame goes, step
-by step, at 640x480: the service's own path (decode the DisparityMap message, ObstacleBuilder with
+by step, at 640x480: the service's own path (its OpenCV threads; decode the DisparityMap message, ObstacleBuilder with
 the service's default settings, encode the obstacle list and the free-space grid) on the pipeline
 bench's frames (the two-boxes scenario, the lifecam-studio rig, the default matcher), under cProfile.
 
@@ -63,8 +63,20 @@ def _path(payloads: list[bytes]):
 
 
 def profile_segmenter(frames: int = 200, top: int = 25) -> dict:
+    import cv2
+
+    from services.segmenter.main import OPENCV_THREADS
+
     payloads = service_frames()
-    one = _path(payloads)
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(OPENCV_THREADS)  # as the service runs
+    try:
+        return _profile(_path(payloads), frames, top)
+    finally:
+        cv2.setNumThreads(before)
+
+
+def _profile(one, frames: int, top: int) -> dict:  # type: ignore[no-untyped-def]
     for _ in range(5):  # first calls import and allocate (scipy's tracker)
         one()
     c0, t0 = time.process_time(), time.perf_counter()
