@@ -491,6 +491,9 @@ def test_plain_faces_nothing_can_be_matched_in_are_obstacles_with_every_matcher(
         assert t["matched"] == t["seen"] == 3, (method, name, t)
     assert s.silent_misses == 0 and s.floor_fp == 0 and s.wall_fp == 0
     assert s.split_fp == 0 and s.base_wobble_p95_m < 0.05, (method, s.split_fp, s.base_wobble_p95_m)
+    # where they stand: upright over their foot (the camera looks 15 deg down; at the foot's disparity all
+    # the way up they leaned back, 16-18 cm off)
+    assert s.pos_err_med_m < 0.08, (method, s.pos_err_med_m)
 
 
 @pytest.mark.parametrize("height_m,pitch_deg", [(0.5, 5.0), (0.7, 8.0)])

@@ -1139,6 +1139,14 @@ def blank_face(u0: int, u1: int, z_m: float, d: np.ndarray | None = None) -> np.
     return d
 
 
+def ahead_of(z_m: float) -> float:
+    """How far ahead over the floor blank_face's face stands (its foot at camera depth z_m in the
+    middle column): the camera looks 15 deg down, so an upright face's nearest point is this far."""
+    pitch = np.radians(SCENE_MOUNT.pitch_deg)
+    y = (SCENE_MOUNT.height_m - z_m * np.sin(pitch)) / np.cos(pitch)  # the foot: (0, y, z_m) on the floor
+    return float(z_m * np.cos(pitch) - y * np.sin(pitch))
+
+
 def test_a_plain_face_the_matcher_cannot_measure_is_an_obstacle_at_its_foot():
     """A cabinet with nothing inside to match: the floor seen up to its foot, nothing above, past the
     horizon. It is listed where it stands, with the confidence of what was measured of it (none)."""
@@ -1146,11 +1154,26 @@ def test_a_plain_face_the_matcher_cannot_measure_is_an_obstacle_at_its_foot():
     lst = ObstacleBuilder(SegmenterSettings()).process(d, MODEL, t_s=0.0, seq=0, stamp_ns=0).obstacles
     assert len(lst.obstacles) == 1 and lst.degraded == [], lst.model_dump_json()
     o = lst.obstacles[0]
-    assert abs(o.position_m[2] - 2.2) < 0.15 and o.confidence < 0.1 and o.size_m[1] > 0.8
+    assert abs(o.distance_m - ahead_of(2.2)) < 0.1 and o.confidence < 0.1 and o.size_m[1] > 0.8
     assert 190 <= o.bbox_px[0] <= 210 and 410 <= o.bbox_px[2] <= 430
     # the same map without the step (what the list said before: nothing, unflagged)
     off = ObstacleBuilder(SegmenterSettings(near_field_m=0)).process(d, MODEL, t_s=0.0, seq=0, stamp_ns=0)
     assert off.obstacles.obstacles == [] and off.obstacles.degraded == []
+
+
+def test_a_plain_face_seen_from_a_pitched_camera_stands_upright_over_its_foot():
+    """The scene's camera looks 15 deg down. A face as tall as the camera, its foot at camera depth
+    2.2 m, stands 2.01 m ahead over the floor, and so do its upper rows: nearer along the optical axis
+    than its foot. Its foot's disparity in every row leaned it back: listed 2.16 m ahead, its nearest
+    point 2.19 m away."""
+    d = blank_face(200, 420, 2.2)
+    ahead = ahead_of(2.2)
+    mount = MountSettings(height_m=SCENE_MOUNT.height_m, pitch_deg=SCENE_MOUNT.pitch_deg)
+    lst = ObstacleBuilder(SegmenterSettings(), mount).process(d, MODEL, t_s=0.0, seq=0, stamp_ns=0).obstacles
+    assert len(lst.obstacles) == 1, lst.model_dump_json()
+    o = lst.obstacles[0]
+    assert abs(o.position_base_m[0] - ahead) < 0.05 and abs(o.distance_m - ahead) < 0.05, \
+        (ahead, o.position_base_m, o.distance_m)
 
 
 def test_a_plain_face_with_a_matchers_noise_on_it_nearer_than_its_foot_is_still_found():
@@ -1162,7 +1185,7 @@ def test_a_plain_face_with_a_matchers_noise_on_it_nearer_than_its_foot_is_still_
     for u0, v0, z in ((230, 60, 1.4), (300, 120, 1.6), (360, 40, 1.3), (400, 150, 1.5)):
         d[v0:v0 + 14, u0:u0 + 14] = FB / z  # 14 px blobs in the air, nearer than the face
     lst = ObstacleBuilder(SegmenterSettings()).process(d, MODEL, t_s=0.0, seq=0, stamp_ns=0).obstacles
-    faces = [o for o in lst.obstacles if abs(o.position_m[2] - 2.2) < 0.15 and o.size_m[1] > 0.8]
+    faces = [o for o in lst.obstacles if abs(o.distance_m - ahead_of(2.2)) < 0.15 and o.size_m[1] > 0.8]
     assert faces and sum(o.bbox_px[2] - o.bbox_px[0] for o in faces) > 150, \
         [(o.position_m, o.bbox_px) for o in lst.obstacles]
 

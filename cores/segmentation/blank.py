@@ -16,10 +16,11 @@ column holds a blank face standing at Z_f when
     horizon, to 0.1 m above the camera's height at Z_f. Unmeasured floor cannot reach that high:
     however far it went, it would stay below the horizon. Something stands at Z_f, as tall as the
     camera or taller.
-Runs of such columns at least MIN_WIDTH_M wide at their median Z_f become standing pixels at the
-floor's disparity at Z_f, up to robot_height_m above the floor: the obstacle is grouped, filtered
-and tracked as any other, and its confidence (the share of its pixels the matcher measured) says
-how little of it was seen.
+Runs of such columns at least MIN_WIDTH_M wide at their median Z_f become standing pixels of an
+upright face over the floor at Z_f (_upright: for a camera that pitches or rolls, not one disparity
+up the column), up to robot_height_m above the floor: the obstacle is grouped, filtered and tracked
+as any other, and its confidence (the share of its pixels the matcher measured) says how little of
+it was seen.
 
 A face lower than the camera (a plain box, a bench, a stair riser) leaves the floor beyond it in
 view above its top, so the stretch above its foot is not unmeasured up past the horizon. Along each
@@ -69,8 +70,8 @@ MEASURED = MEASURED_CONFIDENCE
 
 @dataclass
 class BlankFaces:
-    """Pixels taken for blank faces on the working grid, and their disparity (the floor's at each
-    face's foot)."""
+    """Pixels taken for blank faces on the working grid, and their disparity (from the floor's at each
+    face's foot: upright over it for rule 1's, that disparity up the column for the others')."""
 
     mask: np.ndarray  # (h, w) bool
     disparity: np.ndarray  # (h, w) float32, valid where mask
@@ -129,6 +130,7 @@ def find(dm: np.ndarray, df: np.ndarray, seen_floor: np.ndarray, standing: np.nd
         n = top_floor[c] - top[c]
         blank = (unmeasured[top_floor[c], at[c]] - unmeasured[top[c], at[c]]) >= UNMEASURED * n
         faces[c[blank]] = True
+    tall_face = faces.copy()
     foot = np.where(faces, top_floor, -1)  # per face column, the floor row at its foot
     # 2, continued: above the stop, what was measured at all (doubted or not) is mostly at the stop's
     # depth, up to a top edge min_height_m or more above the floor
@@ -183,14 +185,40 @@ def find(dm: np.ndarray, df: np.ndarray, seen_floor: np.ndarray, standing: np.nd
     f = np.flatnonzero(faces)
     v1 = foot[f]
     v0 = np.maximum(v1 - np.ceil(robot_height_m * model.focal_px / (z_face[f] * step)).astype(np.int64), face_top[f])
-    in_face = (rows >= v0) & (rows < v1) & (dm[:, f] <= 0)
+    # a face of rule 1 stands upright to above the camera; what rules 2 and 3 find reaches up to a top edge
+    # measured at its foot's depth (the top of a box seen from above is in it: that depth all the way up)
+    d_col = np.where(tall_face[f][None, :], _upright(d_face[f], f, np.clip(v1, 0, h - 1), rows, floor, model, step),
+                     d_face[f][None, :])
+    in_face = (rows >= v0) & (rows < v1) & (dm[:, f] <= 0) & (d_col > 0)
     if not in_face.any():
         return None
     mask = np.zeros((h, w), bool)
     disparity = np.zeros((h, w), np.float32)
     mask[:, f] = in_face
-    disparity[:, f] = np.where(in_face, d_face[f].astype(np.float32), np.float32(0))
+    disparity[:, f] = np.where(in_face, d_col.astype(np.float32), np.float32(0))
     return BlankFaces(mask, disparity)
+
+
+def _upright(d_foot: np.ndarray, cols: np.ndarray, foot: np.ndarray, rows: np.ndarray, floor: FloorPlane,
+             model: camera.RectifiedModel, step: int) -> np.ndarray:
+    """The disparity over working rows `rows` ((h, 1)) of each face column `cols` whose foot, at working
+    row `foot`, has disparity d_foot: the face stands upright on the floor, a vertical plane through
+    its foot turned to the camera. A camera that pitches or rolls sees such a face's pixels at
+    disparities that change along the column (pitched 20 deg down, the top of a cabinet 2 m away is
+    0.4 m nearer along the optical axis than its foot); the foot's disparity all the way up leaned the
+    face back, and the blank-faces cabinet seen from 1.2 m up, 20 deg down, was placed 0.33 m low.
+    An upright camera gets the foot's disparity in every row. (h, k) float64; <= 0 where the plane
+    is not in front of the camera."""
+    f, cx, cy = model.focal_px, model.cx, model.cy
+    n, _ = floor.normal_height(f, cx, cy, model.baseline_m)  # unit, camera frame, towards the floor
+    r = np.stack([(cols * step - cx) / f, (foot * step - cy) / f, np.ones(cols.size)])  # rays to the feet
+    m = r - np.outer(n, n @ r)  # the face's normal: the ray's part along the floor (its length cancels)
+    rm = np.einsum("ik,ik->k", r, m)
+    # a pixel of the column, dv rows from the foot, has the foot's ray plus (0, dv step / f, 0): by the
+    # plane (r . m) Z = const, its disparity is the foot's times (r . m) over the foot's (r . m)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        slope = np.where(rm > 0, step * m[1] / (f * rm), 0.0)
+    return d_foot[None, :] * (1.0 + (rows - foot[None, :]) * slope[None, :])
 
 
 def _explained(near: np.ndarray, d_end: np.ndarray, z_end: np.ndarray, dm: np.ndarray, standing: np.ndarray,

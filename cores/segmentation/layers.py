@@ -22,7 +22,7 @@ only what stands on it counts, and objects are grouped where they stand.
  5b. blank faces (blank.py): where the floor seen along a column ends short of the range with
     nothing measured standing there, and the image above is unmeasured up past the horizon, a
     plain face (a wall, a door, a cabinet: nothing inside to match) stands at the floor's end:
-    its pixels stand, at that depth; a lower one, where what was measured above the floor's stop
+    its pixels stand, upright over that foot; a lower one, where what was measured above the floor's stop
     (the matcher's doubted pixels too) is mostly at the stop's depth, up to a top edge
  6. a standing pixel with a 4-neighbour nearer by more than step_px + step_rel * d sits on a depth
     step, where block matching blends two depths into a phantom: it is not grouped
