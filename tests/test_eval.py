@@ -403,6 +403,19 @@ def test_a_face_s_lowest_rows_passing_for_floor_take_the_free_space_no_further_t
         assert s.free_under == 0, (downsample, s.to_dict())
 
 
+@pytest.mark.parametrize("method", ["bm", "dense"])
+def test_plain_low_faces_are_obstacles_when_the_segmenter_works_on_every_4th_pixel(method):
+    """At downsample 4 a 5 px median filter spans 20 px of the map: it wiped out the narrow side block
+    matching measures of the low-faces cabinet (bm) or crate (dense), the face's only evidence, and
+    each was in no list in any frame, unflagged. The default filter there is 3 px (12 px of the map,
+    as 5 at downsample 2 spans 10)."""
+    from cores.matching.config import MatcherConfig
+
+    data = E.render_scenario("low-faces", matcher=MatcherConfig(method=method))
+    s = E.score_method(data, "layers", {"downsample": 4})
+    assert s.matched == s.truths and s.silent_misses == 0 and s.free_under == 0, (method, s.to_dict())
+
+
 def test_the_free_space_stops_short_of_the_floor_s_end_by_its_noise(tmp_path):
     """On a 640x360 rig with an 85 deg field of view (f 350 px, 12 cm: half a pixel is 10 cm at 3 m)
     the floor seen beside the low-faces cabinet's plain side ended 5-8 cm inside it, and the free space

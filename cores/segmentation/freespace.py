@@ -109,7 +109,7 @@ def drivable(floor: FloorPlane, df: np.ndarray, seen_floor: np.ndarray, standing
     # its side; the floor seen there, 1.5 cm inside the crate's back corner, made free a cell three
     # quarters of which lies in it)
     near_standing = depth(spread_sides(np.maximum.reduce(dk, axis=0, where=standing, initial=0),
-                                       cfg.median_ksize // 2))
+                                       cfg.median_px // 2))
     limit = np.minimum(np.minimum(far, near_standing), cfg.range_for(model))
     near = depth(df[-1])  # the floor at the image's bottom edge
     cols = np.nonzero(np.isfinite(near) & (limit > near))[0]

@@ -8,7 +8,8 @@ only what stands on it counts, and objects are grouped where they stand.
 
  1. work on every `downsample`-th pixel (2: 320x240 for a 640x480 map), NaN -> 0; pixels whose
     matcher confidence is below min_confidence are invalid
- 2. 5x5 median filter (removes block-matching speckle, keeps depth steps sharp)
+ 2. median filter (median_px: 5x5, 3x3 at downsample 4, about 10 px of the map; removes
+    block-matching speckle, keeps depth steps sharp)
  3. range gate: min_range_m <= Z <= max_range_m
  4. the ground: a plane d = a u + b v + c in disparity space, fitted this frame (ground.py: the
     last frames' estimate, the configured mount or RANSAC as the first guess; checked, smoothed,
@@ -147,7 +148,7 @@ def _working_disparity(disparity: np.ndarray, cfg: SegmenterSettings, confidence
         if cfg.min_confidence > blank.MEASURED:
             doubtful = np.where(low & (c0 >= blank.MEASURED), d0, np.float32(0))
         d0[low] = 0
-    dm = cv2.medianBlur(d0, cfg.median_ksize) if cfg.median_ksize > 1 else d0
+    dm = cv2.medianBlur(d0, cfg.median_px) if cfg.median_px > 1 else d0
     return d0, dm, doubtful
 
 
@@ -334,7 +335,7 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
     left_edge, right_edge = (int(measured[0]), int(measured[-1])) if measured.size else (0, w - 1)
     # px an object's side may lie right of where it is cut: the median filter's reach and a column, and
     # never under two columns (the matcher's own first columns beside no data are doubtful)
-    edge_reach = max(2, cfg.median_ksize // 2 + 1) * step
+    edge_reach = max(2, cfg.median_px // 2 + 1) * step
 
     def detection(pts: np.ndarray, lo: np.ndarray, hi: np.ndarray, box: tuple[int, int, int, int], area: int,
                   disparity_px: float, confidence: float) -> Detection:

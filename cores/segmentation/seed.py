@@ -89,7 +89,7 @@ def segment(disparity: np.ndarray, model: camera.RectifiedModel,
 def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: SegmenterSettings | None = None,
                   floor: FloorPlane | None = None) -> tuple[list[Detection], bool]:
     """disparity: (H, W) float32 px, NaN = invalid, rectified left camera `model` -> detections,
-    camera frame. Reads range_m, median_ksize (at least 3), floor_removal, floor_margin_m,
+    camera frame. Reads range_m, median_px (at least 3), floor_removal, floor_margin_m,
     min_area_fraction, close_radius_px and clear_border; the floor plane is removed (None: no floor
     removed, as in the thesis; ObstacleBuilder passes the ground estimator's, as for layers).
     -> (detections, unlisted): unlisted when, with a floor removed, what stands in the vision range
@@ -111,7 +111,7 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
     if not keep.any():
         return [], False
     gated = np.where(keep, d, 0.0).astype(np.float32)
-    filtered = cv2.medianBlur(gated, max(3, cfg.median_ksize))
+    filtered = cv2.medianBlur(gated, max(3, cfg.median_px))
     top = float(filtered.max())
     if top <= 0:
         return [], False

@@ -30,7 +30,9 @@ class SegmenterSettings(ServiceSettings):
                                       "(null: the method's own, seed 3 m as in the thesis, layers 4.5 m)")
     min_range_m: float = Field(1.0, ge=0, le=10, description="nearer pixels are ignored, m (the disparity "
                                "search's default reach; a search that cannot reach twice this is warned about)")
-    median_ksize: Literal[1, 3, 5] = Field(5, description="median filter size, px (seed: at least 3)")
+    median_ksize: Literal[1, 3, 5] | None = Field(
+        None, description="median filter size, px of the grid the method works on (seed: at least 3); null: "
+                          "seed 5, layers about 10 px of the full-resolution map (5 at downsample 1 or 2, 3 at 4)")
     floor_removal: bool = Field(True, description="remove the floor (false reproduces the thesis with seed)")
     floor_margin_m: float = Field(0.08, ge=0, le=1, description="points this close to the floor are floor")
     ground_noise_px: float = Field(0.5, ge=0, le=10, description="layers: a point must stand this much disparity "
@@ -121,6 +123,15 @@ class SegmenterSettings(ServiceSettings):
     def range_m(self) -> float:
         """The configured range, or the method's own (without a camera to fit it to)."""
         return self.max_range_m if self.max_range_m is not None else DEFAULT_RANGE_M[self.method]
+
+    @property
+    def median_px(self) -> int:
+        """The median filter's size (median_ksize, or the method's own). layers at downsample 4: 3, as
+        a 5 px filter there spans 20 px of the map and wiped out the side block matching measures of a
+        plain face (low-faces, bm: the cabinet in no list, unflagged, in every frame)."""
+        if self.median_ksize is not None:
+            return self.median_ksize
+        return 3 if self.method == "layers" and self.downsample >= 4 else 5
 
     def range_for(self, model) -> float:
         """The vision range for this camera (a RectifiedModel): the configured one, or the method's
