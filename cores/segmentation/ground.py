@@ -66,6 +66,10 @@ BELOW_PX = 2.5  # and this much disparity: block matching errs by a pixel or two
 BELOW_WEIGHT = 1.0  # score = support - BELOW_WEIGHT * share of pixels under the plane
 MIN_SUPPORT = 0.04  # a floor carries at least this share of the valid pixels ...
 MIN_INLIERS = 100  # ... and this many pixels
+# A fitted floor this large (pixels of the map: 500 samples of a 640x480 map at downsample 2) is trusted
+# for its size; counted in samples, the same road at downsample 4 came to a quarter of it, and the
+# street's lists said ground-uncertain in 30 frames of 40
+MIN_FLOOR_PX = 8000.0
 TRACK_BONUS = 0.05  # score bonus of a candidate agreeing with the last frames
 # A real road is not a plane: a plane rolled across it fits its drained sides and a plaza beside it a
 # little better than the road itself. Roll away from the last frames' (level without any) costs score.
@@ -208,6 +212,7 @@ class Fit:
     below_fraction: float = 0.0  # share of the valid pixels seen through the plane (under the floor)
     score: float = 0.0
     origin: str = ""  # the candidate it came from: ransac, v-disparity, tracked, prior
+    floor_px: float = 0.0  # the floor seen on it: its inliers, each standing for spacing^2 pixels of the map
 
     @property
     def pitch_roll(self) -> tuple[float, float]:
@@ -273,23 +278,23 @@ def _judge(p: np.ndarray, px: Pixels, model: camera.RectifiedModel, origin: str)
     left = int(np.count_nonzero(inl & px.left(model.cx)))
     balance = min(left, k - left) / max(1, max(left, k - left))
     return Fit(FloorPlane(plane.a, plane.b, plane.c, height, True, k), n, support, under,
-               support * (0.5 + 0.5 * balance) - BELOW_WEIGHT * under, origin)
+               support * (0.5 + 0.5 * balance) - BELOW_WEIGHT * under, origin, k * px.spacing ** 2)
 
 
-def _points(dm: np.ndarray, step: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _pixels(dm: np.ndarray, step: int) -> Pixels:
     s = 2  # every other working pixel is plenty for three parameters
     sub = dm[::s, ::s]
     h, w = sub.shape
     uu, vv = _full_grid(h, w, step * s)
     i = np.flatnonzero(sub > 0)  # (by index: faster than three masks)
-    return uu.take(i), vv.take(i), sub.take(i)
+    return Pixels(uu.take(i), vv.take(i), sub.take(i), spacing=step * s)
 
 
 def fit_candidates(dm: np.ndarray, model: camera.RectifiedModel, step: int, guesses: dict[str, FloorPlane],
                    rng: np.random.Generator) -> list[Fit]:
     """Every acceptable floor candidate of a working-resolution disparity map dm (0 = invalid), best
     score first: from the guesses (name -> plane), RANSAC and the v-disparity histogram."""
-    return _candidates(Pixels(*_points(dm, step)), model, guesses, rng)
+    return _candidates(_pixels(dm, step), model, guesses, rng)
 
 
 def _candidates(px: Pixels, model: camera.RectifiedModel, guesses: dict[str, FloorPlane], rng: np.random.Generator,
@@ -353,7 +358,7 @@ def fit_confidence(fit: Fit, consistent: bool) -> float:
     and whether it agrees with the last frames."""
     support = min(1.0, fit.inlier_fraction / 0.3)
     under = max(0.0, 1.0 - fit.below_fraction / 0.15)
-    size = min(1.0, fit.plane.inliers / 500.0)
+    size = min(1.0, fit.floor_px / MIN_FLOOR_PX)
     return float(support * under * size * (1.0 if consistent else 0.7))
 
 
@@ -433,13 +438,13 @@ class GroundEstimator:
         vision range, or out to where the rig still measures when that is farther (layers.py)."""
         prior = self.prior
         if self.cfg.fit_floor:
-            return self._fit(Pixels(*_points(dm, step)), model)
+            return self._fit(_pixels(dm, step), model)
         if prior is None:
             return None, self._none()
         # The user chose the configured mount over fitting: it is the floor, as configured. The ground
         # is still fitted, only to check the mount by: a mount a few degrees off hides what stands low
         # (or turns the road into obstacles) at a distance, and a list must not look trustworthy then.
-        px = Pixels(*_points(dm, step))
+        px = _pixels(dm, step)
         self._fit(px, model)
         plane = plane_from_mount(prior, model)
         off = self._mount_offset(plane, px, model)
