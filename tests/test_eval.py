@@ -416,6 +416,18 @@ def test_plain_low_faces_are_obstacles_when_the_segmenter_works_on_every_4th_pix
     assert s.matched == s.truths and s.silent_misses == 0 and s.free_under == 0, (method, s.to_dict())
 
 
+@pytest.mark.parametrize("scene", ["chair", "people-queue"])
+def test_what_stands_nearer_than_the_vision_range_stops_the_free_space(scene):
+    """min_range_m 2: the chair's front and the nearest person stand nearer, in no list (the range
+    leaves them out); the floor seen beyond them made free the cells under the chair's seat and the
+    person (free under 3 and 2 with bm). What stands there stops the free space as anything standing."""
+    from cores.matching.config import MatcherConfig
+
+    data = E.render_scenario(scene, matcher=MatcherConfig(method="bm"))
+    s = E.score_method(data, "layers", {"min_range_m": 2.0})
+    assert s.free_under == 0, s.to_dict()
+
+
 def test_the_free_space_stops_short_of_the_floor_s_end_by_its_noise(tmp_path):
     """On a 640x360 rig with an 85 deg field of view (f 350 px, 12 cm: half a pixel is 10 cm at 3 m)
     the floor seen beside the low-faces cabinet's plain side ended 5-8 cm inside it, and the free space

@@ -47,7 +47,8 @@ only what stands on it counts, and objects are grouped where they stand.
     (2nd percentile of range), bbox, area, median disparity, confidence (mean matcher confidence,
     else the fraction of its pixels with a valid raw disparity)
 12. the drivable floor: along each column, from the image's bottom edge to the farthest floor
-    point seen, stopped by anything standing, within near_field_m not across an unmeasured
+    point seen, stopped by anything standing (nearer than min_range_m too, in no list as it is),
+    within near_field_m not across an unmeasured
     stretch that could hide something min_height_m tall (freespace.py: drivable, and the grid)
 13. optional boundary refinement (edge_refine): each box side snapped to the strongest intensity
     edge of the left image within a few pixels (the thesis's hybrid idea)
@@ -327,7 +328,15 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
                 above = np.where(faces.mask, np.float32(floor.height_m) * (1 - df / faces.disparity), above)
             stand |= faces.mask
             not_floor |= faces.mask  # a face stops the free space as anything standing does
-        floor_points = freespace.drivable(floor, df, seen_floor, not_floor, dk, model, cfg, step, gaps)
+        # What stands nearer than min_range_m is in no list (the range leaves it out) but it is there: it
+        # stops the free space as anything standing does. Left out of it, the floor seen beyond a chair
+        # whose front stood nearer made free the cells under its seat (min_range_m 2: chair, people-queue)
+        dk_free = dk
+        near_stand = (dm > np.float32(_nearest_disparity(fB, cfg))) & (dm > floor_top)
+        if near_stand.any():
+            not_floor = not_floor | near_stand
+            dk_free = np.where(near_stand, dm, dk)
+        floor_points = freespace.drivable(floor, df, seen_floor, not_floor, dk_free, model, cfg, step, gaps)
     else:
         above, drop = None, None
         stand = keep
