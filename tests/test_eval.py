@@ -428,6 +428,19 @@ def test_what_stands_nearer_than_the_vision_range_stops_the_free_space(scene):
     assert s.free_under == 0, s.to_dict()
 
 
+def test_a_speck_of_false_floor_on_a_plain_face_frees_nothing():
+    """Block matching without its speckle filter (speckle_window 0) matches bits of the plain crate's
+    face at random; one bit, 3 working pixels in a row at the floor's disparity of its row, passed for
+    floor seen 22 rows above the image's bottom edge, a stretch too short to hide anything: the free
+    space ran from the edge to it, under the crate. A floor pixel with fewer than 3 of its 8 neighbours
+    floor is no floor seen."""
+    from cores.matching.config import MatcherConfig
+
+    data = E.render_scenario("low-faces", matcher=MatcherConfig(method="bm", speckle_window=0))
+    s = E.score_method(data, "layers")
+    assert s.free_under == 0 and s.matched == s.truths, s.to_dict()
+
+
 def test_the_free_space_stops_short_of_the_floor_s_end_by_its_noise(tmp_path):
     """On a 640x360 rig with an 85 deg field of view (f 350 px, 12 cm: half a pixel is 10 cm at 3 m)
     the floor seen beside the low-faces cabinet's plain side ended 5-8 cm inside it, and the free space

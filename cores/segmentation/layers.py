@@ -295,6 +295,11 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
         drop = drops.mask(dk, df, above, floor, cfg, fB, doubt)
         if drop is not None:
             seen_floor &= ~drop  # the floor beyond a curb down is no floor to drive on
+        # a floor pixel with fewer than 3 of its 8 neighbours floor is no floor seen: a speck of a plain
+        # face the matcher matched at random at the floor's disparity of its row (bm without its speckle
+        # filter on the low-faces crate) vouched for the floor from the image's bottom edge to it
+        n = cv2.boxFilter(seen_floor.view(np.uint8), cv2.CV_8U, (3, 3), normalize=False)
+        seen_floor &= n >= 4
         gaps = freespace.floor_gaps(seen_floor, df, model.baseline_m, cfg.min_height_m, step)
         # The floor measured beyond the vision range is no free space, but it is floor seen: where it
         # shows again above a plain face, the face is low. Without it a vision range shorter than where
