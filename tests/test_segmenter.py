@@ -1255,6 +1255,23 @@ def test_a_plain_face_lower_than_the_camera_is_an_obstacle_by_its_doubted_top_ed
     assert 190 <= o.bbox_px[0] <= 210 and 410 <= o.bbox_px[2] <= 430
 
 
+def test_a_plain_low_face_behind_a_patch_of_floor_the_matcher_missed_is_still_found():
+    """A dark rug 1.85-2.35 m ahead, in front of a plain box at 3 m: the matcher measures nothing of
+    it, a stretch without floor tall enough to hide a thing min_height_m tall, the floor seen beyond it
+    up to the box. The face's foot is looked for at the column's lowest such stretches, not the lowest
+    alone: that was the rug's, above which nothing stands at its depth, and the box was in no list,
+    unflagged."""
+    d, conf = low_face(FB / 3.0, z_m=3.0)
+    fp = floor_plane(SCENE_MOUNT)
+    rows = np.arange(MODEL.height, dtype=np.float32)
+    near, far = (int(np.nonzero(fp.disparity(np.float32(310), rows) <= FB / z)[0].max()) for z in (1.85, 2.35))
+    d[far:near, 150:470] = np.nan
+    lst = ObstacleBuilder(SegmenterSettings()).process(d, MODEL, t_s=0.0, seq=0, stamp_ns=0,
+                                                       confidence=conf).obstacles
+    faces = [o for o in lst.obstacles if abs(o.position_m[2] - 3.0) < 0.2]
+    assert len(faces) == 1 and faces[0].bbox_px[2] - faces[0].bbox_px[0] > 180, lst.model_dump_json()
+
+
 @pytest.mark.parametrize("case", ["no top edge", "edge at the floor beyond", "too low"])
 def test_an_unmeasured_stretch_of_floor_is_no_low_face(case):
     """What the rule must not take for a low face: a stretch with no top edge measured at all (dense

@@ -25,7 +25,10 @@ it was seen.
 A face lower than the camera (a plain box, a bench, a stair riser) leaves the floor beyond it in
 view above its top, so the stretch above its foot is not unmeasured up past the horizon. Along each
 column, where the floor seen stops for as many rows as a face min_height_m tall standing there would
-cover, the stop may be such a face's foot. What tells it from a plain patch of floor is what was
+cover, the stop may be such a face's foot (each of the column's lowest three such stops: a patch of
+floor the matcher missed, a dark rug, lies below the foot of a face behind it as a stop of its own,
+and looked for at the lowest alone, a plain box 3 m away behind a rug was in no list, unflagged).
+What tells it from a plain patch of floor is what was
 measured above the stop: mostly (FACE_SHARE) within CAP_PX of the stop's disparity, up to a top edge
 at that depth, nearer it than the floor's at its row and min_height_m or more above the floor. A
 plain patch of floor ends in floor farther away, or too close above its near edge to be that tall.
@@ -114,9 +117,12 @@ def find(dm: np.ndarray, df: np.ndarray, seen_floor: np.ndarray, standing: np.nd
     # 2. lower than the camera (looked for after 1's columns are known): where the floor seen stops,
     # for as many rows as a face min_height_m tall would hide (or to the image's top), within the limit
     gaps = gaps or freespace.floor_gaps(seen_floor, df, model.baseline_m, min_height_m, step)
-    low = gaps.nearest_end
-    d_low = np.where(low >= 0, df[np.maximum(low, 0), cols], 0.0)
-    stops = (low >= 0) & (d_low > fB / limit)
+    # the lowest stretches of each column, lowest first: a patch of floor the matcher missed below a plain
+    # face's foot (a rug, a shadow; any small one with a low min_height_m) must not hide the face
+    lows = gaps.ends
+    d_lows = np.where(lows >= 0, df[np.maximum(lows, 0), cols[None, :]], 0.0)
+    stops_k = (lows >= 0) & (d_lows > fB / limit)
+    stops = stops_k.any(0)
     bottom_start = gaps.bottom_start if bottom_start is None else bottom_start
     bottom = (bottom_start >= 0) & (df[h - 1] > fB / limit)  # 3's columns
     # unmeasured pixels above each row of the columns the rules look at (a running count: one pass)
@@ -132,43 +138,10 @@ def find(dm: np.ndarray, df: np.ndarray, seen_floor: np.ndarray, standing: np.nd
         faces[c[blank]] = True
     tall_face = faces.copy()
     foot = np.where(faces, top_floor, -1)  # per face column, the floor row at its foot
-    # 2, continued: above the stop, what was measured at all (doubted or not) is mostly at the stop's
-    # depth, up to a top edge min_height_m or more above the floor
     rows = np.arange(h)[:, None]
-    c = np.flatnonzero(stops & ~faces)
-    if c.size:
-        # the stretch a face min_height_m tall would cover must be unmeasured: else the matcher saw what
-        # stands there (a textured thing, listed already), and the column costs no more
-        v1 = low[c]
-        first = np.maximum(v1 - np.ceil(min_height_m * d_low[c] / (model.baseline_m * step)).astype(np.int64), 0)
-        c = c[unmeasured[v1, at[c]] - unmeasured[first, at[c]] >= UNMEASURED * (v1 - first)]
-    if c.size:
-        sub = dm[:, c]
-        d = sub if doubtful is None else np.where(sub > 0, sub, doubtful[:, c])
-        v1 = low[c]
-        d0 = d_low[c].astype(np.float32)
-        z0 = fB / d0
-        reach = np.ceil(robot_height_m * model.focal_px / (z0 * step)).astype(np.int64)
-        window = (rows < v1) & (rows >= v1 - reach)
-        evidence = window & (d > 0)
-        # at the face's depth, within the noise of a doubted match (near the foot the floor's too)
-        off = np.abs(d - d0)
-        at_end = evidence & (off <= np.float32(CAP_PX))
-        # counts from the foot upwards: rows at and below r, down to the foot
-        n_ev = np.cumsum(evidence[::-1], axis=0, dtype=np.int32)[::-1]
-        n_at = np.cumsum(at_end[::-1], axis=0, dtype=np.int32)[::-1]
-        n_unm = unmeasured[v1, at[c]][None, :] - unmeasured[:h, at[c]]  # in [r, v1): the window's, for r in it
-        span = v1[None, :] - rows  # rows from r to the foot
-        tall = span * step * z0[None, :] / model.focal_px >= max(min_height_m, 1e-6)
-        # a top edge: at the face's depth and nearer it than the floor's at its row, so no floor
-        top_ok = (at_end & (off < np.abs(d - df[:, c])) & tall & (n_at >= FACE_SHARE * n_ev)
-                  & (n_unm >= UNMEASURED * span))
-        found = top_ok.any(0)
-        faces[c[found]] = True
-        foot[c[found]] = v1[found]
-        face_top[c[found]] = np.argmax(top_ok, axis=0)[found]  # the highest such top edge
-        _outlined(c[~found], low, d_low, dm, standing, unmeasured, at, min_height_m, model, step,
-                  faces, foot, face_top, shift)
+    for low, d_low, stop in zip(lows, d_lows, stops_k):
+        _low_face(np.flatnonzero(stop & ~faces), low, d_low, dm, df, standing, doubtful, unmeasured, at, rows,
+                  robot_height_m, min_height_m, model, step, faces, foot, face_top, shift)
     # 3. a face whose foot is below the image: nearer than the floor at the image's bottom edge
     _below_image(np.flatnonzero(bottom & ~faces), bottom_start, df, dm, standing, unmeasured, at,
                  min_height_m, model, step, faces, foot, face_top, shift)
@@ -219,6 +192,52 @@ def _upright(d_foot: np.ndarray, cols: np.ndarray, foot: np.ndarray, rows: np.nd
     with np.errstate(divide="ignore", invalid="ignore"):
         slope = np.where(rm > 0, step * m[1] / (f * rm), 0.0)
     return d_foot[None, :] * (1.0 + (rows - foot[None, :]) * slope[None, :])
+
+
+def _low_face(c: np.ndarray, low: np.ndarray, d_low: np.ndarray, dm: np.ndarray, df: np.ndarray,
+              standing: np.ndarray, doubtful: np.ndarray | None, unmeasured: np.ndarray, at: np.ndarray,
+              rows: np.ndarray, robot_height_m: float, min_height_m: float, model: camera.RectifiedModel, step: int,
+              faces: np.ndarray, foot: np.ndarray, face_top: np.ndarray, shift: np.ndarray) -> None:
+    """Rule 2 (faces, foot, face_top, shift updated in place) at one stretch of each column c: low, the
+    floor row just below it (d_low: the floor's disparity there). Above the stop, what was measured at
+    all (doubted or not) is mostly at the stop's depth, up to a top edge min_height_m or more above the
+    floor; else, by its outline (_outlined)."""
+    h = dm.shape[0]
+    fB = model.focal_px * model.baseline_m
+    if c.size:
+        # the stretch a face min_height_m tall would cover must be unmeasured: else the matcher saw what
+        # stands there (a textured thing, listed already), and the column costs no more
+        v1 = low[c]
+        first = np.maximum(v1 - np.ceil(min_height_m * d_low[c] / (model.baseline_m * step)).astype(np.int64), 0)
+        c = c[unmeasured[v1, at[c]] - unmeasured[first, at[c]] >= UNMEASURED * (v1 - first)]
+    if not c.size:
+        return
+    sub = dm[:, c]
+    d = sub if doubtful is None else np.where(sub > 0, sub, doubtful[:, c])
+    v1 = low[c]
+    d0 = d_low[c].astype(np.float32)
+    z0 = fB / d0
+    reach = np.ceil(robot_height_m * model.focal_px / (z0 * step)).astype(np.int64)
+    window = (rows < v1) & (rows >= v1 - reach)
+    evidence = window & (d > 0)
+    # at the face's depth, within the noise of a doubted match (near the foot the floor's too)
+    off = np.abs(d - d0)
+    at_end = evidence & (off <= np.float32(CAP_PX))
+    # counts from the foot upwards: rows at and below r, down to the foot
+    n_ev = np.cumsum(evidence[::-1], axis=0, dtype=np.int32)[::-1]
+    n_at = np.cumsum(at_end[::-1], axis=0, dtype=np.int32)[::-1]
+    n_unm = unmeasured[v1, at[c]][None, :] - unmeasured[:h, at[c]]  # in [r, v1): the window's, for r in it
+    span = v1[None, :] - rows  # rows from r to the foot
+    tall = span * step * z0[None, :] / model.focal_px >= max(min_height_m, 1e-6)
+    # a top edge: at the face's depth and nearer it than the floor's at its row, so no floor
+    top_ok = (at_end & (off < np.abs(d - df[:, c])) & tall & (n_at >= FACE_SHARE * n_ev)
+              & (n_unm >= UNMEASURED * span))
+    found = top_ok.any(0)
+    faces[c[found]] = True
+    foot[c[found]] = v1[found]
+    face_top[c[found]] = np.argmax(top_ok, axis=0)[found]  # the highest such top edge
+    _outlined(c[~found], low, d_low, dm, standing, unmeasured, at, min_height_m, model, step,
+              faces, foot, face_top, shift)
 
 
 def _explained(near: np.ndarray, d_end: np.ndarray, z_end: np.ndarray, dm: np.ndarray, standing: np.ndarray,

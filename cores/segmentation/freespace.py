@@ -218,6 +218,12 @@ class Gaps:
     # (w,) int64: the first row of a column's stretch that reaches the image's bottom edge (-1: none), what
     # stands nearer than the floor there leaves: its foot is below the image
     bottom_start: np.ndarray
+    # (ENDS, w) int64: the floor rows just below a column's ENDS lowest such stretches, lowest first (-1:
+    # none); nearest_end is the first
+    ends: np.ndarray
+
+
+ENDS = 3  # Gaps.ends: the lowest stretches of a column a plain face's foot is looked for at (blank.py)
 
 
 def floor_gaps(seen_floor: np.ndarray, df: np.ndarray, baseline_m: float, min_height_m: float, step: int) -> Gaps:
@@ -235,9 +241,18 @@ def floor_gaps(seen_floor: np.ndarray, df: np.ndarray, baseline_m: float, min_he
     inside[cols, starts] = 1  # no two runs share a start or an end: a floor row lies between them
     inside[cols, ends] = -1
     mask = np.cumsum(inside[:, :h], axis=1, dtype=np.int8).T > 0
-    nearest_end = np.full(w, -1, np.int64)
     below = ends < h
-    np.maximum.at(nearest_end, cols[below], ends[below])
+    # per column the floor rows just below its ENDS lowest stretches, lowest first (runs come in column
+    # order, top to bottom within one: a column's k-th from the bottom is k before its last)
+    ends_below, cols_below = ends[below], cols[below]
+    last = np.flatnonzero(np.r_[cols_below[1:] != cols_below[:-1], True]) if cols_below.size else cols_below
+    lowest = np.full((ENDS, w), -1, np.int64)
+    for k in range(ENDS):
+        i = last - k
+        ok = i >= 0
+        i = i[ok]
+        ok_col = cols_below[i] == cols_below[last[ok]]  # still the same column k runs up
+        lowest[k, cols_below[i[ok_col]]] = ends_below[i[ok_col]]
     bottom_start = np.full(w, -1, np.int64)
     bottom_start[cols[~below]] = starts[~below]  # a column has one stretch at most that reaches row h
-    return Gaps(mask, nearest_end, bottom_start)
+    return Gaps(mask, lowest[0], bottom_start, lowest)
