@@ -179,9 +179,9 @@ def _upright(d_foot: np.ndarray, cols: np.ndarray, foot: np.ndarray, rows: np.nd
     its foot turned to the camera. A camera that pitches or rolls sees such a face's pixels at
     disparities that change along the column (pitched 20 deg down, the top of a cabinet 2 m away is
     0.4 m nearer along the optical axis than its foot); the foot's disparity all the way up leaned the
-    face back, and the blank-faces cabinet seen from 1.2 m up, 20 deg down, was placed 0.33 m low.
-    An upright camera gets the foot's disparity in every row. (h, k) float64; <= 0 where the plane
-    is not in front of the camera."""
+    face back, and the blank-faces cabinet and panel (the camera 15 deg down) were placed 16-18 cm too
+    far, a face 2.01 m ahead had its nearest point at 2.19 m. An upright camera gets the foot's
+    disparity in every row. (h, k) float64; <= 0 where the plane is not in front of the camera."""
     f, cx, cy = model.focal_px, model.cx, model.cy
     n, _ = floor.normal_height(f, cx, cy, model.baseline_m)  # unit, camera frame, towards the floor
     r = np.stack([(cols * step - cx) / f, (foot * step - cy) / f, np.ones(cols.size)])  # rays to the feet
