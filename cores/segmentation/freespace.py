@@ -214,12 +214,11 @@ class Gaps:
     tall may hide in one; a shorter stretch is the matcher missing smooth floor."""
 
     mask: np.ndarray  # (h, w) bool: rows inside such a stretch
-    nearest_end: np.ndarray  # (w,) int64: the floor row just below a column's lowest such stretch (-1: none)
     # (w,) int64: the first row of a column's stretch that reaches the image's bottom edge (-1: none), what
     # stands nearer than the floor there leaves: its foot is below the image
     bottom_start: np.ndarray
     # (ENDS, w) int64: the floor rows just below a column's ENDS lowest such stretches, lowest first (-1:
-    # none); nearest_end is the first
+    # none)
     ends: np.ndarray
 
 
@@ -255,4 +254,4 @@ def floor_gaps(seen_floor: np.ndarray, df: np.ndarray, baseline_m: float, min_he
         lowest[k, cols_below[i[ok_col]]] = ends_below[i[ok_col]]
     bottom_start = np.full(w, -1, np.int64)
     bottom_start[cols[~below]] = starts[~below]  # a column has one stretch at most that reaches row h
-    return Gaps(mask, lowest[0], bottom_start, lowest)
+    return Gaps(mask, bottom_start, lowest)

@@ -62,7 +62,7 @@ class Pixels:
     """A frame's valid working pixels: float32 u, v, d, where the bands are drawn, and float64
     copies for the least squares, made once a frame instead of at every fit."""
 
-    def __init__(self, u: np.ndarray, v: np.ndarray, d: np.ndarray, spacing: float = 4.0):
+    def __init__(self, u: np.ndarray, v: np.ndarray, d: np.ndarray, spacing: float):
         self.u, self.v, self.d = u, v, d
         self.spacing = spacing  # px of the map between two samples (a 640x480 map at downsample 2: 4)
         self.u64, self.v64, self.d64 = u.astype(np.float64), v.astype(np.float64), d.astype(np.float64)
