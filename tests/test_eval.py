@@ -469,6 +469,18 @@ def test_the_floor_seen_just_past_a_thing_s_side_frees_nothing_behind_it():
     assert s.free_under == 0 and s.silent_misses == 0, s.to_dict()
 
 
+def test_a_plain_face_seen_in_pieces_frees_nothing_behind_it():
+    """dense with an 11 px window reads the low-faces cabinet's plain front in runs of columns with
+    7 working columns (6 cm) of nothing standing between them, where the window carried the floor up
+    the face's foot: seen up to 20 cm behind the face, it freed a cell 5-15 cm inside the cabinet in
+    frame 0. A gap too narrow to pass between two things stops the free space at the nearer one."""
+    from cores.matching.config import MatcherConfig
+
+    data = E.render_scenario("low-faces", frames=1, matcher=MatcherConfig(method="dense", block_size=11))
+    s = E.score_method(data, "layers")
+    assert s.free_under == 0 and s.matched == s.truths, s.to_dict()
+
+
 @pytest.mark.parametrize("method", ["bm", "sgbm", "dense"])
 def test_the_free_space_never_reaches_under_a_plain_crate_or_cabinet(method, low_faces):
     """sgbm carries the floor's disparities beside a plain face into it, row by row: taken for floor
@@ -686,7 +698,7 @@ def _columns(floor, model, step):
     return np.array([0.0, 1.0, 0.0])
 
 
-def _unspread(stand_d, reach):
+def _unspread(stand_d, reach, narrow=0.0):
     """freespace.spread_sides before it: a thing standing stops its own columns only."""
     return stand_d
 

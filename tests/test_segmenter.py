@@ -755,6 +755,20 @@ def test_free_space_is_free_up_to_the_obstacle_occupied_at_it_unknown_behind():
     assert cell(1.0, 0.0) == -1  # under the camera, below its field of view
 
 
+def test_a_gap_too_narrow_to_pass_between_two_things_stops_the_free_space_at_the_nearer():
+    from cores.segmentation import freespace
+
+    d = np.zeros(40, np.float32)
+    d[5:10], d[17:22] = 20.0, 25.0  # two things, 7 columns apart
+    d[30] = 30.0  # a speck: no thing of its own
+    # 0.5 column per px of disparity: the 7 columns pass at a disparity of 14 or less
+    closed = freespace.spread_sides(d, 0, 0.5)
+    assert (closed[10:17] == 25.0).all() and (closed[22:30] == 0).all() and closed[30] == 30.0
+    assert (freespace.spread_sides(d, 0, 0.3) == d).all()  # 7 columns are 0.3 * 20 = 6 too many: a way through
+    sides = freespace.spread_sides(d, 2, 0.0)
+    assert (sides[3:5] == 20.0).all() and (sides[10:12] == 20.0).all() and sides[12] == 0 and sides[31] == 0
+
+
 def test_builder_publishes_ground_free_space_and_confirms_tracks():
     b = ObstacleBuilder(SegmenterSettings(track_confirm_m=3, track_confirm_n=5))
     d = scene([(250, 390, 2.0, 150)])

@@ -25,6 +25,11 @@ MAX_FLOOR_SAMPLES = 1_000_000  # points of drivable floor per frame, at most
 # where the floor seen ends is known to half a pixel of disparity (the tracker's centroid noise, measured
 # on a real street): the free space stops that much short of it
 END_NOISE_PX = 0.5
+# A gap narrower than this between two things standing in the image is no way through (no robot fits)
+# and may be no gap at all: read with dense's 11 px window, the low-faces cabinet's plain front stood in
+# runs of columns with 7 columns (6 cm) of nothing standing between them, where the window had carried
+# the floor up its foot, seen up to 20 cm behind the face: the cells behind it were free
+NARROW_GAP_M = 0.15
 
 
 @dataclass
@@ -79,7 +84,8 @@ def drivable(floor: FloorPlane, df: np.ndarray, seen_floor: np.ndarray, standing
     ray on the ground), the floor from the image's bottom edge out to the farthest floor point seen
     in that column (each at the nearer of its measured depth and the plane's along its ray), but not
     beyond anything standing in it (any pixel above the floor margin, obstacle or not) or, for a thing
-    3 columns wide or more, within the median filter's reach beside it (spread_sides), nor where
+    3 columns wide or more, within the median filter's reach beside it or in a gap too narrow to pass
+    between two (spread_sides), nor where
     anything standing is nearer on its vertical, which leaves the column when the camera rolls or
     pitches (_open_above), nor beyond the vision range. Block matching sees little of a smooth road,
     so the floor between seen points counts as seen; within near_field_m only where the rows between
@@ -107,9 +113,9 @@ def drivable(floor: FloorPlane, df: np.ndarray, seen_floor: np.ndarray, standing
     # the floor's depth a column or two into a side), and the floor seen in a column just past a side
     # lies behind the thing's face (sway-pivot, dense: the crate's first standing column was 2 right of
     # its side; the floor seen there, 1.5 cm inside the crate's back corner, made free a cell three
-    # quarters of which lies in it)
+    # quarters of which lies in it). And the columns of a gap too narrow to pass (NARROW_GAP_M).
     near_standing = depth(spread_sides(np.maximum.reduce(dk, axis=0, where=standing, initial=0),
-                                       cfg.median_px // 2))
+                                       cfg.median_px // 2, NARROW_GAP_M / (model.baseline_m * step)))
     limit = np.minimum(np.minimum(far, near_standing), cfg.range_for(model))
     near = depth(df[-1])  # the floor at the image's bottom edge
     cols = np.nonzero(np.isfinite(near) & (limit > near))[0]
@@ -140,15 +146,31 @@ def drivable(floor: FloorPlane, df: np.ndarray, seen_floor: np.ndarray, standing
     return np.stack([(u - model.cx) * z / f, (v - model.cy) * z / f, z], 1)
 
 
-def spread_sides(stand_d: np.ndarray, reach: int) -> np.ndarray:
+def spread_sides(stand_d: np.ndarray, reach: int, narrow: float = 0.0) -> np.ndarray:
     """Per column the disparity of the nearest thing standing in it (0: none) -> the same with each
-    thing's sides carried `reach` columns out. Only a thing's (3 columns wide or more): a speck of the
-    matcher's noise on a road stops its own column alone."""
-    if reach <= 0:
-        return stand_d
+    thing's sides carried `reach` columns out, and a gap between two things narrower than `narrow`
+    times the farther one's disparity (columns per px; NARROW_GAP_M / (B step): the gap's width in
+    metres at that depth) closed at the nearer one's disparity (what a window carried into a plain
+    face can be the floor behind it, farther than the face's both sides). Only things' (3 columns wide
+    or more): a speck of the matcher's noise on a road stops its own column alone."""
     row = stand_d[None, :]
-    sides = cv2.dilate(cv2.erode(row, np.ones((1, 3), np.uint8)), np.ones((1, 2 * reach + 3), np.uint8))
-    return np.maximum(row, sides)[0]
+    things = cv2.erode(row, np.ones((1, 3), np.uint8))
+    out = stand_d
+    if narrow > 0:
+        at = np.flatnonzero(cv2.dilate(things, np.ones((1, 3), np.uint8))[0] > 0)  # the things' columns
+        if at.size > 1:
+            gap = np.diff(at) - 1
+            dl, dr = stand_d[at[:-1]], stand_d[at[1:]]
+            close = np.flatnonzero((gap > 0) & (gap <= narrow * np.minimum(dl, dr)))
+            if close.size:
+                out = stand_d.copy()
+                for k in close:
+                    seg = out[at[k] + 1:at[k + 1]]
+                    np.maximum(seg, max(dl[k], dr[k]), out=seg)
+    if reach <= 0:
+        return out
+    sides = cv2.dilate(things, np.ones((1, 2 * reach + 3), np.uint8))
+    return np.maximum(out[None, :], sides)[0]
 
 
 def vertical_point(floor: FloorPlane, model: camera.RectifiedModel, step: int) -> np.ndarray:
