@@ -469,6 +469,18 @@ def test_the_floor_seen_just_past_a_thing_s_side_frees_nothing_behind_it():
     assert s.free_under == 0 and s.silent_misses == 0, s.to_dict()
 
 
+def test_a_plain_crate_half_in_the_blind_band_is_an_obstacle():
+    """bm searching 128 px is blind in the image's left 128 columns: of the low-faces crate, cut by the
+    image's left side, it saw 58 working columns (0.27 m) right of the band, a run of plain face
+    columns narrower than a face (blank.MIN_WIDTH_M), and the crate was in no list in frame 2,
+    unflagged. A face run that ends at the side of the view is as wide as it is there or wider."""
+    from cores.matching.config import MatcherConfig
+
+    data = E.render_scenario("low-faces", matcher=MatcherConfig(method="bm", num_disparities=128))
+    s = E.score_method(data, "layers")
+    assert s.matched == s.truths and s.silent_misses == 0 and s.free_under == 0, s.to_dict()
+
+
 def test_a_plain_face_seen_in_pieces_frees_nothing_behind_it():
     """dense with an 11 px window reads the low-faces cabinet's plain front in runs of columns with
     7 working columns (6 cm) of nothing standing between them, where the window carried the floor up
