@@ -481,6 +481,21 @@ def test_a_plain_crate_half_in_the_blind_band_is_an_obstacle():
     assert s.matched == s.truths and s.silent_misses == 0 and s.free_under == 0, s.to_dict()
 
 
+@pytest.mark.parametrize("method", ["bm", "dense"])
+def test_a_plain_crate_below_the_image_is_an_obstacle_whatever_the_smallest_height(method):
+    """Rule 3 (blank._below_image) tied how far the crate's measured side may end short of the image's
+    bottom edge and of its top edge to min_height_m, and measured the side's height from the edge: at
+    min_height_m 0.1 dense's side ended 0.14 m short of the edge, at 0.3 bm's (0.35 m crate) was 0.3 m
+    tall from it less half a row, and the crate was in no list in 1-2 of 3 frames, unflagged. Where a
+    matcher loses a side is no obstacle's height (blank.SIDE_SHORT_M); a height is from the foot."""
+    from cores.matching.config import MatcherConfig
+
+    data = E.render_scenario("low-faces", matcher=MatcherConfig(method=method))
+    for min_height in (0.1, 0.3):
+        s = E.score_method(data, "layers", {"min_height_m": min_height})
+        assert s.matched == s.truths and s.silent_misses == 0 and s.free_under == 0, (min_height, s.to_dict())
+
+
 def test_a_plain_face_seen_in_pieces_frees_nothing_behind_it():
     """dense with an 11 px window reads the low-faces cabinet's plain front in runs of columns with
     7 working columns (6 cm) of nothing standing between them, where the window carried the floor up

@@ -65,6 +65,11 @@ MIN_WIDTH_M = 0.3  # narrower: a gap between two things, a pole's dark side, not
 # the plain faces of the low-faces scene: 1.3-1.6 px half the interquartile range), whatever the depth
 CAP_PX = 3.0
 GAP_COLS = 2  # working columns
+# rule 3's measured side may end this far short of the image's bottom edge and of the face's top edge (or
+# min_height_m, if more): where the matcher loses a side has nothing to do with how low an obstacle may be
+# (dense ended the low-faces crate's side 29 rows, 0.14 m, short of the bottom edge, bm 0.1-0.2 m short of
+# its top edge; with min_height_m 0.1 the crate was in no list in 1 (bm) or 2 (dense) of 3 frames, unflagged)
+SIDE_SHORT_M = 0.2
 FACE_SHARE = 0.6  # share of what was measured between a low face's foot and its top edge that is at its depth
 # confidence from which a pixel the segmenter sets aside still counts as measured (a top edge): dense
 # gives MEASURED_CONFIDENCE..255 to what SGBM measured and less to what its fill spread
@@ -323,12 +328,13 @@ def _below_image(c: np.ndarray, start: np.ndarray, df: np.ndarray, dm: np.ndarra
     the same stretch (karlsruhe, bm: most columns), so the stretch alone says nothing. What tells a
     face is a measured sliver beside one end of a run of such columns (within GAP_COLS + 2 columns)
     standing nearer than the floor at the bottom edge (so its foot is below the image too), reaching
-    down to within min_height_m of the edge and min_height_m tall or more, with the floor seen again
-    within min_height_m above its top (what stands there hides the floor up to its top edge; the side
-    measured may fall short of it: 26 rows in one low-faces frame) and the run's columns unmeasured
-    (UNMEASURED) from there down. The face reaches up to where the floor is seen again, at the sliver's
-    median disparity. A pole beside a plain stretch of road fails: the road beyond is measured
-    within the pole's height."""
+    down to within SIDE_SHORT_M (or min_height_m, if more) of the edge, its top min_height_m or more
+    above its foot (the floor's row at its disparity, below the image: seen from the edge, the 0.35 m
+    crate's side was under 0.3 m tall), with the floor seen again within as much above its top (what
+    stands there hides the floor up to its top edge; the side measured may fall short of it: 26 rows
+    in one low-faces frame) and the run's columns unmeasured (UNMEASURED) from there down. The face
+    reaches up to where the floor is seen again, at the sliver's median disparity. A pole beside a
+    plain stretch of road fails: the road beyond is measured within the pole's height."""
     h, w = dm.shape
     c = c[(unmeasured[h, at[c]] - unmeasured[start[c], at[c]]) >= UNMEASURED * (h - start[c])]  # the plain ones
     if not c.size:
@@ -347,7 +353,11 @@ def _below_image(c: np.ndarray, start: np.ndarray, df: np.ndarray, dm: np.ndarra
                 ds = dm[nearer, col]
                 d = float(stats.median(ds))
                 tall = min_height_m * d * per_m
-                if h - r[-1] > tall or h - r[0] < max(tall, 1):  # stands higher up, or too low
+                short = max(min_height_m, SIDE_SHORT_M) * d * per_m
+                # its foot, below the image: the floor's row at disparity d, down the floor's slope in the column
+                slope = float(df[h - 1, col] - df[h - 2, col])
+                v_foot = h - 1 + (d - float(df[h - 1, col])) / slope if slope > 0 else h
+                if h - r[-1] > short or v_foot - r[0] < max(tall, 1):  # stands higher up, or too low
                     continue
                 if best is None or r[0] < best[0]:
                     best = (int(r[0]), d, float(stats.percentile(ds, 95)))
@@ -362,7 +372,7 @@ def _below_image(c: np.ndarray, start: np.ndarray, df: np.ndarray, dm: np.ndarra
             continue
         v0 = np.minimum(start[run], top)  # up to where the floor is seen again
         plain = (unmeasured[h, at[run]] - unmeasured[v0, at[run]]) >= UNMEASURED * (h - v0)
-        plain &= start[run] >= top - min_height_m * d * per_m
+        plain &= start[run] >= top - max(min_height_m, SIDE_SHORT_M) * d * per_m
         ok = run[plain]
         faces[ok] = True
         foot[ok] = h
