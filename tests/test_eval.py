@@ -590,6 +590,23 @@ def test_the_scenes_seen_from_a_ballbot_height_camera(height_m, pitch_deg):
         assert s.matched == s.truths and s.silent_misses == 0 and s.free_under == 0, (name, s.to_dict())
 
 
+def test_a_plain_cabinet_cut_by_the_top_of_the_view_is_placed_by_its_whole_face():
+    """From 1.2 m up, 20 deg down, the blank-faces cabinet (1.4 m, plain) is cut by the image's top and
+    found by its outline (blank._outlined): bm measures its side's vertical edge, whose disparity grows
+    by 8 px up the column (the camera pitches). Held to the stop's disparity the edge ended a third
+    of the way up, the face with it, and the cabinet was listed 0.33 m below its centre, outside the
+    match: in no list (scored) in 3 of 3 frames. Held to an upright face through the stop, the face
+    is as tall as the edge."""
+    import dataclasses
+
+    from sim import scene as S
+
+    scene = dataclasses.replace(S.Scene.builtin("blank-faces"), camera_height_m=1.2, camera_pitch_deg=20.0)
+    s = E.score_method(E.render_scenario(scene), "layers")
+    t = s.per_truth["cabinet"]
+    assert t["matched"] == t["seen"] == 3 and s.free_under == 0, (t, s.to_dict())
+
+
 @pytest.mark.xfail(strict=True, reason="from 0.5 m up dense's doubted matches on the crate's plain face stray 8-9 "
                    "px off its depth in most columns (streaks along its paths): its face is found in pieces, each "
                    "narrower than MIN_WIDTH_M, and the crate is in no list in 3 of 4 frames (the free space leaves it "

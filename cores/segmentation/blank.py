@@ -146,7 +146,7 @@ def find(dm: np.ndarray, df: np.ndarray, seen_floor: np.ndarray, standing: np.nd
     rows = np.arange(h)[:, None]
     for low, d_low, stop in zip(lows, d_lows, stops_k):
         _low_face(np.flatnonzero(stop & ~faces), low, d_low, dm, df, standing, doubtful, unmeasured, at, rows,
-                  robot_height_m, min_height_m, model, step, faces, foot, face_top, shift)
+                  robot_height_m, min_height_m, floor, model, step, faces, foot, face_top, shift)
     # 3. a face whose foot is below the image: nearer than the floor at the image's bottom edge
     _below_image(np.flatnonzero(bottom & ~faces), bottom_start, df, dm, standing, unmeasured, at,
                  min_height_m, model, step, faces, foot, face_top, shift)
@@ -203,7 +203,8 @@ def _upright(d_foot: np.ndarray, cols: np.ndarray, foot: np.ndarray, rows: np.nd
 
 def _low_face(c: np.ndarray, low: np.ndarray, d_low: np.ndarray, dm: np.ndarray, df: np.ndarray,
               standing: np.ndarray, doubtful: np.ndarray | None, unmeasured: np.ndarray, at: np.ndarray,
-              rows: np.ndarray, robot_height_m: float, min_height_m: float, model: camera.RectifiedModel, step: int,
+              rows: np.ndarray, robot_height_m: float, min_height_m: float, floor: FloorPlane,
+              model: camera.RectifiedModel, step: int,
               faces: np.ndarray, foot: np.ndarray, face_top: np.ndarray, shift: np.ndarray) -> None:
     """Rule 2 (faces, foot, face_top, shift updated in place) at one stretch of each column c: low, the
     floor row just below it (d_low: the floor's disparity there). Above the stop, what was measured at
@@ -243,7 +244,7 @@ def _low_face(c: np.ndarray, low: np.ndarray, d_low: np.ndarray, dm: np.ndarray,
     faces[c[found]] = True
     foot[c[found]] = v1[found]
     face_top[c[found]] = np.argmax(top_ok, axis=0)[found]  # the highest such top edge
-    _outlined(c[~found], low, d_low, dm, standing, unmeasured, at, min_height_m, model, step,
+    _outlined(c[~found], low, d_low, dm, standing, unmeasured, at, min_height_m, floor, model, step,
               faces, foot, face_top, shift)
 
 
@@ -264,17 +265,21 @@ def _explained(near: np.ndarray, d_end: np.ndarray, z_end: np.ndarray, dm: np.nd
 
 
 def _outlined(c: np.ndarray, low: np.ndarray, d_low: np.ndarray, dm: np.ndarray, standing: np.ndarray,
-              unmeasured: np.ndarray, at: np.ndarray, min_height_m: float, model: camera.RectifiedModel,
-              step: int, faces: np.ndarray, foot: np.ndarray, face_top: np.ndarray, shift: np.ndarray) -> None:
+              unmeasured: np.ndarray, at: np.ndarray, min_height_m: float, floor: FloorPlane,
+              model: camera.RectifiedModel, step: int, faces: np.ndarray, foot: np.ndarray, face_top: np.ndarray,
+              shift: np.ndarray) -> None:
     """Rule 2's third way (faces, foot, face_top, shift updated in place): c, the stop columns that passed
     its prefilter (the stretch above the stop unmeasured) and showed no top edge. Block matching
     measures no top edge of a plain cabinet against a textured wall behind: the edge's pixels take the
     wall's depth. It measures the outline's side (the face's edge against what is beside it), a
     sliver standing at the face's depth; the list held that sliver alone, 0.1 m wide, its centre
-    0.48 m from the 0.9 m wide cabinet's. A run of stops at one depth (each column within CAP_PX of the next),
-    with such a sliver beside one of its ends (within GAP_COLS + 2 columns, within CAP_PX of the
-    end's stop, reaching down to within min_height_m of that stop, min_height_m tall or more) is one face,
-    as tall as the sliver, where the stretch up to that height is unmeasured (UNMEASURED of it).
+    0.48 m from the 0.9 m wide cabinet's. A run of stops at one depth (each column within CAP_PX of
+    the next), with such a sliver beside one of its ends (within GAP_COLS + 2 columns, within CAP_PX of
+    an upright face through the end's stop, reaching down to within min_height_m of that stop,
+    min_height_m tall or more) is one face, as tall as the sliver, where the stretch up to that height
+    is unmeasured (UNMEASURED of it). Upright: a camera that pitches sees a vertical edge's disparity
+    change up the column (by 8 px up the blank-faces cabinet's 1.2 m from 1.2 m up, 20 deg down, where
+    the stop's disparity alone kept the face to its lowest third, 0.33 m below the cabinet's centre).
     A plain patch of floor (a shadow beside a pole) fails that: the floor beyond it is measured
     within the pole's height. The face takes the side's depth: the floor seen reaches a little way up
     a face (what is within the floor margin counts as floor), so its last row lies beyond the foot (on
@@ -292,7 +297,9 @@ def _outlined(c: np.ndarray, low: np.ndarray, d_low: np.ndarray, dm: np.ndarray,
                           (run[-1], range(run[-1] + 1, min(run[-1] + 1 + near, w)))):
             d0, v1 = d_low[end], low[end]
             for col in side:
-                at_depth = standing[:, col] & (np.abs(dm[:, col] - d0) <= CAP_PX)
+                d_up = _upright(np.array([d0]), np.array([col]), np.array([v1]), rows[:, None], floor, model,
+                                step)[:, 0]
+                at_depth = standing[:, col] & (np.abs(dm[:, col] - d_up) <= CAP_PX)
                 if not at_depth.any():
                     continue
                 r = rows[at_depth]
