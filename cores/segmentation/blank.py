@@ -102,6 +102,7 @@ def find(dm: np.ndarray, df: np.ndarray, seen_floor: np.ndarray, standing: np.nd
     if floor.b <= 0 or within_m <= 0:
         return None
     fB = model.focal_px * model.baseline_m
+    normal, _ = floor.normal_height(model.focal_px, model.cx, model.cy, model.baseline_m)  # for _upright
     limit = min(0.95 * range_m, within_m)
     has_floor = seen_floor.any(0)
     top_floor = np.argmax(seen_floor, axis=0)  # the topmost (farthest) floor row seen in each column
@@ -147,7 +148,7 @@ def find(dm: np.ndarray, df: np.ndarray, seen_floor: np.ndarray, standing: np.nd
     rows = np.arange(h)[:, None]
     for low, d_low, stop in zip(lows, d_lows, stops_k):
         _low_face(np.flatnonzero(stop & ~faces), low, d_low, dm, df, standing, doubtful, unmeasured, at, rows,
-                  robot_height_m, min_height_m, floor, model, step, faces, foot, face_top, shift)
+                  robot_height_m, min_height_m, normal, model, step, faces, foot, face_top, shift)
     # 3. a face whose foot is below the image: nearer than the floor at the image's bottom edge
     _below_image(np.flatnonzero(bottom & ~faces), bottom_start, df, dm, standing, unmeasured, at,
                  min_height_m, model, step, faces, foot, face_top, shift)
@@ -168,7 +169,7 @@ def find(dm: np.ndarray, df: np.ndarray, seen_floor: np.ndarray, standing: np.nd
     v0 = np.maximum(v1 - np.ceil(robot_height_m * model.focal_px / (z_face[f] * step)).astype(np.int64), face_top[f])
     # a face of rule 1 stands upright to above the camera; what rules 2 and 3 find reaches up to a top edge
     # measured at its foot's depth (the top of a box seen from above is in it: that depth all the way up)
-    d_col = np.where(tall_face[f][None, :], _upright(d_face[f], f, np.clip(v1, 0, h - 1), rows, floor, model, step),
+    d_col = np.where(tall_face[f][None, :], _upright(d_face[f], f, np.clip(v1, 0, h - 1), rows, normal, model, step),
                      d_face[f][None, :])
     in_face = (rows >= v0) & (rows < v1) & (dm[:, f] <= 0) & (d_col > 0)
     if not in_face.any():
@@ -180,7 +181,7 @@ def find(dm: np.ndarray, df: np.ndarray, seen_floor: np.ndarray, standing: np.nd
     return BlankFaces(mask, disparity)
 
 
-def _upright(d_foot: np.ndarray, cols: np.ndarray, foot: np.ndarray, rows: np.ndarray, floor: FloorPlane,
+def _upright(d_foot: np.ndarray, cols: np.ndarray, foot: np.ndarray, rows: np.ndarray, normal: np.ndarray,
              model: camera.RectifiedModel, step: int) -> np.ndarray:
     """The disparity over working rows `rows` ((h, 1)) of each face column `cols` whose foot, at working
     row `foot`, has disparity d_foot: the face stands upright on the floor, a vertical plane through
@@ -189,22 +190,29 @@ def _upright(d_foot: np.ndarray, cols: np.ndarray, foot: np.ndarray, rows: np.nd
     0.4 m nearer along the optical axis than its foot); the foot's disparity all the way up leaned the
     face back, and the blank-faces cabinet and panel (the camera 15 deg down) were placed 16-18 cm too
     far, a face 2.01 m ahead had its nearest point at 2.19 m. An upright camera gets the foot's
-    disparity in every row. (h, k) float64; <= 0 where the plane is not in front of the camera."""
-    f, cx, cy = model.focal_px, model.cx, model.cy
-    n, _ = floor.normal_height(f, cx, cy, model.baseline_m)  # unit, camera frame, towards the floor
-    r = np.stack([(cols * step - cx) / f, (foot * step - cy) / f, np.ones(cols.size)])  # rays to the feet
-    m = r - np.outer(n, n @ r)  # the face's normal: the ray's part along the floor (its length cancels)
-    rm = np.einsum("ik,ik->k", r, m)
+    disparity in every row. normal: the floor's (FloorPlane.normal_height: unit, camera frame, towards
+    the floor). (h, k) float64; <= 0 where the plane is not in front of the camera."""
+    return d_foot[None, :] * (1.0 + (rows - foot[None, :]) * _upright_slope(cols, foot, normal, model, step)[None, :])
+
+
+def _upright_slope(cols: np.ndarray, foot: np.ndarray, normal: np.ndarray, model: camera.RectifiedModel,
+                   step: int) -> np.ndarray:
+    """_upright's relative change of disparity per working row up each column, (k,) float64."""
+    f = model.focal_px
+    n0, n1, n2 = (float(x) for x in normal)
+    rx, ry = (cols * step - model.cx) / f, (foot * step - model.cy) / f  # rays to the feet: (rx, ry, 1)
+    nr = n0 * rx + n1 * ry + n2
+    # the face's normal m: the ray's part along the floor (its length cancels)
+    m1 = ry - n1 * nr
+    rm = rx * (rx - n0 * nr) + ry * m1 + (1.0 - n2 * nr)
     # a pixel of the column, dv rows from the foot, has the foot's ray plus (0, dv step / f, 0): by the
     # plane (r . m) Z = const, its disparity is the foot's times (r . m) over the foot's (r . m)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        slope = np.where(rm > 0, step * m[1] / (f * rm), 0.0)
-    return d_foot[None, :] * (1.0 + (rows - foot[None, :]) * slope[None, :])
+    return np.divide(step * m1, f * rm, out=np.zeros(rm.shape), where=rm > 0)
 
 
 def _low_face(c: np.ndarray, low: np.ndarray, d_low: np.ndarray, dm: np.ndarray, df: np.ndarray,
               standing: np.ndarray, doubtful: np.ndarray | None, unmeasured: np.ndarray, at: np.ndarray,
-              rows: np.ndarray, robot_height_m: float, min_height_m: float, floor: FloorPlane,
+              rows: np.ndarray, robot_height_m: float, min_height_m: float, normal: np.ndarray,
               model: camera.RectifiedModel, step: int,
               faces: np.ndarray, foot: np.ndarray, face_top: np.ndarray, shift: np.ndarray) -> None:
     """Rule 2 (faces, foot, face_top, shift updated in place) at one stretch of each column c: low, the
@@ -233,8 +241,10 @@ def _low_face(c: np.ndarray, low: np.ndarray, d_low: np.ndarray, dm: np.ndarray,
     window = (rows < v1) & (rows >= v1 - reach)
     evidence = window & (d > 0)
     # at the face's depth, within the noise of a doubted match (near the foot the floor's too)
-    d_up = _upright(d0.astype(np.float64), c, v1, rows, floor, model, step).astype(np.float32)
-    off = np.maximum(np.maximum(np.minimum(d0, d_up) - d, d - np.maximum(d0, d_up)), np.float32(0))
+    d_up = (rows - v1[None, :]).astype(np.float32)
+    d_up *= (d0 * _upright_slope(c, v1, normal, model, step)).astype(np.float32)
+    d_up += d0  # _upright's, in float32
+    off = np.abs(d - np.clip(d, np.minimum(d0, d_up), np.maximum(d0, d_up)))
     at_end = evidence & (off <= np.float32(CAP_PX))
     # counts from the foot upwards: rows at and below r, down to the foot
     n_ev = np.cumsum(evidence[::-1], axis=0, dtype=np.int32)[::-1]
@@ -249,7 +259,7 @@ def _low_face(c: np.ndarray, low: np.ndarray, d_low: np.ndarray, dm: np.ndarray,
     faces[c[found]] = True
     foot[c[found]] = v1[found]
     face_top[c[found]] = np.argmax(top_ok, axis=0)[found]  # the highest such top edge
-    _outlined(c[~found], low, d_low, dm, standing, unmeasured, at, min_height_m, floor, model, step,
+    _outlined(c[~found], low, d_low, dm, standing, unmeasured, at, min_height_m, normal, model, step,
               faces, foot, face_top, shift)
 
 
@@ -270,7 +280,7 @@ def _explained(near: np.ndarray, d_end: np.ndarray, z_end: np.ndarray, dm: np.nd
 
 
 def _outlined(c: np.ndarray, low: np.ndarray, d_low: np.ndarray, dm: np.ndarray, standing: np.ndarray,
-              unmeasured: np.ndarray, at: np.ndarray, min_height_m: float, floor: FloorPlane,
+              unmeasured: np.ndarray, at: np.ndarray, min_height_m: float, normal: np.ndarray,
               model: camera.RectifiedModel, step: int, faces: np.ndarray, foot: np.ndarray, face_top: np.ndarray,
               shift: np.ndarray) -> None:
     """Rule 2's third way (faces, foot, face_top, shift updated in place): c, the stop columns that passed
@@ -296,25 +306,35 @@ def _outlined(c: np.ndarray, low: np.ndarray, d_low: np.ndarray, dm: np.ndarray,
     rows = np.arange(h)
     # runs of stop columns: adjacent (GAP_COLS apart at most) and at one depth
     split = np.flatnonzero((np.diff(c) > GAP_COLS + 1) | (np.abs(np.diff(d_low[c])) > CAP_PX)) + 1
-    for run in np.split(c, split):
-        tops, offsets = [], []
-        for end, side in ((run[0], range(run[0] - 1, max(run[0] - 1 - near, -1), -1)),
-                          (run[-1], range(run[-1] + 1, min(run[-1] + 1 + near, w)))):
-            d0, v1 = d_low[end], low[end]
-            for col in side:
-                d_up = _upright(np.array([d0]), np.array([col]), np.array([v1]), rows[:, None], floor, model,
-                                step)[:, 0]
-                at_depth = standing[:, col] & (np.abs(dm[:, col] - d_up) <= CAP_PX)
-                if not at_depth.any():
-                    continue
-                r = rows[at_depth]
-                # it reaches down to the stop's row, but for the floor margin (what is that low counts
-                # as floor): within min_height_m of it; else it stands elsewhere, higher up
-                if (v1 - r[-1]) * step * model.baseline_m / d0 > max(min_height_m, 1e-6):
-                    continue
-                if (v1 - r[0]) * step * model.baseline_m / d0 >= max(min_height_m, 1e-6):
-                    tops.append(v1 - int(r[0]))  # the sliver's height above the stop, rows
-                    offsets.append(float(stats.median(dm[at_depth, col])) - d0)
+    runs = np.split(c, split)
+    # the columns beside each run's ends with anything standing in them, and their end: the upright
+    # face through each end's stop, for all of them at once
+    has = np.any(standing, axis=0)
+    beside = [(i, col, end) for i, run in enumerate(runs)
+              for end, side in ((run[0], range(run[0] - 1, max(run[0] - 1 - near, -1), -1)),
+                                (run[-1], range(run[-1] + 1, min(run[-1] + 1 + near, w))))
+              for col in side if has[col]]
+    if not beside:
+        return
+    where, cols, ends = (np.array(x) for x in zip(*beside))
+    slopes = _upright_slope(cols, low[ends], normal, model, step)
+    tops_of: list[list[int]] = [[] for _ in runs]
+    offsets_of: list[list[float]] = [[] for _ in runs]
+    for i, col, end, slope in zip(where, cols, ends, slopes):
+        d0, v1 = d_low[end], low[end]
+        d_up = d0 * (1.0 + (rows - v1) * slope)  # _upright's
+        at_depth = standing[:, col] & (np.abs(dm[:, col] - d_up) <= CAP_PX)
+        if not at_depth.any():
+            continue
+        r = rows[at_depth]
+        # it reaches down to the stop's row, but for the floor margin (what is that low counts
+        # as floor): within min_height_m of it; else it stands elsewhere, higher up
+        if (v1 - r[-1]) * step * model.baseline_m / d0 > max(min_height_m, 1e-6):
+            continue
+        if (v1 - r[0]) * step * model.baseline_m / d0 >= max(min_height_m, 1e-6):
+            tops_of[i].append(v1 - int(r[0]))  # the sliver's height above the stop, rows
+            offsets_of[i].append(float(stats.median(dm[at_depth, col])) - d0)
+    for run, tops, offsets in zip(runs, tops_of, offsets_of):
         if not tops:
             continue
         rise = max(tops)
