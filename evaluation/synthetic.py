@@ -90,22 +90,38 @@ class EvalFrame:
     nearest: list = field(default_factory=list)  # per truth: nearest distance (m) of that surface, NaN if none
     T_base_rect: np.ndarray = field(default_factory=lambda: np.eye(4))  # the camera's true pose on the robot
     odometry: tuple[np.ndarray, np.ndarray] | None = None  # (linear, angular) base frame; a moving camera only
-    # what else the disparity stage hands the segmenter with the map (as the disparity message carries it):
-    # the matcher's confidence ((H, W) uint8, None if it gives none) and the search (min_disparity,
-    # num_disparities) the segmenter checks the vision range against
-    confidence: np.ndarray | None = None
-    search: tuple[int, int] | None = None
-    gate_px: float = 0.0  # the matcher's vision range gate (DisparityMap.gate_px; 0: none)
+    # what else the disparity stage hands the segmenter with the map, as the disparity message carries it
+    # (StageResult.handed: the matcher's confidence and flat windows, the search, the vision range gate):
+    # taken whole, so what the stage adds reaches the eval as it reaches the segmenter service
+    stage_handed: dict = field(default_factory=dict)
     checks: FrameChecks | None = None  # rectify's checks of the pair (the noise, the near field, ...)
     # per truth: the ground outlines ((4, 2) base-frame (x, y), m) of its parts between STANDS_FROM_M and
     # STANDS_TO_M above the floor (SyntheticWorld.footprints): where it stands, which free space must never call free
     stands: list = field(default_factory=list)
-    flat: np.ndarray | None = None  # the matcher's Match.flat (windows too plain to decide their match), if it says
 
     def handed(self) -> dict:
         """What the services hand the segmenter with the map, as ObstacleBuilder.process takes it."""
-        return {"confidence": self.confidence, "search": self.search, "gate_px": self.gate_px, "checks": self.checks,
-                "flat": self.flat}
+        return {**self.stage_handed, "checks": self.checks}
+
+    @property
+    def confidence(self) -> np.ndarray | None:
+        """The matcher's confidence, (H, W) uint8 (None: it gives none)."""
+        return self.stage_handed.get("confidence")
+
+    @property
+    def search(self) -> tuple[int, int] | None:
+        """(min_disparity, num_disparities) the map's values span."""
+        return self.stage_handed.get("search")
+
+    @property
+    def gate_px(self) -> float:
+        """The matcher's vision range gate (DisparityMap.gate_px; 0: none)."""
+        return float(self.stage_handed.get("gate_px", 0.0))
+
+    @property
+    def flat(self) -> np.ndarray | None:
+        """The matcher's Match.flat (windows too plain to decide their match), if it says."""
+        return self.stage_handed.get("flat")
 
     @property
     def mount(self) -> Mount:
@@ -231,10 +247,8 @@ def render_scenario(name: str | S.Scene, frames: int | None = None, fps: float |
         n = len(scene.boxes)
         out.append(EvalFrame(t, m.left, stage.disparity_px(), world.truth(t), kind, [seen[i][:2] for i in range(n)],
                              [seen[i][2] for i in range(n)], world.T_base_rect(t),
-                             world.odometry(t) if scene.camera_moves() else None, stage.match.confidence,
-                             (stage.min_disparity, stage.num_disparities),
-                             stands=world.footprints(t, STANDS_FROM_M, STANDS_TO_M), gate_px=stage.gate_px,
-                             checks=m.checks, flat=stage.match.flat))
+                             world.odometry(t) if scene.camera_moves() else None, stage.handed(), m.checks,
+                             stands=world.footprints(t, STANDS_FROM_M, STANDS_TO_M)))
     return ScenarioData(scene.name, scene, pipe.model, mount_from_world(world), out, time.perf_counter() - t0)
 
 
