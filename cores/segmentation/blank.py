@@ -192,12 +192,6 @@ def _upright(d_foot: np.ndarray, cols: np.ndarray, foot: np.ndarray, rows: np.nd
     far, a face 2.01 m ahead had its nearest point at 2.19 m. An upright camera gets the foot's
     disparity in every row. normal: the floor's (FloorPlane.normal_height: unit, camera frame, towards
     the floor). (h, k) float64; <= 0 where the plane is not in front of the camera."""
-    return d_foot[None, :] * (1.0 + (rows - foot[None, :]) * _upright_slope(cols, foot, normal, model, step)[None, :])
-
-
-def _upright_slope(cols: np.ndarray, foot: np.ndarray, normal: np.ndarray, model: camera.RectifiedModel,
-                   step: int) -> np.ndarray:
-    """_upright's relative change of disparity per working row up each column, (k,) float64."""
     f = model.focal_px
     n0, n1, n2 = (float(x) for x in normal)
     rx, ry = (cols * step - model.cx) / f, (foot * step - model.cy) / f  # rays to the feet: (rx, ry, 1)
@@ -207,7 +201,8 @@ def _upright_slope(cols: np.ndarray, foot: np.ndarray, normal: np.ndarray, model
     rm = rx * (rx - n0 * nr) + ry * m1 + (1.0 - n2 * nr)
     # a pixel of the column, dv rows from the foot, has the foot's ray plus (0, dv step / f, 0): by the
     # plane (r . m) Z = const, its disparity is the foot's times (r . m) over the foot's (r . m)
-    return np.divide(step * m1, f * rm, out=np.zeros(rm.shape), where=rm > 0)
+    slope = np.divide(step * m1, f * rm, out=np.zeros(rm.shape), where=rm > 0)
+    return d_foot[None, :] * (1.0 + (rows - foot[None, :]) * slope[None, :])
 
 
 def _low_face(c: np.ndarray, low: np.ndarray, d_low: np.ndarray, dm: np.ndarray, df: np.ndarray,
@@ -241,9 +236,7 @@ def _low_face(c: np.ndarray, low: np.ndarray, d_low: np.ndarray, dm: np.ndarray,
     window = (rows < v1) & (rows >= v1 - reach)
     evidence = window & (d > 0)
     # at the face's depth, within the noise of a doubted match (near the foot the floor's too)
-    d_up = (rows - v1[None, :]).astype(np.float32)
-    d_up *= (d0 * _upright_slope(c, v1, normal, model, step)).astype(np.float32)
-    d_up += d0  # _upright's, in float32
+    d_up = _upright(d0, c, v1, rows, normal, model, step).astype(np.float32)
     off = np.abs(d - np.clip(d, np.minimum(d0, d_up), np.maximum(d0, d_up)))
     at_end = evidence & (off <= np.float32(CAP_PX))
     # counts from the foot upwards: rows at and below r, down to the foot
@@ -320,13 +313,12 @@ def _outlined(c: np.ndarray, low: np.ndarray, d_low: np.ndarray, dm: np.ndarray,
     if not beside:
         return
     where, cols, ends = (np.array(x) for x in zip(*beside))
-    slopes = _upright_slope(cols, low[ends], normal, model, step)
+    d_up = _upright(d_low[ends], cols, low[ends], rows[:, None], normal, model, step)
     tops_of: list[list[int]] = [[] for _ in runs]
     offsets_of: list[list[float]] = [[] for _ in runs]
-    for i, col, end, slope in zip(where, cols, ends, slopes):
+    for k, (i, col, end) in enumerate(zip(where, cols, ends)):
         d0, v1 = d_low[end], low[end]
-        d_up = d0 * (1.0 + (rows - v1) * slope)  # _upright's
-        at_depth = standing[:, col] & (np.abs(dm[:, col] - d_up) <= CAP_PX)
+        at_depth = standing[:, col] & (np.abs(dm[:, col] - d_up[:, k]) <= CAP_PX)
         if not at_depth.any():
             continue
         r = rows[at_depth]
