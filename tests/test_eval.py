@@ -628,6 +628,21 @@ def test_a_plain_crate_seen_from_a_ballbot_height_camera_is_an_obstacle_with_den
     assert t["matched"] == t["seen"] == 4 and s.silent_misses == 0 and s.free_under == 0, (t, s.to_dict())
 
 
+def test_a_box_cut_by_the_blind_band_from_a_ballbot_height_camera_is_listed_truncated():
+    """From 0.5 m up, 12 deg down, bm (64 px) sees 4 cm of the border scene's box right of its blind
+    band: a region too small in area for an obstacle's face, dropped, and the box 2.2 m away was in no
+    list of 3, the list saying it looked there. A region cut by a side of the view shows only part of
+    its face; as tall as an obstacle, it is listed, truncated."""
+    import dataclasses
+
+    from sim import scene as S
+
+    scene = dataclasses.replace(S.Scene.builtin("border"), camera_height_m=0.5, camera_pitch_deg=12.0)
+    s = E.score_method(E.render_scenario(scene), "layers")
+    assert s.per_truth["box"]["matched"] == s.per_truth["box"]["seen"] == 3, s.to_dict()
+    assert s.border_flagged == s.border_truths == 3 and s.silent_misses == 0 and s.detections == 3, s.to_dict()
+
+
 PLAIN_WALL = """name: plain-wall
 description: A plain wall across the whole view 2 m ahead.
 camera_height_m: 1.0

@@ -351,6 +351,16 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
     # never under two columns (the matcher's own first columns beside no data are doubtful)
     edge_reach = max(2, cfg.median_px // 2 + 1) * step
 
+    def side_cut(box: tuple[int, int, int, int], disparity_px: float) -> tuple[bool, bool]:
+        """(left, right): is a working-grid box cut by a side of what the matcher measures? Left of
+        x = d its points have no partner in the right image, whatever the matcher: dense's band is
+        as wide as the disparity there (no fixed band; low-faces: the crate cut by the image's side
+        ended at 20 px, unflagged). The median filter eats its reach into an edge beside no data,
+        and the grid rounds by a column (people-border, dense: a person's lower piece began 4.6 px
+        right of x = d)."""
+        x0, x1 = box[0], box[2]
+        return x0 <= left_edge + 1 or x0 * step <= disparity_px + edge_reach, x1 - 1 >= right_edge - 1
+
     def detection(pts: np.ndarray, lo: np.ndarray, hi: np.ndarray, box: tuple[int, int, int, int], area: int,
                   disparity_px: float, confidence: float) -> Detection:
         """An obstacle of its camera-frame points, its 2nd/98th percentiles and its working-grid box."""
@@ -362,14 +372,8 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
                          bbox_px=(x0 * step, y0 * step, min(model.width, x1 * step), min(model.height, y1 * step)),
                          area_px=int(area * step * step), disparity_px=disparity_px, confidence=confidence,
                          # cut at the sides or by the range: its footprint is partial (a cut at the
-                         # top or bottom changes its height, not where it stands). Left of x = d its
-                         # points have no partner in the right image, whatever the matcher: dense's
-                         # band is as wide as the disparity there (no fixed band; low-faces: the crate
-                         # cut by the image's side ended at 20 px, unflagged). The median filter eats
-                         # its reach into an edge beside no data, and the grid rounds by a column
-                         # (people-border, dense: a person's lower piece began 4.6 px right of x = d)
-                         cut=(x0 <= left_edge + 1 or x0 * step <= disparity_px + edge_reach,
-                              x1 - 1 >= right_edge - 1, bool(hi[2] >= 0.97 * range_m)),
+                         # top or bottom changes its height, not where it stands)
+                         cut=(*side_cut(box, disparity_px), bool(hi[2] >= 0.97 * range_m)),
                          edges=_edges(sub, model))
 
     dropped: tuple[list[Detection], list[np.ndarray]] = ([], [])
@@ -440,9 +444,15 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
             continue  # no ground to tell it by: a patch of floor is still no obstacle (the list says no-ground)
         size = r.hi - r.lo
         px_m = float(np.mean(r.pts[:, 2])) / f * step
-        if max(size[0], size[1]) < cfg.min_size_m or r.area * px_m * px_m < cfg.min_area_m2:
+        d_med = float(stats.median(r.disparities))
+        # a region cut by a side of the view shows only part of its face: its area says nothing of
+        # the thing's (a box cut by bm's blind band, 4 cm of it in view from 0.5 m up, was in no
+        # list and the list said nothing). A sliver as tall as an obstacle is listed, truncated; a
+        # speck (a person's hand beside the band, the rest of the arm in it) is not
+        sliver = size[1] >= cfg.min_height_m and any(side_cut(r.bbox, d_med))
+        if max(size[0], size[1]) < cfg.min_size_m or (r.area * px_m * px_m < cfg.min_area_m2 and not sliver):
             continue
-        out.append(detection(r.pts, r.lo, r.hi, r.bbox, r.area + r.filled, float(stats.median(r.disparities)),
+        out.append(detection(r.pts, r.lo, r.hi, r.bbox, r.area + r.filled, d_med,
                              float(min(1.0, r.valid / max(1, r.area)))))
         points.append(r.pts)
     if cfg.edge_refine and image is not None and out:
