@@ -643,6 +643,20 @@ def test_a_box_cut_by_the_blind_band_from_a_ballbot_height_camera_is_listed_trun
     assert s.border_flagged == s.border_truths == 3 and s.silent_misses == 0 and s.detections == 3, s.to_dict()
 
 
+def test_two_people_one_behind_the_other_seen_from_a_pitched_camera_are_two_obstacles():
+    """people-queue from 0.5 m up, 12 deg down, bm: the far pair (0.55 m apart, 4.4 and 4.9 m away) was
+    one obstacle in every frame, the person behind in no list and nothing said: along the optical
+    axis of a pitched camera each upright person spans a range of depths, and the two ranges met.
+    The depth split looks along the ground too (depth_split.ground_disparity)."""
+    import dataclasses
+
+    from sim import scene as S
+
+    scene = dataclasses.replace(S.Scene.builtin("people-queue"), camera_height_m=0.5, camera_pitch_deg=12.0)
+    s = E.score_method(E.render_scenario(scene), "layers")
+    assert s.matched == s.truths == 12 and s.silent_misses == 0 and s.free_under == 0, s.to_dict()
+
+
 PLAIN_WALL = """name: plain-wall
 description: A plain wall across the whole view 2 m ahead.
 camera_height_m: 1.0

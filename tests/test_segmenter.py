@@ -177,6 +177,75 @@ def test_the_depth_layer_split_keeps_a_table_s_legs_below_its_top_with_a_person_
     assert np.all(out[(dv < 35.0) & (dv > 24.0)] == 0)  # the ramp: dropped
 
 
+def test_the_disparity_along_the_ground_is_one_depth_for_an_upright_face_at_any_pitch():
+    """ground_disparity: with the camera level it is the disparity; pitched 20 deg down, an upright
+    face D m ahead (its disparity grows down the image, as its points come nearer along the optical
+    axis) is fB / D in every row."""
+    ys, xs = np.meshgrid(np.arange(0, 240), np.arange(0, 320), indexing="ij")
+    ys, xs = ys.ravel(), xs.ravel()
+    level = Mount(1.0, 0.0, 0.0, 0.0)
+    dv = np.full(ys.size, 20.0, np.float32)
+    np.testing.assert_allclose(depth_split.ground_disparity(ys, xs, dv, level.down_camera, MODEL, 2), dv, rtol=1e-6)
+    pitched = Mount(1.2, 20.0, 0.0, 0.0)
+    n = pitched.down_camera
+    fwd = np.array([0.0, 0.0, 1.0]) - n[2] * n
+    fwd /= np.linalg.norm(fwd)
+    ray = np.stack([(xs * 2 - MODEL.cx) / MODEL.focal_px, (ys * 2 - MODEL.cy) / MODEL.focal_px, np.ones(ys.size)], 1)
+    z = 4.0 / (ray @ fwd)  # the optical-axis depth of an upright face 4 m ahead along the ground
+    along = depth_split.ground_disparity(ys, xs, (FB / z).astype(np.float32), n, MODEL, 2)
+    assert np.ptp(FB / z) > 1.5  # 20 deg down: over 1.5 px of disparity from its top row to its bottom
+    np.testing.assert_allclose(along, FB / 4.0, rtol=1e-4)
+
+
+def test_flanked_tells_an_occlusion_ramp_from_a_rail_reaching_back():
+    """A ramp runs between the two sides in its rows: each of its pixels has both within reach in its
+    own row. A rail reaching back from the near side to the far one, seen end-on, runs down the image
+    beside neither."""
+    near = _grouped((np.arange(50, 200), np.arange(100, 139), 12.0))
+    far = _grouped((np.arange(50, 200), np.arange(142, 165), 11.0))
+    ramp = _grouped((np.arange(50, 200), [139, 140, 141], 11.5))
+    rail = _grouped(*[([120 + k], [150 + k], 11.5) for k in range(60)])
+    for valley, want in ((ramp, 1.0), (rail, 0.0)):
+        ys = np.concatenate([near[0], far[0], valley[0]])
+        xs = np.concatenate([near[1], far[1], valley[1]])
+        i_near = np.arange(near[0].size)
+        i_far = near[0].size + np.arange(far[0].size)
+        band = near[0].size + far[0].size + np.arange(valley[0].size)
+        got = depth_split.flanked(ys, xs, band, i_near, i_far, 12.0)
+        assert abs(got - want) < 0.05, (got, want)
+
+
+def test_a_valley_the_optical_axis_hides_is_found_along_the_ground_if_it_is_a_ramp():
+    """Two upright people 4.3 and 4.9 m away along the ground seen from a camera pitched 20 deg down:
+    along the optical axis each person spans a range of disparity (their feet nearer than their
+    heads), so the two ranges meet and no valley splits them; along the ground (split_layers' along)
+    each is one depth and the ramp between them is a valley. A rail reaching back from one to the
+    other, in rows where neither is seen, instead of a ramp keeps them one (a table's legs and the
+    side rail between them, seen end-on)."""
+    cfg = SegmenterSettings(max_range_m=10.0)
+    n = Mount(1.2, 20.0, 0.0, 0.0).down_camera
+    fwd = np.array([0.0, 0.0, 1.0]) - n[2] * n
+    fwd /= np.linalg.norm(fwd)
+
+    def upright(rows, cols, dist):
+        yy, xx = np.meshgrid(np.asarray(rows), np.asarray(cols), indexing="ij")
+        ray = np.stack([(xx * 2 - MODEL.cx) / MODEL.focal_px, (yy * 2 - MODEL.cy) / MODEL.focal_px,
+                        np.ones(yy.shape)], -1)
+        return rows, cols, (FB * (ray @ fwd) / dist).astype(np.float32)
+
+    rows = np.arange(10, 150)
+    front, back = upright(rows, np.arange(100, 139), 4.3), upright(rows, np.arange(142, 165), 4.9)
+    ramp = [upright(rows, [139 + k], 4.3 + 0.15 * (k + 1)) for k in range(3)]
+    rail = [upright([152 + k // 2], [110 + k], 4.3 + 0.01 * k) for k in range(60)]  # below both, receding
+    for valley, parts in ((ramp, 2), (rail, 1)):
+        ys, xs, dv, lab = _grouped(front, *valley, back)
+        axis = depth_split.split_layers(ys, xs, dv, lab, cfg, MODEL, 2)[0]
+        assert np.unique(axis[axis > 0]).size == 1
+        along = depth_split.ground_disparity(ys, xs, dv, n, MODEL, 2)
+        out = depth_split.split_layers(ys, xs, dv, lab, cfg, MODEL, 2, along=along)[0]
+        assert np.unique(out[out > 0]).size == parts
+
+
 def test_depth_layers_of_one_group_are_not_joined_again_but_a_fence_s_stretches_are():
     """Regions whose extents come within merge_gap_depth_m along the view join (the stretches of a
     fence the matcher left out), unless the depth-layer split made them two (one behind the other)."""

@@ -4,6 +4,7 @@ draws across an occlusion is two things one behind the other (split_layers has t
 """
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from cores import camera
@@ -15,11 +16,30 @@ _LAYER_SMOOTH_BINS = 1.0  # Gaussian smoothing of that histogram, bins (sub-pixe
 _LAYER_BAND = 0.35  # the valley band: bins below this share of the smaller peak's density
 _LAYER_MAX_SPLITS = 3  # each side of a split is split again, this many levels deep at most
 _LAYER_ON_TOP_M = 0.25  # a valley at most this far above the farther side's top rests on it
+_LAYER_RAMP_FLANKED = 0.6  # a ramp: at least this share of its pixels between the two sides in their row
+
+
+def ground_disparity(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, normal: np.ndarray, model: camera.RectifiedModel,
+                     step: int) -> np.ndarray:
+    """The disparity each working-grid pixel (ys, xs, disparity dv) would have at its distance along
+    the ground: fB over its point's reach along the ground in the camera's forward direction (the
+    optical axis with the floor's unit normal `normal`, camera frame, taken out). The optical axis of
+    a pitched camera runs down through an upright thing: 20 deg down, a person 1.7 m tall spans 0.58
+    m of it, as much as a person behind another, and two people 0.55 m apart 4.3 m away from 1.2 m up
+    showed one hump of the histogram, its valley too shallow (people-queue). Along the ground an
+    upright thing is one depth at any pitch; with the camera level the two are the same."""
+    n = np.asarray(normal, np.float64)
+    fwd = np.array([0.0, 0.0, 1.0]) - n[2] * n
+    fwd /= max(float(np.linalg.norm(fwd)), 1e-9)
+    k = np.float32(1.0 / model.focal_px)
+    scale = ((xs * step - np.float32(model.cx)) * k * np.float32(fwd[0])
+             + (ys * step - np.float32(model.cy)) * k * np.float32(fwd[1]) + np.float32(fwd[2]))
+    return (dv / np.maximum(scale, np.float32(1e-3))).astype(np.float32)
 
 
 def split_layers(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, lab: np.ndarray, cfg: SegmenterSettings,
-                  model: camera.RectifiedModel, step: int, heights: np.ndarray | None = None
-                  ) -> tuple[np.ndarray, dict[int, int]]:
+                  model: camera.RectifiedModel, step: int, heights: np.ndarray | None = None,
+                  along: np.ndarray | None = None) -> tuple[np.ndarray, dict[int, int]]:
     """Split grouped objects that are two things one behind the other: (new labels for the grouped
     pixels, sorted by label as _group gives them, 0 = dropped; {label: the group it was split
     from} for every label of a split group, whose layers later steps do not join again by depth).
@@ -60,17 +80,23 @@ def split_layers(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, lab: np.ndarray
     # a group spanning less depth than layer_gap_m, or all beyond layer_split_range_m, has nothing to split
     deep = (fB / np.maximum(d_lo, 1e-6) - fB / np.maximum(d_hi, 1e-6) >= cfg.layer_gap_m) & \
         (fB / np.maximum(d_hi, 1e-6) <= cfg.layer_split_range_m) & (ends - starts >= 2 * cfg.min_pixels)
-    for a, b in zip(starts[deep], ends[deep]):
+
+    def split_group(a: int, b: int, dh: np.ndarray, ramp_guard: bool) -> bool:
+        """Split the group of grouped pixels a:b by the histogram of dh (dv, or its disparity along the
+        ground); ramp_guard: a valley must also look like a ramp in its rows (flanked). -> whether it split."""
+        nonlocal next_label
+        split = False
         todo = [(np.arange(a, b), 0)]
         while todo:
             idx, level = todo.pop()
             if level >= _LAYER_MAX_SPLITS or idx.size < 2 * cfg.min_pixels:
                 continue
-            d = dv[idx].astype(np.float64)
+            d = dh[idx].astype(np.float64)
             bins = np.floor(d / _LAYER_BIN_PX).astype(np.int64)
             b0 = int(bins.min())
             rel = bins - b0
-            area = (step * model.baseline_m / d) ** 2  # m^2 of surface a working pixel covers at its depth
+            # m^2 of surface a working pixel covers at its depth
+            area = (step * model.baseline_m / dv[idx].astype(np.float64)) ** 2
             raw = np.bincount(rel, weights=area)
             hist = np.convolve(np.pad(raw, kernel.size // 2), kernel, mode="valid")
             if hist.size < 3:
@@ -123,6 +149,11 @@ def split_layers(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, lab: np.ndarray
             # side apron seen end-on, on its back leg): one object
             if heights is not None and rests_on(ys, xs, heights, idx[in_band], far):
                 continue
+            # a ramp lies between the two sides in its own row: the nearer side within a ramp's width
+            # on one hand, the farther on the other; a table's rail reaching back is flanked by neither,
+            # mostly (the floor, its top or the wall beside it). An empty valley has no pixels to ask
+            if ramp_guard and ratio[i] > 0 and flanked(ys, xs, idx[in_band], near, far, bridge) < _LAYER_RAMP_FLANKED:
+                continue
             # the ramp runs along the nearer side's contour, so within its rows and a ramp's width
             # (layer_bridge_px) above or below them. What of the valley lies farther up or down is a
             # surface at those depths: the sway's table, before a person walking behind it, lost its
@@ -133,14 +164,24 @@ def split_layers(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, lab: np.ndarray
             if not ramp.all():
                 d_split = 0.5 * fB * (1.0 / z_far + 1.0 / z_near)
                 kept = band[~ramp]
-                to_near = dv[kept] >= d_split
+                to_near = dh[kept] >= d_split
                 far, near = np.concatenate([far, kept[~to_near]]), np.concatenate([near, kept[to_near]])
                 band = band[ramp]
             out[band] = 0
             out[far] = next_label
             family[next_label] = family[int(lab[a])] = int(lab[a])
             next_label += 1
+            split = True
             todo += [(far, level + 1), (near, level + 1)]
+        return split
+
+    for a, b in zip(starts[deep], ends[deep]):
+        # along the optical axis first, as ever; where that finds no valley and the ground is known,
+        # along the ground, where an upright thing is one depth at any pitch (ground_disparity), but only
+        # across a valley that looks like a ramp: along the ground a table's side rails, seen end-on,
+        # fill the valley between its legs as thinly as a ramp does
+        if not split_group(int(a), int(b), dv, False) and along is not None:
+            split_group(int(a), int(b), along, True)
     if family:
         apart(ys, xs, dv, out, family, cfg, model, step, next_label, heights)
     return out, family
@@ -182,6 +223,26 @@ def apart(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, out: np.ndarray, famil
                 out[idx[comp == c]] = next_label
                 family[next_label] = family[label]
                 next_label += 1
+
+
+def flanked(ys: np.ndarray, xs: np.ndarray, band: np.ndarray, near: np.ndarray, far: np.ndarray,
+            reach: float) -> float:
+    """The share of a valley's pixels (indices `band`) with a pixel of the nearer side and one of the
+    farther side (indices `near`, `far`) both within `reach` working pixels in their own row: most
+    of an occlusion's ramp (people-queue from 1.2 m / 20 deg, bm: 0.77), little of a surface reaching
+    back (the sway's table's side rails: 0.04-0.35)."""
+    if band.size == 0:
+        return 0.0
+    pts = np.concatenate([band, near, far])
+    y0, x0 = int(ys[pts].min()), int(xs[pts].min())
+    shape = (int(ys[pts].max()) - y0 + 1, int(xs[pts].max()) - x0 + 1)
+    kernel = np.ones((1, 2 * int(reach) + 1), np.uint8)
+    beside = np.ones(band.size, np.uint8)
+    for side in (near, far):
+        m = np.zeros(shape, np.uint8)
+        m[ys[side] - y0, xs[side] - x0] = 1
+        beside &= cv2.dilate(m, kernel)[ys[band] - y0, xs[band] - x0]
+    return float(np.count_nonzero(beside)) / band.size
 
 
 def rests_on(ys: np.ndarray, xs: np.ndarray, heights: np.ndarray, band: np.ndarray, far: np.ndarray) -> bool:
