@@ -175,12 +175,17 @@ def split_layers(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, lab: np.ndarray
             todo += [(far, level + 1), (near, level + 1)]
         return split
 
-    for a, b in zip(starts[deep], ends[deep]):
-        # along the optical axis first, as ever; where that finds no valley and the ground is known,
-        # along the ground, where an upright thing is one depth at any pitch (ground_disparity), but only
-        # across a valley that looks like a ramp: along the ground a table's side rails, seen end-on,
-        # fill the valley between its legs as thinly as a ramp does
-        if not split_group(int(a), int(b), dv, False) and along is not None:
+    # along the optical axis first, as ever; where that finds no valley and the ground is known, along
+    # the ground, where an upright thing is one depth at any pitch (ground_disparity), but only across a
+    # valley that looks like a ramp: along the ground a table's side rails, seen end-on, fill the valley
+    # between its legs as thinly as a ramp does. A group as shallow as one thing along the ground (one
+    # person seen from above) has nothing to split there
+    deep_along = deep.copy()
+    if along is not None:
+        g_lo, g_hi = np.minimum.reduceat(along, starts), np.maximum.reduceat(along, starts)
+        deep_along &= fB / np.maximum(g_lo, 1e-6) - fB / np.maximum(g_hi, 1e-6) >= cfg.layer_gap_m
+    for a, b, try_along in zip(starts[deep], ends[deep], deep_along[deep]):
+        if not split_group(int(a), int(b), dv, False) and along is not None and try_along:
             split_group(int(a), int(b), along, True)
     if family:
         apart(ys, xs, dv, out, family, cfg, model, step, next_label, heights)
