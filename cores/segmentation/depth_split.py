@@ -63,7 +63,12 @@ def split_layers(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, lab: np.ndarray
     - the far side is within layer_split_range_m (a far street's facades and shelters would fall
       apart into panels).
     The valley's pixels (the ramp: phantom depths) are dropped; each side may be split again, and
-    each layer is then cut into the things it holds apart on the grid (apart)."""
+    each layer is then cut into the things it holds apart on the grid (apart).
+
+    along (per grouped pixel, its disparity along the ground: ground_disparity; None without a
+    floor): a group the optical axis finds no valley in is looked at along the ground too, where an
+    upright thing is one depth at any pitch, and split there across a valley that is a ramp in its
+    rows (flanked), not a surface reaching back."""
     family: dict[int, int] = {}
     if cfg.layer_valley_ratio <= 0 or lab.size == 0:
         return lab, family
@@ -235,7 +240,7 @@ def flanked(ys: np.ndarray, xs: np.ndarray, band: np.ndarray, near: np.ndarray, 
     """The share of a valley's pixels (indices `band`) with a pixel of the nearer side and one of the
     farther side (indices `near`, `far`) both within `reach` working pixels in their own row: most
     of an occlusion's ramp (people-queue from 1.2 m / 20 deg, bm: 0.77), little of a surface reaching
-    back (the sway's table's side rails: 0.04-0.35)."""
+    back (the sway's table's side rails seen end-on: 0.04-0.52)."""
     if band.size == 0:
         return 0.0
     pts = np.concatenate([band, near, far])
