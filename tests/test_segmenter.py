@@ -218,7 +218,7 @@ def test_flanked_tells_an_occlusion_ramp_from_a_rail_reaching_back():
 def test_a_valley_the_optical_axis_hides_is_found_along_the_ground_if_it_is_a_ramp():
     """Two upright people 4.3 and 4.9 m away along the ground seen from a camera pitched 20 deg down:
     along the optical axis each person spans a range of disparity (their feet nearer than their
-    heads), so the two ranges meet and no valley splits them; along the ground (split_layers' along)
+    heads), so the two ranges meet and no valley splits them; along the ground (split_layers given the floor's normal)
     each is one depth and the ramp between them is a valley. A rail reaching back from one to the
     other, in rows where neither is seen, instead of a ramp keeps them one (a table's legs and the
     side rail between them, seen end-on)."""
@@ -241,8 +241,7 @@ def test_a_valley_the_optical_axis_hides_is_found_along_the_ground_if_it_is_a_ra
         ys, xs, dv, lab = _grouped(front, *valley, back)
         axis = depth_split.split_layers(ys, xs, dv, lab, cfg, MODEL, 2)[0]
         assert np.unique(axis[axis > 0]).size == 1
-        along = depth_split.ground_disparity(ys, xs, dv, n, MODEL, 2)
-        out = depth_split.split_layers(ys, xs, dv, lab, cfg, MODEL, 2, along=along)[0]
+        out = depth_split.split_layers(ys, xs, dv, lab, cfg, MODEL, 2, normal=n)[0]
         assert np.unique(out[out > 0]).size == parts
 
 

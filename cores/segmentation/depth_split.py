@@ -39,7 +39,7 @@ def ground_disparity(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, normal: np.
 
 def split_layers(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, lab: np.ndarray, cfg: SegmenterSettings,
                   model: camera.RectifiedModel, step: int, heights: np.ndarray | None = None,
-                  along: np.ndarray | None = None) -> tuple[np.ndarray, dict[int, int]]:
+                  normal: np.ndarray | None = None) -> tuple[np.ndarray, dict[int, int]]:
     """Split grouped objects that are two things one behind the other: (new labels for the grouped
     pixels, sorted by label as _group gives them, 0 = dropped; {label: the group it was split
     from} for every label of a split group, whose layers later steps do not join again by depth).
@@ -65,10 +65,10 @@ def split_layers(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, lab: np.ndarray
     The valley's pixels (the ramp: phantom depths) are dropped; each side may be split again, and
     each layer is then cut into the things it holds apart on the grid (apart).
 
-    along (per grouped pixel, its disparity along the ground: ground_disparity; None without a
-    floor): a group the optical axis finds no valley in is looked at along the ground too, where an
-    upright thing is one depth at any pitch, and split there across a valley that is a ramp in its
-    rows (flanked), not a surface reaching back."""
+    normal (the floor's unit normal, camera frame; None without a floor): a group the optical axis
+    finds no valley in is looked at along the ground too (ground_disparity), where an upright thing
+    is one depth at any pitch, and split there across a valley that is a ramp in its rows (flanked),
+    not a surface reaching back."""
     family: dict[int, int] = {}
     if cfg.layer_valley_ratio <= 0 or lab.size == 0:
         return lab, family
@@ -185,13 +185,15 @@ def split_layers(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, lab: np.ndarray
     # valley that looks like a ramp: along the ground a table's side rails, seen end-on, fill the valley
     # between its legs as thinly as a ramp does. A group as shallow as one thing along the ground (one
     # person seen from above) has nothing to split there
-    deep_along = deep.copy()
-    if along is not None:
-        g_lo, g_hi = np.minimum.reduceat(along, starts), np.maximum.reduceat(along, starts)
-        deep_along &= fB / np.maximum(g_lo, 1e-6) - fB / np.maximum(g_hi, 1e-6) >= cfg.layer_gap_m
-    for a, b, try_along in zip(starts[deep], ends[deep], deep_along[deep]):
-        if not split_group(int(a), int(b), dv, False) and along is not None and try_along:
-            split_group(int(a), int(b), along, True)
+    along: np.ndarray | None = None  # per grouped pixel, filled for the groups that need it
+    for a, b in zip(starts[deep].tolist(), ends[deep].tolist()):
+        if split_group(a, b, dv, False) or normal is None:
+            continue
+        if along is None:
+            along = np.zeros_like(dv)
+        g = along[a:b] = ground_disparity(ys[a:b], xs[a:b], dv[a:b], normal, model, step)
+        if fB / max(float(g.min()), 1e-6) - fB / max(float(g.max()), 1e-6) >= cfg.layer_gap_m:
+            split_group(a, b, along, True)
     if family:
         apart(ys, xs, dv, out, family, cfg, model, step, next_label, heights)
     return out, family

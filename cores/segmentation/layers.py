@@ -390,11 +390,8 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
 
     ys, xs, dv, lab, ex, cut_from = _group(dm, stand, cfg, model, step, (d0,), above)
     dv0, hv = ex[0], ex[1] if above is not None else np.zeros(ys.size, np.float32)  # raw, height above the floor
-    along = None
-    if floor is not None:
-        n_down, _ = floor.normal_height(f, model.cx, model.cy, B)
-        along = depth_split.ground_disparity(ys, xs, dv, n_down, model, step)
-    lab, family = depth_split.split_layers(ys, xs, dv, lab, cfg, model, step, None if above is None else hv, along)
+    normal = None if floor is None else floor.normal_height(f, model.cx, model.cy, B)[0]
+    lab, family = depth_split.split_layers(ys, xs, dv, lab, cfg, model, step, None if above is None else hv, normal)
     if family:  # labels changed (else they are _group's, sorted, from 1)
         order = _label_order(lab)[np.count_nonzero(lab == 0):]  # 0: dropped, sorts first
         ys, xs, dv, lab, hv, dv0 = ys[order], xs[order], dv[order], lab[order], hv[order], dv0[order]
