@@ -63,12 +63,17 @@ class MatcherConfig(ServiceSettings):
     prefilter_cap: int = Field(31, ge=1, le=63, description="pre-filter clipping")
     p1: int = Field(0, ge=0, description="sgbm/dense smoothness penalty for +-1 px changes (0: 8*block^2)")
     p2: int = Field(0, ge=0, description="sgbm/dense penalty for larger changes (0: 32*block^2)")
-    disp12_max_diff: int = Field(1, ge=-1, description="sgbm/dense internal left-right check, px (-1: off)")
+    disp12_max_diff: int = Field(1, ge=-1, description="sgbm/dense (and bm with match_band) internal left-right "
+                                 "check, px (-1: off)")
     sgbm_mode: Literal["auto", "sgbm", "hh", "3way", "hh4"] = Field(
         "auto", description="semi-global variant (auto: sgbm 5 paths, dense 3way; hh: full 8 paths)")
     lr_check: bool = Field(False, description="bm/sgbm: left-right check on a second, mirrored match (doubles "
                            "matching time)")
     lr_max_diff: float = Field(1.0, ge=0, description="max left/right disagreement, px")
+    match_band: bool = Field(False, description="bm/sgbm: match the left band (x < min_disparity + num_disparities) "
+                             "OpenCV leaves unmatched too, on the pair padded on the left, as dense always does, "
+                             "wherever a pixel's partner is in the right image (more matching time: the band's "
+                             "width over the rest's)")
     fill_lambda: float = Field(8000.0, gt=0, description="dense: smoothness of the edge-aware fill (fast global "
                                "smoother lambda)")
     fill_sigma_color: float = Field(1.5, gt=0, description="dense: grey-level difference (0..255) at which the "

@@ -101,8 +101,9 @@ def view_bearings(model: camera.RectifiedModel, min_disparity: int, num_disparit
     """The bearings (deg from the optical axis, positive right) of the leftmost and rightmost columns
     a search (min_disparity, num_disparities px) measures at every distance it reaches: left of
     x = min_disparity + num_disparities the right camera does not see what stands at the nearest of
-    them (bm and sgbm leave that band unmatched at any distance; dense matches it only where the
-    partner is in view). On the Karlsruhe car's rig, 320 px of 1344: 18.5 deg of its 92."""
+    them (bm and sgbm leave that band unmatched at any distance; dense, and bm and sgbm with
+    match_band, match it only where the partner is in view). On the Karlsruhe car's rig, 320 px of
+    1344: 18.5 deg of its 92."""
     left = float(np.clip(min_disparity + num_disparities, 0, model.width - 1))
 
     def bearing(u: float) -> float:
