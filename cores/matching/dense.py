@@ -26,7 +26,7 @@ from scipy.linalg import solveh_banded
 from common.errors import BallbotError
 from cores.matching.config import SCALE, MatcherConfig
 from cores.matching.disparity import MEASURED_CONFIDENCE, raw_at_least
-from cores.matching.opencv import Match, create_sgbm, gray, saturated_share, texture
+from cores.matching.opencv import Match, compute_padded, create_sgbm, gray, reaches_padding, saturated_share, texture
 
 FILL_SCALE = 0.5  # the smoother runs at this fraction of the image size
 # One row+column pass of the smoother (lambda_1 = lambda / 2 in Min et al.'s schedule): on the
@@ -159,11 +159,7 @@ class DenseMatcher:
     def measure(self, gray_left: np.ndarray, gray_right: np.ndarray) -> np.ndarray:
         """Semi-global matching on the left-padded pair -> (H, W) int16, px * 16; values below
         min_disparity * 16 are OpenCV's 'no match'."""
-        p = self.pad
-        if p:
-            gray_left = cv2.copyMakeBorder(gray_left, 0, 0, p, 0, cv2.BORDER_REPLICATE)
-            gray_right = cv2.copyMakeBorder(gray_right, 0, 0, p, 0, cv2.BORDER_REPLICATE)
-        return self._m.compute(gray_left, gray_right)[:, p:]
+        return compute_padded(self._m, gray_left, gray_right, self.pad)
 
     def match(self, left: np.ndarray, right: np.ndarray, min_valid_disparity: float = 0.0) -> Match:
         """-> Match: every pixel reached by a measurement has a disparity (int16, px * 16) and a
@@ -177,10 +173,10 @@ class DenseMatcher:
         raw = self.measure(gl, gray(right))
         tex = texture(gl, c.block + 2)
         valid = (raw >= raw_at_least(c.min_disparity * SCALE)) & (tex >= FLAT)  # no texture: SGBM's answer is a guess
-        # In the left band a match must keep its partner's window in view: d <= x - block // 2 (beyond,
-        # it compared against the padding).
-        x = np.arange(raw.shape[1], dtype=np.int32)[None, :]
-        valid &= raw.astype(np.int32) <= (x - c.block // 2) * int(SCALE)
+        # In the left band a match must keep its partner's window in view (beyond, it compared
+        # against the padding).
+        outside = reaches_padding(raw, c.block, self.pad)
+        valid[:, :outside.shape[1]] &= ~outside
         saturated = saturated_share(raw, valid, c.max_disparity)
         filled, confidence = fill_and_confidence(raw.astype(np.float32) / np.float32(SCALE), valid, left,
                                                  c.fill_lambda, c.fill_sigma_color, tex)

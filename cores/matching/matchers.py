@@ -28,7 +28,16 @@ from cores.matching.config import (  # noqa: F401
     gate_for_range,
 )
 from cores.matching.disparity import raw_at_least
-from cores.matching.opencv import Match, create_opencv_matcher, create_sgbm, gray, saturated_share, texture  # noqa: F401
+from cores.matching.opencv import (  # noqa: F401
+    Match,
+    compute_padded,
+    create_opencv_matcher,
+    create_sgbm,
+    gray,
+    reaches_padding,
+    saturated_share,
+    texture,
+)
 
 # texture (opencv.texture, over the window and its gradient's reach) from which a window decides its
 # own match in semi-global matching; below it its disparity is carried in from around it (Match.flat).
@@ -74,16 +83,11 @@ class StereoMatcher:
         c = self.config
         c.check_width(left.shape[1])
         gl, gr = gray(left), gray(right)
-        p = self.pad
-        if p:
-            d = self._m.compute(cv2.copyMakeBorder(gl, 0, 0, p, 0, cv2.BORDER_REPLICATE),
-                                cv2.copyMakeBorder(gr, 0, 0, p, 0, cv2.BORDER_REPLICATE))[:, p:]
-        else:
-            d = self._m.compute(gl, gr)
+        d = compute_padded(self._m, gl, gr, self.pad)
         invalid = d < raw_at_least(c.min_disparity * SCALE)  # OpenCV marks failures below min_disparity*16
-        if p:  # a match whose partner's window reaches into the padding compared against nothing real
-            w = min(d.shape[1], p + c.block // 2)  # right of it no disparity searched can reach the padding
-            invalid[:, :w] |= d[:, :w].astype(np.int32) > (np.arange(w, dtype=np.int32) - c.block // 2) * int(SCALE)
+        if self.pad:
+            outside = reaches_padding(d, c.block, self.pad)
+            invalid[:, :outside.shape[1]] |= outside
         if self._mr is not None:
             invalid |= ~self._consistent(self._mr, d, gl, gr)
         saturated = saturated_share(d, ~invalid, c.max_disparity)

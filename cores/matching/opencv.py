@@ -63,6 +63,25 @@ def texture(gray_image: np.ndarray, window: int) -> np.ndarray:
     return cv2.boxFilter(gx, -1, (window, window))
 
 
+def compute_padded(matcher, gray_left: np.ndarray, gray_right: np.ndarray, pad: int) -> np.ndarray:
+    """matcher.compute on the pair padded on the left by `pad` replicated columns, cropped back to
+    the pair: OpenCV leaves x < min + num disparities unmatched; padded by that much, the band is
+    matched too (dense always; bm and sgbm with match_band). Drop what reached into the padding
+    with reaches_padding."""
+    if not pad:
+        return matcher.compute(gray_left, gray_right)
+    return matcher.compute(cv2.copyMakeBorder(gray_left, 0, 0, pad, 0, cv2.BORDER_REPLICATE),
+                           cv2.copyMakeBorder(gray_right, 0, 0, pad, 0, cv2.BORDER_REPLICATE))[:, pad:]
+
+
+def reaches_padding(raw: np.ndarray, block: int, pad: int) -> np.ndarray:
+    """(H, min(W, pad + block // 2)) bool: the left columns' matches (raw, px * 16) whose partner's
+    window reaches into the padding of compute_padded (d > x - block // 2): they compared against
+    nothing real. Right of those columns no disparity searched reaches it."""
+    w = min(raw.shape[1], pad + block // 2)
+    return raw[:, :w].astype(np.int32) > (np.arange(w, dtype=np.int32) - block // 2) * int(SCALE)
+
+
 def create_sgbm(c: MatcherConfig):
     """OpenCV's StereoSGBM with these settings (penalties default to the recommended 8 and 32 x block^2)."""
     b = c.block
