@@ -673,6 +673,23 @@ def test_with_match_band_a_person_in_the_blind_band_of_a_ballbot_height_camera_i
     assert s.matched == s.truths == 9 and s.silent_misses == 0 and s.free_under == 0, s.to_dict()
 
 
+def test_the_shadow_beside_a_near_box_at_the_edge_of_the_view_is_no_face():
+    """two-boxes from 0.5 m up, 12 deg down, bm matching its left band: left of box-a (1.7 m away,
+    52 px from the image's left edge) the right camera sees neither the wall nor the floor beyond
+    2.3 m, hidden behind the box, so the floor seen ends there with nothing measured above it; and
+    left of that nothing at 2.3 m has a partner in the right image (x < d). The run of blank-face
+    columns between was taken for a face the edge of the view cuts, kept however narrow: a plain face
+    2.3 m away in every list (7 wall false positives in 3 frames)."""
+    import dataclasses
+
+    from cores.matching.config import MatcherConfig
+    from sim import scene as S
+
+    scene = dataclasses.replace(S.Scene.builtin("two-boxes"), camera_height_m=0.5, camera_pitch_deg=12.0)
+    s = E.score_method(E.render_scenario(scene, matcher=MatcherConfig(method="bm", match_band=True)), "layers")
+    assert s.matched == s.truths == 6 and s.wall_fp == s.floor_fp == s.split_fp == 0, s.to_dict()
+
+
 PLAIN_WALL = """name: plain-wall
 description: A plain wall across the whole view 2 m ahead.
 camera_height_m: 1.0

@@ -66,6 +66,9 @@ MIN_WIDTH_M = 0.3  # narrower: a gap between two things, a pole's dark side, not
 # the plain faces of the low-faces scene: 1.3-1.6 px half the interquartile range), whatever the depth
 CAP_PX = 3.0
 GAP_COLS = 2  # working columns
+# where a near thing's edge lands in the right image, a pixel this close to it (full-resolution px) has
+# half the matcher's window on the thing: the floor there is as good as hidden (bm's 9 px block)
+SHADOW_TOL_PX = 4.0
 # rule 3's measured side may end this far short of the image's bottom edge and of the face's top edge (or
 # min_height_m, if more): where the matcher loses a side has nothing to do with how low an obstacle may be
 # (dense ended the low-faces crate's side 29 rows, 0.14 m, short of the bottom edge, bm 0.1-0.2 m short of
@@ -157,16 +160,22 @@ def find(dm: np.ndarray, df: np.ndarray, seen_floor: np.ndarray, standing: np.nd
     d_face = np.where(faces, df[np.clip(foot, 0, h - 1), cols] + shift, 0.0).astype(np.float64)
     with np.errstate(divide="ignore"):
         z_face = np.where(d_face > 0, fB / np.maximum(d_face, 1e-9), np.inf)
-    measured = np.flatnonzero(dm.any(0))  # the matcher's blind left band: no column of it measured
-    band = np.maximum(d_face / step, measured[0] if measured.size else 0)
-    faces = _wide_runs(faces, z_face, MIN_WIDTH_M * model.focal_px / step, band)
-    if not faces.any():
-        return None
     # each face column from its foot up to its top edge, or robot_height_m above the floor there (what
     # the robot can hit)
+    with np.errstate(invalid="ignore", over="ignore"):
+        reach = np.ceil(robot_height_m * model.focal_px / (np.where(faces, z_face, 1.0) * step)).astype(np.int64)
+    v0_all = np.maximum(foot - reach, face_top)
+    measured = np.flatnonzero(dm.any(0))  # the matcher's blind left band: no column of it measured
+    band = np.maximum(d_face / step, measured[0] if measured.size else 0)
+    f = np.flatnonzero(faces)
+    cut = (f <= band[f] + GAP_COLS + 2).any()  # a run _wide_runs may keep for the edge of the view
+    hidden = _hidden(faces, v0_all, foot, dm, df, step) if cut else None
+    faces = _wide_runs(faces, z_face, MIN_WIDTH_M * model.focal_px / step, band, hidden)
+    if not faces.any():
+        return None
     f = np.flatnonzero(faces)
     v1 = foot[f]
-    v0 = np.maximum(v1 - np.ceil(robot_height_m * model.focal_px / (z_face[f] * step)).astype(np.int64), face_top[f])
+    v0 = v0_all[f]
     # a face of rule 1 stands upright to above the camera; what rules 2 and 3 find reaches up to a top edge
     # measured at its foot's depth (the top of a box seen from above is in it: that depth all the way up)
     d_col = np.where(tall_face[f][None, :], _upright(d_face[f], f, np.clip(v1, 0, h - 1), rows, normal, model, step),
@@ -407,7 +416,40 @@ def _below_image(c: np.ndarray, start: np.ndarray, df: np.ndarray, dm: np.ndarra
         shift[ok] = d - df[h - 1, ok]
 
 
-def _wide_runs(a: np.ndarray, z: np.ndarray, fw: float, band: np.ndarray) -> np.ndarray:
+def _hidden(faces: np.ndarray, v0: np.ndarray, v1: np.ndarray, dm: np.ndarray, df: np.ndarray,
+            step: int) -> np.ndarray:
+    """Per face column: whether the floor beyond its foot (rows v0 to v1, where the floor lies in front
+    of the camera) would be hidden from the right camera, in most of those rows (UNMEASURED of them), by
+    something measured nearer to its right. Left of every near thing lies such a shadow, as wide as the
+    two disparities differ: the floor seen ends there and nothing beyond is measured, whatever stands
+    there or not, so that is no sign of a plain face. Runs of face columns in it are a shadow, not a face
+    cut by the edge of the view (_wide_runs)."""
+    out = np.zeros(faces.shape, bool)
+    f = np.flatnonzero(faces)
+    if not f.size:
+        return out
+    h, w = dm.shape
+    r0, r1 = int(max(v0[f].min(), 0)), int(min(v1[f].max(), h))
+    if r1 <= r0:
+        return out
+    sub = dm[r0:r1]
+    # where each measured pixel lands in the right image (full-resolution columns); then, per column, the
+    # leftmost of those among the columns to its right
+    x_right = np.where(sub > 0, np.arange(w, dtype=np.float32) * step - sub, np.inf)
+    right_min = np.minimum.accumulate(x_right[:, ::-1], axis=1)[:, ::-1]
+    right_min = np.concatenate([right_min[:, 1:], np.full((r1 - r0, 1), np.inf, np.float32)], axis=1)
+    d_floor = df[r0:r1][:, f]
+    x_floor = f[None, :] * step - d_floor  # where the floor's pixel would land in the right image
+    rows = np.arange(r0, r1)[:, None]
+    stretch = (rows >= v0[f][None, :]) & (rows < v1[f][None, :]) & (d_floor > 0)
+    covered = stretch & (right_min[:, f] <= x_floor + SHADOW_TOL_PX)
+    n = stretch.sum(0)
+    out[f] = (n > 0) & (covered.sum(0) >= UNMEASURED * n)
+    return out
+
+
+def _wide_runs(a: np.ndarray, z: np.ndarray, fw: float, band: np.ndarray,
+               hidden: np.ndarray | None = None) -> np.ndarray:
     """a (bool, 1-D: columns) with its runs of True narrower than fw / Z (working columns, at the
     run's median depth z) cleared. Runs apart by GAP_COLS columns or fewer are measured as one (a
     column or two the rules missed on a noisy face); the gap itself stays False. A run that ends
@@ -417,7 +459,10 @@ def _wide_runs(a: np.ndarray, z: np.ndarray, fw: float, band: np.ndarray) -> np.
     or more): bm searching 128 px saw 58 columns (0.27 m) of the low-faces crate right of its blind
     band, and the crate was in no list, unflagged. Not at the image's right side: there the road
     fading under a bright sky at 5-10 m made narrow runs, flat on the road (karlsruhe: 28 cells of the
-    ground matrix over 5 % flat)."""
+    ground matrix over 5 % flat). Nor a run that lies mostly in a near thing's shadow (hidden: per
+    column, _hidden): two-boxes from 0.5 m up, 12 deg down, with bm matching its left band
+    (match_band), had the 16 px between the image's left edge at box-a's depth and box-a as a plain
+    face 2.3 m away in every list."""
     out = np.zeros_like(a)
     edges = np.flatnonzero(np.diff(np.concatenate([[0], a.astype(np.int8), [0]])))
     starts, ends = list(edges[::2]), list(edges[1::2])
@@ -428,6 +473,8 @@ def _wide_runs(a: np.ndarray, z: np.ndarray, fw: float, band: np.ndarray) -> np.
             j += 1
         s, e = starts[i], ends[j]
         cut = s <= band[s] + GAP_COLS + 2
+        if cut and hidden is not None and hidden[s:e][a[s:e]].mean() >= 0.5:
+            cut = False  # a near thing's shadow beside the edge of the view, not a face that edge cuts
         if e - s >= (GAP_COLS + 1 if cut else fw / float(stats.median(z[s:e][a[s:e]]))):
             out[s:e] = a[s:e]
         i = j + 1
