@@ -673,6 +673,19 @@ def test_with_match_band_a_person_in_the_blind_band_of_a_ballbot_height_camera_i
     assert s.matched == s.truths == 9 and s.silent_misses == 0 and s.free_under == 0, s.to_dict()
 
 
+def test_with_match_band_what_the_left_side_of_the_view_cuts_is_flagged_truncated():
+    """bm matching its band measures its first pixel at disparity d at x = d + 7 (half its 15 px
+    window: a match whose partner's window reaches past the right image's edge is dropped), beyond
+    the reach side_cut allowed: people-border's person cut by the left side, its arm 62 px from the
+    image's edge at 54 px of disparity, was listed unflagged in every frame, its footprint partial
+    and nothing said (14 of 26 things cut there in the 15 scenes)."""
+    from cores.matching.config import MatcherConfig
+
+    s = E.score_method(E.render_scenario("people-border", matcher=MatcherConfig(method="bm", match_band=True)),
+                       "layers")
+    assert s.border_truths == 6 and s.border_flagged == 6, s.to_dict()
+
+
 def test_the_shadow_beside_a_near_box_at_the_edge_of_the_view_is_no_face():
     """two-boxes from 0.5 m up, 12 deg down, bm matching its left band: left of box-a (1.7 m away,
     52 px from the image's left edge) the right camera sees neither the wall nor the floor beyond

@@ -232,7 +232,8 @@ class ObstacleBuilder:
         return d, camera.model_of(msg.camera), confidence, None if flat is None else flat > 0
 
     def segment(self, disparity: np.ndarray, model: camera.RectifiedModel, confidence: np.ndarray | None = None,
-                image: np.ndarray | None = None, flat: np.ndarray | None = None) -> layers.LayersFrame:
+                image: np.ndarray | None = None, flat: np.ndarray | None = None,
+                search: tuple[int, int] | None = None) -> layers.LayersFrame:
         cfg = self.settings
         if disparity.size == 0:
             return layers.LayersFrame([], [], None, None, np.zeros((0, 3)))
@@ -244,7 +245,7 @@ class ObstacleBuilder:
             dets, unlisted = seed.segment_frame(disparity, model, cfg, floor)
             return layers.LayersFrame(dets, [], floor, estimate, np.zeros((0, 3)), unlisted)
         return layers.segment_frame(disparity, model, cfg, ground=self.ground, confidence=confidence, image=image,
-                                    flat=flat)
+                                    flat=flat, search=search)
 
     def _ego_motion(self, odometry: Odometry | None, t_s: float) -> bool:
         """Carry the tracks into this frame's base frame by the robot's own motion since the last
@@ -362,7 +363,7 @@ class ObstacleBuilder:
             inf = np.isinf(disparity)
             if inf.any():  # an infinite disparity is no measurement (nor a point at zero distance)
                 disparity = np.where(inf, np.float32(np.nan), disparity)
-        frame = self.segment(disparity, model, confidence, image, flat)
+        frame = self.segment(disparity, model, confidence, image, flat, search)
         if self.upright is not None:
             self.upright.update(frame.ground, t_s)
         mount, mount_source = frame_mount(frame.ground, self.configured,
