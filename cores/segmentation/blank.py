@@ -66,8 +66,8 @@ MIN_WIDTH_M = 0.3  # narrower: a gap between two things, a pole's dark side, not
 # the plain faces of the low-faces scene: 1.3-1.6 px half the interquartile range), whatever the depth
 CAP_PX = 3.0
 GAP_COLS = 2  # working columns
-# where a near thing's edge lands in the right image, a pixel this close to it (full-resolution px) has
-# half the matcher's window on the thing: the floor there is as good as hidden (bm's 9 px block)
+# where a near thing's edge lands in the right image, the floor this close to it (full-resolution px) is
+# as good as hidden: the matcher's window there straddles the thing's edge
 SHADOW_TOL_PX = 4.0
 # rule 3's measured side may end this far short of the image's bottom edge and of the face's top edge (or
 # min_height_m, if more): where the matcher loses a side has nothing to do with how low an obstacle may be
