@@ -42,7 +42,8 @@ only what stands on it counts, and objects are grouped where they stand.
 10. objects whose 3D extents come within merge_gap_m are one (a chair's back leg seen between its
     front legs; along the view merge_gap_depth_m: a fence seen obliquely); a small object mostly
     inside a larger one's box is part of it (depths meet) or seen through it (wholly behind and
-    framed by it: a car's windows) and dropped
+    framed by it: a car's windows) and dropped; a sliver cut by a side of the view joins the piece of
+    its thing beside it within merge_gap_depth_m (regions.join_cut)
 11. per object: centroid (mean of the points), extent (2nd-98th percentile), nearest distance
     (2nd percentile of range), bbox, area, median disparity, confidence (mean matcher confidence,
     else the fraction of its pixels with a valid raw disparity)
@@ -462,6 +463,8 @@ def segment_frame(disparity: np.ndarray, model: camera.RectifiedModel, cfg: Segm
                                     groups, cuts))
     found = regions.absorb_contained(regions.merge_close(found, cfg.merge_gap_m, cfg.merge_gap_depth_m),
                                      cfg.merge_gap_m, model, step)
+    found = regions.join_cut(found, [side_cut(r.bbox, float(stats.median(r.disparities)))[0] for r in found],
+                             cfg.merge_gap_depth_m)
     out: list[Detection] = []
     points: list[np.ndarray] = []
     for r in found:

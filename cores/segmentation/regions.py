@@ -103,6 +103,42 @@ def merge_close(regions: list[Region], gap_m: float, depth_gap_m: float = 0.0) -
     return out
 
 
+def join_cut(regions: list[Region], cut: list[bool], gap_m: float) -> list[Region]:
+    """Join regions that a side of the view cuts (cut: per region, on the same side), share image
+    columns there, and whose 3D extents come within gap_m of each other, where one of them is a sliver
+    (narrower across the view than APART_WIDTH_M): the pieces of one thing, of which the view shows a
+    sliver. Beside the edge of what the matcher sees the sliver is a column or two of the working grid,
+    and the median filter takes its thinner stretches:
+    people-border's person cut by the left side, with bm matching its band, was its arm (1.22 m away)
+    and a 2-4 px sliver of its leg (1.35 m) whose upper rows had gone, 0.19 m apart up the view, two
+    obstacles in every frame. Wider pieces come apart for what they are (the street's railing and the
+    people in front of it, cut by sgbm's blind band, were joined into things 20 m long)."""
+    idx = [i for i, c in enumerate(cut) if c]
+    if len(idx) < 2:
+        return regions
+    parent = {i: i for i in idx}
+
+    def root(i: int) -> int:
+        while parent[i] != i:
+            i = parent[i]
+        return i
+
+    for a, i in enumerate(idx):
+        for j in idx[a + 1:]:
+            p, q = regions[i], regions[j]
+            gap = np.maximum(p.lo - q.hi, q.lo - p.hi)
+            sliver = min(p.hi[0] - p.lo[0], q.hi[0] - q.lo[0]) < APART_WIDTH_M
+            if sliver and share_columns(p, q) and (gap <= gap_m).all() and root(i) != root(j):
+                parent[root(i)] = root(j)
+    groups: dict[int, list[Region]] = {}
+    for i in idx:
+        groups.setdefault(root(i), []).append(regions[i])
+    if len(groups) == len(idx):
+        return regions
+    return [r for i, r in enumerate(regions) if not cut[i]] + [g[0] if len(g) == 1 else union(g)
+                                                               for g in groups.values()]
+
+
 def overlap(p: Region, q: Region) -> tuple[int, int]:
     """How far p's and q's image boxes overlap: (columns, rows), negative where they lie apart."""
     return (min(p.bbox[2], q.bbox[2]) - max(p.bbox[0], q.bbox[0]),
