@@ -411,6 +411,8 @@ def main(argv: list[str] | None = None) -> int:
     if a.robots < 2 or a.workers < 1:
         p.error("--robots >= 2 and --workers >= 1")
     say = (lambda text: None) if a.json else (lambda text: print(text, file=sys.stderr, flush=True))
+    # SIGTERM unwinds like Ctrl-C, so the fleet's processes are stopped and its namespaces deleted
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     r = run(a, say)
     if a.save:
         with open(a.save, "w") as f:

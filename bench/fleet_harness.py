@@ -20,7 +20,7 @@ import msgpack
 
 from bench.measure import free_port
 from common.errors import BallbotError
-from common.supervisor import stop_processes
+from common.supervisor import die_with_parent, stop_processes
 
 if TYPE_CHECKING:
     import zenoh
@@ -89,8 +89,10 @@ class Fleet:
                    PYTHONFAULTHANDLER="1")  # a process that must be looked into: SIGABRT prints its threads
         env.setdefault("BALLBOT_CALIBRATION_KEY", os.urandom(32).hex())
         err = open(os.path.join(self.logdir, f"{name}.log"), "w") if self.logdir else subprocess.DEVNULL
+        # die_with_parent: a bench killed outright leaves no router or worker running (the
+        # namespaces are deleted by __exit__, which main runs on SIGTERM as on Ctrl-C)
         p = subprocess.Popen((prefix or []) + [PY, "-m", "ballbot_vision.cli", "run", *argv], env=env,
-                             stdout=subprocess.DEVNULL, stderr=err)
+                             stdout=subprocess.DEVNULL, stderr=err, preexec_fn=die_with_parent)
         self.procs[name] = p
         return p
 

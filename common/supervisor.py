@@ -64,7 +64,7 @@ def stage_nice(name: str) -> int:
 PR_SET_PDEATHSIG = 1
 
 
-def _die_with_parent() -> None:
+def die_with_parent() -> None:
     # Runs in the child before exec: the kernel sends SIGTERM to it when the supervisor dies.
     try:
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
@@ -136,7 +136,7 @@ class Supervisor:
 
     def _child_setup(self, nice: int) -> None:
         """In the child before exec: die with the supervisor; run at the requested priority."""
-        _die_with_parent()
+        die_with_parent()
         if nice:
             try:
                 os.setpriority(os.PRIO_PROCESS, 0, max(-20, min(19, nice)))

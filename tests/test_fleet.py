@@ -436,3 +436,61 @@ def test_a_fleet_shares_a_pool_fairly_and_survives_a_kill_and_a_join(tmp_path):
         t_gone = time.monotonic()
         fleet.wait(lambda: any(m.robot == "fc" and "onboard" in m.method for m in fleet.between(t_gone, 1e18)), 30,
                    "fc's onboard fallback")
+
+
+@pytest.mark.system
+@pytest.mark.slow
+def test_a_fleet_bench_stopped_by_sigterm_leaves_no_process_or_namespace_behind():
+    """`bench fleet` started from a shell script and stopped by `kill` (SIGTERM), mid-run: its
+    router, dispatchers and pool workers stop with it and the network namespaces it made are
+    deleted (a stopped bench once left a router listening and two namespaces behind)."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from helpers import pid_alive
+
+    def namespaces() -> set[str]:
+        r = subprocess.run(["ip", "netns", "list"], capture_output=True, text=True)
+        return {line.split()[0] for line in r.stdout.splitlines() if line.startswith("bbfl")} if r.returncode == 0 \
+            else set()
+
+    def children(pid: int) -> set[int]:
+        found: set[int] = set()
+        todo = [pid]
+        while todo:
+            p = todo.pop()
+            try:
+                tasks = subprocess.run(["ls", f"/proc/{p}/task"], capture_output=True, text=True).stdout.split()
+                kids = {int(c) for t in tasks for c in open(f"/proc/{p}/task/{t}/children").read().split()}
+            except OSError:
+                continue
+            todo += list(kids - found)
+            found |= kids
+        return found
+
+    before = namespaces()
+    argv = [sys.executable, "-m", "bench.fleet", "--robots", "2", "--workers", "1", "--seconds", "30"]
+    bench = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        # the equal phase starts once every robot has maps from the worker: everything is running
+        for line in bench.stderr:
+            if line.startswith("equal:"):
+                break
+        else:
+            pytest.fail(f"bench fleet ended before its first phase (exit {bench.wait()})")
+        started = children(bench.pid)
+        made = namespaces() - before
+        assert len(started) >= 4, started  # router, 2 dispatchers, a worker (and `ip netns exec` where used)
+        bench.send_signal(signal.SIGTERM)
+        assert bench.wait(60) == 143
+    finally:
+        if bench.poll() is None:
+            bench.kill()
+            bench.wait()
+    deadline = time.monotonic() + 30
+    while any(pid_alive(p) for p in started) and time.monotonic() < deadline:
+        time.sleep(0.1)  # children exit on their own SIGTERM; polled, no event to wait on
+    assert not [p for p in started if pid_alive(p)], "processes outlived the bench"
+    assert not (made & namespaces()), f"namespaces left behind: {made & namespaces()}"
