@@ -44,20 +44,26 @@ def _mount_settings(args: argparse.Namespace):
 
 # --- obstacles ---------------------------------------------------------------------------------
 
-def format_obstacles(obstacles, header: str = "") -> str:
-    lines = [header] if header else []
-    if not obstacles:
+def format_obstacles(msg, header: str = "") -> str:
+    """An ObstacleList as the `obstacles` command prints it: the header with where the list looked
+    and what keeps it from being a full view (as `watch` says them), then a row per obstacle."""
+    from ballbot_vision.watch import looked_at, track_note
+
+    lines = [header + looked_at(msg) + "".join(f"  {w}" for w in msg.warnings())]
+    if not msg.obstacles:
         lines.append("  (no obstacles)")
         return "\n".join(lines)
     lines.append(f"  {'id':>3} {'x m':>7} {'y m':>7} {'z m':>7} {'dist m':>7} {'w m':>6} {'h m':>6} {'d m':>6} "
-                 f"{'disp px':>8} {'area px':>8} {'conf':>5} {'vx,vy,vz m/s':>17}  bbox px{'':14} base x,y,z m")
-    for o in obstacles:
+                 f"{'disp px':>8} {'area px':>8} {'conf':>5} {'vx,vy,vz m/s':>17}  bbox px{'':14} "
+                 f"base x,y,z m{'':8}  track")
+    for o in msg.obstacles:
         base = ("" if o.position_base_m is None else " ".join(f"{v:6.2f}" for v in o.position_base_m))
         bbox = ",".join(str(v) for v in o.bbox_px)
         vel = " ".join(f"{v:5.2f}" for v in o.velocity_mps)
         lines.append(f"  {o.id:>3} {o.position_m[0]:7.3f} {o.position_m[1]:7.3f} {o.position_m[2]:7.3f} "
                      f"{o.distance_m:7.3f} {o.size_m[0]:6.2f} {o.size_m[1]:6.2f} {o.size_m[2]:6.2f} "
-                     f"{o.disparity_px:8.2f} {o.area_px:8d} {o.confidence:5.2f} {vel:>17}  {bbox:20} {base}")
+                     f"{o.disparity_px:8.2f} {o.area_px:8d} {o.confidence:5.2f} {vel:>17}  {bbox:20} {base:20}  "
+                     f"{track_note(o)}")
     return "\n".join(lines)
 
 
@@ -175,9 +181,8 @@ def cmd_obstacles(args: argparse.Namespace) -> int:
             doc["left"], doc["right"] = str(lp), str(rp)
             _out(json.dumps(doc))
         else:
-            _out(format_obstacles(msg.obstacles, f"{lp} {rp}: {len(msg.obstacles)} obstacle(s), {settings.method}, "
-                                                 f"{frame.segment_ms:.1f} ms (camera frame: x right, y down, z "
-                                                 f"forward)"))
+            _out(format_obstacles(msg, f"{lp} {rp}: {settings.method}, {frame.segment_ms:.1f} ms (camera frame: x "
+                                       f"right, y down, z forward): {len(msg.obstacles)} obstacle(s)"))
             _out(format_ground(msg.ground))
             _out(format_freespace(result.freespace))
             if msg.degraded:

@@ -8,17 +8,29 @@ import time
 from common import codec
 from common.errors import DecodeError
 from common.keys import OBSTACLES_ALL, topic
-from common.messages import ObstacleList
+from common.messages import Obstacle, ObstacleList
 from common.zenoh_session import DEFAULT_ROUTER, ZenohOptions, open_session
+
+
+def looked_at(msg: ObstacleList) -> str:
+    """Where the list looked (" at 1-30.0 m, -27..+46 deg"; "" if it does not say): an empty list
+    means nothing stands there, and says nothing of elsewhere."""
+    looked = "" if msg.range_m is None else f" at {msg.range_m[0]:.3g}-{msg.range_m[1]:.1f} m"
+    if msg.bearing_deg is not None:
+        looked += f", {msg.bearing_deg[0]:+.0f}..{msg.bearing_deg[1]:+.0f} deg"
+    return looked
+
+
+def track_note(o: Obstacle) -> str:
+    """How far an obstacle's track and shape can be taken as they are."""
+    return (f"{o.track_frames} frame{'' if o.track_frames == 1 else 's'}{'' if o.confirmed else ', unconfirmed'}"
+            f"{', cut by the view' if o.truncated else ''}")
 
 
 def format_table(msg: ObstacleList) -> str:
     age_ms = (time.time_ns() - msg.stamp_ns) / 1e6
-    looked = "" if msg.range_m is None else f" at {msg.range_m[0]:.3g}-{msg.range_m[1]:.1f} m"
-    if msg.bearing_deg is not None:
-        looked += f", {msg.bearing_deg[0]:+.0f}..{msg.bearing_deg[1]:+.0f} deg"
-    head = (f"robot {msg.robot_id}  seq {msg.seq}  age {age_ms:6.1f} ms  {len(msg.obstacles)} obstacle(s){looked}"
-            + "".join(f"  {w}" for w in msg.warnings()))
+    head = (f"robot {msg.robot_id}  seq {msg.seq}  age {age_ms:6.1f} ms  {len(msg.obstacles)} obstacle(s)"
+            f"{looked_at(msg)}" + "".join(f"  {w}" for w in msg.warnings()))
     g = msg.ground
     ground = ("ground: unknown (no floor removed)" if g is None or g.source == "none" else
               f"ground: camera {g.height_m:.2f} m above it, pitch {g.pitch_deg:+.1f} deg, roll {g.roll_deg:+.1f} deg "
@@ -30,8 +42,7 @@ def format_table(msg: ObstacleList) -> str:
     for o in msg.obstacles:
         x, y, z = o.position_m
         w, h, d = o.size_m
-        track = (f"{o.track_frames} frames{'' if o.confirmed else ', unconfirmed'}"
-                 f"{', cut by the view' if o.truncated else ''}")
+        track = track_note(o)
         lines.append(f"{o.id:>4} {x:7.2f} {y:7.2f} {z:7.2f} {o.distance_m:7.2f} {w:5.2f}x{h:5.2f}x{d:5.2f} "
                      f"{o.velocity_mps[0]:5.2f},{o.velocity_mps[2]:5.2f} {o.disparity_px:8.2f} {o.confidence:5.2f}  "
                      f"{track}")

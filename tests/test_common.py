@@ -183,6 +183,15 @@ def test_watch_table_says_where_the_ground_is_and_which_tracks_to_trust():
     head = format_table(msg.model_copy(update={"degraded": ["near-unmeasured", "ground-uncertain"],
                                                 "stale": True})).splitlines()[0]
     assert head.endswith("1 obstacle(s)  STALE  NOT A FULL VIEW: near-unmeasured, ground-uncertain"), head
+    # the offline `obstacles` command says the same of its lists: where it looked, and what it could not vouch for
+    from ballbot_vision.segmenter_commands import format_obstacles
+
+    empty = msg.model_copy(update={"obstacles": [], "degraded": ["nearer-than-range"], "range_m": (1.0, 30.0),
+                                   "bearing_deg": (-26.4, 46.2)})
+    text = format_obstacles(empty, "L R: layers: 0 obstacle(s)")
+    assert text.splitlines() == ["L R: layers: 0 obstacle(s) at 1-30.0 m, -26..+46 deg  NOT A FULL VIEW: "
+                                 "nearer-than-range", "  (no obstacles)"], text
+    assert format_obstacles(msg).splitlines()[-1].endswith("2 frames, unconfirmed, cut by the view")
 
 
 def test_status_verdict_is_degraded_while_the_segmenters_lists_are():

@@ -125,6 +125,7 @@ def test_bad_images_are_refused():
 
 def test_obstacles_command_draws_one_picture_per_pair_and_prints_ground_and_free_space(tmp_path, capsys):
     import json
+    import re
 
     import cv2
 
@@ -145,6 +146,13 @@ def test_obstacles_command_draws_one_picture_per_pair_and_prints_ground_and_free
                  "--draw", str(out)]) == 0
     text = capsys.readouterr().out
     assert text.count("  ground: ") == 2 and text.count("  free space: ") == 2
+    # each list says where it looked, as `watch` does (an empty one says nothing of elsewhere), and each
+    # obstacle how far its track goes
+    heads = [line for line in text.splitlines() if "obstacle(s)" in line]
+    assert len(heads) == 2 and all(re.search(r"2 obstacle\(s\) at [\d.]+-[\d.]+ m, [+-]\d+\.\.[+-]\d+ deg$", h)
+                                   for h in heads), heads
+    first, second = text.split(heads[1])
+    assert first.count(" 1 frame, unconfirmed") == 2 and second.count(" 2 frames") == 2, text
     pictures = sorted(p.name for p in out.glob("*.png"))
     assert pictures == ["left0.png", "left1.png"]
     pic = cv2.imread(str(out / "left1.png"))
