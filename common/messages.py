@@ -32,6 +32,8 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 SCHEMA_VERSION = 12
 
 MAX_OUTLINE_POINTS = 4096
+MAX_MIN_DISPARITY = 256  # |min_disparity| of a disparity search, px
+MAX_NUM_DISPARITIES = 512  # disparities a search spans, px (a multiple of 16)
 Pixel = Annotated[float, Field(ge=-65536.0, le=65536.0)]  # an image coordinate, px (fits fillPoly's fixed point)
 Vec3 = tuple[float, float, float]
 Metres = Annotated[float, Field(allow_inf_nan=False, ge=0.0, le=1000.0)]
@@ -191,8 +193,12 @@ class DisparityMap(Message):
     image: Image
     scale: float = Field(gt=0, description="fixed-point scale: disparity_px = value / scale")
     invalid_value: float = Field(description="raw pixel value marking 'no disparity'")
-    min_disparity: int
-    num_disparities: int = Field(gt=0)
+    # the search of any matcher of ours (MatcherConfig; a half-resolution one's doubled): a map saying
+    # more was made by none, and where a list looked (range_m, bearing_deg) is read off these two
+    min_disparity: int = Field(ge=-MAX_MIN_DISPARITY, le=MAX_MIN_DISPARITY, description="smallest disparity "
+                               "searched, px")
+    num_disparities: int = Field(ge=16, le=MAX_NUM_DISPARITIES, multiple_of=16, description="disparities searched "
+                                 "from min_disparity, px")
     gate_px: float = Field(0.0, ge=0.0, le=4096.0, allow_inf_nan=False,
                            description="the matcher's vision range gate, px: smaller disparities (what lies farther "
                            "than its max_range_m) were dropped, measured or not (0: no gate)")

@@ -60,6 +60,27 @@ def test_garbage_wrong_version_and_missing_fields_are_decode_errors():
         codec.decode(msgpack.packb(doc), StereoFrame)
 
 
+def test_a_disparity_map_whose_search_no_matcher_makes_is_a_decode_error():
+    """Where a list looked (range_m, bearing_deg) is read off the map's search: a map saying it searched
+    0..10^6 px (a buggy or forged producer; the dispatcher refuses it from a worker, the segmenter takes
+    it from an unsigned peer) put the list's bearings at one column, and the list, with every obstacle
+    of the real search in it and no degraded reason, passed for a full view."""
+    from common.messages import CameraModel, DisparityMap
+
+    cam = CameraModel(width=64, height=48, focal_px=60.0, cx=32.0, cy=24.0, baseline_m=0.1, Q=[0.0] * 16)
+    honest = DisparityMap(robot_id="r", seq=1, stamp_ns=1, image=codec.image_from_array(np.zeros((48, 64), np.int16)),
+                          scale=16.0, invalid_value=-16.0, min_disparity=0, num_disparities=64, camera=cam, method="bm")
+    assert codec.decode(codec.encode(honest), DisparityMap).num_disparities == 64
+    for field, value, says in (("num_disparities", 10 ** 6, "less than or equal to 512"),
+                               ("num_disparities", 40, "multiple of 16"), ("num_disparities", 0, "greater than"),
+                               ("min_disparity", -10 ** 6, "greater than or equal to -256"),
+                               ("min_disparity", 600, "less than or equal to 256")):
+        doc = honest.model_dump()
+        doc[field] = value
+        with pytest.raises(DecodeError, match=f"DisparityMap.{field}: .*{says}"):
+            codec.decode(msgpack.packb(doc), DisparityMap)
+
+
 def test_image_payload_that_does_not_match_its_size_is_named():
     img = Image(width=640, height=480, data=b"\x00" * 100)
     with pytest.raises(DecodeError, match="left: 100 bytes for a 640x480x1 uint8 image, expected 307200"):

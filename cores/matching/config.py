@@ -9,6 +9,7 @@ from typing import Annotated, Literal
 from pydantic import Field, model_validator
 
 from common.errors import BallbotError
+from common.messages import MAX_MIN_DISPARITY, MAX_NUM_DISPARITIES
 from common.settings import ServiceSettings
 
 SCALE = 16.0
@@ -25,7 +26,6 @@ DEFAULT_SGBM_MODE = {"bm": "sgbm", "sgbm": "sgbm", "dense": "3way"}
 # with a range covering the scene, 2-20 % with one too small).
 TOP_BAND_PX = 2.0
 SATURATION_WARN = 0.01
-MAX_NUM_DISPARITIES = 512
 AUTO_WIDTH_SHARE = 4  # num_disparities auto searches at most a quarter of the image width
 
 
@@ -50,7 +50,8 @@ class MatcherConfig(ServiceSettings):
                                "search reaches, m (f*B/min_range_m px, to the nearest 16: 64 px on the thesis's "
                                "rig, as it searched; nearer costs matching time and a wider unmatched band at the "
                                "left border)")
-    min_disparity: int = Field(0, ge=-256, le=256, description="smallest disparity searched, px")
+    min_disparity: int = Field(0, ge=-MAX_MIN_DISPARITY, le=MAX_MIN_DISPARITY,
+                               description="smallest disparity searched, px")
     block_size: int = Field(0, ge=0, le=255, description="matching window, odd, px (0: bm 15, sgbm 5, dense 3)")
     # 99 at most: OpenCV's 3-way SGBM (dense's, and sgbm's with sgbm_mode 3way) divides by 100 - uniqueness_ratio
     # in integers: 100 killed the worker with SIGFPE (and 100 % better than the next rejects every match anyway)

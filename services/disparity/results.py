@@ -34,8 +34,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from common import codec
 from common.errors import DecodeError
-from common.messages import CameraModel, DisparityMap, FrameChecks, StereoFrame
-from cores.matching.config import MAX_NUM_DISPARITIES, SCALE
+from common.messages import MAX_MIN_DISPARITY, MAX_NUM_DISPARITIES, CameraModel, DisparityMap, FrameChecks, StereoFrame
+from cores.matching.config import SCALE
 from cores.matching.disparity import MEASURED_CONFIDENCE, raw_at_least, raw_at_most, searched_range
 
 NONCE_BYTES = 16
@@ -143,8 +143,8 @@ def vet_header(h: ResultHeader, t: Ticket, payload_len: int) -> str:
         return f"it is {h.encoding} {h.dtype}; the pool sends raw int16 or png uint16"
     if h.scale != SCALE:
         return f"fixed-point scale {h.scale:g}, the pool's is {SCALE:g}"
-    if not (-256 <= h.min_disparity <= 256 and 16 <= h.num_disparities <= MAX_NUM_DISPARITIES
-            and h.num_disparities % 16 == 0):
+    if not (abs(h.min_disparity) <= MAX_MIN_DISPARITY and 16 <= h.num_disparities <= MAX_NUM_DISPARITIES
+            and h.num_disparities % 16 == 0):  # as DisparityMap allows
         return f"search range min {h.min_disparity} num {h.num_disparities} is no matcher's"
     invalid = 0.0 if h.encoding == "png" else float((h.min_disparity - 1) * int(SCALE))
     if h.invalid_value != invalid or (h.encoding == "png" and h.min_disparity < 0):
