@@ -23,6 +23,7 @@ def service_frames(n: int = 16) -> list[bytes]:
     from common import codec
     from common.messages import StereoFrame
     from cores import camera
+    from cores.calibration.check import PairChecks
     from cores.calibration.rectify import Rectifier
     from cores.matching.matchers import MatcherConfig
     from services.capture.sources import SyntheticSource
@@ -31,12 +32,14 @@ def service_frames(n: int = 16) -> list[bytes]:
     src = SyntheticSource("two-boxes", "lifecam-studio", 30.0, preload=n)
     rect = Rectifier(camera.load_calibration("lifecam-studio"))
     computer = FrameComputer(MatcherConfig())  # the map as the disparity service publishes it
+    checks = PairChecks()  # rectify's, which the map carries (its near field is read by the segmenter)
     out = []
     for i in range(n):
         p = src.read()
-        left, right = rect.rectify(p.left, p.right)
+        left, right, frame_checks = checks.frame(p.left, p.right, i / 30.0, rect.rectify, rect.model,
+                                                 lambda a, b: None)
         frame = StereoFrame(robot_id="bench", seq=i, stamp_ns=time.time_ns(), left=codec.image_from_array(left),
-                            right=codec.image_from_array(right), camera=rect.model_message)
+                            right=codec.image_from_array(right), camera=rect.model_message, checks=frame_checks)
         out.append(codec.encode(computer.compute(frame, "bench")))
     return out
 

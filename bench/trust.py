@@ -41,6 +41,7 @@ def in_process(n: int = 200) -> dict:
     from common.keys import topic
     from common.messages import CameraModel, DisparityMap, StereoFrame
     from cores import camera
+    from cores.calibration.check import PairChecks
     from cores.calibration.rectify import Rectifier
     from cores.matching.config import MatcherConfig
     from services.capture.sources import SyntheticSource
@@ -49,12 +50,13 @@ def in_process(n: int = 200) -> dict:
 
     pair = SyntheticSource("two-boxes", "lifecam-studio", 30.0).read()
     rect = Rectifier(camera.load_calibration("lifecam-studio"))
-    left, right = rect.rectify(pair.left, pair.right)
+    # with rectify's checks, as the frame carries them: the map is checked against its near field
+    left, right, checks = PairChecks().frame(pair.left, pair.right, 0.0, rect.rectify, rect.model, lambda a, b: None)
     m = rect.model
     cam = CameraModel(width=m.width, height=m.height, focal_px=m.focal_px, cx=m.cx, cy=m.cy, baseline_m=m.baseline_m,
                       Q=[0.0] * 16)
     frame = StereoFrame(robot_id="bench", seq=1, stamp_ns=time.time_ns(), left=codec.image_from_array(left),
-                        right=codec.image_from_array(right), camera=cam)
+                        right=codec.image_from_array(right), camera=cam, checks=checks)
     ticket = Ticket.for_frame(frame)
     key = os.urandom(32)
     key_expr = topic("disparity").key("bench")

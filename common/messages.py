@@ -340,7 +340,7 @@ class ObstacleList(Message):
                                 "'ground-uncertain', 'range-unreachable', 'near-unmeasured', 'far-unmeasured', "
                                 "'floor-out-of-view', 'standing-not-listed', "
                                 "'mount-disagrees', 'rows-misaligned', 'cameras-swapped', 'camera-frozen', "
-                                "'view-blocked', 'nearer-than-range', 'washed-out', 'noisy')")
+                                "'view-blocked', 'nearer-than-range', 'map-contradicted', 'washed-out', 'noisy')")
     valid_fraction: float = Field(0.0, ge=0, le=1, description="share of the image the disparity map measured "
                                   "(valid pixels within the vision range gate's search; with a confidence, only "
                                   "measured ones, not a dense matcher's fill) for this list")

@@ -8,6 +8,8 @@ and answers the first --honest items honestly, to be trusted first):
   invalid       int16 maps with every pixel invalid    small      320x240 maps for 640x480 frames
   huge          a map 100x larger than the frame's     future     honest maps stamped now + 0.2 s
   liar          receipts claiming success, no maps     silent     nothing at all
+  erase         honest maps with what stands erased: each row's measured pixels at its far end (10th
+                percentile), a plausible map of an empty floor that passes every check of size and range
 Peer modes (no worker identity; --rate maps per second):
   forge-disparity  all-invalid maps stamped now + 0.2 s on `disparity` (unsigned, or with a made-up tag)
   forge-result     the same on an honest worker's result key (--victim), with a made-up nonce
@@ -36,7 +38,7 @@ from services.disparity.computer import FrameComputer
 from services.disparity.envelope import parse_attachment, receipt_attachment
 from services.disparity.results import result_header
 
-WORKER_MODES = ("nan", "inf", "uint8", "invalid", "small", "huge", "future", "liar", "silent")
+WORKER_MODES = ("nan", "inf", "uint8", "invalid", "small", "huge", "future", "liar", "silent", "erase")
 AHEAD_NS = 200_000_000  # the takeover: now + 0.2 s, inside the 0.25 s a gate allows
 
 
@@ -66,6 +68,13 @@ def bad_answer(mode: str, honest: DisparityMap) -> DisparityMap:
         return honest.model_copy(update={"image": img})
     if mode == "future":
         return honest.model_copy(update={"stamp_ns": time.time_ns() + AHEAD_NS})
+    if mode == "erase":
+        a = codec.array_from_image(honest.image).copy()
+        for y in range(h):
+            ok = a[y] > 0
+            if ok.any():
+                a[y, ok] = np.percentile(a[y, ok], 10).astype(a.dtype)
+        return honest.model_copy(update={"image": codec.image_from_array(a)})
     raise ValueError(mode)
 
 

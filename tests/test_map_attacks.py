@@ -3,7 +3,8 @@ up` (a peer on its router) and the robot behind its TLS gateway (an attacker hol
 credential). The attackers are tests/map_attacker.py processes: forged maps stamped 0.2 s ahead
 on `disparity` and on a worker's result key, and workers that are honest first (so they are
 trusted) and then send NaN, inf, all-zero uint8, all-invalid, 320x240, 100x oversized or
-future-stamped maps, receipts without maps, or nothing.
+future-stamped maps, receipts without maps, nothing, or plausible maps with what stands erased
+(which only the robot's own coarse look at the pair, rectify's near field, tells from the truth).
 
 Each test judges the robot's output against the synthetic scene's ground truth (key `truth`, same
 seq): while the attack runs, no obstacle list that says it can be trusted (stale false, degraded
@@ -322,7 +323,8 @@ SLOW = pytest.mark.slow
 
 
 @pytest.mark.parametrize("mode", ["nan", *(pytest.param(m, marks=SLOW) for m in
-                                            ("inf", "uint8", "invalid", "small", "huge", "future", "liar", "silent"))])
+                                            ("inf", "uint8", "invalid", "small", "huge", "future", "liar", "silent",
+                                             "erase"))])
 def test_up_a_lying_worker_is_quarantined_and_costs_the_robot_nothing(up_robot, mode):
     out = run_worker_attack(up_robot, mode)
     if mode == "silent":  # no answer at all: three missed items (max_in_flight 2), the fallback meanwhile
@@ -407,7 +409,7 @@ def test_gateway_forgeries_on_a_workers_result_key_cost_it_nothing(gateway_robot
 
 
 @pytest.mark.parametrize("mode", ["liar", *(pytest.param(m, marks=SLOW) for m in
-                                             ("nan", "uint8", "small", "huge", "future"))])
+                                             ("nan", "uint8", "small", "huge", "future", "erase"))])
 def test_gateway_a_lying_worker_behind_tls_is_quarantined_and_the_other_worker_carries_on(gateway_robot, mode):
     run_worker_attack(gateway_robot, mode)
     assert "pc1" not in gateway_robot.obs.status("dispatcher").split("quarantined")[-1]

@@ -17,6 +17,7 @@ from common.messages import DisparityMap, FrameChecks, FreeSpace, Obstacle, Obst
 from common.settings import MountSettings
 from cores import camera
 from cores.calibration.check import SWAPPED_SHARE
+from cores.calibration.near import CONTRADICTED_SHARE, contradicted
 from cores.matching.disparity import FrozenInput, RecentValid, searched_range, to_float
 from cores.segmentation import freespace, layers, seed, stats
 from cores.segmentation.blank import MEASURED
@@ -202,6 +203,7 @@ class ObstacleBuilder:
         self.reach = Reach(False, "")  # of the last map's disparity search
         self.checks: FrameChecks | None = None  # rectify's checks, as the last map carried them
         self.near: NearStanding | None = None  # what of the last map's near field stands nearer than the range
+        self.contradicted = 0.0  # the largest patch of the last map its near field sees nearer (near.contradicted)
         self.washed_out = 0.0  # the share of the last map's floor in range clipped white in both cameras
         self._reach_logged: set[str] = set()
 
@@ -348,7 +350,10 @@ class ObstacleBuilder:
         lens; nothing there is measured); "nearer-than-range": rectify's coarse wide search
         (`checks.near`) finds over 1.2 % of the picture standing nearer than min_range_m (a person
         stepping up to the camera: the matcher's search does not reach it, and it blocks the view of
-        the range); "washed-out": rectify's clipped tiles (`checks.clipped`) cover over
+        the range); "map-contradicted": the map puts farther, over CONTRADICTED_SHARE of the picture
+        or more, what that coarse look at the same pair sees nearer (cores/calibration/near.py: a
+        worker that erased what stands, or answered with an old map; the list is not of this view);
+        "washed-out": rectify's clipped tiles (`checks.clipped`) cover over
         WASHED_OUT of the floor within the range (a floor the list vouches for) with white at
         infinity in both cameras (the sun or a lamp low ahead: nothing there is measured, and what
         stands there is in no list); "noisy": rectify's estimate of the pictures' sensor noise
@@ -431,10 +436,15 @@ class ObstacleBuilder:
         if checks is not None and checks.blocked:
             degraded.append("view-blocked")
         self.near = None
+        self.contradicted = 0.0
         if checks is not None and checks.near is not None and not swapped:  # else a mirror scene's near field
             self.near = near_standing(checks.near, model, frame.floor, cfg.min_range_m, cfg.min_height_m)
             if self.near.blocks:
                 degraded.append("nearer-than-range")  # the view of the range is blocked, not clear
+            if search is not None:
+                self.contradicted = contradicted(disparity, checks.near, search[0] + search[1] - 1, sum(search))
+                if self.contradicted >= CONTRADICTED_SHARE:
+                    degraded.append("map-contradicted")  # farther than the robot's own look sees: not this view
         if reach.unreachable:
             degraded.append("range-unreachable")
         else:

@@ -35,6 +35,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from common import codec
 from common.errors import DecodeError
 from common.messages import MAX_MIN_DISPARITY, MAX_NUM_DISPARITIES, CameraModel, DisparityMap, FrameChecks, StereoFrame
+from cores.calibration.check import SWAPPED_SHARE
+from cores.calibration.near import CONTRADICTED_SHARE, contradicted
 from cores.matching.config import SCALE
 from cores.matching.disparity import MEASURED_CONFIDENCE, raw_at_least, raw_at_most, searched_range
 
@@ -222,4 +224,15 @@ def vet_map(m: DisparityMap, h: ResultHeader, t: Ticket) -> tuple[str, MapCheck 
     if check.out_of_range > MAX_OUT_OF_RANGE:
         return (f"{check.out_of_range:.1%} of its pixels lie outside its search range "
                 f"[{m.min_disparity}, {m.min_disparity + m.num_disparities}] px"), None
+    # against the robot's own coarse look at the pair (rectify's near field): a worker that erased what
+    # stands, or answers with an old map, passes every check above. Not for a pair whose cameras rectify
+    # finds swapped: both looks are then of a mirror scene (the lists say cameras-swapped)
+    near = t.checks.near if t.checks is not None else None
+    rows = t.checks.rows if t.checks is not None else None
+    if near is not None and not (rows is not None and rows.reversed_share > SWAPPED_SHARE):
+        band = m.min_disparity + m.num_disparities
+        share = contradicted(raw, near, band - 1, band, m.scale, max(0.0, m.invalid_value))
+        if share >= CONTRADICTED_SHARE:
+            return (f"it puts {share:.1%} of the picture farther than rectify's coarse look at the same pair sees "
+                    f"it (a map not of this pair, or with what stands erased)"), None
     return "", check

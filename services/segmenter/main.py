@@ -47,6 +47,10 @@ REASON_STATUS: dict[str, str] = {
     "cameras-swapped": "rectify finds most matched features farther left in the left image than in the right: the "
                        "left and right cameras are swapped (cables, or the devices' order); exchange camera_left and "
                        "camera_right (or the inputs) in capture's settings",
+    "map-contradicted": "the disparity map puts farther what rectify's own coarse look at the same pair sees "
+                        "nearer, over {contradicted} of the picture: it is not of this view (a worker that erased "
+                        "what stands, or answered with an old map; a matcher gone wrong); stop until the maps "
+                        "agree again",
     "nearer-than-range": "{near_share} of the picture stands nearer than the vision range's {min_range} m (at about "
                          "{near_m}, by rectify's coarse wide search): the list does not cover it, and it blocks the "
                          "view of the range; stop or back off",
@@ -109,7 +113,8 @@ def list_status(msg: ObstacleList, builder: ObstacleBuilder, settings: Segmenter
                                                measured=f"{msg.valid_fraction:.1%}",
                                                washed=f"{builder.washed_out:.1%}",
                                                noise=_noise(builder),
-                                               min_range=f"{settings.min_range_m:g}")
+                                               min_range=f"{settings.min_range_m:g}",
+                                               contradicted=f"{builder.contradicted:.1%}")
     if msg.degraded:  # no-ground, ground-uncertain, valid-collapse, ...
         return f"degraded lists: {', '.join(msg.degraded)}"
     return "ok"
