@@ -317,6 +317,15 @@ def test_a_map_with_what_stands_erased_contradicts_the_robots_own_look_and_is_re
         lists[name] = ObstacleBuilder(SegmenterSettings()).process_message(m).obstacles
     assert len(lists["honest"].obstacles) == 2 and not lists["honest"].degraded, lists["honest"]
     assert "map-contradicted" in lists["lie"].degraded and len(lists["lie"].obstacles) < 2, lists["lie"].degraded
+    # a pair whose rows rectify finds apart, or whose cameras swapped: both looks are off, the worker is not
+    # to blame (the lists say so); its map is not refused for this
+    from common.messages import RowAlignment
+
+    for rows in (RowAlignment(offset_px=2.0, p95_px=3.0, matches=200, tolerance_px=0.5, checked_ns=1),
+                 RowAlignment(offset_px=0.1, p95_px=0.2, matches=200, tolerance_px=0.5, checked_ns=1,
+                              reversed_share=0.9)):
+        off = Ticket.for_frame(frame.model_copy(update={"checks": frame.checks.model_copy(update={"rows": rows})}))
+        assert vet_map(lie, parse_header(result_header(lie, off.nonce)), off)[0] == ""
     # the float map the segmenter reads and the fixed point the dispatcher reads say the same
     d = to_float(erased(raw), honest.scale, honest.invalid_value)
     assert contradicted(d, frame.checks.near, band - 1, band) == \

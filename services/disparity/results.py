@@ -226,10 +226,12 @@ def vet_map(m: DisparityMap, h: ResultHeader, t: Ticket) -> tuple[str, MapCheck 
                 f"[{m.min_disparity}, {m.min_disparity + m.num_disparities}] px"), None
     # against the robot's own coarse look at the pair (rectify's near field): a worker that erased what
     # stands, or answers with an old map, passes every check above. Not for a pair whose cameras rectify
-    # finds swapped: both looks are then of a mirror scene (the lists say cameras-swapped)
+    # finds swapped or its rows apart: both looks are then off, through no fault of the worker's (the
+    # lists say cameras-swapped, rows-misaligned), and a quarantine would only move its load onboard
     near = t.checks.near if t.checks is not None else None
     rows = t.checks.rows if t.checks is not None else None
-    if near is not None and not (rows is not None and rows.reversed_share > SWAPPED_SHARE):
+    if near is not None and not (rows is not None and (rows.reversed_share > SWAPPED_SHARE
+                                                       or rows.offset_px > rows.tolerance_px)):
         band = m.min_disparity + m.num_disparities
         share = contradicted(raw, near, band - 1, band, m.scale, max(0.0, m.invalid_value))
         if share >= CONTRADICTED_SHARE:
