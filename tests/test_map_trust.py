@@ -22,6 +22,7 @@ from cores import camera
 from cores.matching.config import MatcherConfig
 from cores.matching.disparity import RecentValid, to_float
 from cores.segmentation.builder import ObstacleBuilder
+from cores.segmentation.near import UNLISTED_SHARE
 from cores.segmentation.settings import SegmenterSettings
 from services.disparity.computer import FrameComputer
 from services.disparity.results import (
@@ -299,15 +300,16 @@ def test_a_map_with_what_stands_erased_contradicts_the_robots_own_look_and_is_re
     pair, computed on the robot and carried with the frame) sees the boxes where the map puts the
     wall: the dispatcher refuses the map (the worker is quarantined like any liar) and a list made of
     it anyway (an unsigned peer's, a matcher on the robot gone wrong) says map-contradicted."""
-    from cores.calibration.near import CONTRADICTED_SHARE, contradicted
+    from cores.calibration.near import CONTRADICTED_SHARE, contradicted, map_cells
 
     frame, honest, model = two_boxes_frame
     t = Ticket.for_frame(frame)
     raw = codec.array_from_image(honest.image)
     lie = honest.model_copy(update={"image": codec.image_from_array(erased(raw))})
     band = honest.min_disparity + honest.num_disparities
-    assert contradicted(raw, frame.checks.near, band - 1, band, honest.scale) < 0.1 * CONTRADICTED_SHARE
-    assert contradicted(erased(raw), frame.checks.near, band - 1, band, honest.scale) > 5 * CONTRADICTED_SHARE
+    near = frame.checks.near
+    assert contradicted(map_cells(raw, near, honest.scale), band - 1, band) < 0.1 * CONTRADICTED_SHARE
+    assert contradicted(map_cells(erased(raw), near, honest.scale), band - 1, band) > 5 * CONTRADICTED_SHARE
     why, check = vet_map(honest, parse_header(result_header(honest, t.nonce)), t)
     assert why == "" and check is not None
     why, check = vet_map(lie, parse_header(result_header(lie, t.nonce)), t)
@@ -328,11 +330,34 @@ def test_a_map_with_what_stands_erased_contradicts_the_robots_own_look_and_is_re
         assert vet_map(lie, parse_header(result_header(lie, off.nonce)), off)[0] == ""
     # the float map the segmenter reads and the fixed point the dispatcher reads say the same
     d = to_float(erased(raw), honest.scale, honest.invalid_value)
-    assert contradicted(d, frame.checks.near, band - 1, band) == \
-        contradicted(erased(raw), frame.checks.near, band - 1, band, honest.scale)
+    assert contradicted(map_cells(d, near), band - 1, band) == \
+        contradicted(map_cells(erased(raw), near, honest.scale), band - 1, band)
     # nor does a search starting above 0 pass its invalid pixels off as far measurements
     shifted = np.where(raw > 0, raw, np.int16(4 * 16 - 16))
-    assert contradicted(shifted, frame.checks.near, band - 1, band, honest.scale, 4 * 16 - 16) < CONTRADICTED_SHARE
+    assert contradicted(map_cells(shifted, near, honest.scale, 4 * 16 - 16), band - 1, band) < CONTRADICTED_SHARE
+
+
+def test_a_map_with_what_stands_emptied_makes_a_list_that_says_standing_not_listed():
+    """A map with the boxes' pixels set to "not measured" (each check of the dispatcher passes: the share
+    it measured drops by the boxes', no more) made two-boxes' lists empty, fresh and with no reason:
+    the blank faces find a plain face by the floor's end, not a textured box whose map was emptied.
+    rectify's near field sees the boxes standing where the map measured nothing and no obstacle is."""
+    from evaluation.synthetic import render_scenario
+
+    data = render_scenario("two-boxes", frames=2)
+    honest, emptied, blind = (ObstacleBuilder(SegmenterSettings()) for _ in range(3))
+    for k, fr in enumerate(data.frames):
+        hollow = fr.disparity.copy()
+        hollow[fr.kind >= 0] = np.nan  # the boxes' pixels
+        kw = dict(t_s=fr.t_s, seq=k, stamp_ns=k)
+        ok = honest.process(fr.disparity, data.model, **kw, **fr.handed()).obstacles
+        assert len(ok.obstacles) == 2 and not ok.degraded, ok.degraded
+        lie = emptied.process(hollow, data.model, **kw, **fr.handed()).obstacles
+        assert not lie.obstacles and lie.degraded == ["standing-not-listed"], lie.degraded
+        assert emptied.unlisted > 10 * UNLISTED_SHARE
+        # without the near field the same list passed for a clear view
+        no_near = blind.process(hollow, data.model, **kw, **{**fr.handed(), "checks": None}).obstacles
+        assert not no_near.obstacles and not no_near.degraded
 
 
 def test_on_the_street_honest_maps_agree_with_the_coarse_look_and_an_old_one_does_not():
@@ -343,7 +368,7 @@ def test_on_the_street_honest_maps_agree_with_the_coarse_look_and_an_old_one_doe
     from test_real_eval import KARLSRUHE
 
     from common.files import read_image
-    from cores.calibration.near import CONTRADICTED_SHARE, contradicted
+    from cores.calibration.near import CONTRADICTED_SHARE, contradicted, map_cells
     from cores.pipeline import Pipeline
     from evaluation import recordings
 
@@ -358,9 +383,9 @@ def test_on_the_street_honest_maps_agree_with_the_coarse_look_and_an_old_one_doe
             m = pipe.front(left, right, t_s=0.1 * k)
             lo, num = m.stage.handed()["search"]
             maps.append(m.stage.disparity_px())
-            honest.append(contradicted(maps[-1], m.checks.near, lo + num - 1, lo + num))
+            honest.append(contradicted(map_cells(maps[-1], m.checks.near), lo + num - 1, lo + num))
             if k >= 5:
-                old.append(contradicted(maps[k - 5], m.checks.near, lo + num - 1, lo + num))
+                old.append(contradicted(map_cells(maps[k - 5], m.checks.near), lo + num - 1, lo + num))
         assert max(honest) < 0.5 * CONTRADICTED_SHARE, (method, max(honest))
         print(f"{method}: honest at most {max(honest):.2%}; the map of 0.5 s before over the limit in "
               f"{np.mean(np.array(old) >= CONTRADICTED_SHARE):.0%} of the pairs")

@@ -16,6 +16,8 @@ made of one). No Zenoh here.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import cv2
 import numpy as np
 
@@ -104,21 +106,25 @@ CONTRADICTED_SHARE = 0.005
 CONTRADICTED_REL = 0.15  # nearer by more than this share of the coarse disparity (and two map pixels)
 
 
-def contradicted(disparity: np.ndarray, near: NearField, search_max: float, band_px: float,
-                 scale: float = 1.0, invalid: float = 0.0) -> float:
-    """The largest patch of the picture (a share of it) where `disparity` ((H, W) at any resolution of
-    the pair's: px float with NaN, or a matcher's fixed point (int16, uint16) of `scale` per px;
-    NaN, or at most `invalid` (0, or a fixed-point map's invalid value, below every valid one): not
-    measured) measured something, and all it measured within the coarse window's reach
-    lies farther than the near field sees there. Not judged: where the map measured nothing (not
-    measuring is no claim; the valid share and near-unmeasured speak of it), what the coarse look
-    sees nearer than the map's search reaches (search_max, px: nearer-than-range is its word), and
-    left of band_px + the window's reach (the matcher's blind band: beside it the map measures what
-    is behind a thing standing in the band, whose edge the coarse block spreads). ~0.3 ms at 640x480."""
+@dataclass(frozen=True)
+class MapCells:
+    """A disparity map read on its near field's grid (map_cells)."""
+
+    coarse: np.ndarray  # (ch, cw) float32: what the near field sees in each cell, map px (0: nothing)
+    nearest: np.ndarray  # (ch, cw) float32: the nearest the map measured in each cell, px (0: nothing)
+    sx: float  # map px per cell, across and down
+    sy: float
+
+
+def map_cells(disparity: np.ndarray, near: NearField, scale: float = 1.0, invalid: float = 0.0) -> MapCells | None:
+    """`disparity` ((H, W) at any resolution of the pair's: px float with NaN, or a matcher's fixed
+    point (int16, uint16) of `scale` per px; NaN, or at most `invalid` (0, or a fixed-point map's
+    invalid value, below every valid one): not measured) beside its near field, cell by cell. None
+    for a map smaller than the field. ~0.25 ms at 640x480."""
     h, w = disparity.shape
     if near.width < 2 or near.height < 2 or h < near.height or w < near.width:
-        return 0.0
-    sx, sy = w / near.width, h / near.height  # map px per coarse px
+        return None
+    sx, sy = w / near.width, h / near.height
     dc = np.frombuffer(near.data, np.uint8).reshape(near.height, near.width).astype(np.float32) * np.float32(sx / 4)
     # the nearest the map measured in each coarse cell (a block max, sampled at the cells' centres)
     if disparity.dtype.kind == "f":
@@ -134,14 +140,40 @@ def contradicted(disparity: np.ndarray, near: NearField, search_max: float, band
         ix = np.minimum(((np.arange(near.width) + 0.5) * sx).astype(np.intp), w - 1)
         iy = np.minimum(((np.arange(near.height) + 0.5) * sy).astype(np.intp), h - 1)
         fmax = cell[np.ix_(iy, ix)]
-    fmax = np.where(fmax > invalid, fmax.astype(np.float32) / np.float32(scale), np.float32(0))
-    # ... and within the coarse window's reach: a block spreads a near face over what is beside it
-    r = BLOCK // 2 + 1
-    reach = cv2.dilate(fmax, cv2.getStructuringElement(cv2.MORPH_RECT, (2 * r + 1, 2 * r + 1)))
-    tol = np.maximum(np.float32(2 * sx), np.float32(CONTRADICTED_REL) * dc)
-    contra = (dc > 0) & (dc <= search_max) & (fmax > 0) & (dc > reach + tol)
-    contra[:, :int(np.ceil(band_px / sx)) + r + 1] = False
-    if not contra.any():
+    nearest = np.where(fmax > invalid, fmax.astype(np.float32) / np.float32(scale), np.float32(0))
+    return MapCells(dc, nearest, sx, sy)
+
+
+REACH = BLOCK // 2 + 1  # cells: how far a coarse block spreads a near face over what is beside it
+
+
+def beside_band(cells: MapCells, band_px: float) -> int:
+    """The first cell column judged: right of the matcher's blind band (x < band_px: nothing measured,
+    bm and sgbm) and the coarse window's reach beside it (the map measures there what is behind a thing
+    standing in the band, whose edge the coarse block spreads)."""
+    return int(np.ceil(band_px / cells.sx)) + REACH + 1
+
+
+def largest(mask: np.ndarray) -> float:
+    """The largest 8-connected patch of a cell mask, as a share of the cells."""
+    if not mask.any():
         return 0.0
-    n, _, stats, _ = cv2.connectedComponentsWithStats(contra.view(np.uint8), connectivity=8)
-    return float(stats[1:, cv2.CC_STAT_AREA].max()) / contra.size
+    n, _, stats, _ = cv2.connectedComponentsWithStats(mask.view(np.uint8), connectivity=8)
+    return float(stats[1:, cv2.CC_STAT_AREA].max()) / mask.size
+
+
+def contradicted(cells: MapCells | None, search_max: float, band_px: float) -> float:
+    """The largest patch of the picture (a share of it) where the map measured something, and all
+    it measured within the coarse window's reach lies farther than the near field sees there. Not
+    judged: where the map measured nothing (not measuring is no claim; the valid share,
+    near-unmeasured and standing-not-listed speak of it), what the coarse look sees nearer than the
+    map's search reaches (search_max, px: nearer-than-range is its word), the blind band and beside
+    it (beside_band)."""
+    if cells is None:
+        return 0.0
+    dc, fmax = cells.coarse, cells.nearest
+    reach = cv2.dilate(fmax, cv2.getStructuringElement(cv2.MORPH_RECT, (2 * REACH + 1, 2 * REACH + 1)))
+    tol = np.maximum(np.float32(2 * cells.sx), np.float32(CONTRADICTED_REL) * dc)
+    contra = (dc > 0) & (dc <= search_max) & (fmax > 0) & (dc > reach + tol)
+    contra[:, :beside_band(cells, band_px)] = False
+    return largest(contra)

@@ -17,13 +17,13 @@ from common.messages import DisparityMap, FrameChecks, FreeSpace, Obstacle, Obst
 from common.settings import MountSettings
 from cores import camera
 from cores.calibration.check import SWAPPED_SHARE
-from cores.calibration.near import CONTRADICTED_SHARE, contradicted
+from cores.calibration.near import CONTRADICTED_SHARE, contradicted, map_cells
 from cores.matching.disparity import FrozenInput, RecentValid, searched_range, to_float
 from cores.segmentation import freespace, layers, seed, stats
 from cores.segmentation.blank import MEASURED
 from cores.segmentation.ground import TRUSTED, GroundEstimator, Upright, frame_mount
 from cores.segmentation.mount import FloorPlane, Mount
-from cores.segmentation.near import NearStanding, near_standing
+from cores.segmentation.near import UNLISTED_SHARE, NearStanding, near_standing, unlisted_standing
 from cores.segmentation.seed import Detection
 from cores.segmentation.settings import SegmenterSettings
 from cores.segmentation.tracking import Tracker
@@ -204,6 +204,7 @@ class ObstacleBuilder:
         self.checks: FrameChecks | None = None  # rectify's checks, as the last map carried them
         self.near: NearStanding | None = None  # what of the last map's near field stands nearer than the range
         self.contradicted = 0.0  # the largest patch of the last map its near field sees nearer (near.contradicted)
+        self.unlisted = 0.0  # ... the near field sees standing, unmeasured and in no obstacle (unlisted_standing)
         self.washed_out = 0.0  # the share of the last map's floor in range clipped white in both cameras
         self._reach_logged: set[str] = set()
 
@@ -361,7 +362,9 @@ class ObstacleBuilder:
         matcher rejects more and more of what is there);
         "floor-out-of-view": the floor within the vision range is below the camera's view;
         "standing-not-listed": something standing in range, of min_area_m2 frontal area, is in no
-        obstacle: seed's border clearing, area opening or Otsu threshold dropped it)."""
+        obstacle: seed's border clearing, area opening or Otsu threshold dropped it; or, by any method,
+        rectify's near field sees something standing in range, over UNLISTED_SHARE of the picture, where
+        the map measured nothing and no obstacle lies (a worker that emptied what stands))."""
         cfg = self.settings
         reach = self.check_search(model, *search, gate_px=gate_px) if search is not None else Reach(False, "")
         if disparity.dtype.kind == "f":
@@ -436,15 +439,22 @@ class ObstacleBuilder:
         if checks is not None and checks.blocked:
             degraded.append("view-blocked")
         self.near = None
-        self.contradicted = 0.0
+        self.contradicted = self.unlisted = 0.0
         if checks is not None and checks.near is not None and not swapped:  # else a mirror scene's near field
             self.near = near_standing(checks.near, model, frame.floor, cfg.min_range_m, cfg.min_height_m)
             if self.near.blocks:
                 degraded.append("nearer-than-range")  # the view of the range is blocked, not clear
-            if search is not None:
-                self.contradicted = contradicted(disparity, checks.near, search[0] + search[1] - 1, sum(search))
+            cells = map_cells(disparity, checks.near) if search is not None else None
+            if cells is not None and search is not None:
+                search_max, band = search[0] + search[1] - 1, search[0] + search[1]
+                self.contradicted = contradicted(cells, search_max, band)
                 if self.contradicted >= CONTRADICTED_SHARE:
                     degraded.append("map-contradicted")  # farther than the robot's own look sees: not this view
+                if frame.floor is not None:
+                    far_px = max(float(search[0]), float(gate_px), model.focal_px * model.baseline_m /
+                                 cfg.range_for(model))
+                    self.unlisted = unlisted_standing(cells, frame.floor, [o.bbox_px for o in obstacles], far_px,
+                                                      search_max, band, cfg.min_height_m, cfg.robot_height_m)
         if reach.unreachable:
             degraded.append("range-unreachable")
         else:
@@ -458,7 +468,7 @@ class ObstacleBuilder:
             # place)
             degraded.append("no-ground")
         else:
-            if frame.unlisted:
+            if frame.unlisted or self.unlisted >= UNLISTED_SHARE:
                 degraded.append("standing-not-listed")
             g = frame.ground
             if g is None or g.source == "none":

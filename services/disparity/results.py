@@ -36,7 +36,7 @@ from common import codec
 from common.errors import DecodeError
 from common.messages import MAX_MIN_DISPARITY, MAX_NUM_DISPARITIES, CameraModel, DisparityMap, FrameChecks, StereoFrame
 from cores.calibration.check import SWAPPED_SHARE
-from cores.calibration.near import CONTRADICTED_SHARE, contradicted
+from cores.calibration.near import CONTRADICTED_SHARE, contradicted, map_cells
 from cores.matching.config import SCALE
 from cores.matching.disparity import MEASURED_CONFIDENCE, raw_at_least, raw_at_most, searched_range
 
@@ -233,7 +233,7 @@ def vet_map(m: DisparityMap, h: ResultHeader, t: Ticket) -> tuple[str, MapCheck 
     if near is not None and not (rows is not None and (rows.reversed_share > SWAPPED_SHARE
                                                        or rows.offset_px > rows.tolerance_px)):
         band = m.min_disparity + m.num_disparities
-        share = contradicted(raw, near, band - 1, band, m.scale, max(0.0, m.invalid_value))
+        share = contradicted(map_cells(raw, near, m.scale, max(0.0, m.invalid_value)), band - 1, band)
         if share >= CONTRADICTED_SHARE:
             return (f"it puts {share:.1%} of the picture farther than rectify's coarse look at the same pair sees "
                     f"it (a map not of this pair, or with what stands erased)"), None

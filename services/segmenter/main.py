@@ -77,9 +77,10 @@ REASON_STATUS: dict[str, str] = {
                        "again",
     "mount-disagrees": "the configured mount's floor is off the floor in the disparity (fit_floor false); measure "
                        "the mount again (`ballbot-vision mount estimate`), or set fit_floor true",
-    "standing-not-listed": "something standing in the vision range is in no obstacle (seed drops what touches the "
-                           "image border, is under its area opening or beyond its Otsu threshold; method layers "
-                           "keeps them)",
+    "standing-not-listed": "something standing in the vision range is in no obstacle: seed drops what touches the "
+                           "image border, is under its area opening or beyond its Otsu threshold (method layers "
+                           "keeps them); or rectify's coarse look sees it where the disparity map measured nothing "
+                           "(a worker that emptied what stands?)",
 }
 
 
