@@ -314,11 +314,16 @@ def test_a_map_with_what_stands_erased_contradicts_the_robots_own_look_and_is_re
     assert why == "" and check is not None
     why, check = vet_map(lie, parse_header(result_header(lie, t.nonce)), t)
     assert check is None and "farther than rectify's coarse look at the same pair" in why, why
-    lists = {}
+    lists, builders = {}, {}
     for name, m in (("honest", honest), ("lie", lie)):
-        lists[name] = ObstacleBuilder(SegmenterSettings()).process_message(m).obstacles
+        builders[name] = ObstacleBuilder(SegmenterSettings())
+        lists[name] = builders[name].process_message(m).obstacles
     assert len(lists["honest"].obstacles) == 2 and not lists["honest"].degraded, lists["honest"]
     assert "map-contradicted" in lists["lie"].degraded and len(lists["lie"].obstacles) < 2, lists["lie"].degraded
+    from services.segmenter.main import list_status  # the segmenter's status says what and how much
+
+    status = list_status(lists["lie"], builders["lie"], SegmenterSettings(), False)
+    assert status.startswith("map-contradicted: ") and f"{builders['lie'].contradicted:.1%}" in status, status
     # a pair whose rows rectify finds apart, or whose cameras swapped: both looks are off, the worker is not
     # to blame (the lists say so); its map is not refused for this
     from common.messages import RowAlignment
@@ -343,6 +348,7 @@ def test_a_map_with_what_stands_emptied_makes_a_list_that_says_standing_not_list
     the blank faces find a plain face by the floor's end, not a textured box whose map was emptied.
     rectify's near field sees the boxes standing where the map measured nothing and no obstacle is."""
     from evaluation.synthetic import render_scenario
+    from services.segmenter.main import list_status
 
     data = render_scenario("two-boxes", frames=2)
     honest, emptied, blind = (ObstacleBuilder(SegmenterSettings()) for _ in range(3))
@@ -355,6 +361,7 @@ def test_a_map_with_what_stands_emptied_makes_a_list_that_says_standing_not_list
         lie = emptied.process(hollow, data.model, **kw, **fr.handed()).obstacles
         assert not lie.obstacles and lie.degraded == ["standing-not-listed"], lie.degraded
         assert emptied.unlisted > 10 * UNLISTED_SHARE
+        assert "rectify's coarse look sees it" in list_status(lie, emptied, SegmenterSettings(), False)
         # without the near field the same list passed for a clear view
         no_near = blind.process(hollow, data.model, **kw, **{**fr.handed(), "checks": None}).obstacles
         assert not no_near.obstacles and not no_near.degraded
