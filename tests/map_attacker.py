@@ -69,13 +69,20 @@ def bad_answer(mode: str, honest: DisparityMap) -> DisparityMap:
     if mode == "future":
         return honest.model_copy(update={"stamp_ns": time.time_ns() + AHEAD_NS})
     if mode == "erase":
-        a = codec.array_from_image(honest.image).copy()
-        for y in range(h):
-            ok = a[y] > 0
-            if ok.any():
-                a[y, ok] = np.percentile(a[y, ok], 10).astype(a.dtype)
-        return honest.model_copy(update={"image": codec.image_from_array(a)})
+        return honest.model_copy(update={"image": codec.image_from_array(erased(codec.array_from_image(honest.image)))})
     raise ValueError(mode)
+
+
+def erased(d: np.ndarray) -> np.ndarray:
+    """`erase`'s map: in each row, every measured pixel at the row's far end (its 10th percentile):
+    what stands is gone, the floor and the wall stay about where they were. Float px (NaN: not
+    measured) or fixed point (<= 0: not measured)."""
+    out = d.copy()
+    for y in range(d.shape[0]):
+        ok = d[y] > 0  # NaN compares false
+        if ok.any():
+            out[y, ok] = np.percentile(d[y, ok], 10).astype(d.dtype)
+    return out
 
 
 def run_worker(s, a) -> None:

@@ -444,6 +444,7 @@ def test_a_fleet_bench_stopped_by_sigterm_leaves_no_process_or_namespace_behind(
     """`bench fleet` started from a shell script and stopped by `kill` (SIGTERM), mid-run: its
     router, dispatchers and pool workers stop with it and the network namespaces it made are
     deleted (a stopped bench once left a router listening and two namespaces behind)."""
+    import os
     import signal
     import subprocess
     import sys
@@ -462,8 +463,8 @@ def test_a_fleet_bench_stopped_by_sigterm_leaves_no_process_or_namespace_behind(
         while todo:
             p = todo.pop()
             try:
-                tasks = subprocess.run(["ls", f"/proc/{p}/task"], capture_output=True, text=True).stdout.split()
-                kids = {int(c) for t in tasks for c in open(f"/proc/{p}/task/{t}/children").read().split()}
+                kids = {int(c) for t in os.listdir(f"/proc/{p}/task")
+                        for c in open(f"/proc/{p}/task/{t}/children").read().split()}
             except OSError:
                 continue
             todo += list(kids - found)

@@ -11,6 +11,7 @@ import msgpack
 import numpy as np
 import pytest
 import zenoh
+from map_attacker import erased  # the `erase` worker's map: in each row, what was measured at its far end
 
 from common import codec, signed_payload
 from common.errors import DecodeError
@@ -263,18 +264,6 @@ def test_a_dense_answer_counts_what_it_measured_not_its_fill():
 
 
 # --- the map against the robot's own coarse look at the pair --------------------------------------------
-
-def erased(d: np.ndarray) -> np.ndarray:
-    """A lying worker's map (tests/map_attacker.py's `erase`): in each row, every measured pixel at the
-    row's far end (its 10th percentile): what stands is gone, the floor and the wall stay about where
-    they were. Float px (NaN: not measured) or fixed point (<= 0: not measured)."""
-    out = d.copy()
-    for y in range(d.shape[0]):
-        ok = d[y] > 0  # NaN compares false
-        if ok.any():
-            out[y, ok] = np.percentile(d[y, ok], 10).astype(d.dtype)
-    return out
-
 
 @pytest.fixture(scope="module")
 def two_boxes_frame():
