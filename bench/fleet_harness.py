@@ -289,7 +289,8 @@ class Fleet:
 
 
 def fleet_frames() -> list:
-    """The rectified pairs every feeder sends (as payloads), and the workers' ceiling is measured on."""
-    from bench.scaling import rectified_pairs, rectified_payloads
+    """The rectified frames every feeder sends (with rectify's checks, as on a robot), and the workers'
+    ceiling is measured on."""
+    from bench.scaling import rectified_frames
 
-    return rectified_payloads("bench", rectified_pairs(4))
+    return rectified_frames(4)

@@ -28,15 +28,36 @@ import msgpack
 import numpy as np
 
 
-def rectified_pairs(n: int = 4) -> list[tuple[np.ndarray, np.ndarray]]:
-    """n rectified synthetic 640x480 pairs: what the feeder publishes and the ceilings match."""
+def rectified_frames(n: int = 4, robot_id: str = "bench") -> list:
+    """n synthetic 640x480 pairs of `up`'s scene as rectify publishes them: StereoFrames of the
+    rectified pair with rectify's checks of it (the near field every worker's map is held against,
+    the noise), so a bench's dispatcher and segmenter do the work they do on a robot (seq and stamp
+    are patched per send). The one place the benches and tests make such frames."""
+    from common import codec
+    from common.messages import StereoFrame
     from cores import camera
+    from cores.calibration.check import PairChecks
     from cores.calibration.rectify import Rectifier
     from services.capture.sources import SyntheticSource
 
     src = SyntheticSource("two-boxes", "lifecam-studio", 30.0, preload=n)
     rect = Rectifier(camera.load_calibration("lifecam-studio"))
-    return [rect.rectify(p.left, p.right) for p in (src.read() for _ in range(n))]
+    checks = PairChecks()  # rectify's, run on the frame path as the service runs them
+    out = []
+    for i in range(n):
+        p = src.read()
+        left, right, c = checks.frame(p.left, p.right, i / 30.0, rect.rectify, rect.model, lambda a, b: None)
+        out.append(StereoFrame(robot_id=robot_id, seq=i, stamp_ns=i, left=codec.image_from_array(left),
+                               right=codec.image_from_array(right), camera=rect.model_message, source="bench",
+                               checks=c))
+    return out
+
+
+def rectified_pairs(frames: list) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The frames' rectified pairs as arrays: what the in-process ceilings match."""
+    from common import codec
+
+    return [(codec.array_from_image(f.left, "left"), codec.array_from_image(f.right, "right")) for f in frames]
 
 
 def ceiling(method: str, threads: int, pairs: list, seconds: float = 3.0) -> dict:
@@ -72,18 +93,6 @@ def ceiling(method: str, threads: int, pairs: list, seconds: float = 3.0) -> dic
             "cpu_ms": cpu * 1e3 / len(times)}
 
 
-def rectified_payloads(rid: str, pairs: list) -> list:
-    """The rectified pairs as StereoFrame payloads (seq and stamp are patched per send)."""
-    from common import codec
-    from common.messages import StereoFrame
-    from cores import camera
-    from cores.calibration.rectify import Rectifier
-
-    model = Rectifier(camera.load_calibration("lifecam-studio")).model_message
-    return [StereoFrame(robot_id=rid, seq=0, stamp_ns=0, left=codec.image_from_array(l),
-                        right=codec.image_from_array(r), camera=model, source="bench") for l, r in pairs]
-
-
 def _feed(session, rid: str, frames: list, rate: float, stop: threading.Event) -> None:
     import zenoh
 
@@ -111,7 +120,7 @@ def _cpu_all(sup) -> dict[str, float]:
 
 
 def pool_run(method: str, workers: int, rate: float, warmup_s: float, seconds: float, max_in_flight: int = 1,
-             source: str = "feeder", nice: int = 0, pairs: list | None = None) -> dict:
+             source: str = "feeder", nice: int = 0, frames: list | None = None) -> dict:
     from bench.measure import free_port, percentiles
     from common import codec
     from common.keys import topic
@@ -128,7 +137,8 @@ def pool_run(method: str, workers: int, rate: float, warmup_s: float, seconds: f
     if source == "pipeline":
         sup.add("capture", ["run", "capture", *c, "--preload", "8", "--rate-hz", f"{rate:.2f}"])
         sup.add("rectify", ["run", "rectify", *c])
-    frames = rectified_payloads(rid, pairs or rectified_pairs()) if source == "feeder" else []
+    frames = [f.model_copy(update={"robot_id": rid}) for f in frames or rectified_frames()] \
+        if source == "feeder" else []
     stop_feed = threading.Event()
     sup.add("dispatch", ["run", "disparity", *c, "--method", method, "--fallback", "none",
                          "--max-in-flight", str(max_in_flight)])
@@ -251,7 +261,8 @@ def main(argv: list[str] | None = None) -> int:
             a.nice = 0
     cores = os.cpu_count() or 1
     say = (lambda text: None) if a.json else (lambda text: print(text, file=sys.stderr, flush=True))
-    pairs = rectified_pairs()
+    frames = rectified_frames()
+    pairs = rectified_pairs(frames)
     say("in-process ceilings (1 thread, all threads) ...")
     ceilings, all_threads = [ceiling(a.method, 1, pairs)], [ceiling(a.method, 0, pairs)]
     runs = []
@@ -259,7 +270,7 @@ def main(argv: list[str] | None = None) -> int:
         for n in a.workers:
             rate = min(120.0, a.rate_factor * min(n, cores) * ceilings[-1]["fps"])
             say(f"{n} worker(s), offering {rate:.1f} pairs/s ...")
-            runs.append(pool_run(a.method, n, rate, a.warmup, a.seconds, a.max_in_flight, a.source, a.nice, pairs))
+            runs.append(pool_run(a.method, n, rate, a.warmup, a.seconds, a.max_in_flight, a.source, a.nice, frames))
             say("in-process 1-thread ceiling again ...")
             ceilings.append(ceiling(a.method, 1, pairs))
     all_threads.append(ceiling(a.method, 0, pairs))

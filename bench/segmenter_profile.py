@@ -20,26 +20,15 @@ import time
 
 def service_frames(n: int = 16) -> list[bytes]:
     """DisparityMap payloads as the segmenter receives them, from the pipeline bench's pairs."""
+    from bench.scaling import rectified_frames
     from common import codec
-    from common.messages import StereoFrame
-    from cores import camera
-    from cores.calibration.check import PairChecks
-    from cores.calibration.rectify import Rectifier
     from cores.matching.matchers import MatcherConfig
-    from services.capture.sources import SyntheticSource
     from services.disparity.computer import FrameComputer
 
-    src = SyntheticSource("two-boxes", "lifecam-studio", 30.0, preload=n)
-    rect = Rectifier(camera.load_calibration("lifecam-studio"))
     computer = FrameComputer(MatcherConfig())  # the map as the disparity service publishes it
-    checks = PairChecks()  # rectify's, which the map carries (its near field is read by the segmenter)
     out = []
-    for i in range(n):
-        p = src.read()
-        left, right, frame_checks = checks.frame(p.left, p.right, i / 30.0, rect.rectify, rect.model,
-                                                 lambda a, b: None)
-        frame = StereoFrame(robot_id="bench", seq=i, stamp_ns=time.time_ns(), left=codec.image_from_array(left),
-                            right=codec.image_from_array(right), camera=rect.model_message, checks=frame_checks)
+    for frame in rectified_frames(n):
+        frame.stamp_ns = time.time_ns()
         out.append(codec.encode(computer.compute(frame, "bench")))
     return out
 

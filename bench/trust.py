@@ -36,27 +36,17 @@ def _median_ms(fn, n: int) -> float:
 
 
 def in_process(n: int = 200) -> dict:
+    from bench.scaling import rectified_frames
     from common import codec, signed_payload
     from common.inbox import _META
     from common.keys import topic
-    from common.messages import CameraModel, DisparityMap, StereoFrame
-    from cores import camera
-    from cores.calibration.check import PairChecks
-    from cores.calibration.rectify import Rectifier
+    from common.messages import DisparityMap
     from cores.matching.config import MatcherConfig
-    from services.capture.sources import SyntheticSource
     from services.disparity.computer import FrameComputer
     from services.disparity.results import Ticket, parse_header, result_header, vet_header, vet_map
 
-    pair = SyntheticSource("two-boxes", "lifecam-studio", 30.0).read()
-    rect = Rectifier(camera.load_calibration("lifecam-studio"))
-    # with rectify's checks, as the frame carries them: the map is checked against its near field
-    left, right, checks = PairChecks().frame(pair.left, pair.right, 0.0, rect.rectify, rect.model, lambda a, b: None)
-    m = rect.model
-    cam = CameraModel(width=m.width, height=m.height, focal_px=m.focal_px, cx=m.cx, cy=m.cy, baseline_m=m.baseline_m,
-                      Q=[0.0] * 16)
-    frame = StereoFrame(robot_id="bench", seq=1, stamp_ns=time.time_ns(), left=codec.image_from_array(left),
-                        right=codec.image_from_array(right), camera=cam, checks=checks)
+    # as rectify publishes it, with its checks: the map is checked against the frame's near field
+    frame = rectified_frames(1)[0].model_copy(update={"seq": 1, "stamp_ns": time.time_ns()})
     ticket = Ticket.for_frame(frame)
     key = os.urandom(32)
     key_expr = topic("disparity").key("bench")

@@ -269,17 +269,12 @@ def test_a_dense_answer_counts_what_it_measured_not_its_fill():
 def two_boxes_frame():
     """The first pair of `up`'s scene, rectified, with rectify's checks (its near field) as the frame
     carries them, and its map from the pool's FrameComputer (bm)."""
-    from cores.calibration.check import PairChecks
-    from cores.calibration.rectify import Rectifier
-    from services.capture.sources import SyntheticSource
+    from bench.scaling import rectified_frames
 
-    pair = SyntheticSource("two-boxes", "lifecam-studio", 30.0).read()
-    rect = Rectifier(camera.load_calibration("lifecam-studio"))
-    left, right, checks = PairChecks().frame(pair.left, pair.right, 0.0, rect.rectify, rect.model, lambda a, b: None)
-    assert checks.near is not None
-    frame = StereoFrame(robot_id="r", seq=3, stamp_ns=1000, left=codec.image_from_array(left),
-                        right=codec.image_from_array(right), camera=rect.model_message, checks=checks)
-    return frame, FrameComputer(MatcherConfig(method="bm"), 1.0).compute(frame, "w"), rect.model
+    frame = rectified_frames(1, "r")[0].model_copy(update={"seq": 3, "stamp_ns": 1000})
+    assert frame.checks is not None and frame.checks.near is not None
+    model = camera.model_of(frame.camera)
+    return frame, FrameComputer(MatcherConfig(method="bm"), 1.0).compute(frame, "w"), model
 
 
 def test_a_map_with_what_stands_erased_contradicts_the_robots_own_look_and_is_refused_and_flagged(two_boxes_frame):
