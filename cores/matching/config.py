@@ -69,7 +69,8 @@ class MatcherConfig(ServiceSettings):
     sgbm_mode: Literal["auto", "sgbm", "hh", "3way", "hh4"] = Field(
         "auto", description="semi-global variant (auto: sgbm 5 paths, dense 3way; hh: full 8 paths)")
     lr_check: bool = Field(False, description="bm/sgbm: left-right check on a second, mirrored match (doubles "
-                           "matching time)")
+                           "matching time, and the search's width more: the mirrored pair is padded so that the "
+                           "right edge is checked too)")
     lr_max_diff: float = Field(1.0, ge=0, description="max left/right disagreement, px")
     match_band: bool = Field(False, description="bm/sgbm: match the left band (x < min_disparity + num_disparities) "
                              "OpenCV leaves unmatched too, on the pair padded on the left, as dense always does, "

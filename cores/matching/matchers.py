@@ -105,7 +105,16 @@ class StereoMatcher:
         """True where the left disparity at x agrees with the right disparity at x - d (mr: the
         matcher for the right image, as the left one mirrored)."""
         c = self.config
-        dr = mr.compute(np.ascontiguousarray(gr[:, ::-1]), np.ascontiguousarray(gl[:, ::-1]))[:, ::-1]
+        # Mirrored, OpenCV's unmatched band (x < min + num) is the right image's right edge: left
+        # unmatched, it failed every left pixel there (x >= W - num + d), a band as wide as the search
+        # along the right side that the lists said they had looked at (the street: the right 320 px of
+        # 1344 blind, and what stood there standing-not-listed in every list). Matched padded, as
+        # match_band matches the left band; what reached into the padding compared against nothing.
+        pad = max(0, c.min_disparity + c.fixed_num_disparities)
+        dr = compute_padded(mr, np.ascontiguousarray(gr[:, ::-1]), np.ascontiguousarray(gl[:, ::-1]), pad)
+        blind = reaches_padding(dr, c.block, pad)
+        dr[:, :blind.shape[1]][blind] = (c.min_disparity - 1) * SCALE
+        dr = dr[:, ::-1]
         h, w = d.shape
         xs = np.arange(w, dtype=np.int32)[None, :]
         xr = xs - ((d.astype(np.int32) + 8) >> 4)  # round(d) in px
