@@ -306,6 +306,23 @@ def test_the_street_s_ground_is_trusted_when_the_segmenter_works_on_every_4th_pi
     assert abs(f["ground_height_m"]["median"] - f["road_height_m"]["median"]) < 0.1
 
 
+@needs_karlsruhe
+def test_the_street_with_the_left_right_check_is_seen_to_its_right_edge():
+    """The check's mirrored match left the right image's right edge unmatched, and so failed every
+    left pixel there: the right 320 px of 1344 were never measured while the lists' bearings said
+    they were looked at, and the parked cars there were standing-not-listed in all 40 lists (7-13
+    obstacles a frame instead of 17-18)."""
+    from cores.matching.config import MatcherConfig
+    from cores.segmentation.settings import SegmenterSettings
+
+    rec = recordings.open_recording(KARLSRUHE)
+    for pf in R.process_recording(rec, SegmenterSettings(), MatcherConfig(lr_check=True), frames=6):
+        lst = pf.result.obstacles
+        right = np.isfinite(pf.disparity[:, -300:]).mean()
+        assert right > 0.25 and lst.bearing_deg is not None and lst.bearing_deg[1] > 45, (pf.seq, right)
+        assert "standing-not-listed" not in lst.degraded and len(lst.obstacles) >= 12, (pf.seq, lst.degraded)
+
+
 @needs_euroc
 def test_euroc_tape_and_mat_on_the_floor_are_free_the_mattresses_and_chessboard_are_obstacles():
     """The room: tape strips and a play mat lie on the floor (bottom half of the image), mattresses
