@@ -59,6 +59,18 @@ def test_lr_check_removes_bad_pixels(scene):
         assert (v1 & band).sum() > 0.9 * (v0 & band).sum(), method
 
 
+def test_lr_check_tolerance_under_half_a_pixel_is_refused_by_name(tmp_path):
+    """At 0 px the check failed true matches by their sub-pixel noise: two thirds of the map gone and
+    low-faces' boxes with it, lists unflagged; the setting is refused where it is read."""
+    with pytest.raises(ValidationError, match="lr_max_diff"):
+        MatcherConfig(lr_check=True, lr_max_diff=0.25)
+    cfg = tmp_path / "robot.yaml"
+    cfg.write_text("disparity:\n  lr_check: true\n  lr_max_diff: 0\n")
+    with pytest.raises(ConfigError, match=r"disparity\.lr_max_diff.*0\.5"):
+        load_settings(DisparitySettings, str(cfg))
+    assert MatcherConfig(lr_check=True, lr_max_diff=0.5).lr_max_diff == 0.5
+
+
 @pytest.mark.parametrize("method", ["bm", "sgbm"])
 def test_match_band_matches_the_left_band_where_the_partner_is_in_view(scene, method):
     """OpenCV leaves x < min + num disparities unmatched; with match_band the pair is padded and that
