@@ -140,6 +140,10 @@ def test_bad_settings_are_refused():
     # OpenCV's 3-way SGBM divides by 100 - uniqueness_ratio: 100 killed the process (SIGFPE)
     with pytest.raises(ValidationError, match="uniqueness_ratio"):
         MatcherConfig(method="dense", uniqueness_ratio=100)
+    # nor one that keeps so little that what stands leaves the lists unsaid (dense at 50 and 75, sgbm at 99)
+    for method, ratio in (("dense", 50), ("sgbm", 99)):
+        with pytest.raises(ValidationError, match="uniqueness_ratio"):
+            MatcherConfig(method=method, uniqueness_ratio=ratio)
     with pytest.raises(ConfigError, match="odd"):
         load_settings(DisparitySettings, block_size=8)
     with pytest.raises(ConfigError, match="multiple of 16"):
