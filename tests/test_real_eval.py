@@ -323,6 +323,19 @@ def test_the_street_with_the_left_right_check_is_seen_to_its_right_edge():
         assert "standing-not-listed" not in lst.degraded and len(lst.obstacles) >= 12, (pf.seq, lst.degraded)
 
 
+@needs_karlsruhe
+def test_the_street_at_the_ends_of_the_layer_split_s_area_runs():
+    """layer_min_area_m2 0 (allowed) raised IndexError in the depth split on the street's first frames:
+    a component number that holds no pixel passed the area test."""
+    from cores.matching.config import MatcherConfig
+    from cores.segmentation.settings import SegmenterSettings
+
+    rec = recordings.open_recording(KARLSRUHE)
+    for area in (0.0, 100.0):
+        for pf in R.process_recording(rec, SegmenterSettings(layer_min_area_m2=area), MatcherConfig(), frames=3):
+            assert pf.result.obstacles.obstacles, (area, pf.seq)
+
+
 @needs_euroc
 def test_euroc_tape_and_mat_on_the_floor_are_free_the_mattresses_and_chessboard_are_obstacles():
     """The room: tape strips and a play mat lie on the floor (bottom half of the image), mattresses

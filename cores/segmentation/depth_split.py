@@ -230,7 +230,9 @@ def apart(ys: np.ndarray, xs: np.ndarray, dv: np.ndarray, out: np.ndarray, famil
         area = np.bincount(comp, weights=h * h)
         area[0] = 0.0
         largest = int(np.argmax(area))
-        for c in np.flatnonzero(area >= cfg.layer_min_area_m2).tolist():
+        # (area > 0: a component number bincount counts that holds no pixel, and the unoccupied 0, are not
+        # things; at layer_min_area_m2 0 they were, and the street's frames raised IndexError)
+        for c in np.flatnonzero((area >= cfg.layer_min_area_m2) & (area > 0)).tolist():
             if c != largest and (heights is None or float(np.percentile(heights[idx[comp == c]], 95)) >= LOW_M):
                 out[idx[comp == c]] = next_label
                 family[next_label] = family[label]
