@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import types
 import typing
 from typing import Any, ClassVar, TypeVar
@@ -267,5 +268,9 @@ def load_settings(cls: type[S], config_file: str | None = None, args: argparse.N
                 field = str(err["loc"][0]) if err["loc"] else ""
                 where = sources.get(field, f"{cls.section}.{field}" if field else cls.section)
                 got = f" (got {err['input']!r})" if "input" in err and not isinstance(err["input"], dict) else ""
-                problems.append(f"{where}: {err['msg']}{got}")
+                msg = err["msg"].removeprefix("Value error, ")
+                if not field:  # a rule across fields: say where each one it names was set
+                    given = [sources[k] for k in cls.model_fields if k in sources and re.search(rf"\b{k}\b", msg)]
+                    got = f" (set by {', '.join(given)})" if given else ""
+                problems.append(f"{where}: {msg}{got}")
     raise ConfigError(f"invalid {cls.section} settings:\n  " + "\n  ".join(problems))

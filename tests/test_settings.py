@@ -228,3 +228,33 @@ def test_zenoh_problems_are_one_line_not_a_traceback(tmp_path, case):
     lines = r.stderr.strip().splitlines()
     assert r.returncode == status and len(lines) == 1 and lines[0].startswith("ballbot-vision: error: "), r.stderr
     assert phrase in r.stderr, r.stderr
+
+
+def test_a_rule_across_settings_names_each_setting_and_where_it_was_set(tmp_path, monkeypatch):
+    """A robot lower than the smallest obstacle's top has nothing that could be an obstacle (robot
+    height 0.001 m: every street list empty and unflagged); the error names both settings and the file
+    and flag each came from."""
+    cfg = tmp_path / "robot.yaml"
+    cfg.write_text("segmenter:\n  robot_height_m: 0.15\n")
+    with pytest.raises(ConfigError) as e:
+        load_settings(SegmenterSettings, str(cfg))
+    msg = str(e.value)
+    assert "robot_height_m (0.15 m) must be above min_height_m (0.2 m)" in msg, msg
+    assert f"set by {cfg}: segmenter.robot_height_m)" in msg and "Value error" not in msg, msg
+    p = argparse.ArgumentParser()
+    add_settings_arguments(p, SegmenterSettings)
+    with pytest.raises(ConfigError, match=r"set by .*segmenter.robot_height_m, --min-height-m\)"):
+        load_settings(SegmenterSettings, str(cfg), p.parse_args(["--min-height-m", "0.18"]))
+    assert load_settings(SegmenterSettings, str(cfg), p.parse_args(["--min-height-m", "0.1"])).robot_height_m == 0.15
+
+
+@pytest.mark.parametrize("name, value", [("min_height_m", 5), ("min_area_m2", 100), ("min_cell_height_m", 5),
+                                         ("min_size_m", 10), ("floor_margin_m", 1), ("ground_noise_px", 10)])
+def test_what_decides_an_obstacle_is_refused_past_where_the_lists_hold_what_stands(tmp_path, name, value):
+    """Each of these at its old upper end emptied or thinned the lists with no degraded reason (the
+    street's lists empty at min_height_m 5, min_area_m2 100, min_cell_height_m 5); now a settings error
+    naming it. That the lists hold what stands up to the new ends is tests/test_eval.py's."""
+    cfg = tmp_path / "robot.yaml"
+    cfg.write_text(f"segmenter:\n  {name}: {value}\n")
+    with pytest.raises(ConfigError, match=rf"segmenter\.{name}: .*less than or equal"):
+        load_settings(SegmenterSettings, str(cfg))

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from common.settings import ServiceSettings
 
@@ -19,6 +19,16 @@ DEFAULT_RANGE_M = {"seed": 3.0, "layers": 4.5}
 # Unset, layers' range grows with the rig out to where it still measures this disparity (depth to
 # about 6 % per px): 4.5 m stays for a small robot's rig, a car's wide baseline sees ~23 m.
 FAR_DISPARITY_PX = 16.0
+
+# The bounds of the settings that decide what is an obstacle (floor_margin_m, ground_noise_px,
+# min_height_m, min_size_m, min_area_m2, min_cell_height_m) are where the lists still hold what a
+# robot must avoid: each at its upper bound, and all of them at once, misses at most 4 things more of
+# the 15 scenes than the defaults (a cut person's arm, a leg behind a box: tests/test_eval.py) and
+# lists the street. Past them the lists emptied or thinned with no degraded reason: min_height_m 5,
+# min_area_m2 100 or min_cell_height_m 5 left 14-15 of 15 street lists empty; min_cell_height_m 0.2
+# lost 66 of the scenes' 222 things (the walking person in 13 frames), min_area_m2 0.1 lost 13;
+# min_height_m 0.3, floor_margin_m 0.3, or the margin at 0.2 with cells of 0.1 m, lost the thesis's
+# 0.25 m toolbox (its standing points must fill a cell above the margin).
 
 
 class SegmenterSettings(ServiceSettings):
@@ -34,12 +44,13 @@ class SegmenterSettings(ServiceSettings):
         None, description="median filter size, px of the grid the method works on (seed: at least 3); null: "
                           "seed 5, layers about 10 px of the full-resolution map (5 at downsample 1 or 2, 3 at 4)")
     floor_removal: bool = Field(True, description="remove the floor (false reproduces the thesis with seed)")
-    floor_margin_m: float = Field(0.08, ge=0, le=1, description="points this close to the floor are floor")
-    ground_noise_px: float = Field(0.5, ge=0, le=10, description="layers: a point must stand this much disparity "
+    floor_margin_m: float = Field(0.08, ge=0, le=0.15, description="points this close to the floor are floor")
+    ground_noise_px: float = Field(0.5, ge=0, le=5, description="layers: a point must stand this much disparity "
                                    "above the floor's too (matching noise on a far road is metres of height)")
     robot_height_m: float = Field(2.0, gt=0, le=20, description="layers: points higher above the floor than this "
-                                  "(canopy, ceilings, signs over the road) are not obstacles")
-    min_height_m: float = Field(0.2, ge=0, le=5, description="layers: an obstacle's top must be this far above "
+                                  "(canopy, ceilings, signs over the road) are not obstacles; above min_height_m "
+                                  "and floor_margin_m")
+    min_height_m: float = Field(0.2, ge=0, le=0.2, description="layers: an obstacle's top must be this far above "
                                 "the floor (lower things: lane markings, shadows, mats)")
     # seed
     min_area_fraction: float = Field(0.03, ge=0, le=1, description="seed: area opening, fraction of the image")
@@ -60,8 +71,8 @@ class SegmenterSettings(ServiceSettings):
     step_px: float = Field(0.6, ge=0, le=50, description="layers: neighbours differing by more than "
                            "step_px + step_rel * d belong to different objects")
     step_rel: float = Field(0.03, ge=0, le=1, description="layers: relative part of the similarity tolerance")
-    min_size_m: float = Field(0.08, ge=0, le=10, description="layers: smallest obstacle extent, m")
-    min_area_m2: float = Field(0.006, ge=0, le=100, description="layers: smallest frontal area, m^2")
+    min_size_m: float = Field(0.08, ge=0, le=0.3, description="layers: smallest obstacle extent, m")
+    min_area_m2: float = Field(0.006, ge=0, le=0.02, description="layers: smallest frontal area, m^2")
     min_pixels: int = Field(12, ge=1, description="layers: smallest region, pixels at the working resolution")
     merge_gap_m: float = Field(0.12, ge=0, le=10, description="layers: regions whose 3D extents come this close "
                                "are one object")
@@ -71,7 +82,7 @@ class SegmenterSettings(ServiceSettings):
                                      "separates people one behind another")
     group_bin_px: float = Field(1.0, gt=0, le=16, description="layers: disparity bin of the column-disparity "
                                 "grid that groups standing points into objects, px")
-    min_cell_height_m: float = Field(0.05, ge=0, le=5, description="layers: a column-disparity cell is occupied "
+    min_cell_height_m: float = Field(0.05, ge=0, le=0.1, description="layers: a column-disparity cell is occupied "
                                      "when its standing points cover this much height")
     layer_valley_ratio: float = Field(0.25, ge=0, le=1, description="layers: a grouped object whose disparity "
                                       "histogram has a valley this much lower than its two peaks is two things one "
@@ -118,6 +129,18 @@ class SegmenterSettings(ServiceSettings):
                                         "stretches the matcher leaves out stays whole)")
     odometry_timeout_s: float = Field(0.5, gt=0, description="odometry older than this is not used")
     stale_after_s: float = Field(0.5, gt=0, description="input older than this (or none for this long) is stale")
+
+    @model_validator(mode="after")
+    def _room_to_stand(self) -> SegmenterSettings:
+        # points stand from floor_margin_m to robot_height_m above the floor, and an obstacle's top is at
+        # least min_height_m up: a robot lower than either has nothing that could be an obstacle (robot
+        # height 0.001 m: every street list empty, unflagged)
+        low = max(self.min_height_m, self.floor_margin_m)
+        if self.robot_height_m <= low:
+            raise ValueError(f"robot_height_m ({self.robot_height_m:g} m) must be above min_height_m "
+                             f"({self.min_height_m:g} m) and floor_margin_m ({self.floor_margin_m:g} m): "
+                             f"nothing between the floor and the robot's top could be an obstacle")
+        return self
 
     @property
     def range_m(self) -> float:
