@@ -258,3 +258,23 @@ def test_what_decides_an_obstacle_is_refused_past_where_the_lists_hold_what_stan
     cfg.write_text(f"segmenter:\n  {name}: {value}\n")
     with pytest.raises(ConfigError, match=rf"segmenter\.{name}: .*less than or equal"):
         load_settings(SegmenterSettings, str(cfg))
+
+
+@pytest.mark.parametrize("module, cls, name, value", [
+    ("cores.segmentation.settings", "SegmenterSettings", "stale_after_s", 60),
+    ("cores.segmentation.settings", "SegmenterSettings", "odometry_timeout_s", 60),
+    ("services.rectify.main", "RectifySettings", "frozen_after_s", 3600),
+    ("services.disparity.main", "DisparitySettings", "max_age_ms", 60000)])
+def test_how_long_a_stopped_input_may_go_unsaid_is_seconds_not_an_hour(tmp_path, module, cls, name, value):
+    """At frozen_after_s 3600 (allowed before) a camera whose driver hung, repeating its last picture with
+    fresh stamps, gave an hour of lists that looked fresh; the segmenter's own frozen and stale checks and
+    the age a frame may be started at are bounded alike: 10 s, a refused setting named where it was set."""
+    import importlib
+
+    settings = getattr(importlib.import_module(module), cls)
+    cfg = tmp_path / "robot.yaml"
+    cfg.write_text(f"{settings.section}:\n  {name}: {value}\n")
+    with pytest.raises(ConfigError, match=rf"{settings.section}\.{name}: .*less than or equal to 10"):
+        load_settings(settings, str(cfg))
+    cfg.write_text(f"{settings.section}:\n  {name}: {value / 360}\n")
+    assert getattr(load_settings(settings, str(cfg)), name) == value / 360

@@ -127,8 +127,12 @@ class SegmenterSettings(ServiceSettings):
     track_merge_fragments: bool = Field(True, description="detections lying inside where a confirmed track "
                                         "stood in the last frame are one obstacle (a fence whose texture-poor "
                                         "stretches the matcher leaves out stays whole)")
-    odometry_timeout_s: float = Field(0.5, gt=0, description="odometry older than this is not used")
-    stale_after_s: float = Field(0.5, gt=0, description="input older than this (or none for this long) is stale")
+    # At most 10 s, as rectify's frozen_after_s: how long a list may follow a stopped or repeating input
+    # without saying so (at an hour, a hung camera's fresh-stamped maps gave an hour of lists that looked
+    # fresh; a robot at 1 m/s is 10 m on by then)
+    odometry_timeout_s: float = Field(0.5, gt=0, le=10, description="odometry older than this is not used")
+    stale_after_s: float = Field(0.5, gt=0, le=10, description="input older than this (or none for this long) is "
+                                 "stale; maps unchanged for this long are input-frozen")
 
     @model_validator(mode="after")
     def _room_to_stand(self) -> SegmenterSettings:

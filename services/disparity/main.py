@@ -41,7 +41,8 @@ class DisparitySettings(MatcherConfig):
     # pool (dispatch side)
     max_in_flight: int = Field(2, ge=1, le=16, description="frames in flight per worker (2: the next frame "
                                "waits at the worker while it computes, so it never idles while frames travel)")
-    max_age_ms: float = Field(500.0, gt=0, description="a frame older than this is never started")
+    max_age_ms: float = Field(500.0, gt=0, le=10000, description="a frame older than this is never started (at "
+                              "most 10 s: the segmenter's stale_after_s can be no longer)")
     result_timeout_s: float = Field(1.0, gt=0, description="a worker slot without receipt is freed "
                                     "after this at the least; longer for a worker measured to need longer")
     transport: Literal["raw", "png", "jpeg"] = Field("raw", description="image encoding of frames sent to workers")

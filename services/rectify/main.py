@@ -74,11 +74,12 @@ class RectifySettings(ServiceSettings):
     max_row_offset_px: float = Field(0.5, gt=0.0, le=100.0, description="median vertical offset of matched "
                                      "features above which the rows are misaligned (a well calibrated rig: 0.05-0.2 "
                                      "px; a camera knocked 1 px: 1.0)")
-    frozen_after_s: float = Field(0.5, gt=0.0, le=3600.0, description="a camera whose picture has not changed, "
+    frozen_after_s: float = Field(0.5, gt=0.0, le=10.0, description="a camera whose picture has not changed, "
                                   "bit for bit, for this long while its stamps go on is frozen (a hung driver "
                                   "repeating its last buffer; a live camera's noise never repeats): every list says "
                                   "camera-frozen (a view partly blocked, flat where the other camera sees texture, "
-                                  "is said at once: view-blocked)")
+                                  "is said at once: view-blocked; at most 10 s: at an hour, a hung camera's lists "
+                                  "looked fresh for an hour)")
     near_check: bool = Field(True, description="match each rectified pair coarsely (a quarter of the resolution, from "
                              "each image) "
                              "over half the picture's width of disparity, so that what stands nearer than the vision "
