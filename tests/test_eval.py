@@ -184,6 +184,18 @@ def test_a_low_robot_is_scored_on_what_it_lists_of_a_person_their_legs(data):
     assert 0 < n_legs < 0.5 * n and legs[1] > whole[1] + 0.3, (whole, legs)  # image y points down
 
 
+@pytest.mark.parametrize("method", ["bm", "sgbm", "dense"])
+def test_each_matcher_at_its_smallest_window_lists_the_plain_low_faces(method):
+    """The smallest window each matcher takes (MIN_BLOCK) still lists the plain crate and cabinet, with
+    no free space under them: bm at 5 px (allowed before, and by OpenCV) missed both in every frame
+    with no degraded reason. Read from the settings, so a bound lowered fails here."""
+    from cores.matching.config import MIN_BLOCK, MatcherConfig
+
+    data = E.render_scenario("low-faces", matcher=MatcherConfig(method=method, block_size=MIN_BLOCK[method]))
+    s = E.score_method(data, "layers")
+    assert s.silent_misses == 0 and s.free_under == 0, s.to_dict()
+
+
 def test_the_eval_segments_what_the_disparity_stage_hands_on():
     """The eval's segmenter gets the map's search with the map, as the service does from the disparity
     message: a 32 px search on this rig measures nothing nearer than 2.1 m, the toolbox stands nearer,

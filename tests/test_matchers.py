@@ -144,6 +144,10 @@ def test_bad_settings_are_refused():
     for method, ratio in (("dense", 50), ("sgbm", 99)):
         with pytest.raises(ValidationError, match="uniqueness_ratio"):
             MatcherConfig(method=method, uniqueness_ratio=ratio)
+    # nor a window so small that what stands is missed unsaid (bm 5: the sway's free space under the chair)
+    for method, block in (("bm", 5), ("sgbm", 1), ("dense", 1)):
+        with pytest.raises(ValidationError, match=f"block_size: {method} needs"):
+            MatcherConfig(method=method, block_size=block)
     with pytest.raises(ConfigError, match="odd"):
         load_settings(DisparitySettings, block_size=8)
     with pytest.raises(ConfigError, match="multiple of 16"):

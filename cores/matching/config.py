@@ -18,6 +18,12 @@ SCALE = 16.0
 # bm; 5 px for sgbm, whose smoothness terms do the aggregation (better than OpenCV's 3 on Middlebury);
 # 3 px for dense, whose edge-aware fill does the rest (3 keeps object edges sharpest).
 DEFAULT_BLOCK = {"bm": 15, "sgbm": 5, "dense": 3}
+# ... and the smallest window each may be given: below it the lists missed what stands and did not say
+# so (sway scene, 45 frames of a swaying robot among people and furniture: bm at 5 px freed the floor
+# under the chair and the table in 4 frames and missed 4 more things, low-faces' crate and cabinet in
+# every frame of the 15 scenes; sgbm at 1 px 7 more misses; dense at 1 px 2 more), where from these
+# windows on the misses are the defaults' (bm 7 and 9; sgbm 3: one more on the sway). OpenCV takes bm from 5.
+MIN_BLOCK = {"bm": 7, "sgbm": 3, "dense": 3}
 # Per-method semi-global variant (sgbm_mode auto): dense uses 3-way, faster than 5 paths and as good
 # on the Middlebury pairs (`bench accuracy`).
 DEFAULT_SGBM_MODE = {"bm": "sgbm", "sgbm": "sgbm", "dense": "3way"}
@@ -52,7 +58,8 @@ class MatcherConfig(ServiceSettings):
                                "left border)")
     min_disparity: int = Field(0, ge=-MAX_MIN_DISPARITY, le=MAX_MIN_DISPARITY,
                                description="smallest disparity searched, px")
-    block_size: int = Field(0, ge=0, le=255, description="matching window, odd, px (0: bm 15, sgbm 5, dense 3)")
+    block_size: int = Field(0, ge=0, le=255, description="matching window, odd, px (0: bm 15, sgbm 5, dense 3; "
+                            "at least bm 7, sgbm and dense 3)")
     # 30 at most: higher, the matcher keeps so little of what stands that things leave the lists with no
     # reason said (the 15 scenes against the 3 silent misses at 10: dense 4 at 50 and 9 at 75; sgbm 8 at 99
     # and the free space under the chair; bm and sgbm held to 75). And OpenCV's 3-way SGBM divides by
@@ -96,8 +103,9 @@ class MatcherConfig(ServiceSettings):
         b = self.block
         if b % 2 == 0:
             raise ValueError(f"block_size: must be odd, got {self.block_size}")
-        if self.method == "bm" and not 5 <= b <= 255:
-            raise ValueError(f"block_size: block matching needs 5..255, got {b}")
+        if not MIN_BLOCK[self.method] <= b <= 255:
+            raise ValueError(f"block_size: {self.method} needs {MIN_BLOCK[self.method]}..255 (smaller windows miss "
+                             f"what stands and the lists do not say so), got {b}")
         if self.method == "bm" and self.prefilter_size % 2 == 0:
             raise ValueError(f"prefilter_size: must be odd, got {self.prefilter_size}")
         if self.p2 and self.p1 and self.p2 <= self.p1:
