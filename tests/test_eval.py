@@ -154,17 +154,24 @@ def test_a_miss_is_said(result):
 DECIDING = ("floor_margin_m", "ground_noise_px", "min_height_m", "min_size_m", "min_area_m2", "min_cell_height_m")
 
 
-def test_the_settings_that_decide_an_obstacle_at_their_upper_ends_still_list_what_stands(data):
+def test_the_settings_that_decide_an_obstacle_at_the_ends_of_their_ranges_still_list_what_stands(data):
     """Each setting that decides what is an obstacle, at the upper end its settings allow, and all of them
     at once, misses nothing here: past those ends the lists thinned with no word (min_cell_height_m 0.2
     lost the walking person in 13 of 26 frames, min_height_m 0.5 and floor_margin_m 0.3 the thesis's
-    toolbox and freed the floor under it). Read from the settings, so a bound widened fails here."""
-    from annotated_types import Le
+    toolbox and freed the floor under it; group_bin_px 0.1, the lower end before, the walking person in 14
+    frames). Read from the settings, so a bound widened fails here."""
+    from annotated_types import Ge, Le
 
     from cores.segmentation.settings import SegmenterSettings
-    ends = {name: next(m.le for m in SegmenterSettings.model_fields[name].metadata if isinstance(m, Le))
-            for name in DECIDING}
-    for overrides in [{name: value} for name, value in ends.items()] + [ends]:
+
+    def end(name, bound):
+        return next(getattr(m, bound.__name__.lower()) for m in SegmenterSettings.model_fields[name].metadata
+                    if isinstance(m, bound))
+    ends = {name: end(name, Le) for name in DECIDING}
+    # and the lower ends that matter: the floor's own noise standing, standing points grouped too finely
+    others = [{"floor_margin_m": end("floor_margin_m", Ge)}, {"group_bin_px": end("group_bin_px", Ge)},
+              {"group_bin_px": end("group_bin_px", Le)}]
+    for overrides in [{name: value} for name, value in ends.items()] + [ends] + others:
         r = E.evaluate(SCENARIOS, ["layers"], data=data, overrides=overrides)
         s = r["overall"]["layers"]
         missed = {n: by["layers"].silent_misses for n, by in r["scenarios"].items() if by["layers"].silent_misses}
