@@ -34,7 +34,8 @@ FAR_DISPARITY_PX = 16.0
 # (111 unsaid misses; 0.1: 75), 16 merged the occlusion scene's; from 0.5 to 4 px the misses are the
 # default's but one. merge_gap_m and merge_gap_depth_m join things a robot cannot pass between: up to
 # half a metre across and a metre in depth (at 10 m the scenes' lists held one obstacle each, 118
-# things unsaid; wider than 0.12 m people side by side are one obstacle, as asked).
+# things unsaid; between 0.12 and 0.5 m, people standing that close side by side are one obstacle,
+# as asked).
 
 
 class SegmenterSettings(ServiceSettings):
