@@ -9,6 +9,7 @@ import sys
 import time
 from pathlib import Path
 
+from common.codec import MIN_JPEG_QUALITY
 from common.errors import BallbotError
 
 
@@ -201,6 +202,14 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 # --- parser ------------------------------------------------------------------------------------
 
+def _jpeg_quality(text: str) -> int:
+    q = int(text)
+    if not MIN_JPEG_QUALITY <= q <= 100:
+        raise argparse.ArgumentTypeError(f"{MIN_JPEG_QUALITY}..100, got {q} (lower, the pairs replayed lose what "
+                                         f"stands: common/codec.py MIN_JPEG_QUALITY)")
+    return q
+
+
 def register(sub: argparse._SubParsersAction, common) -> None:
     from common.settings import add_settings_arguments
     from services.recorder.main import RecordSettings
@@ -235,7 +244,8 @@ def register(sub: argparse._SubParsersAction, common) -> None:
     f.add_argument("--start-ns", type=int, default=None, help="stamp of the first pair with --fps (default 0)")
     f.add_argument("--format", choices=["png", "jpeg"], default="png", help="image format in the file (default: "
                    "png, lossless)")
-    f.add_argument("--jpeg-quality", type=int, default=95)
+    f.add_argument("--jpeg-quality", type=_jpeg_quality, default=95, help=f"with --format jpeg, "
+                   f"{MIN_JPEG_QUALITY}..100 (lower, the replayed lists miss what stands: common/codec.py)")
     f.add_argument("--compression", choices=["zstd", "lz4", "none"], default="zstd")
     f.set_defaults(func=cmd_from_images)
 

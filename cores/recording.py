@@ -246,7 +246,7 @@ class Recorded:
 @dataclass
 class RecordOptions:
     image_format: str = "jpeg"  # jpeg, png or keep (as on the wire; raw payloads become jpeg)
-    jpeg_quality: int = 75
+    jpeg_quality: int = 90  # RecordSettings: from common.codec.MIN_JPEG_QUALITY
     raw: bool = False  # the rectified pairs are what the pipeline matched; raw ones only when asked
     rectified: bool = True
     disparity: bool = True

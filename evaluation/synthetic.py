@@ -59,6 +59,7 @@ from pathlib import Path
 import numpy as np
 
 import sim as S
+from common import codec
 from common.files import output_folder, write_image
 from common.messages import FrameChecks, GroundEstimate, Odometry
 from common.settings import MountSettings
@@ -244,9 +245,10 @@ def default_sequence(scene: S.Scene) -> tuple[int, float]:
 
 def render_scenario(name: str | S.Scene, frames: int | None = None, fps: float | None = None, seed: int = 0,
                     calibration: str = "lifecam-studio", matcher: MatcherConfig | None = None,
-                    match_scale: float = 1.0) -> ScenarioData:
+                    match_scale: float = 1.0, wire: tuple[str, int] | None = None) -> ScenarioData:
     """Render `frames` pairs at `fps` (scene time) of a built-in scenario (by name) or a Scene,
-    rectify and match them (match_scale 0.5: at half resolution, as the onboard `fallback: half`)."""
+    rectify and match them (match_scale 0.5: at half resolution, as the onboard `fallback: half`).
+    wire: (encoding, jpeg quality): each pair as capture sends it so (common/codec), decoded."""
     t0 = time.perf_counter()
     scene = name if isinstance(name, S.Scene) else S.Scene.builtin(name)
     rig = camera.load_raw_rig(calibration)  # the world renders through the lenses
@@ -264,7 +266,10 @@ def render_scenario(name: str | S.Scene, frames: int | None = None, fps: float |
     static = _truth_maps(world, 0.0, x_valid, band) if scene.is_static() else None
     for k in range(frames):
         t = k / fps
-        m = pipe.front(*world.render(t), t_s=t)  # rectify, with its checks, and match: as the services do
+        left, right = world.render(t)
+        if wire is not None:
+            left, right = (codec.array_from_image(codec.image_from_array(a, *wire)) for a in (left, right))
+        m = pipe.front(left, right, t_s=t)  # rectify, with its checks, and match: as the services do
         stage = m.stage
         kind, seen = static if static is not None else _truth_maps(world, t, x_valid, band)
         n = len(scene.boxes)

@@ -914,3 +914,25 @@ def test_a_pitched_camera_sees_no_free_floor_under_a_table_top_at_the_image_side
     monkeypatch.setattr(freespace, "vertical_point", _columns)  # the columns alone, as before
     monkeypatch.setattr(freespace, "spread_sides", _unspread)
     assert E.score_method(data, "layers").free_under == 1
+
+
+def test_pairs_sent_as_jpeg_at_the_least_quality_allowed_list_what_stands(tmp_path):
+    """Pairs through capture's codec as JPEG at MIN_JPEG_QUALITY list low-faces' plain crate and cabinet
+    with no free space under them; at 80 and 75 (the recorder's default before) the crate left a list
+    and the free space reached under it, unflagged: block artefacts are texture the matcher trusts.
+    capture, the dispatcher's transport and the recorder refuse a lower quality by name."""
+    from common.codec import MIN_JPEG_QUALITY
+    from common.errors import ConfigError
+    from common.settings import load_settings
+    from services.capture.settings import CaptureSettings
+    from services.disparity.main import DisparitySettings
+    from services.recorder.main import RecordSettings
+
+    for q, holds in ((MIN_JPEG_QUALITY, True), (80, False)):
+        s = E.score_method(E.render_scenario("low-faces", wire=("jpeg", q)), "layers")
+        assert (s.silent_misses == 0 and s.free_under == 0) == holds, (q, s.to_dict())
+    for cls in (CaptureSettings, DisparitySettings, RecordSettings):
+        cfg = tmp_path / f"{cls.section}.yaml"
+        cfg.write_text(f"{cls.section}:\n  jpeg_quality: 80\n")
+        with pytest.raises(ConfigError, match=f"{cls.section}.jpeg_quality: .*greater than or equal to 85"):
+            load_settings(cls, str(cfg))

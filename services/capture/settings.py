@@ -5,6 +5,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BeforeValidator, Field
 
+from common.codec import MIN_JPEG_QUALITY
 from common.settings import ServiceSettings
 
 
@@ -37,7 +38,7 @@ class CaptureSettings(ServiceSettings):
     loop: bool = Field(False, description="video, images: start again at the end instead of ending the stream")
     grayscale: bool = Field(False, description="cameras, sbs, video, images: publish 8-bit grey instead of BGR")
     encoding: Literal["raw", "png", "jpeg"] = Field("raw", description="image encoding on the wire")
-    jpeg_quality: int = Field(90, ge=1, le=100, description="jpeg quality")
+    jpeg_quality: int = Field(90, ge=MIN_JPEG_QUALITY, le=100, description="jpeg quality (from 85: common/codec.py)")
     # --- synthetic
     scenario: str = Field("two-boxes", description="synthetic: built-in scenario name or YAML file")
     calibration: str = Field("lifecam-studio", description="synthetic: the rig rendered for (YAML or profile)")

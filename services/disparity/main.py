@@ -15,6 +15,7 @@ from typing import Annotated, Literal
 
 from pydantic import BeforeValidator, Field
 
+from common.codec import MIN_JPEG_QUALITY
 from common.node import Node
 from cores.matching.config import MatcherConfig
 
@@ -46,7 +47,8 @@ class DisparitySettings(MatcherConfig):
     result_timeout_s: float = Field(1.0, gt=0, description="a worker slot without receipt is freed "
                                     "after this at the least; longer for a worker measured to need longer")
     transport: Literal["raw", "png", "jpeg"] = Field("raw", description="image encoding of frames sent to workers")
-    jpeg_quality: int = Field(90, ge=1, le=100, description="for transport jpeg")
+    jpeg_quality: int = Field(90, ge=MIN_JPEG_QUALITY, le=100, description="for transport jpeg (from 85: "
+                              "common/codec.py)")
     fallback: Literal["none", "full", "half"] = Field("full", description="onboard matcher used only while no "
                                                      "worker is alive (half: half resolution; "
                                                      "none: report \"no worker reachable\")")

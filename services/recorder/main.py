@@ -19,6 +19,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, Field
 
+from common.codec import MIN_JPEG_QUALITY
 from common.keys import topic
 from common.messages import (
     CalibrationUpdate,
@@ -44,9 +45,11 @@ class RecordSettings(ServiceSettings):
     image_format: Literal["jpeg", "png", "keep"] = Field(
         "jpeg", description="frames in the file: jpeg (small, fast), png (lossless, ~10x the CPU), keep (as "
                             "they travel: compressed payloads pass through, raw ones become jpeg)")
-    # 75: above it the bytes go to the sensor noise; the obstacles of the synthetic scene replayed from
-    # 75 and from 90 agree within 1 cm with bm, sgbm and dense (README: Recording)
-    jpeg_quality: int = Field(75, ge=1, le=100, description="jpeg quality of frames and the disparity picture")
+    # 90: at 75 (the default before; the bytes above it go to the sensor noise, and two-boxes' obstacles
+    # agreed within 1 cm) low-faces' plain crate left a list replayed and the free space reached under it
+    # (common/codec.py MIN_JPEG_QUALITY: 85 the least)
+    jpeg_quality: int = Field(90, ge=MIN_JPEG_QUALITY, le=100, description="jpeg quality of frames and the "
+                              "disparity picture")
     raw: bool = Field(False, description="record the raw pairs too (to rectify them again later, e.g. with another "
                       "calibration); replay needs only the rectified ones")
     rectified: bool = Field(True, description="record the rectified pairs (what the pipeline matched; what replay "
