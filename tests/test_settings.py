@@ -251,7 +251,9 @@ def test_a_rule_across_settings_names_each_setting_and_where_it_was_set(tmp_path
 @pytest.mark.parametrize("name, value", [("min_height_m", 5), ("min_area_m2", 100), ("min_cell_height_m", 5),
                                          ("min_size_m", 10), ("floor_margin_m", 1), ("floor_margin_m", 0.02),
                                          ("ground_noise_px", 10), ("group_bin_px", 0.1), ("group_bin_px", 16),
-                                         ("merge_gap_m", 10), ("merge_gap_depth_m", 10)])
+                                         ("merge_gap_m", 10), ("merge_gap_depth_m", 10), ("min_cell_height_m", 0),
+                                         ("layer_valley_ratio", 0), ("layer_min_area_m2", 100), ("layer_gap_m", 100),
+                                         ("layer_bridge_px", 0), ("layer_split_range_m", 0)])
 def test_what_decides_an_obstacle_is_refused_past_where_the_lists_hold_what_stands(tmp_path, name, value):
     """Each of these at its old upper end emptied or thinned the lists with no degraded reason (the
     street's lists empty at min_height_m 5, min_area_m2 100, min_cell_height_m 5); now a settings error

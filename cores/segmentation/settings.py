@@ -34,7 +34,13 @@ FAR_DISPARITY_PX = 16.0
 # walls were in no list; ground_noise_px 5 lost 3 on the sway, 10 the toolbox. group_bin_px 0.001 lost
 # half the scenes' things (0.1: a third), 4 lost 39 of the sway's 223; merge_gap_m 0.3 and
 # merge_gap_depth_m 0.5 joined the sway's people to the furniture beside and behind them (6 and 14
-# things in no list of their own; at 10 m every list held one obstacle).
+# things in no list of their own; at 10 m every list held one obstacle); min_cell_height_m 0 joined
+# all that stands on the sway into a few blobs (recall 0.06; from 0.01 the default's). The depth split
+# likewise (layer_*): where it never split (valley ratio 0, sides of 100 m^2 or 100 m apart, no
+# bridge, no range) the sway's people stood merged with the furniture before or behind them in 27
+# sightings and people one behind another were one obstacle; from valley ratio 0.15, sides of 0.06 m^2,
+# 0.5 m apart, bridges of 16 px and a 10 m range each alone misses at most 2 more (all at once 10 more
+# on the sway: not bounded together).
 
 
 class SegmenterSettings(ServiceSettings):
@@ -88,20 +94,20 @@ class SegmenterSettings(ServiceSettings):
                                      "separates people one behind another")
     group_bin_px: float = Field(1.0, ge=0.5, le=2, description="layers: disparity bin of the column-disparity "
                                 "grid that groups standing points into objects, px")
-    min_cell_height_m: float = Field(0.05, ge=0, le=0.1, description="layers: a column-disparity cell is occupied "
+    min_cell_height_m: float = Field(0.05, ge=0.01, le=0.1, description="layers: a column-disparity cell is occupied "
                                      "when its standing points cover this much height")
-    layer_valley_ratio: float = Field(0.25, ge=0, le=1, description="layers: a grouped object whose disparity "
-                                      "histogram has a valley this much lower than its two peaks is two things one "
-                                      "behind the other and is split there (0: never split)")
-    layer_min_area_m2: float = Field(0.04, ge=0, le=100, description="layers: each side of such a split holds at "
+    layer_valley_ratio: float = Field(0.25, ge=0.15, le=1, description="layers: a grouped object whose "
+                                      "disparity histogram has a valley this much lower than its two peaks is two "
+                                      "things one behind the other and is split there")
+    layer_min_area_m2: float = Field(0.04, ge=0, le=0.06, description="layers: each side of such a split holds at "
                                      "least this much surface, m^2 (a hand held out is part of its person)")
-    layer_gap_m: float = Field(0.3, ge=0, le=100, description="layers: ... and the two sides' depths (the "
+    layer_gap_m: float = Field(0.3, ge=0, le=0.5, description="layers: ... and the two sides' depths (the "
                                "histogram's peaks) are at least this far apart, m (a torso before the legs is one "
                                "person)")
-    layer_bridge_px: float = Field(24.0, ge=0, le=1000, description="layers: ... and the valley's pixels are at "
+    layer_bridge_px: float = Field(24.0, ge=16, le=1000, description="layers: ... and the valley's pixels are at "
                                    "most this wide along an image row, px (the ramp block matching draws across an "
                                    "occlusion; a table top spans the whole table and keeps it whole)")
-    layer_split_range_m: float = Field(20.0, ge=0, le=100, description="layers: things farther than this are not "
+    layer_split_range_m: float = Field(20.0, ge=10, le=100, description="layers: things farther than this are not "
                                        "split by depth (a far street's facades, hedges and shelters would fall "
                                        "apart into panels)")
     min_confidence: int = Field(200, ge=0, le=255, description="pixels whose disparity confidence (when the matcher "
