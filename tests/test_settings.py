@@ -230,7 +230,7 @@ def test_zenoh_problems_are_one_line_not_a_traceback(tmp_path, case):
     assert phrase in r.stderr, r.stderr
 
 
-def test_a_rule_across_settings_names_each_setting_and_where_it_was_set(tmp_path, monkeypatch):
+def test_a_rule_across_settings_names_each_setting_and_where_it_was_set(tmp_path):
     """A robot lower than the smallest obstacle's top has nothing that could be an obstacle (robot
     height 0.001 m: every street list empty and unflagged); the error names both settings and the file
     and flag each came from."""
@@ -255,9 +255,10 @@ def test_a_rule_across_settings_names_each_setting_and_where_it_was_set(tmp_path
                                          ("layer_valley_ratio", 0), ("layer_min_area_m2", 100), ("layer_gap_m", 100),
                                          ("layer_bridge_px", 0), ("layer_split_range_m", 0)])
 def test_what_decides_an_obstacle_is_refused_past_where_the_lists_hold_what_stands(tmp_path, name, value):
-    """Each of these at its old upper end emptied or thinned the lists with no degraded reason (the
-    street's lists empty at min_height_m 5, min_area_m2 100, min_cell_height_m 5); now a settings error
-    naming it. That the lists hold what stands up to the new ends is tests/test_eval.py's."""
+    """Each of these at an old end of its range emptied or thinned the lists with no degraded reason (the
+    street's lists empty at min_height_m 5, min_area_m2 100, min_cell_height_m 5; the sway's people merged
+    with the furniture with the depth split off); now a settings error naming it. That the lists hold what
+    stands up to the new ends is tests/test_eval.py's."""
     cfg = tmp_path / "robot.yaml"
     cfg.write_text(f"segmenter:\n  {name}: {value}\n")
     with pytest.raises(ConfigError, match=rf"segmenter\.{name}: .*(less|greater) than or equal"):
