@@ -160,17 +160,16 @@ def test_the_settings_that_decide_an_obstacle_at_the_ends_of_their_ranges_still_
     lost the walking person in 13 of 26 frames, min_height_m 0.5 and floor_margin_m 0.3 the thesis's
     toolbox and freed the floor under it; group_bin_px 0.1, the lower end before, the walking person in 14
     frames). Read from the settings, so a bound widened fails here."""
-    from annotated_types import Ge, Le
+    from test_settings_bounds import _ends
 
     from cores.segmentation.settings import SegmenterSettings
 
-    def end(name, bound):
-        return next(getattr(m, bound.__name__.lower()) for m in SegmenterSettings.model_fields[name].metadata
-                    if isinstance(m, bound))
-    ends = {name: end(name, Le) for name in DECIDING}
+    bounds: dict[str, list] = {}
+    for name, value in _ends(SegmenterSettings):
+        bounds.setdefault(name, []).append(value)
+    ends = {name: max(bounds[name]) for name in DECIDING}
     # and the lower ends that matter: the floor's own noise standing, standing points grouped too finely
-    others = [{"floor_margin_m": end("floor_margin_m", Ge)}, {"group_bin_px": end("group_bin_px", Ge)},
-              {"group_bin_px": end("group_bin_px", Le)}]
+    others = [{"floor_margin_m": min(bounds["floor_margin_m"])}] + [{"group_bin_px": v} for v in bounds["group_bin_px"]]
     for overrides in [{name: value} for name, value in ends.items()] + [ends] + others:
         r = E.evaluate(SCENARIOS, ["layers"], data=data, overrides=overrides)
         s = r["overall"]["layers"]
@@ -326,16 +325,14 @@ def test_grouping_and_splitting_at_each_end_of_their_ranges_keep_the_sway_s_peop
     at the old ends (min_cell_height_m 0, group_bin_px 4, merge gaps 0.5 m, a depth split that never
     splits) people stood merged with the chair or the table in 14-203 of `eval sway`'s 223 sightings, no
     degraded reason said. Read from the settings, so a bound widened fails here."""
-    from annotated_types import Ge, Le
+    from test_settings_bounds import _ends
 
     from cores.segmentation.settings import SegmenterSettings
     base = E.evaluate(["sway"], ["layers"], data={"sway": sway})["overall"]["layers"].silent_misses
-    for name in SPLITTING:
-        for m in SegmenterSettings.model_fields[name].metadata:
-            if isinstance(m, (Ge, Le)):
-                value = m.ge if isinstance(m, Ge) else m.le
-                s = E.evaluate(["sway"], ["layers"], data={"sway": sway}, overrides={name: value})["overall"]["layers"]
-                assert s.silent_misses <= base + 2 and s.free_under == 0, (name, value, base, s.to_dict())
+    for name, value in _ends(SegmenterSettings):
+        if name in SPLITTING:
+            s = E.evaluate(["sway"], ["layers"], data={"sway": sway}, overrides={name: value})["overall"]["layers"]
+            assert s.silent_misses <= base + 2 and s.free_under == 0, (name, value, base, s.to_dict())
 
 
 def test_sway_with_the_true_ground_holds_what_stands_still_within_5_cm(sway):
