@@ -339,14 +339,16 @@ def test_sway_with_the_true_ground_holds_what_stands_still_within_5_cm(sway):
     """Given each frame's true ground, the base frame (REP 103, not tilted by the sway) holds the
     chair, the standing person and the crate steady within 5 cm while the robot drives and sways;
     the table, which the walking person passes behind, is seen with more or less of it. (Seen
-    almost edge-on from 0.9 m, the table's top barely shows: its back legs are at times an obstacle
-    of their own, which is what keeps the precision below 100 %.)"""
+    almost edge-on from 0.9 m, the table's top barely shows: its back leg is at times seen apart from
+    its front, 3 cm deep at the back edge of the table's tracked footprint, and joins it there: it
+    was an obstacle of its own in 2 frames, precision 98 %, while a footprint under 5 cm deep
+    counted only partly inside the table's.)"""
     s = E.score_method(sway, "layers", true_ground=True)
     assert s.ground_fitted == 1.0 and s.ground_pitch_err_max_deg < 1e-6
     for name in ("chair", "standing", "crate"):
         assert s.per_truth[name]["wobble_p95_m"] <= 0.05, (name, s.per_truth[name])
     assert s.base_err_med_m <= 0.05, s.to_dict()
-    assert s.recall >= 0.85 and s.precision >= 0.8, s.to_dict()
+    assert s.recall >= 0.85 and s.precision == 1.0 and s.split_fp == 0, s.to_dict()
 
 
 def test_sway_the_ground_is_found_every_frame(sway):
@@ -362,7 +364,7 @@ def test_sway_a_table_s_back_leg_is_not_cut_from_it_nor_the_person_behind_joined
     with the table (the layer split once cut it off: a false positive beside the table in most
     frames, precision 91 %), and the person walking behind the table stays apart from it."""
     s = E.score_method(sway, "layers")
-    assert s.recall >= 0.99 and s.precision >= 0.95, s.to_dict()
+    assert s.recall >= 0.99 and s.precision == 1.0, s.to_dict()
 
 
 def test_sway_about_the_ball_the_configured_pivot_places_the_camera():

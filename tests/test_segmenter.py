@@ -900,6 +900,36 @@ def test_a_tracked_object_seen_in_pieces_stays_one_obstacle_and_a_newcomer_besid
                 assert sum(o.bbox_px[2] <= 470 for o in obs) == 2
 
 
+def test_a_thin_piece_wholly_inside_a_tracked_footprint_joins_it():
+    """A table tracked with its legs; this frame its back leg, 3 cm deep on the ground, is seen apart
+    from its front, right at the back edge of the table's footprint: it is a piece of the table, not
+    a thing of its own (the sway scene's table split so in 2 frames). A post 0.3 m behind the
+    footprint stays apart."""
+    from cores.segmentation.builder import _footprint
+    from cores.segmentation.seed import Detection
+    from cores.segmentation.tracking import Track
+
+    mount = Mount(1.0, 10.0)
+    b = ObstacleBuilder(SegmenterSettings(), _mounted(mount))
+    R = mount.R_base_camera
+
+    def piece(x0, x1, y0, y1):  # points of a piece standing on the footprint x0..x1, y0..y1 (base)
+        g = np.stack(np.meshgrid(np.linspace(x0, x1, 12), np.linspace(y0, y1, 12), np.linspace(0.1, 0.7, 5)),
+                     -1).reshape(-1, 3)
+        cam = (g - mount.origin_base) @ R  # base -> camera
+        c = cam.mean(0)
+        return Detection(c, np.ptp(cam, 0), float(np.linalg.norm(c)), (0, 0, 10, 10), 100, 30.0, 1.0), cam
+
+    b.tracker.tracks = [Track(7, np.array([2.3, -0.1, 0.4]), last_seen_s=0.0, confirmed=True,
+                              box=np.array([[2.0, -0.5], [2.6, 0.3]]))]
+    front, leg, post = piece(2.0, 2.1, -0.5, 0.3), piece(2.57, 2.60, -0.45, -0.40), piece(2.9, 2.93, 0.0, 0.05)
+    dets, points = zip(front, leg, post)
+    fps = [_footprint(mount, p) for p in points]
+    out, _, _ = b._merge_fragments(list(dets), list(points), fps, mount, MODEL, 0.1)
+    assert len(out) == 2  # the table (front and leg) and the post
+    assert sorted(round(float(d.size_m[2]), 1) for d in out)[-1] >= 0.5  # the table reaches back to its leg
+
+
 def test_odometry_gives_velocities_over_the_ground():
     from common.messages import Odometry
 
