@@ -529,6 +529,17 @@ def test_the_half_resolution_fallback_after_a_full_resolution_worker_is_not_degr
     assert all(len(o.obstacles) >= 2 for o in lists[7:])
 
 
+def test_maps_that_measure_nothing_say_so_not_that_the_camera_froze():
+    """A live camera whose matcher keeps nothing (every pixel invalid: a speckle filter that takes
+    all, a lens in the dark) gives maps that are all alike: the lists say no-valid-disparity, and
+    not input-frozen, which would send a reader to a camera driver that is fine."""
+    b = ObstacleBuilder(SegmenterSettings(), MountSettings(height_m=1.0, pitch_deg=15.0))
+    empty = np.full((480, 640), np.nan, np.float32)
+    out = [b.process_message(_disparity_message(empty, i), t_s=i / 10) for i in range(12)]
+    assert all(r.obstacles.degraded[:1] == ["no-valid-disparity"] for r in out), [r.obstacles.degraded for r in out]
+    assert not any("input-frozen" in r.obstacles.degraded for r in out)
+
+
 def test_a_camera_that_repeats_its_last_picture_is_said_after_stale_after_s():
     """A hung camera driver goes on sending its last picture with fresh stamps: every map is the same,
     bit for bit, and the lists would look fresh and clear while the world moves. Once the map has not

@@ -420,7 +420,10 @@ class ObstacleBuilder:
         now = time.time_ns()
         valid_fraction = measured_share(disparity, confidence, cfg.min_confidence, flat)
         degraded = []
-        if self.frozen_input.frozen(disparity, t_s):
+        # a map that measured nothing is the same as the last one whatever the camera does (a live
+        # camera whose matcher keeps nothing gave input-frozen beside no-valid-disparity, sending a
+        # reader to a driver that was fine): only maps with something in them tell a stuck picture
+        if valid_fraction >= MIN_VALID_FRACTION and self.frozen_input.frozen(disparity, t_s):
             degraded.append("input-frozen")  # fresh stamps on an old picture: the world it shows is not now's
         if valid_fraction < MIN_VALID_FRACTION:
             degraded.append("no-valid-disparity")
