@@ -13,7 +13,9 @@ Without labels the figures are what a wrong segmenter cannot hide:
   is flat when the 95th percentile height of its pixels (those in its box within a tolerance of
   its disparity) is below FLAT_HEIGHT_M;
 - track life: the share of obstacle sightings within NEAR_M whose track id is seen in at least
-  LONG_TRACK_FRAMES frames of the run, and the median number of frames a track id is seen in;
+  LONG_TRACK_FRAMES frames of the run, and the median number of frames a track id is seen in; and
+  the same share leaving out short tracks the run's ends or the edge of the view cut short (what
+  the tracker lost, not what the camera saw briefly);
 - the segmenter's ground estimates (height, pitch, roll: median and 10th-90th percentile; sources),
   beside the independent road profile's height and pitch;
 - segmentation time per frame (ObstacleBuilder.process only; matching is reported apart).
@@ -39,6 +41,7 @@ FLAT_HEIGHT_M = 0.25  # an obstacle nothing of which stands higher above the roa
 NEAR_M = 20.0  # the track-life figure counts obstacles this near
 LONG_TRACK_FRAMES = 5
 JUMP_M, JUMP_NEAR_M = 2.0, 12.0  # a track's ground position moving this far between sightings this near
+RESTART_M, RESTART_FRAMES = 1.0, 3  # a new track this near a lost one, this soon after: the tracker lost it
 # vision range for recordings when none is configured (the segmenter's default is a small robot's)
 REAL_MAX_RANGE_M = 30.0
 # Targets of issue 10, set for the Karlsruhe recording: (figure, comparison, value)
@@ -227,15 +230,24 @@ def figures(frames: list[FrameRecord]) -> dict:
             seen[i] = seen.get(i, 0) + 1
     near = [o for o in all_obs if o.distance_m <= NEAR_M]
     # a short track that was already there in the first frame or still there in the last may have
-    # lived longer than the run shows (censored): the run's length, not the tracker, cut it short
+    # lived longer than the run shows (censored): the run's length, not the tracker, cut it short. So
+    # may one whose first or last sighting was cut by the edge of the view (truncated: the image's
+    # side, the matcher's blind band, the range): it came into view or left it, and the camera, not
+    # the tracker, saw it so briefly (the street at 14 m/s: a post 3 m to the left is in view from
+    # about 11 m to 7 m, 4 frames)
     first: dict[int, int] = {}
     last_k: dict[int, int] = {}
+    cut_at_ends: dict[int, bool] = {}  # its first or last sighting truncated
     for k, f in enumerate(frames):
         for o in f.obstacles:
-            first.setdefault(o.id, k)
+            if o.id not in first:
+                first[o.id] = k
+                cut_at_ends[o.id] = not o.whole
             last_k[o.id] = k
+    last_cut = {o.id: not o.whole for f in frames for o in f.obstacles}  # each id's last sighting's
     judged_life = [o for o in near if seen[o.id] >= LONG_TRACK_FRAMES
-                   or (first[o.id] > 0 and last_k[o.id] < len(frames) - 1)]
+                   or (first[o.id] > 0 and last_k[o.id] < len(frames) - 1
+                       and not cut_at_ends[o.id] and not last_cut[o.id])]
     # track quality over the ground (with odometry): how often a track's ground position jumps more
     # than JUMP_M between consecutive sightings within JUMP_NEAR_M (a different object took its id,
     # or its detection changed shape), and, on a street that mostly stands still, the speed of whole
@@ -248,6 +260,20 @@ def figures(frames: list[FrameRecord]) -> dict:
             if prev is not None and prev.world_xy and o.world_xy and max(prev.distance_m, o.distance_m) <= JUMP_NEAR_M:
                 steps.append(float(np.hypot(o.world_xy[0] - prev.world_xy[0], o.world_xy[1] - prev.world_xy[1])))
             last[o.id] = o
+    # what the tracker lost: a near track born (after the first frame) within RESTART_M over the
+    # ground of where another was last seen in the RESTART_FRAMES frames before, the same thing
+    # under a new id (odometry needed)
+    restarts, births = 0, 0
+    seen_at: dict[int, tuple[int, tuple[float, float]]] = {}
+    for k, f in enumerate(frames):
+        for o in f.obstacles:
+            if first[o.id] == k and k > 0 and o.distance_m <= NEAR_M and o.world_xy:
+                births += 1
+                restarts += any(k - RESTART_FRAMES <= kl < k and np.hypot(xy[0] - o.world_xy[0], xy[1] - o.world_xy[1])
+                                < RESTART_M and last_k[i] == kl for i, (kl, xy) in seen_at.items())
+        for o in f.obstacles:
+            if o.world_xy:
+                seen_at[o.id] = (k, o.world_xy)
     speeds = [o.speed_mps for o in all_obs if o.speed_mps is not None and o.whole and o.confirmed
               and o.track_frames >= LONG_TRACK_FRAMES and o.distance_m <= NEAR_M]
     grounds = [f.ground for f in frames if f.ground is not None]
@@ -279,6 +305,8 @@ def figures(frames: list[FrameRecord]) -> dict:
         "median_track_frames": float(np.median(list(seen.values()))) if seen else None,
         "track_jump_fraction": (sum(x > JUMP_M for x in steps) / len(steps)) if steps else None,
         "track_steps": len(steps),
+        "track_restart_fraction": (restarts / births) if births else None,
+        "near_births": births,
         "static_speed_mps": _stats(speeds),
         "ground_sources": sources,
         "ground_confidence": _stats([g.get("confidence", 0.0) for g in grounds]),
@@ -338,11 +366,15 @@ def format_report(report: RealReport) -> str:
         f"  near (<= {NEAR_M:g} m) in tracks seen >= {LONG_TRACK_FRAMES} frames  {_pct(f['near_long_track_fraction'])} "
         f"of {f['near_obstacles']}  {target('near_long_track_fraction')}; of the confirmed ones "
         f"{_pct(f['near_confirmed_long_track_fraction'])}; leaving out the {f['near_censored']} of short tracks "
-        f"cut by the run's first or last frame {_pct(f['near_long_track_fraction_uncensored'])}",
+        f"cut short by the run's first or last frame or by the edge of the view (first or last sighting "
+        f"truncated) {_pct(f['near_long_track_fraction_uncensored'])}",
         f"  tracks {f['tracks']}, median frames per track {f['median_track_frames']}, "
         f"confirmed {_pct(f['confirmed_fraction'])} of sightings",
         f"  track jumps > {JUMP_M:g} m over the ground (within {JUMP_NEAR_M:g} m)  "
         f"{_pct(f['track_jump_fraction'])} of {f['track_steps']} steps (odometry needed)",
+        f"  tracks lost and restarted (a near track born within {RESTART_M:g} m over the ground of one last "
+        f"seen in the {RESTART_FRAMES} frames before)  {_pct(f['track_restart_fraction'])} of {f['near_births']} "
+        f"births (odometry needed)",
         f"  speed over the ground of whole confirmed tracks (a parked street: the velocity error)  "
         f"{_fmt_stats(f['static_speed_mps'], 'm/s', 1)}",
         f"  ground (segmenter)       sources {f['ground_sources'] or '-'}; confidence "

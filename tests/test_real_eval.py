@@ -125,7 +125,32 @@ def test_figures_count_flat_obstacles_and_track_life():
     frames[3].obstacles.append(R.ObstacleRecord(4, 6.0, False, 1.0, False))
     f = R.figures(frames)
     assert f["near_censored"] == 2 and f["near_long_track_fraction_uncensored"] == pytest.approx(6 / 7)
+    # one that came into view cut by its edge (a post leaving the matcher's band), or left it so, was
+    # seen briefly by the camera, not lost by the tracker: left out too; cut in its middle only, it counts
+    frames[4].obstacles.append(R.ObstacleRecord(5, 6.0, False, 1.0, False, whole=False))
+    frames[2].obstacles.append(R.ObstacleRecord(6, 7.0, False, 1.0, False))
+    frames[3].obstacles.append(R.ObstacleRecord(6, 7.0, False, 1.0, False, whole=False))
+    frames[4].obstacles.append(R.ObstacleRecord(6, 7.0, False, 1.0, False))
+    f = R.figures(frames)
+    assert f["near_censored"] == 3 and f["near_long_track_fraction_uncensored"] == pytest.approx(6 / 10)
     assert f["targets"]["flat_fraction"]["met"] is False and f["targets"]["median_obstacles_per_frame"]["met"] is True
+
+
+def test_figures_count_a_track_lost_and_born_again_where_it_stood():
+    """A thing tracked over the ground (odometry), lost for a frame and found again under a new id 0.4 m
+    from where it was last seen: a restart, the tracker's loss. A new thing 3 m away, or one born where
+    a track still lives (a neighbour), is not."""
+    def o(i, xy, dist=8.0):
+        return R.ObstacleRecord(i, dist, True, 1.0, False, world_xy=xy)
+
+    frames = [R.FrameRecord(k, f"{k}.png", obs, None, None, 10.0, 20.0, 0.0) for k, obs in enumerate([
+        [o(1, (10.0, 0.0)), o(2, (12.0, 3.0))],
+        [o(1, (10.0, 0.1)), o(2, (12.0, 3.0))],
+        [o(2, (12.0, 3.0))],
+        [o(3, (10.4, 0.1)), o(2, (12.0, 3.0)), o(4, (13.0, 0.0)), o(5, (12.3, 3.0))],
+    ])]
+    f = R.figures(frames)
+    assert f["near_births"] == 3 and f["track_restart_fraction"] == pytest.approx(1 / 3)
 
 
 def test_merge_into_config_keeps_the_file_and_load_settings_reads_it(tmp_path):
