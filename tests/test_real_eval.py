@@ -430,3 +430,82 @@ def test_obstacles_with_only_a_calibration_sees_the_street_and_an_unreachable_ra
         assert f"nothing farther than {far} m is measured" in out.err and "far-unmeasured" in out.err, out.err
         for lst in map(json.loads, out.out.splitlines()):
             assert "far-unmeasured" in lst["degraded"] and "near-unmeasured" not in lst["degraded"], lst["degraded"]
+
+
+# Values far past where a field stops having a bound: what a user may still type
+_FAR = {"texture_threshold": 1000, "speckle_window": 100000, "speckle_range": 1000, "p1": 100000, "p2": 400000,
+        "fill_lambda": 1e7, "fill_sigma_color": 1000.0, "min_range_m": 100.0, "max_range_m": 1000.0,
+        "disp12_max_diff": 1000, "min_pixels": 100000}
+
+
+@pytest.mark.slow
+@needs_karlsruhe
+@pytest.mark.parametrize("part", ["bm", "sgbm", "dense", "segmenter"])
+def test_at_every_end_of_every_setting_no_street_list_is_empty_and_unsaid(part):
+    """The round's rule on the street, setting by setting: each matcher setting of each method, and each
+    segmenter setting, at each end of its range (and far past it where it has none), on the street's
+    first 4 pairs: every list holds obstacles or says why it cannot be trusted. Before their bounds,
+    min_pixels 100000 left 7 of 8 lists empty with nothing said, and min_height_m 5, min_area_m2 100,
+    min_cell_height_m 5 and robot_height_m 0.001 every list."""
+    from pydantic import ValidationError
+    from test_settings_bounds import _ends
+
+    from common.files import read_image
+    from cores.matching.config import MatcherConfig
+    from cores.pipeline import Pipeline
+    from cores.segmentation.settings import SegmenterSettings
+
+    rec = recordings.open_recording(KARLSRUHE)
+    pairs = [tuple(read_image(p) for p in rec.pairs[k]) for k in range(4)]
+    seg = SegmenterSettings(max_range_m=30.0)
+    model = SegmenterSettings if part == "segmenter" else MatcherConfig
+    runs = _ends(model) + [(n, v) for n, v in _FAR.items() if n in model.model_fields]
+    reference = Pipeline(rec.calibration, MatcherConfig(), seg)
+    fronts = [reference.front(left, right, t_s=rec.stamps_s[k]) for k, (left, right) in enumerate(pairs)]
+    tried, unsaid = 0, []
+    for name, value in runs:
+        if name in ("threads",):
+            continue
+        try:
+            if part == "segmenter":
+                pipe = reference.fork(SegmenterSettings(**{"max_range_m": 30.0, name: value}))
+            else:
+                pipe = Pipeline(rec.calibration, MatcherConfig(method=part, **{name: value}), seg)
+        except (ValidationError, BallbotError):
+            continue  # refused, with a message naming it
+        tried += 1
+        for k, (left, right) in enumerate(pairs):
+            if part == "segmenter":
+                m = fronts[k]
+                lst = pipe.segment(m.stage, t_s=rec.stamps_s[k], seq=k, image=m.left, checks=m.checks).obstacles
+            else:
+                lst = pipe.process(left, right, t_s=rec.stamps_s[k], seq=k).result.obstacles
+            if not lst.obstacles and not lst.degraded:
+                unsaid.append((name, value, k))
+    assert tried >= 20 and not unsaid, unsaid
+
+
+@pytest.mark.slow
+@needs_karlsruhe
+def test_the_street_keeps_its_near_things_and_their_ids_at_the_ends_of_the_size_floor_and_the_gate():
+    """min_pixels is a floor for noise in pixels: far, small things are what it can lose. At its end
+    (24) every confirmed obstacle within 10 m of the street's first 15 lists is still listed (at 50
+    some went unsaid, at 100000 every list was empty). track_gate_m at its end (0.9 m) keeps ids on
+    their things: at most 5 % of the tracks' steps over the ground jump more than 2 m (at 100 m: 26 %,
+    and the lists joined into lumps with parked cars moving at 6 m/s)."""
+    from cores.matching.config import MatcherConfig
+    from cores.segmentation.settings import SegmenterSettings
+
+    rec = recordings.open_recording(KARLSRUHE)
+
+    def near_confirmed(**over) -> int:
+        report = R.evaluate_recording(rec, SegmenterSettings(max_range_m=30.0, **over),
+                                      MatcherConfig(num_disparities="auto"), frames=15)
+        return sum(o.confirmed and o.distance_m <= 10.0 for f in report.frames for o in f.obstacles)
+
+    assert near_confirmed(min_pixels=SegmenterSettings.model_fields["min_pixels"].metadata[-1].le) >= \
+        near_confirmed() > 20
+    gate = SegmenterSettings.model_fields["track_gate_m"].metadata[-1].le
+    f = R.evaluate_recording(rec, SegmenterSettings(max_range_m=30.0, track_gate_m=gate),
+                             MatcherConfig(num_disparities="auto")).figures
+    assert f["track_steps"] > 100 and f["track_jump_fraction"] <= 0.05, f

@@ -249,16 +249,18 @@ def test_a_rule_across_settings_names_each_setting_and_where_it_was_set(tmp_path
 
 
 @pytest.mark.parametrize("name, value", [("min_height_m", 5), ("min_area_m2", 100), ("min_cell_height_m", 5),
-                                         ("min_size_m", 10), ("floor_margin_m", 1), ("floor_margin_m", 0.02),
+                                         ("min_pixels", 100000), ("min_size_m", 10), ("floor_margin_m", 1),
+                                         ("floor_margin_m", 0.02),
                                          ("ground_noise_px", 10), ("group_bin_px", 0.1), ("group_bin_px", 16),
                                          ("merge_gap_m", 10), ("merge_gap_depth_m", 10), ("min_cell_height_m", 0),
                                          ("layer_valley_ratio", 0), ("layer_min_area_m2", 100), ("layer_gap_m", 100),
-                                         ("layer_bridge_px", 0), ("layer_split_range_m", 0)])
+                                         ("layer_bridge_px", 0), ("layer_split_range_m", 0), ("track_gate_m", 100)])
 def test_what_decides_an_obstacle_is_refused_past_where_the_lists_hold_what_stands(tmp_path, name, value):
     """Each of these at an old end of its range emptied or thinned the lists with no degraded reason (the
-    street's lists empty at min_height_m 5, min_area_m2 100, min_cell_height_m 5; the sway's people merged
-    with the furniture with the depth split off); now a settings error naming it. That the lists hold what
-    stands up to the new ends is tests/test_eval.py's."""
+    street's lists empty at min_height_m 5, min_area_m2 100, min_cell_height_m 5, min_pixels 100000; the
+    sway's people merged with the furniture with the depth split off); now a settings error naming it.
+    That the lists hold what stands up to the new ends is tests/test_eval.py's (min_pixels':
+    tests/test_real_eval.py, on the street)."""
     cfg = tmp_path / "robot.yaml"
     cfg.write_text(f"segmenter:\n  {name}: {value}\n")
     with pytest.raises(ConfigError, match=rf"segmenter\.{name}: .*(less|greater) than or equal"):
@@ -268,6 +270,7 @@ def test_what_decides_an_obstacle_is_refused_past_where_the_lists_hold_what_stan
 @pytest.mark.parametrize("module, cls, name, value", [
     ("cores.segmentation.settings", "SegmenterSettings", "stale_after_s", 60),
     ("cores.segmentation.settings", "SegmenterSettings", "odometry_timeout_s", 60),
+    ("cores.segmentation.settings", "SegmenterSettings", "track_timeout_s", 3600),
     ("services.rectify.main", "RectifySettings", "frozen_after_s", 3600),
     ("services.disparity.main", "DisparitySettings", "max_age_ms", 60000)])
 def test_how_long_a_stopped_input_may_go_unsaid_is_seconds_not_an_hour(tmp_path, module, cls, name, value):
