@@ -237,17 +237,18 @@ def figures(frames: list[FrameRecord]) -> dict:
     # about 11 m to 7 m, 4 frames)
     first: dict[int, int] = {}
     last_k: dict[int, int] = {}
-    cut_at_ends: dict[int, bool] = {}  # its first or last sighting truncated
+    first_cut: dict[int, bool] = {}  # its first sighting truncated
+    last_cut: dict[int, bool] = {}  # its last sighting truncated
     for k, f in enumerate(frames):
         for o in f.obstacles:
             if o.id not in first:
                 first[o.id] = k
-                cut_at_ends[o.id] = not o.whole
+                first_cut[o.id] = not o.whole
             last_k[o.id] = k
-    last_cut = {o.id: not o.whole for f in frames for o in f.obstacles}  # each id's last sighting's
+            last_cut[o.id] = not o.whole
     judged_life = [o for o in near if seen[o.id] >= LONG_TRACK_FRAMES
                    or (first[o.id] > 0 and last_k[o.id] < len(frames) - 1
-                       and not cut_at_ends[o.id] and not last_cut[o.id])]
+                       and not first_cut[o.id] and not last_cut[o.id])]
     # track quality over the ground (with odometry): how often a track's ground position jumps more
     # than JUMP_M between consecutive sightings within JUMP_NEAR_M (a different object took its id,
     # or its detection changed shape), and, on a street that mostly stands still, the speed of whole

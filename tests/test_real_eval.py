@@ -493,9 +493,14 @@ def test_the_street_keeps_its_near_things_and_their_ids_at_the_ends_of_the_size_
     some went unsaid, at 100000 every list was empty). track_gate_m at its end (0.9 m) keeps ids on
     their things: at most 5 % of the tracks' steps over the ground jump more than 2 m (at 100 m: 26 %,
     and the lists joined into lumps with parked cars moving at 6 m/s)."""
+    from test_settings_bounds import _ends
+
     from cores.matching.config import MatcherConfig
     from cores.segmentation.settings import SegmenterSettings
 
+    top: dict[str, float] = {}  # the upper ends
+    for name, value in _ends(SegmenterSettings):
+        top[name] = max(value, top.get(name, value))
     rec = recordings.open_recording(KARLSRUHE)
 
     def near_confirmed(**over) -> int:
@@ -503,9 +508,7 @@ def test_the_street_keeps_its_near_things_and_their_ids_at_the_ends_of_the_size_
                                       MatcherConfig(num_disparities="auto"), frames=15)
         return sum(o.confirmed and o.distance_m <= 10.0 for f in report.frames for o in f.obstacles)
 
-    assert near_confirmed(min_pixels=SegmenterSettings.model_fields["min_pixels"].metadata[-1].le) >= \
-        near_confirmed() > 20
-    gate = SegmenterSettings.model_fields["track_gate_m"].metadata[-1].le
-    f = R.evaluate_recording(rec, SegmenterSettings(max_range_m=30.0, track_gate_m=gate),
+    assert near_confirmed(min_pixels=top["min_pixels"]) >= near_confirmed() > 20
+    f = R.evaluate_recording(rec, SegmenterSettings(max_range_m=30.0, track_gate_m=top["track_gate_m"]),
                              MatcherConfig(num_disparities="auto")).figures
     assert f["track_steps"] > 100 and f["track_jump_fraction"] <= 0.05, f
